@@ -1,0 +1,13 @@
+"""Command line: each sub-command lives in its own module and only parses and calls."""
+
+import sys
+
+from spacepose.cli import version  # noqa: F401  (importing a module registers its command)
+from spacepose.cli.app import app, main
+
+__all__ = ["app", "main", "run"]
+
+
+def run() -> None:
+    """Console-script entry point."""
+    sys.exit(main())

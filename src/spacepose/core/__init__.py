@@ -1,0 +1,1 @@
+"""Pure computation: no file I/O, no plotting, no printing."""

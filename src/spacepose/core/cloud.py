@@ -1,0 +1,110 @@
+"""The point cloud type every stage takes and returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from spacepose.core import se3
+from spacepose.errors import InputError
+
+
+@dataclass(frozen=True, eq=False)
+class PointCloud:
+    """Points with optional normals and per-point noise σ, validated on construction.
+
+    Parameters
+    ----------
+    points
+        (N, 3) coordinates in metres, in the frame the caller says (usually the sensor frame).
+    normals
+        Optional (N, 3) unit normals in the same frame.
+    sigma
+        Optional (N,) per-point noise standard deviation in metres.
+    source
+        Where the data came from (a file name); used in error messages.
+
+    Notes
+    -----
+    Rows with a non-finite coordinate (or normal, or σ) are dropped and counted in ``n_dropped``
+    rather than poisoning every later stage. A cloud with no finite row raises
+    :class:`~spacepose.errors.InputError`: an empty cloud is never silently accepted.
+    """
+
+    points: NDArray[np.float64]
+    normals: NDArray[np.float64] | None = None
+    sigma: NDArray[np.float64] | None = None
+    source: str | None = None
+    n_dropped: int = field(default=0)
+
+    def __post_init__(self) -> None:
+        pts = _as_rows(self.points, 3, "points", self.source)
+        n = len(pts)
+        normals = None if self.normals is None else _as_rows(self.normals, 3, "normals", self.source)
+        sigma = None if self.sigma is None else np.asarray(self.sigma, dtype=np.float64).reshape(-1)
+        if normals is not None and len(normals) != n:
+            raise InputError(f"{len(normals)} normals for {n} points", self.source)
+        if sigma is not None and len(sigma) != n:
+            raise InputError(f"{len(sigma)} sigma values for {n} points", self.source)
+        keep = np.isfinite(pts).all(axis=1)
+        if normals is not None:
+            keep &= np.isfinite(normals).all(axis=1)
+        if sigma is not None:
+            keep &= np.isfinite(sigma)
+        n_keep = int(keep.sum())
+        if n_keep == 0:
+            what = "is empty" if n == 0 else f"has no finite point (all {n} rows NaN/inf)"
+            raise InputError(f"point cloud {what}", self.source)
+        if n_keep < n:
+            pts = pts[keep]
+            normals = None if normals is None else normals[keep]
+            sigma = None if sigma is None else sigma[keep]
+        for name, value in (("points", pts), ("normals", normals), ("sigma", sigma)):
+            if value is not None:
+                value = np.ascontiguousarray(value)
+                value.setflags(write=False)
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "n_dropped", self.n_dropped + (n - n_keep))
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def has_normals(self) -> bool:
+        return self.normals is not None
+
+    def select(self, index: ArrayLike) -> PointCloud:
+        """Subset by integer index or boolean mask; normals and σ follow."""
+        idx = np.asarray(index)
+        return PointCloud(
+            self.points[idx],
+            None if self.normals is None else self.normals[idx],
+            None if self.sigma is None else self.sigma[idx],
+            source=self.source,
+        )
+
+    def transformed(self, T_a_b: ArrayLike) -> PointCloud:
+        """The cloud mapped from its frame b into frame a by ``T_a_b`` (normals rotated)."""
+        T_a_b = se3.as_transform(T_a_b, "T_a_b")
+        return PointCloud(
+            se3.transform_points(T_a_b, self.points),
+            None if self.normals is None else se3.rotate_vectors(T_a_b, self.normals),
+            self.sigma,
+            source=self.source,
+        )
+
+    def with_normals(self, normals: ArrayLike) -> PointCloud:
+        """A copy carrying the given (N, 3) normals."""
+        return PointCloud(self.points, normals, self.sigma, source=self.source)
+
+
+def _as_rows(values: ArrayLike, width: int, name: str, source: str | None) -> NDArray[np.float64]:
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} are not numeric: {exc}", source) from None
+    if arr.ndim != 2 or arr.shape[1] != width:
+        raise InputError(f"{name} must have shape (N, {width}), got {arr.shape}", source)
+    return arr

@@ -1,0 +1,107 @@
+"""What every registration returns, and the closed-form rigid fit they share."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from spacepose.errors import DegenerateGeometryError, InputError
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """Outcome of aligning a source cloud to a target cloud.
+
+    Attributes
+    ----------
+    T_target_source
+        (4, 4) transform mapping source coordinates into the target frame.
+    fitness
+        Share of source points with a correspondence within the maximum distance, in [0, 1].
+    inlier_rmse
+        RMS distance of those correspondences, metres.
+    iterations
+        Iterations run (RANSAC: hypotheses evaluated).
+    converged
+        Whether the stopping criterion was met before the iteration limit.
+    information
+        (6, 6) information matrix ``JᵀWJ`` of the final residuals, twist order ``(omega, v)``,
+        left perturbation of ``T_target_source``; in units of 1/σ² when the residuals are
+        weighted by their noise, otherwise of 1/m² (scale by 1/σ² for a covariance).
+    n_correspondences
+        Number of inlier correspondences behind ``fitness`` and ``information``.
+    """
+
+    T_target_source: NDArray[np.float64]
+    fitness: float
+    inlier_rmse: float
+    iterations: int
+    converged: bool
+    information: NDArray[np.float64] = field(default_factory=lambda: np.zeros((6, 6)))
+    n_correspondences: int = 0
+
+    def covariance(self, sigma: float | None = None) -> NDArray[np.float64]:
+        """6×6 covariance ``σ² · information⁻¹`` (pseudo-inverse where unconstrained).
+
+        Parameters
+        ----------
+        sigma
+            Residual standard deviation (m) when ``information`` is unweighted; defaults to the
+            inlier RMSE. Pass 1.0 when the information is already noise-weighted.
+        """
+        s = self.inlier_rmse if sigma is None else sigma
+        return s**2 * np.linalg.pinv(self.information, hermitian=True)
+
+    @property
+    def condition_number(self) -> float:
+        """Ratio of the largest to the smallest eigenvalue of ``information`` (inf if singular)."""
+        ev = np.linalg.eigvalsh(self.information)
+        return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
+
+
+def kabsch(
+    source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None
+) -> NDArray[np.float64]:
+    """Least-squares rigid transform ``T_target_source`` from paired points (Kabsch/Umeyama).
+
+    Batched: ``source`` and ``target`` are (..., M, 3) with matching shapes, ``weights`` (..., M);
+    returns (..., 4, 4). Minimises ``Σ w_i ‖R s_i + t − d_i‖²`` with ``det R = +1``.
+
+    Raises
+    ------
+    InputError
+        On mismatched shapes or fewer than 3 pairs.
+    DegenerateGeometryError
+        When a (single, unbatched) set of pairs is collinear, so the rotation is undetermined.
+    """
+    src = np.asarray(source, dtype=np.float64)
+    dst = np.asarray(target, dtype=np.float64)
+    if src.shape != dst.shape or src.ndim < 2 or src.shape[-1] != 3:
+        raise InputError(f"kabsch needs matching (..., M, 3) arrays, got {src.shape}, {dst.shape}")
+    if src.shape[-2] < 3:
+        raise InputError(f"kabsch needs at least 3 point pairs, got {src.shape[-2]}")
+    w = np.ones(src.shape[:-1]) if weights is None else np.broadcast_to(weights, src.shape[:-1])
+    wsum = w.sum(axis=-1, keepdims=True)
+    mu_s = np.einsum("...m,...mi->...i", w, src) / wsum
+    mu_d = np.einsum("...m,...mi->...i", w, dst) / wsum
+    cs = src - mu_s[..., None, :]
+    cd = dst - mu_d[..., None, :]
+    H = np.einsum("...m,...mi,...mj->...ij", w, cs, cd)
+    U, S, Vt = np.linalg.svd(H)
+    if src.ndim == 2 and S[1] <= 1e-12 * max(S[0], 1e-300):
+        raise DegenerateGeometryError("kabsch: the point pairs are collinear or coincident")
+    # Reflection guard: flip the last singular direction when det(V Uᵀ) < 0.
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
+    d = np.where(d == 0, 1.0, d)
+    D = np.zeros((*d.shape, 3, 3))
+    D[..., 0, 0] = 1.0
+    D[..., 1, 1] = 1.0
+    D[..., 2, 2] = d
+    R = np.swapaxes(Vt, -1, -2) @ D @ np.swapaxes(U, -1, -2)
+    T = np.zeros((*src.shape[:-2], 4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = mu_d - np.einsum("...ij,...j->...i", R, mu_s)
+    T[..., 3, 3] = 1.0
+    return T

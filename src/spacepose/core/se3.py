@@ -1,0 +1,165 @@
+"""Rigid transforms on SE(3), built on :class:`scipy.spatial.transform.Rotation`.
+
+Conventions (METHODS §0)
+------------------------
+* ``T_a_b`` is a 4×4 float64 matrix mapping coordinates in frame b into frame a.
+* A twist ``xi`` is a 6-vector ``(omega, v)``: rotation first, then translation, the same order
+  as every 6×6 information matrix and covariance in the package.
+* Perturbations are applied on the left: ``T ← exp(delta) @ T``, so ``delta`` is expressed in
+  the frame the transform maps into.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from spacepose.errors import InputError
+
+_SMALL_ANGLE = 1e-8
+
+
+def as_transform(T: ArrayLike, name: str = "transform") -> NDArray[np.float64]:
+    """Validate and return ``T`` as a 4×4 float64 homogeneous transform.
+
+    Raises
+    ------
+    InputError
+        If the shape is not 4×4, an entry is not finite, the last row is not (0, 0, 0, 1) or the
+        rotation block is not orthonormal with determinant +1 (tolerance 1e-6).
+    """
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"{name} must be a 4x4 matrix, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise InputError(f"{name} has non-finite entries")
+    if not np.allclose(T[3], (0.0, 0.0, 0.0, 1.0), atol=1e-9):
+        raise InputError(f"{name} last row must be (0, 0, 0, 1), got {T[3]}")
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InputError(f"{name} rotation block is not a proper rotation")
+    return T
+
+
+def make_transform(R: ArrayLike | Rotation, t: ArrayLike) -> NDArray[np.float64]:
+    """Build ``T`` (4×4) from a rotation (3×3 matrix or ``Rotation``) and a translation (3,)."""
+    T = np.eye(4)
+    T[:3, :3] = R.as_matrix() if isinstance(R, Rotation) else np.asarray(R, dtype=np.float64)
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert(T: ArrayLike) -> NDArray[np.float64]:
+    """Inverse of a rigid transform (or a stack ``(..., 4, 4)``) without a general matrix inverse."""
+    T = np.asarray(T, dtype=np.float64)
+    Rt = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def compose(*transforms: ArrayLike) -> NDArray[np.float64]:
+    """Product ``T1 @ T2 @ ...`` of rigid transforms (``compose(T_a_b, T_b_c) = T_a_c``)."""
+    out = np.eye(4)
+    for T in transforms:
+        out = out @ np.asarray(T, dtype=np.float64)
+    return out
+
+
+def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> NDArray[np.float64]:
+    """Map points (N, 3) given in frame b into frame a."""
+    T_a_b = np.asarray(T_a_b, dtype=np.float64)
+    return np.asarray(points_b, dtype=np.float64) @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def rotate_vectors(T_a_b: ArrayLike, vectors_b: ArrayLike) -> NDArray[np.float64]:
+    """Rotate direction vectors (N, 3), e.g. normals, from frame b into frame a."""
+    return np.asarray(vectors_b, dtype=np.float64) @ np.asarray(T_a_b, dtype=np.float64)[:3, :3].T
+
+
+def skew(v: ArrayLike) -> NDArray[np.float64]:
+    """Cross-product matrices: (3,) -> (3, 3), or (N, 3) -> (N, 3, 3), with ``skew(a) @ b = a × b``."""
+    v = np.asarray(v, dtype=np.float64)
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def _left_jacobian_so3(omega: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Left Jacobian V of SO(3), so that ``exp((omega, v))`` has translation ``V @ v``."""
+    theta = float(np.linalg.norm(omega))
+    W = skew(omega)
+    if theta < _SMALL_ANGLE:
+        return np.eye(3) + 0.5 * W
+    a = (1.0 - np.cos(theta)) / theta**2
+    b = (theta - np.sin(theta)) / theta**3
+    return np.eye(3) + a * W + b * (W @ W)
+
+
+def exp(xi: ArrayLike) -> NDArray[np.float64]:
+    """Exponential map: twist ``(omega, v)`` (6,) -> transform (4, 4)."""
+    xi = np.asarray(xi, dtype=np.float64).reshape(6)
+    omega, v = xi[:3], xi[3:]
+    return make_transform(Rotation.from_rotvec(omega), _left_jacobian_so3(omega) @ v)
+
+
+def log(T: ArrayLike) -> NDArray[np.float64]:
+    """Logarithm map: transform (4, 4) -> twist ``(omega, v)`` (6,). Inverse of :func:`exp`."""
+    T = np.asarray(T, dtype=np.float64)
+    omega = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    v = np.linalg.solve(_left_jacobian_so3(omega), T[:3, 3])
+    return np.concatenate([omega, v])
+
+
+def geodesic_mean(
+    transforms: ArrayLike,
+    weights: ArrayLike | None = None,
+    *,
+    max_iterations: int = 50,
+    tolerance: float = 1e-12,
+) -> NDArray[np.float64]:
+    """Weighted Karcher mean of rigid transforms on SE(3).
+
+    Parameters
+    ----------
+    transforms
+        Stack (M, 4, 4) of transforms mapping the same frames.
+    weights
+        Non-negative weights (M,), normalised internally; uniform when omitted.
+
+    Returns
+    -------
+    The transform minimising the weighted sum of squared twist distances (Gauss-Newton on the
+    left-perturbation tangent space, started at the first transform).
+    """
+    Ts = np.asarray(transforms, dtype=np.float64)
+    if Ts.ndim != 3 or Ts.shape[1:] != (4, 4) or len(Ts) == 0:
+        raise InputError(f"geodesic_mean needs a non-empty (M, 4, 4) stack, got {Ts.shape}")
+    w = np.ones(len(Ts)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if w.shape != (len(Ts),) or np.any(w < 0) or w.sum() <= 0:
+        raise InputError("geodesic_mean weights must be non-negative, one per transform, not all 0")
+    w = w / w.sum()
+    mean = Ts[0].copy()
+    for _ in range(max_iterations):
+        mean_inv = invert(mean)
+        step = sum(wi * log(T @ mean_inv) for wi, T in zip(w, Ts, strict=True))
+        mean = exp(step) @ mean
+        if float(np.dot(step, step)) < tolerance**2:
+            break
+    return mean
+
+
+def adjoint(T: ArrayLike) -> NDArray[np.float64]:
+    """6×6 adjoint of T for twists ordered ``(omega, v)``: ``exp(Ad_T xi) = T exp(xi) T⁻¹``."""
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, 3:] = R
+    Ad[3:, :3] = skew(t) @ R
+    return Ad

@@ -1,0 +1,48 @@
+"""The package's exceptions.
+
+Every error spacepose raises on purpose derives from :class:`SpaceposeError`, so a caller (and the
+CLI, which maps it to a one-line message and exit code 1) can tell a problem with the input or the
+configuration from a bug.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class SpaceposeError(Exception):
+    """Base class of every error spacepose raises on purpose."""
+
+
+class InputError(SpaceposeError, ValueError):
+    """Bad input data: wrong shape, empty, non-finite, too few points.
+
+    Parameters
+    ----------
+    message
+        What is wrong, in one sentence.
+    source
+        The file (or other named source) the data came from, if any; it is prefixed to the
+        message so the user sees which file is at fault.
+    """
+
+    def __init__(self, message: str, source: str | Path | None = None) -> None:
+        self.source = None if source is None else str(source)
+        self.reason = message
+        super().__init__(f"{self.source}: {message}" if self.source else message)
+
+
+class FileFormatError(InputError):
+    """A file that cannot be read: unknown extension, corrupt or truncated content, bad header."""
+
+
+class DegenerateGeometryError(InputError):
+    """Geometry that does not determine the quantity asked for (collinear points, a lone plane...)."""
+
+
+class ConfigError(SpaceposeError, ValueError):
+    """An invalid configuration: unknown option, value out of range, unreadable config file."""
+
+
+class RegistrationError(SpaceposeError):
+    """A registration that cannot produce a transform (no correspondences, no consensus)."""

@@ -1,0 +1,1 @@
+"""File I/O, run folders, plots, reports, benchmarks and campaigns on top of the core."""
