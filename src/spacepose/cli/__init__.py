@@ -2,7 +2,10 @@
 
 import sys
 
-from spacepose.cli import version  # noqa: F401  (importing a module registers its command)
+from spacepose.cli import (  # noqa: F401  (importing a module registers its command)
+    experiment,
+    version,
+)
 from spacepose.cli.app import app, main
 
 __all__ = ["app", "main", "run"]

@@ -1,0 +1,69 @@
+"""Reproductions of the papers' experiments (METHODS §1.7 and §2.5) on the simulator.
+
+Each experiment is a function ``(out_dir, options) -> dict`` registered under a name such as
+``li-l3`` or ``yu-y1``; it writes its tables (JSON) and figures (PNG) into ``out_dir`` and returns
+the table it wrote. Modules are imported on first use so the CLI starts fast.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from spacepose.errors import ConfigError
+
+# Modules that register experiments when imported.
+_MODULES: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class ExperimentOptions:
+    """Options every experiment accepts.
+
+    Attributes
+    ----------
+    seed
+        Seed of every random draw in the experiment.
+    quick
+        Smaller sizes and fewer repetitions, for tests and smoke runs.
+    workers
+        Threads for neighbour searches (-1: all cores).
+    """
+
+    seed: int = 0
+    quick: bool = False
+    workers: int = -1
+
+
+Experiment = Callable[[Path, ExperimentOptions], dict[str, Any]]
+_REGISTRY: dict[str, Experiment] = {}
+
+
+def register(name: str) -> Callable[[Experiment], Experiment]:
+    """Decorator that makes an experiment available under ``name``."""
+
+    def wrap(fn: Experiment) -> Experiment:
+        _REGISTRY[name] = fn
+        return fn
+
+    return wrap
+
+
+def available() -> list[str]:
+    """Names of every registered experiment, sorted."""
+    for module in _MODULES:
+        importlib.import_module(f"spacepose.tools.experiments.{module}")
+    return sorted(_REGISTRY)
+
+
+def run_experiment(name: str, out_dir: str | Path, options: ExperimentOptions) -> dict[str, Any]:
+    """Run the experiment ``name``, writing into ``out_dir``; returns its result table."""
+    names = available()
+    if name not in _REGISTRY:
+        raise ConfigError(f"unknown experiment {name!r}; choose one of: {', '.join(names)}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    return _REGISTRY[name](out, options)
