@@ -37,7 +37,7 @@ class FileFormatError(InputError):
 
 
 class DegenerateGeometryError(InputError):
-    """Geometry that does not determine the quantity asked for (collinear points, a lone plane...)."""
+    """Geometry that does not determine the quantity asked for (collinear points, one plane)."""
 
 
 class ConfigError(SpaceposeError, ValueError):

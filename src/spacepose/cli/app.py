@@ -11,7 +11,7 @@ from spacepose.errors import SpaceposeError
 
 app = typer.Typer(
     name="spacepose",
-    help="Pose and tumbling-motion estimation of non-cooperative space targets from 3D point clouds.",
+    help="Pose and tumbling motion of non-cooperative space targets from 3D point clouds.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,

@@ -42,7 +42,9 @@ class PointCloud:
     def __post_init__(self) -> None:
         pts = _as_rows(self.points, 3, "points", self.source)
         n = len(pts)
-        normals = None if self.normals is None else _as_rows(self.normals, 3, "normals", self.source)
+        normals = self.normals
+        if normals is not None:
+            normals = _as_rows(normals, 3, "normals", self.source)
         sigma = None if self.sigma is None else np.asarray(self.sigma, dtype=np.float64).reshape(-1)
         if normals is not None and len(normals) != n:
             raise InputError(f"{len(normals)} normals for {n} points", self.source)

@@ -51,7 +51,7 @@ def make_transform(R: ArrayLike | Rotation, t: ArrayLike) -> NDArray[np.float64]
 
 
 def invert(T: ArrayLike) -> NDArray[np.float64]:
-    """Inverse of a rigid transform (or a stack ``(..., 4, 4)``) without a general matrix inverse."""
+    """Inverse of a rigid transform, or of a stack (..., 4, 4), without a general inverse."""
     T = np.asarray(T, dtype=np.float64)
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
     out = np.zeros_like(T)
@@ -81,7 +81,7 @@ def rotate_vectors(T_a_b: ArrayLike, vectors_b: ArrayLike) -> NDArray[np.float64
 
 
 def skew(v: ArrayLike) -> NDArray[np.float64]:
-    """Cross-product matrices: (3,) -> (3, 3), or (N, 3) -> (N, 3, 3), with ``skew(a) @ b = a × b``."""
+    """Cross-product matrices (..., 3) -> (..., 3, 3), with ``skew(a) @ b = a × b``."""
     v = np.asarray(v, dtype=np.float64)
     out = np.zeros((*v.shape[:-1], 3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
