@@ -1,0 +1,188 @@
+"""Trajectory files: TUM (``t tx ty tz qx qy qz qw``) and KITTI (3×4 row-major per line).
+
+TUM is the project's exchange format (METHODS §0); it is what ``evo_ape tum ref est`` reads.
+Quaternions are scalar-last, as in scipy. Values are written with 17 significant digits so a
+write/read round trip reproduces the poses to float64 precision.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from spacepose.core.trajectory import Trajectory
+from spacepose.errors import FileFormatError, InputError
+
+_TUM_COLUMNS = 8
+_KITTI_COLUMNS = 12
+_FMT = "%.17g"
+
+
+def _read_rows(path: Path, width: int, kind: str) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Numeric rows of a whitespace-separated file, skipping blank lines and ``#`` comments.
+
+    Returns the (M, width) values and the 1-based line number of each row, so errors found later
+    (e.g. a zero quaternion) can name the line.
+    """
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise FileFormatError("no such file", path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"cannot read {kind} file: {exc}", path) from None
+    tokens: list[list[str]] = []
+    numbers: list[int] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        body = line.split("#", 1)[0].replace(",", " ").split()
+        if not body:
+            continue
+        if len(body) != width:
+            raise FileFormatError(
+                f"line {lineno}: expected {width} values for {kind}, got {len(body)}", path
+            )
+        tokens.append(body)
+        numbers.append(lineno)
+    if not tokens:
+        raise FileFormatError(f"no {kind} poses in file", path)
+    try:
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        values = None
+    if values is None or not np.all(np.isfinite(values)):
+        # Only on failure: find the first offending line for the message.
+        for body, lineno in zip(tokens, numbers, strict=True):
+            try:
+                row = np.array(body, dtype=np.float64)
+            except ValueError:
+                raise FileFormatError(f"line {lineno}: not a number in {body}", path) from None
+            if not np.all(np.isfinite(row)):
+                raise FileFormatError(f"line {lineno}: non-finite value", path)
+    return values, np.asarray(numbers)
+
+
+def _trajectory(
+    path: Path, timestamps: ArrayLike, poses: NDArray[np.float64], lines: NDArray[np.int64]
+) -> Trajectory:
+    try:
+        return Trajectory(timestamps, poses, source=str(path))
+    except InputError as exc:
+        # Translate "pose k" into the file's line number.
+        msg = exc.reason
+        if msg.startswith("pose "):
+            k = int(msg.split()[1])
+            msg = f"line {lines[k]}: {msg}"
+        raise FileFormatError(msg, path) from None
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file.
+
+    Parameters
+    ----------
+    path
+        Text file, one pose per line: ``timestamp tx ty tz qx qy qz qw`` (quaternion
+        scalar-last, normalised on reading); blank lines and ``#`` comments are skipped.
+
+    Returns
+    -------
+    Trajectory with ``poses[k]`` the 4×4 transform of line k (e.g. ``T_sensor_target``).
+
+    Raises
+    ------
+    FileFormatError
+        Missing file, wrong number of columns, non-numeric or non-finite value, or zero
+        quaternion; the message names the file and line.
+    """
+    path = Path(path)
+    rows, lines = _read_rows(path, _TUM_COLUMNS, "TUM")
+    quat = rows[:, 4:8]
+    norms = np.linalg.norm(quat, axis=1)
+    bad = norms < 1e-12
+    if bad.any():
+        raise FileFormatError(f"line {lines[np.argmax(bad)]}: zero quaternion", path)
+    poses = np.zeros((len(rows), 4, 4))
+    poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
+    poses[:, :3, 3] = rows[:, 1:4]
+    poses[:, 3, 3] = 1.0
+    return _trajectory(path, rows[:, 0], poses, lines)
+
+
+def write_tum(path: str | Path, traj: Trajectory) -> Path:
+    """Write ``traj`` as a TUM file (quaternion with ``qw >= 0``); returns the path."""
+    path = Path(path)
+    quat = Rotation.from_matrix(traj.poses[:, :3, :3]).as_quat()
+    # One sign per rotation, so the same poses always produce the same bytes.
+    quat[quat[:, 3] < 0] *= -1.0
+    table = np.column_stack([traj.timestamps, traj.positions, quat])
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, table, fmt=_FMT, header="timestamp tx ty tz qx qy qz qw")
+    return path
+
+
+def read_kitti(path: str | Path, timestamps: ArrayLike | None = None) -> Trajectory:
+    """Read a KITTI pose file: 12 numbers per line, the top 3×4 block of the pose, row-major.
+
+    Parameters
+    ----------
+    path
+        The pose file.
+    timestamps
+        (N,) times of the poses; KITTI files carry none, so ``0, 1, 2, ...`` when omitted.
+
+    Raises
+    ------
+    FileFormatError
+        As :func:`read_tum`, or when a 3×3 block is not a rotation, or the number of timestamps
+        does not match the number of poses.
+    """
+    path = Path(path)
+    rows, lines = _read_rows(path, _KITTI_COLUMNS, "KITTI")
+    poses = np.zeros((len(rows), 4, 4))
+    poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    poses[:, 3, 3] = 1.0
+    t = np.arange(len(rows), dtype=np.float64) if timestamps is None else timestamps
+    return _trajectory(path, t, poses, lines)
+
+
+def write_kitti(path: str | Path, traj: Trajectory) -> Path:
+    """Write ``traj`` as a KITTI pose file (timestamps are not stored); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savetxt(path, traj.poses[:, :3, :].reshape(-1, 12), fmt=_FMT)
+    return path
+
+
+def read_trajectory(path: str | Path) -> Trajectory:
+    """Read a TUM or KITTI file, telling them apart by extension or column count.
+
+    ``.kitti`` is KITTI and ``.tum`` is TUM; for any other extension the number of values on the
+    first data line decides (8: TUM, 12: KITTI).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".tum":
+        return read_tum(path)
+    if suffix == ".kitti":
+        return read_kitti(path)
+    try:
+        with path.open() as fh:
+            first = next(
+                (b for b in (ln.split("#", 1)[0].replace(",", " ").split() for ln in fh) if b),
+                [],
+            )
+    except FileNotFoundError:
+        raise FileFormatError("no such file", path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"cannot read trajectory file: {exc}", path) from None
+    if len(first) == _TUM_COLUMNS:
+        return read_tum(path)
+    if len(first) == _KITTI_COLUMNS:
+        return read_kitti(path)
+    raise FileFormatError(
+        f"not a trajectory file: first data line has {len(first)} values "
+        f"(TUM has {_TUM_COLUMNS}, KITTI {_KITTI_COLUMNS})",
+        path,
+    )

@@ -1,0 +1,129 @@
+"""PointCloud validation, the shared Kabsch fit, configs and the CLI error handler."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from spacepose.cli import main
+from spacepose.core import se3
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import StageConfig, dump_config, load_config
+from spacepose.core.registration import RegistrationResult, kabsch
+from spacepose.errors import ConfigError, DegenerateGeometryError, InputError
+
+
+def test_pointcloud_drops_and_counts_non_finite_rows() -> None:
+    pts = np.array([[0.0, 0, 1], [np.nan, 0, 1], [1, np.inf, 1], [1, 2, 3]])
+    normals = np.tile([0.0, 0, 1], (4, 1))
+    cloud = PointCloud(pts, normals, source="x.ply")
+    assert len(cloud) == 2 and cloud.n_dropped == 2
+    np.testing.assert_array_equal(cloud.points, pts[[0, 3]])
+    assert cloud.normals is not None and cloud.normals.shape == (2, 3)
+    with pytest.raises(ValueError):
+        cloud.points[0, 0] = 5.0  # read-only: a stage cannot corrupt its caller's data
+
+
+@pytest.mark.parametrize(
+    "points, match",
+    [
+        (np.zeros((0, 3)), "empty"),
+        (np.full((5, 3), np.nan), "no finite point"),
+        (np.zeros((5, 2)), r"shape \(N, 3\)"),
+        ([["a", "b", "c"]], "not numeric"),
+    ],
+)
+def test_pointcloud_rejects_bad_points_naming_the_source(points, match: str) -> None:
+    with pytest.raises(InputError, match=match) as info:
+        PointCloud(points, source="scan_07.ply")
+    assert "scan_07.ply" in str(info.value)
+
+
+def test_pointcloud_rejects_mismatched_normals_and_sigma() -> None:
+    with pytest.raises(InputError, match="2 normals for 3 points"):
+        PointCloud(np.zeros((3, 3)), normals=np.zeros((2, 3)))
+    with pytest.raises(InputError, match="sigma"):
+        PointCloud(np.zeros((3, 3)), sigma=np.ones(4))
+
+
+def test_pointcloud_transform_and_select() -> None:
+    rng = np.random.default_rng(0)
+    T = se3.make_transform(Rotation.random(random_state=1), [1.0, 2.0, 3.0])
+    n = rng.normal(size=(6, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    cloud = PointCloud(rng.normal(size=(6, 3)), n, sigma=np.arange(6.0))
+    moved = cloud.transformed(T)
+    np.testing.assert_allclose(moved.points, cloud.points @ T[:3, :3].T + T[:3, 3])
+    np.testing.assert_allclose(moved.normals, n @ T[:3, :3].T)
+    sub = cloud.select(np.array([True, False] * 3))
+    np.testing.assert_array_equal(sub.sigma, [0.0, 2.0, 4.0])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_kabsch_recovers_a_known_transform_and_batches(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    T = se3.make_transform(Rotation.random(random_state=seed), rng.normal(size=3))
+    src = rng.normal(size=(20, 3))
+    np.testing.assert_allclose(kabsch(src, se3.transform_points(T, src)), T, atol=1e-12)
+    # A batch of 4 independent problems gives the 4 single answers.
+    Ts = [
+        se3.make_transform(Rotation.random(random_state=10 + i), rng.normal(size=3))
+        for i in range(4)
+    ]
+    srcs = rng.normal(size=(4, 5, 3))
+    dsts = np.stack([se3.transform_points(Ti, s) for Ti, s in zip(Ts, srcs, strict=True)])
+    np.testing.assert_allclose(kabsch(srcs, dsts), np.stack(Ts), atol=1e-10)
+
+
+def test_kabsch_never_returns_a_reflection() -> None:
+    # A mirrored point set: the best proper rotation, not the reflection, must come back.
+    src = np.array([[1.0, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1]])
+    T = kabsch(src, src * np.array([1.0, 1.0, -1.0]))
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+
+
+def test_kabsch_rejects_degenerate_and_short_input() -> None:
+    line = np.c_[np.arange(5.0), np.zeros(5), np.zeros(5)]
+    with pytest.raises(DegenerateGeometryError):
+        kabsch(line, line + 1.0)
+    with pytest.raises(InputError, match="at least 3"):
+        kabsch(np.zeros((2, 3)), np.zeros((2, 3)))
+    with pytest.raises(InputError):
+        kabsch(np.zeros((4, 3)), np.zeros((5, 3)))
+
+
+def test_registration_result_covariance_is_scaled_inverse_information() -> None:
+    info = np.diag([1.0, 2.0, 4.0, 8.0, 16.0, 32.0])
+    result = RegistrationResult(np.eye(4), 1.0, 0.002, 5, True, info, 100)
+    np.testing.assert_allclose(result.covariance(), 0.002**2 * np.linalg.inv(info))
+    assert result.condition_number == pytest.approx(32.0)
+
+
+class _Demo(StageConfig):
+    voxel_size: float = 0.01
+    iterations: int = 30
+
+
+def test_config_round_trip_and_unknown_keys(tmp_path) -> None:
+    path = tmp_path / "cfg.yaml"
+    path.write_text("voxel_size: 0.02\n")
+    assert load_config(_Demo, path) == _Demo(voxel_size=0.02)
+    dumped = dump_config(_Demo(), tmp_path / "eff.json")
+    assert json.loads(dumped.read_text()) == {"voxel_size": 0.01, "iterations": 30}
+    path.write_text("voxel_sise: 0.02\n")
+    with pytest.raises(ConfigError, match="voxel_sise") as info:
+        load_config(_Demo, path)
+    assert str(path) in str(info.value)
+    path.write_text("voxel_size: [1, 2\n")
+    with pytest.raises(ConfigError, match="not valid"):
+        load_config(_Demo, path)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(_Demo, tmp_path / "missing.yaml")
+
+
+def test_cli_maps_package_errors_to_one_line_and_exit_1(capsys) -> None:
+    assert main(["experiment", "no-such-experiment", "--out", "unused"]) == 1
+    err = capsys.readouterr().err
+    assert "unknown experiment" in err and "Traceback" not in err
+    assert main(["--definitely-not-an-option"]) == 2
