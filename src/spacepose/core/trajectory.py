@@ -17,7 +17,9 @@ _RIGID_TOL = 1e-6
 
 @dataclass(frozen=True, eq=False)
 class Trajectory:
-    """Poses ``T_sensor_target`` (or any ``T_a_b``) at increasing-or-equal timestamps.
+    """Poses ``T_sensor_target`` (or any ``T_a_b``) at given timestamps.
+
+    The timestamps are kept in the given order (not sorted); evaluation pairs poses by time.
 
     Parameters
     ----------

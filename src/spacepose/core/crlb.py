@@ -1,0 +1,170 @@
+"""Cramér–Rao lower bound of point-to-plane registration (METHODS §4).
+
+For a residual ``r_i = n_iᵀ (p_i − q_i)`` with noise of standard deviation σ_i along the
+normal, a left perturbation ``p ← exp(δ) p`` with ``δ = (ω, v)`` changes the residual by
+``h_iᵀ δ`` with ``h_i = (p_i × n_i, n_i)``. The Fisher information is ``J = Σ h_i h_iᵀ / σ_i²``
+and every unbiased estimator of ``δ`` has covariance ``≥ J⁻¹``. The twist is about the origin
+of the frame the points are given in, rotation first, like every 6×6 matrix in the package.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from spacepose.errors import InputError
+
+#: Eigenvalues of J below ``RANK_RTOL × max eigenvalue`` count as unobservable directions.
+RANK_RTOL = 1e-9
+
+
+def _rows(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) == 0:
+        raise InputError(f"{name} must have shape (N, 3) with N > 0, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} have non-finite entries")
+    return arr
+
+
+def range_sigma_along_normal(
+    sigma_r: float | ArrayLike, rays: ArrayLike, normals: ArrayLike
+) -> NDArray[np.float64]:
+    """Noise along the normal of a range measurement: ``σ_r · |cos θ|``.
+
+    Parameters
+    ----------
+    sigma_r
+        Range noise standard deviation (scalar or (N,)), metres, along the ray.
+    rays
+        (N, 3) ray directions (any length, e.g. the points themselves for rays from the sensor
+        origin), sensor frame.
+    normals
+        (N, 3) surface normals (any length), same frame.
+
+    Returns
+    -------
+    (N,) σ along the normal, metres. A ray at grazing incidence gives σ → 0: the range noise
+    then moves the point within the surface, which the point-to-plane residual does not see.
+    """
+    r = _rows(rays, "rays")
+    n = _rows(normals, "normals")
+    if len(r) != len(n):
+        raise InputError(f"{len(r)} rays for {len(n)} normals")
+    r_len = np.linalg.norm(r, axis=1)
+    n_len = np.linalg.norm(n, axis=1)
+    if np.any(r_len == 0) or np.any(n_len == 0):
+        raise InputError("rays and normals must be non-zero vectors")
+    cos = np.abs(np.einsum("ij,ij->i", r, n)) / (r_len * n_len)
+    return np.asarray(sigma_r, dtype=np.float64) * cos
+
+
+def fisher_point_to_plane(
+    points: ArrayLike, normals: ArrayLike, sigma: float | ArrayLike
+) -> NDArray[np.float64]:
+    """Fisher information (6, 6) of point-to-plane residuals, twist order ``(ω, v)``.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points, metres; the rotation part is about the origin of their frame.
+    normals
+        (N, 3) unit normals at the points.
+    sigma
+        Noise standard deviation along the normal (scalar or (N,)), metres, all > 0.
+
+    Returns
+    -------
+    ``J = Σ h_i h_iᵀ / σ_i²`` with ``h_i = (p_i × n_i, n_i)``, in units of (1/rad², 1/(rad·m),
+    1/m²) by block.
+    """
+    p = _rows(points, "points")
+    n = _rows(normals, "normals")
+    if len(p) != len(n):
+        raise InputError(f"{len(p)} points for {len(n)} normals")
+    s = np.asarray(sigma, dtype=np.float64)
+    s = np.full(len(p), float(s)) if s.ndim == 0 else s
+    if s.shape != (len(p),):
+        raise InputError(f"sigma must be a scalar or have shape ({len(p)},), got {s.shape}")
+    if not np.all(np.isfinite(s) & (s > 0)):
+        raise InputError("sigma must be finite and > 0 for every point")
+    h = np.hstack([np.cross(p, n), n])
+    return np.einsum("ni,nj->ij", h / s[:, None] ** 2, h)
+
+
+@dataclass(frozen=True, eq=False)
+class CramerRaoBound:
+    """The bound on the covariance of a registration twist ``(ω, v)``.
+
+    Attributes
+    ----------
+    covariance
+        (6, 6) ``J⁺`` (pseudo-inverse; doubled for frame-to-frame registration).
+    std
+        (6,) ``sqrt(diag(covariance))`` in rad and m; ``inf`` for a parameter that has a
+        component along an unobservable direction, whose variance is unbounded.
+    rank
+        Rank of the Fisher information.
+    degenerate
+        ``rank < 6``: some motion leaves every residual unchanged (e.g. a single plane).
+    null_directions
+        (6, k) orthonormal basis of the unobservable twists (k = 6 − rank).
+    information
+        (6, 6) the Fisher information ``J`` itself (halved for frame-to-frame).
+    """
+
+    covariance: NDArray[np.float64]
+    std: NDArray[np.float64]
+    rank: int
+    degenerate: bool
+    null_directions: NDArray[np.float64]
+    information: NDArray[np.float64]
+
+
+def crlb(
+    points: ArrayLike,
+    normals: ArrayLike,
+    sigma: float | ArrayLike,
+    frame_to_frame: bool = False,
+    rtol: float = RANK_RTOL,
+) -> CramerRaoBound:
+    """Cramér–Rao bound of point-to-plane registration of ``points`` onto their planes.
+
+    Parameters
+    ----------
+    points, normals, sigma
+        As :func:`fisher_point_to_plane`.
+    frame_to_frame
+        Both clouds are noisy (frame-to-frame tracking rather than registration to a model):
+        the residual variance is about twice as large, so the bound doubles.
+    rtol
+        Eigenvalues of J below ``rtol × max eigenvalue`` are treated as zero. Scale-dependent:
+        rotation and translation blocks have different units.
+
+    Returns
+    -------
+    CramerRaoBound; a degenerate geometry is reported (``degenerate``, ``null_directions``),
+    not raised.
+    """
+    J = fisher_point_to_plane(points, normals, sigma)
+    if frame_to_frame:
+        J = 0.5 * J
+    eigval, eigvec = np.linalg.eigh(J)
+    keep = eigval > rtol * max(eigval[-1], 0.0)
+    rank = int(keep.sum())
+    V = eigvec[:, keep]
+    covariance = (V / eigval[keep]) @ V.T
+    null = eigvec[:, ~keep]
+    std = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    # A parameter touched by a null direction is unbounded, not "known to 0".
+    std[np.einsum("ik,ik->i", null, null) > 1e-12] = np.inf
+    return CramerRaoBound(
+        covariance=covariance,
+        std=std,
+        rank=rank,
+        degenerate=rank < 6,
+        null_directions=null,
+        information=J,
+    )

@@ -1,0 +1,233 @@
+"""Pose error metrics: Li's per-axis table (Li §3.2.2, Eq. 10) and evo-compatible ATE.
+
+Two error definitions are used on purpose (METHODS §0):
+
+* The per-axis table follows Li Eq. 10: ``ΔT = T_est · T_gt⁻¹``; the translation errors are the
+  components of ``Δt`` and the rotation errors are ``ΔR`` as ZYX Euler angles (yaw, pitch, roll).
+  Note that ``Δt = t_est − ΔR t_gt`` is not the position difference when ``ΔR ≠ I``.
+* The ATE numbers match ``evo_ape`` without alignment: translation RMSE over
+  ``‖t_est − t_gt‖`` (evo's ``translation_part``) and RMSE of the rotation angle of ``ΔR``
+  (evo's ``rotation_angle_deg``; the angle of ``R_est R_gtᵀ`` equals that of ``R_estᵀ R_gt``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import se3
+from spacepose.core.trajectory import Trajectory
+from spacepose.errors import InputError
+
+#: Row names of the per-axis table, in the order of Li's Table 2.
+TRANSLATION_AXES = ("x", "y", "z")
+ROTATION_AXES = ("pitch", "yaw", "roll")
+
+#: Default tolerance (s) for pairing an estimated pose with a ground-truth pose.
+TIMESTAMP_TOLERANCE = 1e-6
+
+
+def pose_errors(
+    T_est: ArrayLike, T_gt: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per-frame pose errors ``ΔT = T_est · T_gt⁻¹`` (Li Eq. 10).
+
+    Parameters
+    ----------
+    T_est, T_gt
+        (N, 4, 4) or (4, 4) estimated and true poses mapping the same frames (e.g.
+        ``T_sensor_target``).
+
+    Returns
+    -------
+    translation
+        (N, 3) ``Δt`` in metres, in the frame the poses map into.
+    euler_zyx
+        (N, 3) ``ΔR`` as intrinsic ZYX Euler angles in radians, ordered (yaw, pitch, roll) as
+        scipy's ``as_euler("ZYX")`` returns them.
+    """
+    est = np.asarray(T_est, dtype=np.float64)
+    gt = np.asarray(T_gt, dtype=np.float64)
+    est = est[None] if est.ndim == 2 else est
+    gt = gt[None] if gt.ndim == 2 else gt
+    if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4) or len(est) == 0:
+        raise InputError(
+            f"pose_errors needs matching non-empty (N, 4, 4) stacks, got {est.shape} and {gt.shape}"
+        )
+    if not (np.isfinite(est).all() and np.isfinite(gt).all()):
+        raise InputError("pose_errors: poses have non-finite entries")
+    delta = est @ se3.invert(gt)
+    return delta[:, :3, 3], Rotation.from_matrix(delta[:, :3, :3]).as_euler("ZYX")
+
+
+def associate(
+    est_timestamps: ArrayLike,
+    gt_timestamps: ArrayLike,
+    tolerance: float = TIMESTAMP_TOLERANCE,
+) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Pair every estimated timestamp with the nearest ground-truth timestamp.
+
+    Parameters
+    ----------
+    est_timestamps, gt_timestamps
+        (N,) and (M,) times in seconds.
+    tolerance
+        Largest accepted time difference, seconds.
+
+    Returns
+    -------
+    Index arrays ``(i_est, i_gt)`` of equal length N, ``i_est = arange(N)``.
+
+    Raises
+    ------
+    InputError
+        If any estimated timestamp has no ground truth within ``tolerance``: every estimate must
+        be evaluated, so none is silently skipped.
+    """
+    t_est = np.asarray(est_timestamps, dtype=np.float64).reshape(-1)
+    t_gt = np.asarray(gt_timestamps, dtype=np.float64).reshape(-1)
+    order = np.argsort(t_gt, kind="stable")
+    sorted_gt = t_gt[order]
+    right = np.clip(np.searchsorted(sorted_gt, t_est), 0, len(sorted_gt) - 1)
+    left = np.clip(right - 1, 0, len(sorted_gt) - 1)
+    take_left = np.abs(sorted_gt[left] - t_est) <= np.abs(sorted_gt[right] - t_est)
+    nearest = np.where(take_left, left, right)
+    gap = np.abs(sorted_gt[nearest] - t_est)
+    unmatched = gap > tolerance
+    if unmatched.any():
+        first = int(np.argmax(unmatched))
+        raise InputError(
+            f"{int(unmatched.sum())} of {len(t_est)} estimated timestamps have no ground truth "
+            f"within {tolerance:g} s (first: t = {t_est[first]:.9f}, nearest ground truth "
+            f"{gap[first]:.3g} s away)"
+        )
+    return np.arange(len(t_est)), order[nearest]
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorTable:
+    """Per-axis pose error statistics over a trajectory (Li's Table 2) plus evo's ATE.
+
+    Attributes
+    ----------
+    translation_mean_mm, translation_std_mm
+        (3,) mean and standard deviation (ddof 0) of ``|Δt|`` per axis x, y, z, millimetres.
+    rotation_mean_deg, rotation_std_deg
+        (3,) the same for the Euler angle errors, ordered pitch, yaw, roll, degrees.
+    ate_translation_rmse
+        RMSE of ``‖t_est − t_gt‖``, metres (evo ``translation_part``).
+    ate_rotation_rmse
+        RMSE of the rotation angle of ``ΔR``, degrees (evo ``rotation_angle_deg``).
+    n
+        Number of frames compared.
+    """
+
+    translation_mean_mm: NDArray[np.float64]
+    translation_std_mm: NDArray[np.float64]
+    rotation_mean_deg: NDArray[np.float64]
+    rotation_std_deg: NDArray[np.float64]
+    ate_translation_rmse: float
+    ate_rotation_rmse: float
+    n: int
+
+    def rows(self) -> list[tuple[str, str, float, float]]:
+        """Table rows ``(axis, unit, mean, std)``: x, y, z in mm then pitch, yaw, roll in deg."""
+        trans = [
+            (axis, "mm", float(m), float(s))
+            for axis, m, s in zip(
+                TRANSLATION_AXES, self.translation_mean_mm, self.translation_std_mm, strict=True
+            )
+        ]
+        rot = [
+            (axis, "deg", float(m), float(s))
+            for axis, m, s in zip(
+                ROTATION_AXES, self.rotation_mean_deg, self.rotation_std_deg, strict=True
+            )
+        ]
+        return trans + rot
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready mapping with keys named like the attributes.
+
+        ``{"n", "mean": {"x_mm", "y_mm", "z_mm", "pitch_deg", "yaw_deg", "roll_deg"},
+        "std": {...same keys...}, "ate_translation_rmse" (m), "ate_rotation_rmse" (deg)}``.
+        """
+        rows = self.rows()
+        return {
+            "n": self.n,
+            "mean": {f"{axis}_{unit}": mean for axis, unit, mean, _ in rows},
+            "std": {f"{axis}_{unit}": std for axis, unit, _, std in rows},
+            "ate_translation_rmse": float(self.ate_translation_rmse),
+            "ate_rotation_rmse": float(self.ate_rotation_rmse),
+        }
+
+
+def error_table(T_est: ArrayLike, T_gt: ArrayLike) -> ErrorTable:
+    """Statistics of paired poses (N, 4, 4) already associated frame by frame."""
+    est = np.asarray(T_est, dtype=np.float64)
+    gt = np.asarray(T_gt, dtype=np.float64)
+    dt, euler = pose_errors(est, gt)
+    trans_mm = np.abs(dt) * 1e3
+    # as_euler("ZYX") gives (yaw, pitch, roll); the table lists pitch, yaw, roll.
+    rot_deg = np.degrees(np.abs(euler[:, [1, 0, 2]]))
+    position_error = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
+    angle = Rotation.from_matrix(est[:, :3, :3] @ np.swapaxes(gt[:, :3, :3], 1, 2)).magnitude()
+    return ErrorTable(
+        translation_mean_mm=trans_mm.mean(axis=0),
+        translation_std_mm=trans_mm.std(axis=0),
+        rotation_mean_deg=rot_deg.mean(axis=0),
+        rotation_std_deg=rot_deg.std(axis=0),
+        ate_translation_rmse=float(np.sqrt(np.mean(position_error**2))),
+        ate_rotation_rmse=float(np.degrees(np.sqrt(np.mean(angle**2)))),
+        n=len(est),
+    )
+
+
+def evaluate(
+    est: Trajectory,
+    gt: Trajectory,
+    rebase_first: bool = False,
+    align_by: Literal["timestamp", "index"] = "timestamp",
+    tolerance: float = TIMESTAMP_TOLERANCE,
+) -> ErrorTable:
+    """Compare an estimated trajectory with ground truth.
+
+    Parameters
+    ----------
+    est, gt
+        Estimated and true poses of the same frames (e.g. ``T_sensor_target``).
+    rebase_first
+        Express both trajectories relative to their first associated pose (METHODS §0,
+        model-free tracking), so a constant offset of the whole estimate is not counted.
+    align_by
+        ``"timestamp"``: pair each estimate with the ground truth within ``tolerance`` seconds
+        (ground truth may have extra frames); ``"index"``: pair pose k with pose k (the two must
+        have the same length).
+    tolerance
+        Time tolerance for ``"timestamp"`` pairing, seconds.
+
+    Raises
+    ------
+    InputError
+        If an estimate has no matching ground truth, or the lengths differ for ``"index"``.
+    """
+    if align_by == "timestamp":
+        i_est, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
+    elif align_by == "index":
+        if len(est) != len(gt):
+            raise InputError(
+                f"align_by='index' needs equal lengths, got {len(est)} estimated and "
+                f"{len(gt)} ground-truth poses"
+            )
+        i_est = i_gt = np.arange(len(est))
+    else:
+        raise InputError(f"align_by must be 'timestamp' or 'index', got {align_by!r}")
+    T_est, T_gt = est.poses[i_est], gt.poses[i_gt]
+    if rebase_first:
+        T_est = T_est @ se3.invert(T_est[0])
+        T_gt = T_gt @ se3.invert(T_gt[0])
+    return error_table(T_est, T_gt)

@@ -1,0 +1,449 @@
+"""Point cloud files: PLY, PCD, plain text (xyz/txt/csv) and numpy (npy/npz).
+
+The format is chosen by the file extension. Each reader returns a
+:class:`~spacepose.core.cloud.PointCloud` (normals included when the file has them) whose
+``source`` is the file name; each failure raises :class:`~spacepose.errors.FileFormatError` (or
+:class:`~spacepose.errors.InputError` for data that parse but are unusable, e.g. only NaN rows),
+always naming the file.
+"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import plyfile
+from numpy.typing import ArrayLike, NDArray
+
+from spacepose.core.cloud import PointCloud
+from spacepose.errors import FileFormatError, InputError
+
+_XYZ = ("x", "y", "z")
+_PLY_NORMALS = ("nx", "ny", "nz")
+_PCD_NORMALS = ("normal_x", "normal_y", "normal_z")
+_TEXT_SUFFIXES = (".xyz", ".txt", ".csv")
+# Significant digits that round-trip a value of the given precision through text.
+_DIGITS = {"float32": 9, "float64": 17}
+
+
+# --------------------------------------------------------------------------------------------
+# Public API
+
+
+def read_cloud(path: str | Path) -> PointCloud:
+    """Read a point cloud file, choosing the format by extension.
+
+    Parameters
+    ----------
+    path
+        ``.ply`` (ASCII or binary; ``x y z`` and optional ``nx ny nz`` vertex properties),
+        ``.pcd`` (``ascii`` or ``binary``; optional ``normal_x normal_y normal_z``),
+        ``.xyz``/``.txt``/``.csv`` (3 or 6 columns, whitespace- or comma-separated; a header
+        line is allowed), ``.npy`` ((N, 3) or (N, 6) array) or ``.npz`` (``points``, optional
+        ``normals``).
+
+    Returns
+    -------
+    PointCloud in the frame the file's coordinates are in; rows with NaN are dropped.
+
+    Raises
+    ------
+    FileFormatError
+        Unknown extension, missing file, truncated file, bad header or no x/y/z data.
+    InputError
+        The file holds no finite point.
+    """
+    path = Path(path)
+    reader = _READERS.get(path.suffix.lower())
+    if reader is None:
+        raise FileFormatError(
+            f"unknown point cloud extension {path.suffix!r}; use one of "
+            f"{', '.join(sorted(_READERS))}",
+            path,
+        )
+    if not path.is_file():
+        raise FileFormatError("no such file", path)
+    points, normals = reader(path)
+    return PointCloud(points, normals, source=str(path))
+
+
+def write_cloud(
+    path: str | Path,
+    cloud: PointCloud | ArrayLike,
+    *,
+    binary: bool = True,
+    dtype: str = "float32",
+) -> Path:
+    """Write a point cloud, choosing the format by extension (see :func:`read_cloud`).
+
+    Parameters
+    ----------
+    path
+        Output file; its parent directory is created.
+    cloud
+        A PointCloud (normals written when present) or an (N, 3) / (N, 6) array of points and
+        optional normals; an array goes through :class:`PointCloud`, so rows with NaN are
+        dropped and an all-NaN array raises.
+    binary
+        Binary encoding for PLY (little-endian) and PCD; ignored by the other formats.
+    dtype
+        ``"float32"`` or ``"float64"``: the stored precision (text formats print enough digits
+        to round-trip it).
+
+    Returns
+    -------
+    The path written. The same data always give the same bytes.
+    """
+    path = Path(path)
+    if dtype not in _DIGITS:
+        raise InputError(f"dtype must be 'float32' or 'float64', got {dtype!r}", path)
+    writer = _WRITERS.get(path.suffix.lower())
+    if writer is None:
+        raise FileFormatError(
+            f"unknown point cloud extension {path.suffix!r}; use one of "
+            f"{', '.join(sorted(_WRITERS))}",
+            path,
+        )
+    if not isinstance(cloud, PointCloud):
+        arr = np.asarray(cloud, dtype=np.float64)
+        if arr.ndim != 2 or arr.shape[1] not in (3, 6):
+            raise InputError(f"cloud array must be (N, 3) or (N, 6), got {arr.shape}", path)
+        cloud = PointCloud(arr[:, :3], arr[:, 3:] if arr.shape[1] == 6 else None, source=str(path))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    writer(path, cloud.points, cloud.normals, binary, np.dtype(dtype))
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# PLY
+
+
+def _read_ply(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    try:
+        with path.open("rb") as fh:
+            ply = plyfile.PlyData.read(fh, mmap=False)
+    except plyfile.PlyParseError as exc:
+        raise FileFormatError(f"bad or truncated PLY: {exc}", path) from None
+    except (OSError, ValueError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"cannot read PLY: {exc}", path) from None
+    if "vertex" not in ply:
+        raise FileFormatError("PLY has no 'vertex' element", path)
+    data = ply["vertex"].data
+    names = data.dtype.names or ()
+    return _columns(data, names, _XYZ, _PLY_NORMALS, path, "PLY vertex")
+
+
+def _write_ply(
+    path: Path,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    binary: bool,
+    dtype: np.dtype,
+) -> None:
+    names = _XYZ if normals is None else _XYZ + _PLY_NORMALS
+    values = points if normals is None else np.hstack([points, normals])
+    # plyfile writes no timestamp or comment, so the bytes depend on the data only.
+    element = plyfile.PlyElement.describe(_structured(values, names, dtype), "vertex")
+    plyfile.PlyData([element], text=not binary, byte_order="<").write(str(path))
+
+
+# --------------------------------------------------------------------------------------------
+# PCD (Point Cloud Library v0.7)
+
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
+    (kind, size): f"{code}{size}"
+    for kind, code in (("I", "i"), ("U", "u"))
+    for size in (1, 2, 4, 8)
+}
+
+
+def _read_pcd(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    raw = path.read_bytes()
+    header: dict[str, list[str]] = {}
+    stream = io.BytesIO(raw)
+    while True:
+        line = stream.readline()
+        if not line:
+            raise FileFormatError("PCD header has no DATA line (truncated or not a PCD)", path)
+        text = line.decode("ascii", errors="replace").strip()
+        if not text or text.startswith("#"):
+            continue
+        key, *values = text.split()
+        header[key.upper()] = values
+        if key.upper() == "DATA":
+            break
+    missing = [k for k in ("FIELDS", "SIZE", "TYPE", "DATA") if k not in header]
+    if missing:
+        raise FileFormatError(f"PCD header lacks {', '.join(missing)}", path)
+    fields, sizes, types = header["FIELDS"], header["SIZE"], header["TYPE"]
+    counts = header.get("COUNT", ["1"] * len(fields))
+    if not len(fields) == len(sizes) == len(types) == len(counts):
+        raise FileFormatError("PCD header FIELDS/SIZE/TYPE/COUNT lengths differ", path)
+    try:
+        size_i = [int(s) for s in sizes]
+        count_i = [int(c) for c in counts]
+        n_points = int(header["POINTS"][0]) if "POINTS" in header else None
+        if n_points is None:
+            n_points = int(header["WIDTH"][0]) * int(header.get("HEIGHT", ["1"])[0])
+    except (ValueError, IndexError, KeyError):
+        raise FileFormatError(
+            "PCD header has a non-integer SIZE/COUNT/POINTS/WIDTH", path
+        ) from None
+    formats = []
+    for name, kind, size, count in zip(fields, types, size_i, count_i, strict=True):
+        code = _PCD_TYPES.get((kind.upper(), size))
+        if code is None:
+            raise FileFormatError(f"PCD field {name!r} has unknown TYPE {kind} SIZE {size}", path)
+        formats.append((code, count))
+    # Field names may repeat (e.g. the "_" padding field), so read into positional names.
+    dt = np.dtype([(f"f{i}", "<" + code, (count,)) for i, (code, count) in enumerate(formats)])
+    mode = header["DATA"][0].lower() if header["DATA"] else ""
+    body = raw[stream.tell() :]
+    if mode == "binary":
+        if len(body) < n_points * dt.itemsize:
+            raise FileFormatError(
+                f"truncated binary PCD: {n_points} points need {n_points * dt.itemsize} bytes, "
+                f"file has {len(body)}",
+                path,
+            )
+        data = np.frombuffer(body, dtype=dt, count=n_points)
+        table = np.column_stack([data[f"f{i}"].astype(np.float64) for i in range(len(fields))])
+    elif mode == "ascii":
+        width = sum(count_i)
+        try:
+            tokens = np.array(body.decode("ascii").split(), dtype=np.float64)
+        except (UnicodeDecodeError, ValueError):
+            raise FileFormatError("ASCII PCD body holds a non-number", path) from None
+        if len(tokens) < n_points * width:
+            raise FileFormatError(
+                f"truncated ASCII PCD: {n_points} points of {width} values need "
+                f"{n_points * width} numbers, file has {len(tokens)}",
+                path,
+            )
+        table = tokens[: n_points * width].reshape(n_points, width)
+    elif mode == "binary_compressed":
+        raise FileFormatError(
+            "PCD DATA binary_compressed (LZF) is not supported; save as binary or ascii", path
+        )
+    else:
+        raise FileFormatError(f"PCD DATA {mode!r} is not ascii or binary", path)
+    # Column index of each single-valued field in the flattened table.
+    offsets = np.cumsum([0, *count_i[:-1]])
+    column = {
+        name: int(off) for name, off, c in zip(fields, offsets, count_i, strict=True) if c == 1
+    }
+    names = tuple(column)
+    return _columns(
+        {name: table[:, column[name]] for name in names}, names, _XYZ, _PCD_NORMALS, path, "PCD"
+    )
+
+
+def _write_pcd(
+    path: Path,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    binary: bool,
+    dtype: np.dtype,
+) -> None:
+    names = _XYZ if normals is None else _XYZ + _PCD_NORMALS
+    values = points if normals is None else np.hstack([points, normals])
+    n, k = values.shape
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
+        f"FIELDS {' '.join(names)}\nSIZE {' '.join([str(dtype.itemsize)] * k)}\n"
+        f"TYPE {' '.join(['F'] * k)}\nCOUNT {' '.join(['1'] * k)}\n"
+        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
+        f"DATA {'binary' if binary else 'ascii'}\n"
+    )
+    if binary:
+        body = np.ascontiguousarray(values, dtype=dtype.newbyteorder("<")).tobytes()
+    else:
+        buf = io.StringIO()
+        np.savetxt(buf, values.astype(dtype), fmt=f"%.{_DIGITS[dtype.name]}g")
+        body = buf.getvalue().encode("ascii")
+    path.write_bytes(header.encode("ascii") + body)
+
+
+# --------------------------------------------------------------------------------------------
+# Plain text and numpy
+
+
+def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise FileFormatError("not a text point file (binary content)", path) from None
+    lines = text.splitlines()
+    first = next(
+        (i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")), None
+    )
+    if first is None:
+        raise FileFormatError("no point rows in text file", path)
+    delimiter = "," if "," in lines[first] else None
+    head = lines[first].replace(",", " ").split()
+    skip = first + 1 if not _is_number(head[0]) else 0  # a header line such as "x,y,z"
+    try:
+        table = np.loadtxt(
+            io.StringIO(text), delimiter=delimiter, comments="#", skiprows=skip, ndmin=2
+        )
+    except ValueError:
+        raise FileFormatError(_first_bad_line(lines[skip:], skip), path) from None
+    if table.shape[0] == 0:
+        raise FileFormatError("no point rows in text file", path)
+    if table.shape[1] not in (3, 6):
+        raise FileFormatError(
+            f"expected 3 (x y z) or 6 (x y z nx ny nz) columns, got {table.shape[1]}", path
+        )
+    return table[:, :3], (table[:, 3:] if table.shape[1] == 6 else None)
+
+
+def _first_bad_line(lines: list[str], offset: int) -> str:
+    """Describe the first row that breaks a numeric table (only called once parsing failed)."""
+    width = None
+    for i, line in enumerate(lines, start=offset + 1):
+        row = line.split("#", 1)[0].replace(",", " ").split()
+        if not row:
+            continue
+        if not all(_is_number(t) for t in row):
+            return f"line {i}: not a number in {row}"
+        if width is not None and len(row) != width:
+            return f"line {i}: {len(row)} columns where earlier rows have {width}"
+        width = len(row)
+    return "cannot parse text point file"
+
+
+def _write_text(
+    path: Path,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    binary: bool,
+    dtype: np.dtype,
+) -> None:
+    values = points if normals is None else np.hstack([points, normals])
+    csv = path.suffix.lower() == ".csv"
+    names = _XYZ if normals is None else _XYZ + _PLY_NORMALS
+    np.savetxt(
+        path,
+        values.astype(dtype),
+        fmt=f"%.{_DIGITS[dtype.name]}g",
+        delimiter="," if csv else " ",
+        header=",".join(names) if csv else "",
+        comments="",
+    )
+
+
+def _read_npy(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise FileFormatError(f"bad or truncated .npy: {exc}", path) from None
+    if arr.ndim != 2 or arr.shape[1] not in (3, 6) or arr.dtype.kind not in "fiu":
+        raise FileFormatError(
+            f".npy must hold a numeric (N, 3) or (N, 6) array, got {arr.dtype} {arr.shape}", path
+        )
+    arr = arr.astype(np.float64)
+    return arr[:, :3], (arr[:, 3:] if arr.shape[1] == 6 else None)
+
+
+def _read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            if "points" not in npz.files:
+                raise FileFormatError(f".npz has no 'points' array (keys: {npz.files})", path)
+            points = npz["points"]
+            normals = npz["normals"] if "normals" in npz.files else None
+    except FileFormatError:
+        raise
+    except Exception as exc:  # zipfile/zlib errors of a corrupt archive have no common base
+        raise FileFormatError(f"bad or truncated .npz: {exc}", path) from None
+    for name, arr in (("points", points), ("normals", normals)):
+        if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or arr.dtype.kind not in "fiu"):
+            raise FileFormatError(f".npz '{name}' must be numeric (N, 3), got {arr.shape}", path)
+    return points.astype(np.float64), None if normals is None else normals.astype(np.float64)
+
+
+def _write_npy(
+    path: Path,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    binary: bool,
+    dtype: np.dtype,
+) -> None:
+    values = points if normals is None else np.hstack([points, normals])
+    np.save(path, values.astype(dtype))
+
+
+def _write_npz(
+    path: Path,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    binary: bool,
+    dtype: np.dtype,
+) -> None:
+    arrays = {"points": points.astype(dtype)}
+    if normals is not None:
+        arrays["normals"] = normals.astype(dtype)
+    # np.savez stamps each member with the current time; a fixed date keeps the bytes
+    # a function of the data only.
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            with zf.open(info, "w") as fh:
+                np.lib.format.write_array(fh, arr, allow_pickle=False)
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers
+
+
+def _structured(values: NDArray[np.float64], names: tuple[str, ...], dtype: np.dtype) -> np.ndarray:
+    out = np.empty(len(values), dtype=[(n, dtype.newbyteorder("<")) for n in names])
+    for j, name in enumerate(names):
+        out[name] = values[:, j]
+    return out
+
+
+def _columns(
+    data: np.ndarray | dict[str, NDArray[np.float64]],
+    names: tuple[str, ...],
+    xyz: tuple[str, ...],
+    normal_names: tuple[str, ...],
+    path: Path,
+    what: str,
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """Stack the x/y/z (and, when all present, normal) columns of a record table."""
+    if not all(n in names for n in xyz):
+        raise FileFormatError(f"{what} has no x/y/z properties (found {list(names)})", path)
+    points = np.column_stack([np.asarray(data[n], dtype=np.float64) for n in xyz])
+    normals = None
+    if all(n in names for n in normal_names):
+        normals = np.column_stack([np.asarray(data[n], dtype=np.float64) for n in normal_names])
+    return points, normals
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+Reader = Callable[[Path], tuple[NDArray[np.float64], NDArray[np.float64] | None]]
+Writer = Callable[[Path, NDArray[np.float64], NDArray[np.float64] | None, bool, np.dtype], None]
+
+_READERS: dict[str, Reader] = {
+    ".ply": _read_ply,
+    ".pcd": _read_pcd,
+    ".npy": _read_npy,
+    ".npz": _read_npz,
+} | dict.fromkeys(_TEXT_SUFFIXES, _read_text)
+_WRITERS: dict[str, Writer] = {
+    ".ply": _write_ply,
+    ".pcd": _write_pcd,
+    ".npy": _write_npy,
+    ".npz": _write_npz,
+} | dict.fromkeys(_TEXT_SUFFIXES, _write_text)

@@ -1,0 +1,22 @@
+"""Fixtures shared by the test files: seeded random data with known ground truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spacepose.core import se3
+from spacepose.core.trajectory import Trajectory
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    """A fresh seeded generator per test, so tests do not depend on their order."""
+    return np.random.default_rng(12345)
+
+
+@pytest.fixture
+def random_trajectory(rng: np.random.Generator) -> Trajectory:
+    """20 random poses (rotations up to ~π, translations ~1 m) at 10 Hz from t = 1.7e9 s."""
+    poses = np.stack([se3.exp(rng.normal(size=6)) for _ in range(20)])
+    return Trajectory(1.7e9 + 0.1 * np.arange(20), poses)

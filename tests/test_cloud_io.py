@@ -1,0 +1,304 @@
+"""Point cloud files: round trips, peers (Open3D) and every bad-input path."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spacepose.core.cloud import PointCloud
+from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.cloud_io import read_cloud, write_cloud
+
+EXTENSIONS = [".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz"]
+
+
+@pytest.fixture
+def cloud(rng: np.random.Generator) -> PointCloud:
+    points = rng.normal(scale=2.0, size=(200, 3))
+    normals = rng.normal(size=(200, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return PointCloud(points, normals)
+
+
+@pytest.mark.parametrize("ext", EXTENSIONS)
+@pytest.mark.parametrize("binary", [True, False])
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_round_trip_points_and_normals(
+    tmp_path: Path, cloud: PointCloud, ext: str, binary: bool, dtype: str
+) -> None:
+    path = write_cloud(tmp_path / f"c{ext}", cloud, binary=binary, dtype=dtype)
+    back = read_cloud(path)
+    # Exact at the stored precision: float32 text prints 9 digits, which round-trips float32.
+    np.testing.assert_array_equal(back.points.astype(dtype), cloud.points.astype(dtype))
+    assert back.normals is not None
+    np.testing.assert_array_equal(back.normals.astype(dtype), cloud.normals.astype(dtype))
+    assert back.source == str(path)
+    if dtype == "float64":
+        np.testing.assert_array_equal(back.points, cloud.points)
+
+
+@pytest.mark.parametrize("ext", EXTENSIONS)
+def test_round_trip_points_only_from_array(
+    tmp_path: Path, rng: np.random.Generator, ext: str
+) -> None:
+    points = rng.uniform(-5, 5, size=(31, 3))
+    back = read_cloud(write_cloud(tmp_path / f"p{ext}", points, dtype="float64"))
+    np.testing.assert_array_equal(back.points, points)
+    assert back.normals is None
+
+
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
+def test_binary_and_ascii_encodings_differ_and_say_so(
+    tmp_path: Path, cloud: PointCloud, ext: str
+) -> None:
+    binary = write_cloud(tmp_path / f"b{ext}", cloud, binary=True).read_bytes()
+    ascii_ = write_cloud(tmp_path / f"a{ext}", cloud, binary=False).read_bytes()
+    if ext == ".ply":
+        assert b"format binary_little_endian 1.0" in binary
+        assert b"format ascii 1.0" in ascii_
+    else:
+        assert b"\nDATA binary\n" in binary
+        assert b"\nDATA ascii\n" in ascii_
+    ascii_.decode("ascii")  # the ASCII encoding really is text
+
+
+@pytest.mark.parametrize("ext", EXTENSIONS)
+def test_writing_is_deterministic(tmp_path: Path, cloud: PointCloud, ext: str) -> None:
+    a = write_cloud(tmp_path / f"a{ext}", cloud).read_bytes()
+    b = write_cloud(
+        tmp_path / f"b{ext}", PointCloud(cloud.points.copy(), cloud.normals)
+    ).read_bytes()
+    assert a == b
+
+
+def test_text_with_header_comments_and_commas(tmp_path: Path) -> None:
+    csv = tmp_path / "h.csv"
+    csv.write_text("x,y,z\n1,2,3\n4.5, -6, 7e-3\n")
+    np.testing.assert_array_equal(read_cloud(csv).points, [[1, 2, 3], [4.5, -6, 7e-3]])
+    xyz = tmp_path / "c.xyz"
+    xyz.write_text("# scanner output\n\n1 2 3 0 0 1\n4 5 6 1 0 0\n")
+    back = read_cloud(xyz)
+    np.testing.assert_array_equal(back.points, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(back.normals, [[0, 0, 1], [1, 0, 0]])
+
+
+def test_nan_rows_are_dropped_and_counted(tmp_path: Path) -> None:
+    pts = np.array([[0.0, 0, 1], [np.nan, 0, 1], [1, 2, 3]])
+    np.save(tmp_path / "n.npy", pts)
+    back = read_cloud(tmp_path / "n.npy")
+    np.testing.assert_array_equal(back.points, pts[[0, 2]])
+    assert back.n_dropped == 1
+
+
+def test_pcd_with_extra_fields_and_padding(tmp_path: Path) -> None:
+    # Layout as PCL writes it for PointXYZI with a padding field and a 2-wide field.
+    path = tmp_path / "extra.pcd"
+    rec = np.zeros(
+        3,
+        dtype=[
+            ("x", "<f4"),
+            ("y", "<f4"),
+            ("z", "<f4"),
+            ("_", "u1", (4,)),
+            ("intensity", "<f4"),
+            ("h", "<f8", (2,)),
+        ],
+    )
+    rec["x"], rec["y"], rec["z"], rec["intensity"] = [1, 2, 3], [4, 5, 6], [7, 8, 9], 0.5
+    header = (
+        "VERSION 0.7\nFIELDS x y z _ intensity h\nSIZE 4 4 4 1 4 8\nTYPE F F F U F F\n"
+        "COUNT 1 1 1 4 1 2\nWIDTH 3\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 3\nDATA binary\n"
+    )
+    path.write_bytes(header.encode() + rec.tobytes())
+    np.testing.assert_array_equal(read_cloud(path).points, [[1, 4, 7], [2, 5, 8], [3, 6, 9]])
+
+
+# ---------------------------------------------------------------------------- peers
+
+
+@pytest.mark.peers
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
+@pytest.mark.parametrize("ascii_", [False, True])
+def test_reads_open3d_files(tmp_path: Path, cloud: PointCloud, ext: str, ascii_: bool) -> None:
+    o3d = pytest.importorskip("open3d")
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cloud.points.copy()))
+    pc.normals = o3d.utility.Vector3dVector(cloud.normals.copy())
+    path = tmp_path / f"o3d{ext}"
+    assert o3d.io.write_point_cloud(str(path), pc, write_ascii=ascii_)
+    back = read_cloud(path)
+    # Open3D stores PLY as float64 (ASCII: 6 decimals) and PCD as float32.
+    atol = {(".ply", False): 0.0, (".ply", True): 1e-5, (".pcd", False): 5e-7}.get(
+        (ext, ascii_), 1e-6
+    )
+    np.testing.assert_allclose(back.points, cloud.points, rtol=0, atol=atol)
+    np.testing.assert_allclose(back.normals, cloud.normals, rtol=0, atol=atol)
+
+
+@pytest.mark.peers
+@pytest.mark.parametrize("ext", [".ply", ".pcd"])
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_open3d_reads_our_binary_files(
+    tmp_path: Path, cloud: PointCloud, ext: str, dtype: str
+) -> None:
+    o3d = pytest.importorskip("open3d")
+    path = write_cloud(tmp_path / f"ours{ext}", cloud, binary=True, dtype=dtype)
+    # The tensor reader: Open3D 0.20's legacy PCD reader misreads binary 8-byte floats.
+    pc = o3d.t.io.read_point_cloud(str(path))
+    np.testing.assert_array_equal(pc.point.positions.numpy(), cloud.points.astype(dtype))
+    np.testing.assert_array_equal(pc.point.normals.numpy(), cloud.normals.astype(dtype))
+    if ext == ".ply" or dtype == "float32":
+        legacy = o3d.io.read_point_cloud(str(path))
+        np.testing.assert_array_equal(np.asarray(legacy.points), cloud.points.astype(dtype))
+
+
+# ---------------------------------------------------------------------------- bad input
+
+
+def _raises_naming(path: Path, match: str, exc: type[Exception] = FileFormatError):
+    """Context: the call raises ``exc`` whose message names ``path`` and matches ``match``."""
+    return pytest.raises(exc, match=rf"^{_re(str(path))}: .*{match}")
+
+
+def _re(text: str) -> str:
+    import re
+
+    return re.escape(text)
+
+
+def test_unknown_extension(tmp_path: Path, cloud: PointCloud) -> None:
+    path = tmp_path / "cloud.las"
+    path.write_text("1 2 3\n")
+    with _raises_naming(path, "unknown point cloud extension '.las'"):
+        read_cloud(path)
+    with _raises_naming(path, "unknown point cloud extension"):
+        write_cloud(path, cloud)
+
+
+@pytest.mark.parametrize("ext", EXTENSIONS)
+def test_missing_file(tmp_path: Path, ext: str) -> None:
+    path = tmp_path / f"absent{ext}"
+    with _raises_naming(path, "no such file"):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_truncated_ply(tmp_path: Path, cloud: PointCloud, binary: bool) -> None:
+    path = write_cloud(tmp_path / "t.ply", cloud, binary=binary)
+    data = path.read_bytes()
+    # ASCII: drop the last whole line (a number cut short would still parse as a number).
+    cut = data[: data.rstrip(b"\n").rfind(b"\n") + 1] if not binary else data[:-20]
+    path.write_bytes(cut)
+    with _raises_naming(path, "truncated"):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("binary", [True, False])
+def test_truncated_pcd(tmp_path: Path, cloud: PointCloud, binary: bool) -> None:
+    path = write_cloud(tmp_path / "t.pcd", cloud, binary=binary)
+    data = path.read_bytes()
+    # Cut whole ASCII lines so the remaining numbers are still valid.
+    cut = data[: data.rstrip(b"\n").rfind(b"\n") + 1] if not binary else data[:-5]
+    path.write_bytes(cut)
+    with _raises_naming(path, "truncated"):
+        read_cloud(path)
+
+
+def test_truncated_npy_and_npz(tmp_path: Path, cloud: PointCloud) -> None:
+    for ext in (".npy", ".npz"):
+        path = write_cloud(tmp_path / f"t{ext}", cloud)
+        path.write_bytes(path.read_bytes()[:-30])
+        with _raises_naming(path, "truncated"):
+            read_cloud(path)
+
+
+def test_pcd_truncated_header(tmp_path: Path) -> None:
+    path = tmp_path / "h.pcd"
+    path.write_text("VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\n")
+    with _raises_naming(path, "no DATA line"):
+        read_cloud(path)
+
+
+def test_wrong_ply_header(tmp_path: Path) -> None:
+    path = tmp_path / "w.ply"
+    path.write_text("plx\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n1\n")
+    with _raises_naming(path, "expected 'ply'"):
+        read_cloud(path)
+
+
+def test_wrong_pcd_header(tmp_path: Path) -> None:
+    path = tmp_path / "w.pcd"
+    path.write_text("VERSION 0.7\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA ascii\n1 2 3\n")
+    with _raises_naming(path, "lacks FIELDS"):
+        read_cloud(path)
+    path.write_text("FIELDS x y z\nSIZE 4 4 4\nTYPE F F Q\nPOINTS 1\nDATA ascii\n1 2 3\n")
+    with _raises_naming(path, "unknown TYPE Q"):
+        read_cloud(path)
+
+
+def test_pcd_binary_compressed_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "c.pcd"
+    path.write_bytes(b"FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA binary_compressed\n\0")
+    with _raises_naming(path, "binary_compressed .*not supported"):
+        read_cloud(path)
+
+
+def test_no_xyz_properties(tmp_path: Path) -> None:
+    ply = tmp_path / "abc.ply"
+    ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 1\nproperty float a\nproperty float b\n"
+        "property float c\nend_header\n1 2 3\n"
+    )
+    with _raises_naming(ply, "no x/y/z properties"):
+        read_cloud(ply)
+    pcd = tmp_path / "abc.pcd"
+    pcd.write_text("FIELDS a b c\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA ascii\n1 2 3\n")
+    with _raises_naming(pcd, "no x/y/z properties"):
+        read_cloud(pcd)
+    npz = tmp_path / "abc.npz"
+    np.savez(npz, xyz=np.zeros((2, 3)))
+    with _raises_naming(npz, "no 'points' array"):
+        read_cloud(npz)
+
+
+def test_nan_only_cloud(tmp_path: Path) -> None:
+    path = tmp_path / "nan.ply"
+    path.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\nnan nan nan\nnan 1 2\n"
+    )
+    with _raises_naming(path, "no finite point", InputError):
+        read_cloud(path)
+
+
+def test_bad_text_rows_name_the_line(tmp_path: Path) -> None:
+    path = tmp_path / "bad.xyz"
+    path.write_text("1 2 3\n4 5 six\n")
+    with _raises_naming(path, "line 2: not a number"):
+        read_cloud(path)
+    path.write_text("1 2 3\n4 5 6 7\n")
+    with _raises_naming(path, "line 2: 4 columns where earlier rows have 3"):
+        read_cloud(path)
+    path.write_text("1 2 3 4\n5 6 7 8\n")
+    with _raises_naming(path, "expected 3 .* or 6 .* columns, got 4"):
+        read_cloud(path)
+    path.write_text("# only a comment\n")
+    with _raises_naming(path, "no point rows"):
+        read_cloud(path)
+
+
+def test_bad_npy_shape(tmp_path: Path) -> None:
+    path = tmp_path / "s.npy"
+    np.save(path, np.zeros((5, 4)))
+    with _raises_naming(path, r"\(N, 3\) or \(N, 6\)"):
+        read_cloud(path)
+
+
+def test_bad_write_arguments(tmp_path: Path, cloud: PointCloud) -> None:
+    path = tmp_path / "x.ply"
+    with _raises_naming(path, "dtype must be", InputError):
+        write_cloud(path, cloud, dtype="float16")
+    with _raises_naming(path, r"must be \(N, 3\) or \(N, 6\)", InputError):
+        write_cloud(path, np.zeros((3, 4)))
+    assert not path.exists()
