@@ -1,0 +1,163 @@
+"""The HTML report: built from a synthetic run, checked for content and in headless Chromium."""
+
+import base64
+import csv
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from spacepose.cli import main
+from spacepose.core import se3
+from spacepose.core.trajectory import Trajectory
+from spacepose.errors import InputError
+from spacepose.tools.report import build_report
+from spacepose.tools.trajectory_io import write_tum
+
+NAV_STATE = (
+    "rho_x rho_y rho_z v_x v_y v_z qx qy qz qw w_x w_y w_z k_x k_y k_z com_x com_y com_z".split()
+)
+NAV_SIGMA = [f"sig_{c}" for c in NAV_STATE if not c.startswith("q")] + [
+    "sig_att_x",
+    "sig_att_y",
+    "sig_att_z",
+]
+
+
+def _write_csv(path: Path, header: list[str], rows: list[list[object]]) -> None:
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def _make_run(root: Path) -> dict[str, float]:
+    """A lab-like run (ground truth, two tracks, health) and an orbit-like one (truth, nav)."""
+    rng = np.random.default_rng(3)
+    lab = root / "lab"
+    lab.mkdir(parents=True)
+    (lab / "scenario.json").write_text(json.dumps({"scenario": "lab", "seed": 3}))
+    t = np.arange(10.0)
+    gt = np.stack(
+        [
+            se3.make_transform(Rotation.from_euler("y", k, degrees=True), [0.01 * k, 0, 1.2])
+            for k in t
+        ]
+    )
+    write_tum(lab / "groundtruth.tum", Trajectory(t, gt))
+    offset = se3.make_transform(np.eye(3), [0.002, 0.0, 0.0])  # a constant 2 mm x error
+    write_tum(lab / "tracks" / "icp.tum", Trajectory(t, offset @ gt))
+    write_tum(lab / "tracks" / "gicp.tum", Trajectory(t, gt))
+    _write_csv(
+        lab / "tracks" / "icp.health.csv",
+        ["frame", "timestamp", "status"],
+        [[i, ti, "ok" if i != 4 else "lost"] for i, ti in enumerate(t)],
+    )
+    orbit = root / "orbit"
+    orbit.mkdir()
+    (orbit / "scenario.json").write_text(json.dumps({"scenario": "orbit", "seed": 3}))
+    truth_rows, nav_rows = [], []
+    for ti in t:
+        q = Rotation.from_rotvec([0.0, 0.0, 0.01 * ti]).as_quat()
+        truth = [25.0, 0, 0, 0, 0, 0, *q, 0, 0, 0.01, -0.2, 0.4, -0.25, 0.02, -0.03, 0.05]
+        nav = list(truth)
+        nav[0] += 0.003  # 3 mm of position error in x
+        truth_rows.append([ti, *truth])
+        nav_rows.append([ti, *nav, *np.full(len(NAV_SIGMA), 1e-3), 2, "ok"])
+    _write_csv(orbit / "truth.csv", ["t", *NAV_STATE], truth_rows)
+    _write_csv(orbit / "nav.csv", ["t", *NAV_STATE, *NAV_SIGMA, "n_rect", "status"], nav_rows)
+    exp = root / "experiments" / "li-l1"
+    exp.mkdir(parents=True)
+    (exp / "table.json").write_text(json.dumps({"share_below_20deg": {"raw": 0.2, "mls": 0.85}}))
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.plot(rng.normal(size=10))
+    fig.savefig(exp / "histogram.png")
+    plt.close(fig)
+    return {"icp_x_mm": 2.0, "nav_rho_x_mm": 3.0}
+
+
+def test_report_holds_the_tables_and_every_figure(tmp_path: Path) -> None:
+    expected = _make_run(tmp_path / "demo")
+    out = build_report(tmp_path / "demo")
+    page = out.read_text()
+    # Tracking table: icp row shows the 2 mm x error, gicp is exact.
+    icp_row = re.search(r"<tr><td>icp</td><td>([\d.]+) \(", page)
+    assert icp_row and float(icp_row.group(1)) == pytest.approx(expected["icp_x_mm"], abs=1e-3)
+    assert re.search(r"<tr><td>gicp</td><td>0.000 \(0.000\)", page)
+    # Navigation table: 3 mm RMS on rho_x over the second half.
+    nav_row = re.search(r"<tr><td>position \(mm\)</td><td>([\d.]+)</td>", page)
+    assert nav_row and float(nav_row.group(1)) == pytest.approx(expected["nav_rho_x_mm"], rel=1e-6)
+    # Figures: error curves, health, 6 navigation groups, the experiment's own PNG; all decodable.
+    uris = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
+    assert len(uris) == 1 + 1 + 6 + 1
+    for uri in uris:
+        image = mpimg.imread(__import__("io").BytesIO(base64.b64decode(uri)), format="png")
+        assert image.shape[0] > 50 and image.shape[1] > 50
+    assert "share_below_20deg" in page and "<script" not in page
+
+
+def test_report_cli_and_errors(tmp_path: Path, capsys) -> None:
+    _make_run(tmp_path / "demo")
+    assert main(["report", str(tmp_path / "demo"), "--out", str(tmp_path / "r.html")]) == 0
+    assert (tmp_path / "r.html").stat().st_size > 10_000
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="nothing to report"):
+        build_report(tmp_path / "empty")
+    assert main(["report", str(tmp_path / "missing")]) == 1
+    assert "not a folder" in capsys.readouterr().err
+
+
+def _chromium() -> str | None:
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+def _run_chromium(page: Path, profile: Path) -> tuple[str, str]:
+    cmd = [
+        _chromium(),
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        f"--user-data-dir={profile}",
+        "--enable-logging=stderr",
+        "--v=0",
+        "--virtual-time-budget=5000",
+        "--dump-dom",
+        page.resolve().as_uri(),
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    return done.stdout, done.stderr
+
+
+@pytest.mark.skipif(_chromium() is None, reason="needs Debian's chromium (installed by .ci/run)")
+def test_report_renders_in_headless_chromium_without_console_errors(tmp_path: Path) -> None:
+    _make_run(tmp_path / "demo")
+    report = build_report(tmp_path / "demo")
+    dom, log = _run_chromium(report, tmp_path / "profile-a")
+    assert "spacepose report" in dom
+    assert re.findall(r"CONSOLE[^\n]*", log) == []
+    # The checker page is the report plus a script that counts decoded images; its own log line
+    # is the only console output allowed.
+    checker = tmp_path / "checker.html"
+    script = (
+        "<script>window.addEventListener('load', () => { const im = [...document.images];"
+        " console.log('IMGCHECK ' + im.length + ' ' +"
+        " im.filter(i => i.complete && i.naturalWidth > 0).length); });</script>"
+    )
+    checker.write_text(report.read_text().replace("</body>", script + "</body>"))
+    _, log = _run_chromium(checker, tmp_path / "profile-b")
+    counts = re.search(r"IMGCHECK (\d+) (\d+)", log)
+    assert counts, log[-2000:]
+    assert int(counts.group(1)) == 9 and counts.group(1) == counts.group(2)
