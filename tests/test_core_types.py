@@ -127,3 +127,10 @@ def test_cli_maps_package_errors_to_one_line_and_exit_1(capsys) -> None:
     err = capsys.readouterr().err
     assert "unknown experiment" in err and "Traceback" not in err
     assert main(["--definitely-not-an-option"]) == 2
+
+
+def test_pointcloud_leaves_the_callers_array_writable() -> None:
+    pts = np.zeros((4, 3))
+    PointCloud(pts)
+    pts[0, 0] = 1.0  # must not raise: the cloud froze its own copy, not the caller's array
+    assert pts[0, 0] == 1.0

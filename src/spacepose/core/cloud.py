@@ -65,7 +65,8 @@ class PointCloud:
             sigma = None if sigma is None else sigma[keep]
         for name, value in (("points", pts), ("normals", normals), ("sigma", sigma)):
             if value is not None:
-                value = np.ascontiguousarray(value)
+                # A private copy: freezing the caller's own array would break their later writes.
+                value = np.array(value, dtype=np.float64, order="C", copy=True)
                 value.setflags(write=False)
             object.__setattr__(self, name, value)
         object.__setattr__(self, "n_dropped", self.n_dropped + (n - n_keep))
