@@ -1,0 +1,215 @@
+"""ICP: Open3D equivalence, convergence, covariance consistency and bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import se3
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import validate_config
+from spacepose.core.icp import (
+    ICPConfig,
+    icp,
+    point_to_plane_rows,
+    point_to_point_information,
+)
+from spacepose.core.sim.targets import Target, sample_surface
+from spacepose.errors import ConfigError, DegenerateGeometryError, InputError, RegistrationError
+
+PLANE = ICPConfig(
+    max_correspondence_distance=0.1,
+    method="point_to_plane",
+    max_iterations=50,
+    relative_fitness=1e-9,
+    relative_rmse=1e-9,
+)
+
+
+def asymmetric_target() -> Target:
+    """A 0.8 m box with an off-centre cylinder and sphere: no symmetry, so the pose is unique."""
+    box = trimesh.creation.box((0.8, 0.5, 0.3))
+    cylinder = trimesh.creation.cylinder(0.1, 0.4)
+    cylinder.apply_translation((0.3, 0.1, 0.3))
+    sphere = trimesh.creation.icosphere(2, 0.12)
+    sphere.apply_translation((-0.35, -0.2, 0.2))
+    parts = [box, cylinder, sphere]
+    return Target("asymmetric", trimesh.util.concatenate(parts), (), tuple(parts))
+
+
+def perturbation(rng: np.random.Generator, deg: float = 5.0, metres: float = 0.05) -> np.ndarray:
+    """A rigid transform rotating by ``deg`` about a random axis and moving ``metres``."""
+    axis, direction = rng.normal(size=(2, 3))
+    R = Rotation.from_rotvec(np.deg2rad(deg) * axis / np.linalg.norm(axis))
+    return se3.make_transform(R, metres * direction / np.linalg.norm(direction))
+
+
+def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """Rotation error (deg) and translation error (m) of ``T_est · T_true⁻¹``."""
+    dT = T_est @ se3.invert(T_true)
+    return float(np.rad2deg(Rotation.from_matrix(dT[:3, :3]).magnitude())), float(
+        np.linalg.norm(dT[:3, 3])
+    )
+
+
+@pytest.fixture(scope="module")
+def shape() -> Target:
+    return asymmetric_target()
+
+
+@pytest.fixture(scope="module")
+def dense_target(shape: Target) -> PointCloud:
+    """Noise-free dense target with the true face normals."""
+    return sample_surface(shape, 20000, seed=1)
+
+
+@pytest.fixture(scope="module")
+def noisy_pair(shape: Target) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Noisy source and target (σ = 2 mm, different samples) and the true T_target_source."""
+    rng = np.random.default_rng(7)
+    tgt = sample_surface(shape, 4000, seed=2).points
+    src = sample_surface(shape, 3000, seed=3).points
+    tgt = tgt + rng.normal(0, 0.002, tgt.shape)
+    src = src + rng.normal(0, 0.002, src.shape)
+    T_true = perturbation(rng)
+    return se3.transform_points(se3.invert(T_true), src), tgt, T_true
+
+
+@pytest.mark.peers
+@pytest.mark.parametrize("max_iterations", [3, 30])
+def test_point_to_point_equals_open3d(noisy_pair, max_iterations: int) -> None:
+    o3d = pytest.importorskip("open3d")
+    reg = o3d.pipelines.registration
+    src, tgt, T_true = noisy_pair
+    # A start 1° / 1 cm from the truth exercises the non-identity init path.
+    init = perturbation(np.random.default_rng(3), 1.0, 0.01) @ T_true
+    cfg = ICPConfig(max_correspondence_distance=0.08, max_iterations=max_iterations)
+    ours = icp(src, tgt, init, cfg, workers=1)
+    pc_src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src.copy()))
+    pc_tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(tgt.copy()))
+    theirs = reg.registration_icp(
+        pc_src,
+        pc_tgt,
+        0.08,
+        init,
+        reg.TransformationEstimationPointToPoint(),
+        reg.ICPConvergenceCriteria(1e-6, 1e-6, max_iterations),
+    )
+    # Measured: entries within 4e-15 (12 iterations when converged), fitness identical, RMSE
+    # within 2e-17.
+    np.testing.assert_allclose(ours.T_target_source, theirs.transformation, rtol=0, atol=1e-6)
+    assert abs(ours.fitness - theirs.fitness) < 1e-6
+    assert abs(ours.inlier_rmse - theirs.inlier_rmse) < 1e-6
+    assert ours.n_correspondences == len(theirs.correspondence_set)
+    assert ours.iterations <= max_iterations
+    # Open3D's information uses J = [−skew(q) I] at the matched *target* points, ours at the
+    # moved source points; they differ by the residuals only (measured relative difference
+    # 1.4e-3 after 3 iterations, 1.1e-4 after convergence).
+    o3d_info = reg.get_information_matrix_from_point_clouds(
+        pc_src, pc_tgt, 0.08, ours.T_target_source
+    )
+    rel = np.linalg.norm(ours.information - o3d_info) / np.linalg.norm(o3d_info)
+    assert rel < 1e-2, rel
+
+
+def test_point_to_plane_noise_free_converges(shape: Target, dense_target: PointCloud) -> None:
+    tree = cKDTree(dense_target.points)
+    for trial in range(5):
+        rng = np.random.default_rng(100 + trial)
+        T_true = perturbation(rng)
+        src = se3.transform_points(se3.invert(T_true), sample_surface(shape, 1500, trial).points)
+        res = icp(src, dense_target, config=PLANE, workers=1, target_tree=tree)
+        rot, trans = pose_error(res.T_target_source, T_true)
+        # Measured: worst of 30 trials 0.020° / 0.09 mm (facet edges, distinct samples).
+        assert rot < 0.05 and trans < 0.5e-3, (trial, rot, trans)
+        assert res.converged
+
+
+def test_point_to_plane_error_matches_information(shape: Target, dense_target: PointCloud) -> None:
+    """Normalised squared error over 30 seeded trials ~ χ²(6): the covariance is honest."""
+    sigma = 0.003
+    tree = cKDTree(dense_target.points)
+    nees = []
+    for trial in range(30):
+        rng = np.random.default_rng(trial)
+        src = sample_surface(shape, 1500, seed=1000 + trial).points
+        src = src + rng.normal(0, sigma, src.shape)
+        T_true = perturbation(rng)
+        src = se3.transform_points(se3.invert(T_true), src)
+        res = icp(src, dense_target, config=PLANE, workers=1, target_tree=tree)
+        e = se3.log(res.T_target_source @ se3.invert(T_true))
+        nees.append(e @ res.information @ e / sigma**2)
+    # χ²(6) has mean 6; the mean of 30 has std 0.63. Measured 6.37.
+    assert 4.5 < np.mean(nees) < 8.0, np.mean(nees)
+
+
+def test_information_matches_numerical_jacobian(rng: np.random.Generator) -> None:
+    p = rng.normal(size=(5, 3))
+    n = rng.normal(size=(5, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    q = p + 0.01 * rng.normal(size=(5, 3))
+    h = 1e-7
+    J_plane = np.empty((5, 6))
+    J_point = np.empty((5, 3, 6))
+    for a in range(6):
+        d = np.zeros(6)
+        d[a] = h
+        moved = [se3.transform_points(se3.exp(s * d), p) for s in (1, -1)]
+        J_point[:, :, a] = (moved[0] - moved[1]) / (2 * h)
+        r = [np.einsum("ni,ni->n", m - q, n) for m in moved]
+        J_plane[:, a] = (r[0] - r[1]) / (2 * h)
+    np.testing.assert_allclose(point_to_plane_rows(p, n), J_plane, atol=1e-7)
+    np.testing.assert_allclose(
+        point_to_point_information(p), np.einsum("nai,naj->ij", J_point, J_point), atol=1e-6
+    )
+
+
+def test_estimates_missing_normals_and_reuses_tree(shape: Target, dense_target: PointCloud) -> None:
+    rng = np.random.default_rng(5)
+    T_true = perturbation(rng)
+    src = se3.transform_points(se3.invert(T_true), sample_surface(shape, 1500, 5).points)
+    bare = dense_target.points  # no normals: icp estimates them
+    res = icp(src, bare, config=PLANE, workers=1)
+    rot, trans = pose_error(res.T_target_source, T_true)
+    assert rot < 0.05 and trans < 0.5e-3, (rot, trans)
+    again = icp(src, bare, config=PLANE, workers=1, target_tree=cKDTree(bare))
+    np.testing.assert_array_equal(again.T_target_source, res.T_target_source)
+
+
+@pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])
+def test_same_result_for_any_workers(noisy_pair, method: str) -> None:
+    src, tgt, _ = noisy_pair
+    cfg = ICPConfig(max_correspondence_distance=0.1, method=method)
+    one = icp(src, tgt, config=cfg, workers=1)
+    two = icp(src, tgt, config=cfg, workers=2)
+    np.testing.assert_array_equal(one.T_target_source, two.T_target_source)
+    np.testing.assert_array_equal(one.information, two.information)
+    assert one.fitness == two.fitness and one.inlier_rmse == two.inlier_rmse
+
+
+def test_bad_input(noisy_pair) -> None:
+    src, tgt, _ = noisy_pair
+    with pytest.raises(InputError, match="at least 3 points"):
+        icp(src[:2], tgt)
+    with pytest.raises(RegistrationError, match="correspondences"):
+        icp(src + 10.0, tgt)
+    nan_init = np.eye(4)
+    nan_init[0, 3] = np.nan
+    with pytest.raises(InputError, match="init_T_target_source"):
+        icp(src, tgt, nan_init)
+    with pytest.raises(InputError, match="init_T_target_source"):
+        icp(src, tgt, np.diag([2.0, 2.0, 2.0, 1.0]))
+    with pytest.raises(InputError, match="target_tree"):
+        icp(src, tgt, target_tree=cKDTree(tgt[:100]))
+    with pytest.raises(ConfigError, match="max_correspondence_distance"):
+        validate_config(ICPConfig, {"max_correspondence_distance": -1.0})
+
+
+def test_single_plane_is_degenerate_for_point_to_plane(rng: np.random.Generator) -> None:
+    plane = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.zeros(500)])
+    target = PointCloud(plane, np.tile([0.0, 0.0, 1.0], (500, 1)))
+    with pytest.raises(DegenerateGeometryError, match="degrees of freedom"):
+        icp(plane + np.array([0.0, 0.0, 0.01]), target, config=ICPConfig(method="point_to_plane"))
