@@ -118,7 +118,8 @@ def write_tum(path: str | Path, traj: Trajectory) -> Path:
     quat[quat[:, 3] < 0] *= -1.0
     table = np.column_stack([traj.timestamps, traj.positions, quat])
     path.parent.mkdir(parents=True, exist_ok=True)
-    np.savetxt(path, table, fmt=_FMT, header="timestamp tx ty tz qx qy qz qw")
+    # No header line: one line per pose, as evo and the TUM tools expect.
+    np.savetxt(path, table, fmt=_FMT)
     return path
 
 

@@ -1,0 +1,45 @@
+"""The simulator (METHODS §3): targets, range sensors and the lab and orbit scenarios."""
+
+from spacepose.core.sim.scenarios import (
+    TRUTH_COLUMNS,
+    Frame,
+    LabConfig,
+    OrbitConfig,
+    Simulation,
+    mean_motion,
+    scenario_config,
+    simulate,
+    simulate_lab,
+    simulate_orbit,
+)
+from spacepose.core.sim.sensors import SENSOR_PRESETS, SensorConfig, sensor_config
+from spacepose.core.sim.targets import (
+    Rectangle,
+    Target,
+    lab_target,
+    load_mesh,
+    orbit_target,
+    sample_surface,
+)
+
+__all__ = [
+    "SENSOR_PRESETS",
+    "TRUTH_COLUMNS",
+    "Frame",
+    "LabConfig",
+    "OrbitConfig",
+    "Rectangle",
+    "SensorConfig",
+    "Simulation",
+    "Target",
+    "lab_target",
+    "load_mesh",
+    "mean_motion",
+    "orbit_target",
+    "sample_surface",
+    "scenario_config",
+    "sensor_config",
+    "simulate",
+    "simulate_lab",
+    "simulate_orbit",
+]

@@ -1,0 +1,416 @@
+"""The simulated scenarios of METHODS §3: the lab slide-and-turntable run and the orbit run.
+
+A :class:`Simulation` holds everything that defines a run (target, sensor, poses, background,
+seed); its frames are rendered on demand, frame k from ``default_rng([seed, k])``, so any frame
+can be regenerated alone and a run never has to sit in memory whole.
+
+Lab (Li et al.): the sensor is fixed and level (sensor −y is up). The target sits on a turntable
+carried by a slide; the table frame has the sensor's axes and its origin on the turntable axis at
+the target-frame origin. Frame k: slide offset ``x_k`` along sensor x and turntable angle ``θ_k``
+about the vertical, both centred on the middle frame so the target stays in view:
+``T_sensor_target(k) = Trans(x_k, 0, range) · Rot(−y, θ_k) · R_table_model``.
+
+Orbit (Yu et al., METHODS §2.4): I coincides with O at t = 0, O turns about −y_O at the mean
+motion n; ρ = target CoM − chaser CoM in O follows the Clohessy–Wiltshire solution; the sensor
+frame C is the chaser frame with a constant ``R_O_C`` whose boresight points at the initial ρ;
+the target tumbles torque-free. A model point x' (in B') sits at ``x_B = x' − Δ``, so
+``T_C_B' = [R_C_O R_O_B,  R_C_O (ρ − R_O_B Δ)]``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+from pydantic import Field
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import dynamics
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import StageConfig, validate_config
+from spacepose.core.crlb import CramerRaoBound, crlb
+from spacepose.core.sim.sensors import SENSOR_PRESETS, SensorConfig, scan, sensor_config
+from spacepose.core.sim.targets import Target, lab_target, load_mesh, orbit_target, sample_surface
+from spacepose.core.trajectory import Trajectory
+from spacepose.errors import ConfigError
+
+EARTH_MU = 3.986004418e14  # m³/s², WGS-84
+EARTH_RADIUS = 6378137.0  # m, WGS-84 equatorial
+TRUTH_COLUMNS = (
+    "t,rho_x,rho_y,rho_z,v_x,v_y,v_z,qx,qy,qz,qw,w_x,w_y,w_z,k_x,k_y,k_z,com_x,com_y,com_z"
+).split(",")
+# Boresight z_C along +x_O (the target ahead), y_C towards the Earth (+z_O), x_C = y_C × z_C.
+R_O_C_AHEAD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+class _ScenarioConfig(StageConfig):
+    frames: int = Field(ge=1, description="Number of frames.")
+    rate_hz: float = Field(1.0, gt=0, description="Frame rate, Hz.")
+    seed: int = Field(0, ge=0, description="Seed of every random draw of the run.")
+    model: str | None = Field(None, description="Mesh file replacing the procedural target.")
+    model_scale: float = Field(1.0, gt=0, description="Scale applied to the mesh file.")
+    model_points: int = Field(20000, ge=100, description="Surface samples in model.ply.")
+
+
+class LabConfig(_ScenarioConfig):
+    """The lab run of METHODS §3 (Li et al.): a ToF camera, a mock-up on a slide and turntable."""
+
+    frames: int = Field(58, ge=1, description="Number of frames.")
+    sensor: SensorConfig = Field(default_factory=lambda: SENSOR_PRESETS["tof"])
+    range_m: float = Field(1.2, gt=0, description="Turntable axis distance from the sensor, m.")
+    step_m: float = Field(0.010, description="Slide step per frame along sensor x, m.")
+    step_deg: float = Field(1.0, description="Turntable step per frame about the vertical, deg.")
+    yaw_center_deg: float = Field(
+        0.0, description="Turntable angle at the middle frame; 0 = dish facing the sensor."
+    )
+    tilt_deg: float = Field(
+        20.0, description="Mock-up tilt on the table about its wing axis, so its top is seen."
+    )
+    background: bool = Field(False, description="Add a wall and the turntable to the scene.")
+    wall_distance_m: float = Field(2.0, gt=0, description="Wall distance along the boresight.")
+
+
+class OrbitConfig(_ScenarioConfig):
+    """The orbit run of METHODS §3 (Yu et al.): a flash LiDAR 25 m behind a tumbling satellite."""
+
+    frames: int = Field(600, ge=1, description="Number of frames.")
+    sensor: SensorConfig = Field(default_factory=lambda: SENSOR_PRESETS["flash-lidar"])
+    altitude_m: float = Field(500e3, gt=0, description="Circular orbit altitude, m.")
+    standoff_m: float = Field(25.0, gt=0, description="Chaser distance behind the target, m.")
+    velocity_perturbation: float = Field(
+        0.002,
+        ge=0,
+        description="Magnitude of the initial relative velocity (seeded random direction), m/s.",
+    )
+    inertia: tuple[float, float, float] = Field((1200.0, 1000.0, 800.0), description="kg·m².")
+    rate_deg_s: tuple[float, float, float] = Field(
+        (1.0, -2.0, 1.5), description="Initial angular rate in B, deg/s."
+    )
+    com_offset: tuple[float, float, float] = Field(
+        (0.02, -0.03, 0.05), description="Δ: B' origin → B origin, in B, m."
+    )
+    attitude_zyx_deg: tuple[float, float, float] = Field(
+        (30.0, -20.0, 45.0), description="Initial R_I_B as intrinsic ZYX Euler angles, deg."
+    )
+    attitude_substeps: int = Field(20, ge=1, description="RK4 substeps per frame interval.")
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One simulated frame.
+
+    Attributes
+    ----------
+    timestamp
+        Seconds from the start of the run.
+    cloud
+        Measured points (N, 3) in the sensor frame, with per-point σ (m; along the ray for range
+        sensors, per axis for ``gaussian``).
+    true_normals
+        (N, 3) unit normals of the surfaces hit, pointing towards the sensor, sensor frame.
+    T_sensor_target
+        (4, 4) true pose of the target (model) frame in the sensor frame.
+    on_target
+        (N,) True where the ray hit the target, False on the background.
+    flying
+        (N,) True for flying pixels (outliers between two depths).
+    sigma_normal
+        (N,) noise σ along the true normal, ``σ_r·|cos θ|`` for range sensors, m.
+    """
+
+    timestamp: float
+    cloud: PointCloud
+    true_normals: NDArray[np.float64]
+    T_sensor_target: NDArray[np.float64]
+    on_target: NDArray[np.bool_]
+    flying: NDArray[np.bool_]
+    sigma_normal: NDArray[np.float64]
+
+    def crlb(self, frame_to_frame: bool = False) -> CramerRaoBound:
+        """Cramér–Rao bound of registering this frame's target points (METHODS §4).
+
+        Uses the target's non-flying points, their true normals and ``σ_i = σ_r·|cos θ_i|``.
+        The twist is about the sensor-frame origin, rotation first (see :mod:`spacepose.core.crlb`).
+
+        Raises
+        ------
+        ConfigError
+            For a noise-free frame (``noise_scale = 0``), whose bound is zero.
+        """
+        keep = self.on_target & ~self.flying
+        if not np.any(self.sigma_normal[keep] > 0):
+            raise ConfigError("a noise-free frame (noise_scale 0) has no Cramér-Rao bound")
+        return crlb(
+            self.cloud.points[keep],
+            self.true_normals[keep],
+            self.sigma_normal[keep],
+            frame_to_frame=frame_to_frame,
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Simulation:
+    """A simulated run: the scene, the sensor, the true poses; frames rendered on demand.
+
+    Attributes
+    ----------
+    name
+        ``"lab"`` or ``"orbit"``.
+    config
+        The scenario config (every parameter, the seed included).
+    target
+        The target in its model frame (= the target frame of the poses).
+    timestamps
+        (N,) seconds.
+    T_sensor_target
+        (N, 4, 4) true poses.
+    background
+        Extra scene parts, each a mesh with its (N, 4, 4) poses in the sensor frame.
+    truth
+        Orbit only: (N, 20) table with the columns :data:`TRUTH_COLUMNS`.
+    extras
+        Scenario facts derived from the config (mean motion, R_O_C, ...), JSON-ready.
+    """
+
+    name: str
+    config: LabConfig | OrbitConfig
+    target: Target
+    timestamps: NDArray[np.float64]
+    T_sensor_target: NDArray[np.float64]
+    background: tuple[tuple[trimesh.Trimesh, NDArray[np.float64]], ...] = ()
+    truth: NDArray[np.float64] | None = None
+    extras: dict[str, Any] | None = None
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def sensor(self) -> SensorConfig:
+        return self.config.sensor
+
+    @property
+    def groundtruth(self) -> Trajectory:
+        """True ``T_sensor_target`` per frame."""
+        return Trajectory(self.timestamps, self.T_sensor_target, source=f"{self.name} simulation")
+
+    def frame(self, k: int) -> Frame:
+        """Render frame ``k`` (0-based); the same k and seed always give the same frame."""
+        if not 0 <= k < len(self):
+            raise ConfigError(f"frame index {k} out of range 0..{len(self) - 1}")
+        meshes = [self.target.mesh.copy().apply_transform(self.T_sensor_target[k])]
+        meshes += [mesh.copy().apply_transform(poses[k]) for mesh, poses in self.background]
+        scene = trimesh.Trimesh(
+            np.concatenate([m.vertices for m in meshes]),
+            np.concatenate(
+                [m.faces + off for m, off in zip(meshes, _offsets(meshes), strict=True)]
+            ),
+            process=False,
+        )
+        rng = np.random.default_rng([self.config.seed, k])
+        s = scan(scene, self.sensor, rng)
+        return Frame(
+            timestamp=float(self.timestamps[k]),
+            cloud=PointCloud(s.points, sigma=s.sigma, source=f"{self.name} frame {k}"),
+            true_normals=s.true_normals,
+            T_sensor_target=self.T_sensor_target[k].copy(),
+            on_target=s.face < len(self.target.mesh.faces),
+            flying=s.flying,
+            sigma_normal=s.sigma_normal,
+        )
+
+    def frames(self) -> Iterator[Frame]:
+        """Every frame in order."""
+        return (self.frame(k) for k in range(len(self)))
+
+    def model_cloud(self) -> PointCloud:
+        """Surface samples of the target with normals, target frame (``config.model_points``)."""
+        return sample_surface(self.target, self.config.model_points, seed=self.config.seed)
+
+    def scenario(self) -> dict[str, Any]:
+        """JSON-ready description of the run: every parameter, the seed and derived facts."""
+        return {
+            "scenario": self.name,
+            "seed": self.config.seed,
+            "frames": len(self),
+            "config": self.config.model_dump(mode="json"),
+            "sensor_fov_deg": list(self.sensor.fov_deg),
+            "target": self.target.name,
+            "rectangles": [r.to_dict() for r in self.target.rectangles],
+            **(self.extras or {}),
+        }
+
+
+def _offsets(meshes: list[trimesh.Trimesh]) -> list[int]:
+    counts = [len(m.vertices) for m in meshes]
+    return [int(v) for v in np.concatenate([[0], np.cumsum(counts)[:-1]])]
+
+
+def _target(config: LabConfig | OrbitConfig, procedural: Target) -> Target:
+    if config.model is None:
+        return procedural
+    return load_mesh(Path(config.model), scale=config.model_scale)
+
+
+def lab_poses(config: LabConfig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """True poses of the lab run: ``T_sensor_table`` and ``T_sensor_target``, each (N, 4, 4)."""
+    k = np.arange(config.frames) - 0.5 * (config.frames - 1)
+    # Model +z (dish) towards the sensor, wings along sensor x, then the tilt about the wings.
+    R_table_model = Rotation.from_euler("yx", [180.0, config.tilt_deg], degrees=True)
+    up = np.array([0.0, -1.0, 0.0])
+    yaw = np.radians(config.yaw_center_deg + k * config.step_deg)
+    R_sensor_target = Rotation.from_rotvec(yaw[:, None] * up) * R_table_model
+    T_sensor_table = np.tile(np.eye(4), (config.frames, 1, 1))
+    T_sensor_table[:, 0, 3] = k * config.step_m
+    T_sensor_table[:, 2, 3] = config.range_m
+    T_sensor_target = T_sensor_table.copy()
+    T_sensor_target[:, :3, :3] = R_sensor_target.as_matrix()
+    return T_sensor_table, T_sensor_target
+
+
+def _lab_background(
+    config: LabConfig, target: Target, T_sensor_table: NDArray[np.float64]
+) -> tuple[tuple[trimesh.Trimesh, NDArray[np.float64]], ...]:
+    """A wall fixed in the sensor frame, and a turntable (post, disc, plinth) on the slide."""
+    wall = trimesh.creation.box(
+        bounds=[(-3.0, -2.0, config.wall_distance_m), (3.0, 2.0, config.wall_distance_m + 0.05)]
+    )
+    # Turning about the vertical keeps heights, so the lowest target point is the same in
+    # every frame; the disc sits 5 cm below it (y is down).
+    R_table_model = Rotation.from_euler("yx", [180.0, config.tilt_deg], degrees=True)
+    low = float((target.mesh.vertices @ R_table_model.as_matrix().T)[:, 1].max()) + 0.05
+    disc_t = 0.02
+    post = trimesh.creation.cylinder(0.01, segment=[(0.0, 0.0, 0.0), (0.0, low, 0.0)])
+    disc = trimesh.creation.cylinder(
+        0.25, segment=[(0.0, low, 0.0), (0.0, low + disc_t, 0.0)], sections=64
+    )
+    plinth = trimesh.creation.box(
+        bounds=[(-0.2, low + disc_t, -0.2), (0.2, low + disc_t + 1.0, 0.2)]
+    )
+    table = trimesh.util.concatenate([post, disc, plinth])
+    fixed = np.tile(np.eye(4), (config.frames, 1, 1))
+    return ((wall, fixed), (table, T_sensor_table))
+
+
+def simulate_lab(config: LabConfig | None = None) -> Simulation:
+    """The lab run (METHODS §3): 58 ToF frames of the mock-up on the slide and turntable."""
+    config = config or LabConfig()
+    target = _target(config, lab_target())
+    T_sensor_table, T_sensor_target = lab_poses(config)
+    background = _lab_background(config, target, T_sensor_table) if config.background else ()
+    return Simulation(
+        name="lab",
+        config=config,
+        target=target,
+        timestamps=np.arange(config.frames) / config.rate_hz,
+        T_sensor_target=T_sensor_target,
+        background=background,
+    )
+
+
+def mean_motion(altitude_m: float) -> float:
+    """Mean motion n (rad/s) of a circular Earth orbit at the given altitude."""
+    return math.sqrt(EARTH_MU / (EARTH_RADIUS + altitude_m) ** 3)
+
+
+def orbit_truth(config: OrbitConfig) -> NDArray[np.float64]:
+    """True states of the orbit run: (N, 20) rows with the columns :data:`TRUTH_COLUMNS`.
+
+    ρ, ρ̇ from the closed-form CW solution from ``(standoff, 0, 0)`` plus a seeded velocity
+    perturbation of magnitude ``velocity_perturbation``; q = R_I_B and ω in B from torque-free
+    RK4 propagation; k and Δ constant.
+    """
+    n = mean_motion(config.altitude_m)
+    rng = np.random.default_rng([config.seed, 2**31])  # a stream apart from the frames' streams
+    direction = rng.standard_normal(3)
+    v0 = config.velocity_perturbation * direction / np.linalg.norm(direction)
+    state0 = np.concatenate([[config.standoff_m, 0.0, 0.0], v0])
+    t = np.arange(config.frames) / config.rate_hz
+    states = np.stack([dynamics.cw_closed_form(state0, n, ti) for ti in t])
+    q = Rotation.from_euler("ZYX", config.attitude_zyx_deg, degrees=True).as_quat()
+    w = np.radians(config.rate_deg_s)
+    quats, rates = [q], [w]
+    for _ in range(1, config.frames):
+        q, w = dynamics.propagate_attitude(
+            q, w, config.inertia, 1.0 / config.rate_hz, config.attitude_substeps
+        )
+        quats.append(q)
+        rates.append(w)
+    k = dynamics.inertia_ratios(config.inertia)
+    ones = np.ones((config.frames, 1))
+    return np.hstack(
+        [t[:, None], states, np.array(quats), np.array(rates), ones * k, ones * config.com_offset]
+    )
+
+
+def orbit_poses(truth: NDArray[np.float64], R_O_C: NDArray[np.float64], n: float) -> NDArray:
+    """``T_C_B'`` (N, 4, 4) from the truth table (see the module notes for the formula)."""
+    t, rho, q, com = truth[:, 0], truth[:, 1:4], truth[:, 7:11], truth[:, 17:20]
+    R_O_I = Rotation.from_rotvec(np.outer(n * t, [0.0, -1.0, 0.0])).inv()
+    R_O_B = (R_O_I * Rotation.from_quat(q)).as_matrix()
+    R_C_O = R_O_C.T
+    T = np.tile(np.eye(4), (len(t), 1, 1))
+    T[:, :3, :3] = R_C_O @ R_O_B
+    T[:, :3, 3] = (rho - np.einsum("nij,nj->ni", R_O_B, com)) @ R_C_O.T
+    return T
+
+
+def simulate_orbit(config: OrbitConfig | None = None) -> Simulation:
+    """The orbit run (METHODS §3): flash-LiDAR frames of the tumbling satellite from 25 m."""
+    config = config or OrbitConfig()
+    n = mean_motion(config.altitude_m)
+    truth = orbit_truth(config)
+    return Simulation(
+        name="orbit",
+        config=config,
+        target=_target(config, orbit_target()),
+        timestamps=truth[:, 0].copy(),
+        T_sensor_target=orbit_poses(truth, R_O_C_AHEAD, n),
+        truth=truth,
+        extras={
+            "mean_motion": n,
+            "R_O_C": R_O_C_AHEAD.tolist(),
+            "inertia": list(config.inertia),
+            "inertia_ratios": truth[0, 14:17].tolist(),
+            "rate_rad_s": np.radians(config.rate_deg_s).tolist(),
+            "com_offset": list(config.com_offset),
+            "initial_state": truth[0, 1:7].tolist(),
+            "initial_q_I_B": truth[0, 7:11].tolist(),
+        },
+    )
+
+
+SCENARIOS = {"lab": (LabConfig, simulate_lab), "orbit": (OrbitConfig, simulate_orbit)}
+
+
+def scenario_config(
+    name: str,
+    *,
+    sensor: str | None = None,
+    noise_scale: float | None = None,
+    **fields: Any,
+) -> LabConfig | OrbitConfig:
+    """Config of scenario ``name`` with the given fields and an optional sensor preset/noise.
+
+    Raises
+    ------
+    ConfigError
+        Unknown scenario or sensor, or an invalid field (e.g. ``background`` for ``orbit``).
+    """
+    if name not in SCENARIOS:
+        raise ConfigError(f"unknown scenario {name!r}; choose one of: {', '.join(SCENARIOS)}")
+    model, _ = SCENARIOS[name]
+    sensor_name = sensor or ("tof" if name == "lab" else "flash-lidar")
+    overrides = {} if noise_scale is None else {"noise_scale": noise_scale}
+    fields["sensor"] = sensor_config(sensor_name, **overrides)
+    return validate_config(model, fields, source=f"scenario {name}")
+
+
+def simulate(config: LabConfig | OrbitConfig) -> Simulation:
+    """Build the run described by ``config`` (a :class:`LabConfig` or :class:`OrbitConfig`)."""
+    return simulate_lab(config) if isinstance(config, LabConfig) else simulate_orbit(config)

@@ -1,0 +1,303 @@
+"""Target geometry for the simulator (METHODS §3): procedural satellites, mesh files, rectangles.
+
+A :class:`Target` is one triangle mesh in its model frame (the target frame of every simulated
+pose), plus the catalogue of its flat rectangular faces that rectangle-based pose estimation
+(METHODS §2.2–2.3) recognises. The procedural targets are concatenations of trimesh primitives;
+the primitives are kept so that surface samples hidden inside another part can be dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import trimesh
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import se3
+from spacepose.core.cloud import PointCloud
+from spacepose.errors import FileFormatError, InputError
+
+MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
+# Cylinders and cones: enough facets that the silhouette is round at the lab's 2.5 mm pixels,
+# few enough that building the ray-casting BVH stays cheap.
+_SECTIONS = 32
+
+
+@dataclass(frozen=True)
+class Rectangle:
+    """A flat rectangular face of the target, in the model frame.
+
+    Attributes
+    ----------
+    name
+        Unique label, e.g. ``"bus+z"`` or ``"wing_front"``.
+    center
+        (3,) face centre in the model frame, metres.
+    R_model_plane
+        (3, 3) rotation of the plane frame P into the model frame; columns: x along the short
+        side ``a``, y along the long side ``b``, z the outward normal (right-handed).
+    a, b
+        Full side lengths in metres, ``a <= b``.
+    """
+
+    name: str
+    center: NDArray[np.float64]
+    R_model_plane: NDArray[np.float64]
+    a: float
+    b: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready form: ``{name, center, R_model_plane, a, b}`` with plain lists."""
+        return {
+            "name": self.name,
+            "center": [float(v) for v in self.center],
+            "R_model_plane": [[float(v) for v in row] for row in self.R_model_plane],
+            "a": float(self.a),
+            "b": float(self.b),
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Rectangle:
+        """Inverse of :meth:`to_dict`."""
+        return cls(
+            str(data["name"]),
+            np.asarray(data["center"], dtype=np.float64),
+            np.asarray(data["R_model_plane"], dtype=np.float64),
+            float(data["a"]),
+            float(data["b"]),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class Target:
+    """A target: its mesh in the model (target) frame and its rectangle catalogue.
+
+    Attributes
+    ----------
+    name
+        ``"lab"``, ``"orbit"`` or the mesh file's name.
+    mesh
+        The whole surface, one triangle mesh, model frame, metres.
+    rectangles
+        Flat rectangular faces (empty for a mesh file).
+    parts
+        The closed convex primitives the mesh was built from (empty for a mesh file); a surface
+        sample inside another part is hidden and dropped by :func:`sample_surface`.
+    """
+
+    name: str
+    mesh: trimesh.Trimesh
+    rectangles: tuple[Rectangle, ...] = ()
+    parts: tuple[trimesh.Trimesh, ...] = field(default=(), repr=False)
+
+
+def box_rectangles(
+    prefix: str, extents: ArrayLike, T_model_box: ArrayLike, faces: tuple[str, ...] | None = None
+) -> list[Rectangle]:
+    """The rectangle catalogue entries of a box's faces.
+
+    Parameters
+    ----------
+    prefix
+        Name prefix; a face is named ``prefix + axis`` such as ``"bus+x"``.
+    extents
+        (3,) full side lengths along the box's own x, y, z, metres.
+    T_model_box
+        (4, 4) pose of the box frame (centre, axes along the sides) in the model frame.
+    faces
+        Which faces to list (``"+x"``, ``"-z"`` ...); all six when omitted.
+    """
+    ext = np.asarray(extents, dtype=np.float64)
+    T = np.asarray(T_model_box, dtype=np.float64)
+    out = []
+    for axis in range(3):
+        for sign, label in ((1.0, "+"), (-1.0, "-")):
+            key = f"{label}{'xyz'[axis]}"
+            if faces is not None and key not in faces:
+                continue
+            others = [i for i in range(3) if i != axis]
+            short, long_ = sorted(others, key=lambda i: (ext[i], i))
+            z = sign * np.eye(3)[axis]
+            y = np.eye(3)[long_]
+            x = np.cross(y, z)  # right-handed by construction; x is ± the short axis
+            R_box_plane = np.column_stack([x, y, z])
+            out.append(
+                Rectangle(
+                    name=f"{prefix}{key}",
+                    center=se3.transform_points(T, (0.5 * ext[axis] * z)[None])[0],
+                    R_model_plane=T[:3, :3] @ R_box_plane,
+                    a=float(ext[short]),
+                    b=float(ext[long_]),
+                )
+            )
+    return out
+
+
+def _box(extents: ArrayLike, center: ArrayLike) -> trimesh.Trimesh:
+    return trimesh.creation.box(extents=extents, transform=se3.make_transform(np.eye(3), center))
+
+
+def _cylinder(radius: float, p0: ArrayLike, p1: ArrayLike) -> trimesh.Trimesh:
+    return trimesh.creation.cylinder(radius=radius, segment=np.array([p0, p1]), sections=_SECTIONS)
+
+
+def _cone(radius: float, height: float, base: ArrayLike, axis: ArrayLike) -> trimesh.Trimesh:
+    """Cone with its base disc centred at ``base`` and its apex at ``base + height * axis``."""
+    R = Rotation.align_vectors([axis], [[0.0, 0.0, 1.0]])[0]
+    return trimesh.creation.cone(
+        radius=radius, height=height, sections=_SECTIONS, transform=se3.make_transform(R, base)
+    )
+
+
+def _assemble(name: str, parts: list[trimesh.Trimesh], rectangles: list[Rectangle]) -> Target:
+    mesh = trimesh.util.concatenate(parts)
+    return Target(name, mesh, tuple(rectangles), tuple(parts))
+
+
+def lab_target() -> Target:
+    """The lab mock-up of Li et al. (METHODS §3), model frame at the bus centre.
+
+    Bus 0.20 × 0.16 × 0.16 m (x × y × z); two 0.30 × 0.12 m wings (5 mm thick) along ±x on booms
+    of different lengths (60 and 30 mm); a 0.06 m radius dish on the +z face, off-centre; a nozzle
+    on the −z face, off-centre. The unequal booms and the offsets make the pose unique.
+    """
+    bus = (0.20, 0.16, 0.16)
+    wing = (0.30, 0.12, 0.005)
+    parts = [_box(bus, (0.0, 0.0, 0.0))]
+    rects = box_rectangles("bus", bus, np.eye(4))
+    for side, boom in ((1.0, 0.06), (-1.0, 0.03)):
+        root = side * bus[0] / 2
+        tip = side * (bus[0] / 2 + boom)
+        parts.append(_cylinder(0.006, (root, 0.0, 0.0), (tip, 0.0, 0.0)))
+        centre = np.array([tip + side * wing[0] / 2, 0.0, 0.0])
+        parts.append(_box(wing, centre))
+        label = "wing_right" if side > 0 else "wing_left"
+        T = se3.make_transform(np.eye(3), centre)
+        rects += box_rectangles(f"{label}", wing, T, faces=("+z", "-z"))
+    # Dish: a shallow cone (reflector) on a short mast, off-centre so the +z face is not symmetric.
+    mast_base, mast_top = (0.03, -0.02, bus[2] / 2), (0.03, -0.02, bus[2] / 2 + 0.03)
+    parts.append(_cylinder(0.008, mast_base, mast_top))
+    parts.append(_cone(0.06, 0.025, mast_top, (0.0, 0.0, 1.0)))
+    # Nozzle: a cone opening away from the bus on the −z face, also off-centre.
+    parts.append(_cone(0.03, 0.05, (-0.04, 0.03, -bus[2] / 2 - 0.05), (0.0, 0.0, 1.0)))
+    return _assemble("lab", parts, _rename_wing_faces(rects))
+
+
+def orbit_target() -> Target:
+    """The orbit satellite of Yu et al. (METHODS §3); model frame = B' (nominal body frame).
+
+    Bus 2.4 × 1.8 × 1.4 m (x × y × z) centred at the B' origin (the nominal centre of mass), axes
+    along the principal axes; one 6.0 × 2.0 m wing (4 cm thick) on a 0.5 m boom from the +y face,
+    its long side along y and its faces normal to ±z. Bus face sizes (2.4×1.8, 2.4×1.4, 1.8×1.4)
+    and the wing all differ, so each rectangle is identified by its sides alone.
+    """
+    bus = (2.4, 1.8, 1.4)
+    wing = (2.0, 6.0, 0.04)
+    boom = 0.5
+    parts = [_box(bus, (0.0, 0.0, 0.0))]
+    rects = box_rectangles("bus", bus, np.eye(4))
+    root = bus[1] / 2
+    parts.append(_cylinder(0.05, (0.0, root, 0.0), (0.0, root + boom, 0.0)))
+    centre = np.array([0.0, root + boom + wing[1] / 2, 0.0])
+    parts.append(_box(wing, centre))
+    rects += box_rectangles("wing", wing, se3.make_transform(np.eye(3), centre), ("+z", "-z"))
+    return _assemble("orbit", parts, _rename_wing_faces(rects))
+
+
+def _rename_wing_faces(rects: list[Rectangle]) -> list[Rectangle]:
+    """Wing faces read better as ``..._front`` (+z) and ``..._back`` (−z)."""
+    names = {"+z": "_front", "-z": "_back"}
+    return [
+        Rectangle(r.name[:-2] + names[r.name[-2:]], r.center, r.R_model_plane, r.a, r.b)
+        if r.name.startswith("wing")
+        else r
+        for r in rects
+    ]
+
+
+def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Target:
+    """Read a mesh file (OBJ/STL/PLY/GLB/OFF) as a target.
+
+    Parameters
+    ----------
+    path
+        Mesh file; a multi-part scene is flattened into one mesh.
+    scale
+        Factor applied to the file's coordinates (e.g. 0.001 for millimetres).
+    center
+        Move the bounding-box centre to the model-frame origin, so the target sits where the
+        scenario puts the target frame.
+
+    Raises
+    ------
+    FileFormatError
+        Missing file, unknown extension, unreadable content or no triangles.
+    InputError
+        A scale that is not a positive finite number.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise FileFormatError(
+            f"unknown mesh extension {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}", path
+        )
+    if not path.is_file():
+        raise FileFormatError("no such mesh file", path)
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(f"mesh scale must be a positive number, got {scale}", path)
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types for bad files; report them alike
+        raise FileFormatError(f"cannot read mesh: {exc}", path) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise FileFormatError("the file holds no triangles", path)
+    mesh = trimesh.Trimesh(np.asarray(mesh.vertices) * scale, np.asarray(mesh.faces), process=True)
+    if center:
+        mesh.apply_translation(-mesh.bounds.mean(axis=0))
+    return Target(path.stem, mesh)
+
+
+def sample_surface(target: Target, count: int, seed: int = 0) -> PointCloud:
+    """Uniform samples of the target's visible surface, with outward normals, in the model frame.
+
+    Parameters
+    ----------
+    target
+        The target; samples falling inside another of its parts (a boom's end inside the bus)
+        are dropped, so the count returned is at most ``count``.
+    count
+        Number of area-uniform samples drawn.
+    seed
+        Seed of the sampling.
+
+    Returns
+    -------
+    PointCloud (M, 3) with the hit faces' normals.
+    """
+    if count < 1:
+        raise InputError(f"surface sample count must be >= 1, got {count}")
+    points, face = trimesh.sample.sample_surface(target.mesh, count, seed=seed)
+    normals = target.mesh.face_normals[face]
+    if len(target.parts) > 1:
+        # Which part each face came from: parts were concatenated in order.
+        part_of_face = np.repeat(np.arange(len(target.parts)), [len(p.faces) for p in target.parts])
+        owner = part_of_face[face]
+        hidden = np.zeros(len(points), dtype=bool)
+        for j, part in enumerate(target.parts):
+            hidden[owner != j] |= _depth_inside_convex(part, points[owner != j]) > 1e-6
+        points, normals = points[~hidden], normals[~hidden]
+    return PointCloud(points, normals, source=f"{target.name} surface samples")
+
+
+def _depth_inside_convex(part: trimesh.Trimesh, points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Depth (M,) of points inside a closed convex mesh (−inf outside): min over face planes."""
+    depth = np.full(len(points), -np.inf)
+    # Only points in the part's bounding box can be inside; the plane test is (M, F) work.
+    near = np.flatnonzero(np.all((points >= part.bounds[0]) & (points <= part.bounds[1]), axis=1))
+    normals = part.face_normals
+    offsets = np.einsum("fi,fi->f", normals, part.triangles[:, 0])
+    depth[near] = (offsets[None, :] - points[near] @ normals.T).min(axis=1)
+    return depth

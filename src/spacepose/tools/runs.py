@@ -1,0 +1,206 @@
+"""Run folders: what ``spacepose simulate`` writes and every evaluation reads (METHODS §3).
+
+Layout of a run folder ``DIR``::
+
+    DIR/frames/000000.ply ...   one binary PLY (float32 x y z) per frame, sensor frame
+    DIR/groundtruth.tum         true T_sensor_target per frame (TUM)
+    DIR/model.ply               target surface samples with normals, target frame
+    DIR/model.obj               the target mesh, target frame
+    DIR/scenario.json           every parameter, the seed, the package version
+    DIR/truth.csv               orbit only: ρ, ρ̇, q_I_B, ω, k, Δ per frame
+
+The same simulation (same seed) always produces the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.sim.scenarios import TRUTH_COLUMNS, Simulation
+from spacepose.core.sim.targets import Rectangle
+from spacepose.core.trajectory import Trajectory
+from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.cloud_io import read_cloud, write_cloud
+from spacepose.tools.trajectory_io import read_tum, write_tum
+
+FRAMES_DIR = "frames"
+GROUNDTRUTH = "groundtruth.tum"
+MODEL_CLOUD = "model.ply"
+MODEL_MESH = "model.obj"
+SCENARIO = "scenario.json"
+TRUTH = "truth.csv"
+
+
+@dataclass(frozen=True, eq=False)
+class Run:
+    """A run folder opened for reading; frames are read from disk only when asked for.
+
+    Attributes
+    ----------
+    path
+        The run folder.
+    scenario
+        The contents of ``scenario.json``.
+    groundtruth
+        True ``T_sensor_target`` per frame.
+    model
+        Target surface samples with normals, target frame.
+    frame_paths
+        One PLY per frame, in time order.
+    truth
+        Orbit runs: (N, 20) table with the columns of ``truth.csv``; None otherwise.
+    """
+
+    path: Path
+    scenario: dict[str, Any]
+    groundtruth: Trajectory
+    model: PointCloud
+    frame_paths: tuple[Path, ...]
+    truth: NDArray[np.float64] | None = None
+
+    def __len__(self) -> int:
+        return len(self.frame_paths)
+
+    @property
+    def timestamps(self) -> NDArray[np.float64]:
+        """(N,) frame times, seconds."""
+        return self.groundtruth.timestamps
+
+    @property
+    def mesh_path(self) -> Path:
+        """The target mesh file."""
+        return self.path / MODEL_MESH
+
+    @property
+    def rectangles(self) -> list[Rectangle]:
+        """The target's rectangle catalogue (empty for a mesh-file target)."""
+        return [Rectangle.from_dict(r) for r in self.scenario.get("rectangles", [])]
+
+    def frame(self, k: int) -> PointCloud:
+        """Read frame ``k`` (sensor frame)."""
+        return read_cloud(self.frame_paths[k])
+
+    def frames(self) -> Iterator[PointCloud]:
+        """Every frame in time order, read one at a time."""
+        return (read_cloud(p) for p in self.frame_paths)
+
+
+def write_run(
+    out_dir: str | Path,
+    sim: Simulation,
+    progress: Callable[[int], None] | None = None,
+) -> Path:
+    """Render every frame of ``sim`` and write the run folder ``out_dir``.
+
+    Parameters
+    ----------
+    out_dir
+        Created if needed; frame files left from an earlier, longer run there are removed so the
+        folder describes this run only.
+    sim
+        The simulation (see :mod:`spacepose.core.sim`).
+    progress
+        Called with the frame index after each frame is written.
+
+    Returns
+    -------
+    The folder written.
+    """
+    from spacepose import __version__
+
+    out = Path(out_dir)
+    frames_dir = out / FRAMES_DIR
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    wanted = {_frame_name(k) for k in range(len(sim))}
+    for stale in frames_dir.glob("[0-9]*.ply"):
+        if stale.name not in wanted:
+            stale.unlink()
+    for k in range(len(sim)):
+        frame = sim.frame(k)
+        write_cloud(frames_dir / _frame_name(k), frame.cloud.points, binary=True, dtype="float32")
+        if progress is not None:
+            progress(k)
+    write_tum(out / GROUNDTRUTH, sim.groundtruth)
+    write_cloud(out / MODEL_CLOUD, sim.model_cloud(), binary=True, dtype="float32")
+    sim.target.mesh.export(
+        out / MODEL_MESH, file_type="obj", include_normals=False, include_texture=False
+    )
+    scenario = sim.scenario() | {"spacepose_version": __version__}
+    (out / SCENARIO).write_text(json.dumps(scenario, indent=2, sort_keys=True) + "\n")
+    if sim.truth is not None:
+        np.savetxt(
+            out / TRUTH,
+            sim.truth,
+            fmt="%.17g",
+            delimiter=",",
+            header=",".join(TRUTH_COLUMNS),
+            comments="",
+        )
+    return out
+
+
+def read_run(path: str | Path) -> Run:
+    """Open a run folder written by :func:`write_run`.
+
+    Raises
+    ------
+    InputError
+        The folder does not exist, or a file of the layout is missing, or the number of frames
+        differs from the number of ground-truth poses.
+    FileFormatError
+        ``scenario.json`` or ``truth.csv`` cannot be parsed (other files: see their readers).
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise InputError("run folder does not exist", root)
+    for name in (SCENARIO, GROUNDTRUTH, MODEL_CLOUD, MODEL_MESH, FRAMES_DIR):
+        if not (root / name).exists():
+            raise InputError(f"run folder is missing {name}", root)
+    try:
+        scenario = json.loads((root / SCENARIO).read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"not valid JSON: {exc}", root / SCENARIO) from None
+    if not isinstance(scenario, dict):
+        raise FileFormatError("must hold a JSON object", root / SCENARIO)
+    groundtruth = read_tum(root / GROUNDTRUTH)
+    frame_paths = tuple(sorted((root / FRAMES_DIR).glob("[0-9]*.ply")))
+    if len(frame_paths) != len(groundtruth):
+        raise InputError(
+            f"{len(frame_paths)} frame files in {FRAMES_DIR}/ but {len(groundtruth)} poses in "
+            f"{GROUNDTRUTH}",
+            root,
+        )
+    truth = None
+    if scenario.get("scenario") == "orbit":
+        if not (root / TRUTH).is_file():
+            raise InputError(f"orbit run folder is missing {TRUTH}", root)
+        truth = _read_truth(root / TRUTH, len(groundtruth))
+    return Run(root, scenario, groundtruth, read_cloud(root / MODEL_CLOUD), frame_paths, truth)
+
+
+def _frame_name(k: int) -> str:
+    return f"{k:06d}.ply"
+
+
+def _read_truth(path: Path, n_frames: int) -> NDArray[np.float64]:
+    with path.open() as fh:
+        header = fh.readline().strip().split(",")
+    if header != TRUTH_COLUMNS:
+        raise FileFormatError(f"header must be {','.join(TRUTH_COLUMNS)}", path)
+    try:
+        table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+    except ValueError as exc:
+        raise FileFormatError(f"bad row: {exc}", path) from None
+    if table.shape != (n_frames, len(TRUTH_COLUMNS)):
+        raise FileFormatError(
+            f"expected {n_frames} rows of {len(TRUTH_COLUMNS)} values, got {table.shape}", path
+        )
+    return table

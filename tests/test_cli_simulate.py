@@ -1,0 +1,85 @@
+"""Tests of ``spacepose simulate``."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from spacepose.cli import main
+from spacepose.tools.runs import read_run
+
+HUBBLE = "/work/shared/data/models/hubble_model_kit.obj"
+
+
+def _files(root):
+    return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_simulate_lab_default_run_is_complete(tmp_path, capsys) -> None:
+    start = time.perf_counter()
+    assert main(["simulate", "lab", "--out", str(tmp_path / "a")]) == 0
+    elapsed = time.perf_counter() - start
+    assert "wrote 58 lab frames" in capsys.readouterr().out
+    print(f"simulate lab: {elapsed:.1f} s")  # reported, not asserted (speed lives in bench)
+    root = tmp_path / "a"
+    assert len(list((root / "frames").glob("*.ply"))) == 58
+    lines = (root / "groundtruth.tum").read_text().splitlines()
+    assert len(lines) == 58
+    assert (root / "model.ply").is_file() and (root / "model.obj").is_file()
+    scenario = json.loads((root / "scenario.json").read_text())
+    assert scenario["seed"] == 0 and scenario["config"]["sensor"]["model"] == "tof"
+    run = read_run(root)
+    motion = run.groundtruth.poses[-1, :3, 3] - run.groundtruth.poses[0, :3, 3]
+    assert np.allclose(motion, (0.57, 0.0, 0.0), atol=1e-12)
+
+
+def test_simulate_seed_sensor_noise_and_background_options(tmp_path, capsys) -> None:
+    out = tmp_path / "c"
+    args = ["simulate", "lab", "--out", str(out), "--frames", "2", "--seed", "1"]
+    assert main([*args, "--sensor", "gaussian", "--noise-scale", "0", "--background"]) == 0
+    run = read_run(out)
+    assert len(run) == 2
+    cfg = run.scenario["config"]
+    assert cfg["seed"] == 1 and cfg["background"] is True
+    assert cfg["sensor"]["model"] == "gaussian" and cfg["sensor"]["noise_scale"] == 0.0
+    assert np.isclose(run.frame(0).points[:, 2], 2.0, atol=1e-6).sum() > 1000  # the wall
+    # Another seed, otherwise identical: other noise in the frames.
+    base = ["simulate", "lab", "--frames", "2", "--out"]
+    assert main([*base, str(tmp_path / "d")]) == 0
+    assert main([*base, str(tmp_path / "e"), "--seed", "1"]) == 0
+    assert main([*base, str(tmp_path / "d2")]) == 0
+    assert _files(tmp_path / "d") == _files(tmp_path / "d2")  # same seed: same bytes
+    d = (tmp_path / "d" / "frames" / "000001.ply").read_bytes()
+    assert d != (tmp_path / "e" / "frames" / "000001.ply").read_bytes()
+
+
+def test_simulate_orbit_and_a_mesh_model(tmp_path, capsys) -> None:
+    out = tmp_path / "orbit"
+    assert main(["simulate", "orbit", "--out", str(out), "--frames", "3"]) == 0
+    run = read_run(out)
+    assert run.truth.shape == (3, 20) and len(run) == 3
+    assert 600 < len(run.frame(0)) < 2500
+    out = tmp_path / "hubble"
+    args = ["simulate", "lab", "--out", str(out), "--frames", "1", "--model", HUBBLE]
+    assert main([*args, "--model-scale", "0.004"]) == 0
+    run = read_run(out)
+    assert run.scenario["target"] == "hubble_model_kit" and run.rectangles == []
+    assert run.scenario["config"]["model_scale"] == 0.004
+    assert len(run.frame(0)) > 1000
+
+
+def test_simulate_errors_are_one_line(tmp_path, capsys) -> None:
+    out = str(tmp_path / "x")
+    assert main(["simulate", "moon", "--out", out]) == 1
+    assert "unknown scenario 'moon'; choose one of: lab, orbit" in capsys.readouterr().err
+    assert main(["simulate", "lab", "--out", out, "--sensor", "sonar"]) == 1
+    assert "unknown sensor 'sonar'" in capsys.readouterr().err
+    assert main(["simulate", "orbit", "--out", out, "--background"]) == 1
+    assert "background" in capsys.readouterr().err
+    assert main(["simulate", "lab", "--out", out, "--model", str(tmp_path / "none.obj")]) == 1
+    assert "none.obj: no such mesh file" in capsys.readouterr().err
+    assert main(["simulate", "lab", "--out", out, "--noise-scale", "-1"]) == 1
+    assert "noise_scale" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
