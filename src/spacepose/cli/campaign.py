@@ -1,0 +1,29 @@
+"""``spacepose campaign CONFIG.yaml``: a Monte Carlo grid of cases run on Dask."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from spacepose.cli.app import app, console
+
+
+@app.command()
+def campaign(
+    config: Path = typer.Argument(..., help="Campaign config (YAML or JSON)."),
+    scheduler: str | None = typer.Option(
+        None, help="Address of a running Dask scheduler; default: a local process cluster."
+    ),
+    workers: int | None = typer.Option(None, help="Local worker processes (overrides config)."),
+    out: Path | None = typer.Option(None, help="Output folder (overrides config)."),
+) -> None:
+    """Run or resume a campaign: parts/, results.parquet, summary.json and plots go to OUT."""
+    from spacepose.tools.campaign import RESULTS_FILE, load_campaign_config, run_campaign
+
+    cfg = load_campaign_config(config, workers=workers, out=out)
+    result = run_campaign(cfg, scheduler=scheduler)
+    console.print(
+        f"{result.table.num_rows} cases ({result.n_computed} computed, "
+        f"{result.n_skipped} already done) -> {result.out_dir / RESULTS_FILE}"
+    )
