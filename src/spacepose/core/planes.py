@@ -1,0 +1,349 @@
+"""RANSAC plane extraction (METHODS §2.1, Yu et al. 2019 §2.1).
+
+Hypotheses (planes through three sampled points) are scored in batches: a (B, chunk) matrix of
+point-to-plane distances at a time, so no Python loop runs over points. The best plane is refitted
+to its inliers by PCA. :func:`extract_planes` repeats this on the points left over.
+
+All coordinates are in the frame of the input cloud (usually the sensor frame), in metres. Each
+plane's normal is oriented towards the origin of that frame (the sensor), so ``offset <= 0``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import Field
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import StageConfig
+from spacepose.errors import DegenerateGeometryError, InputError
+
+# Largest number of distances held at once when scoring a batch (32 MB of float64).
+_SCORE_BLOCK = 1 << 22
+# Relative size of the second eigenvalue below which points count as collinear.
+_COLLINEAR_RTOL = 1e-10
+
+
+class PlaneConfig(StageConfig):
+    """Settings of RANSAC plane extraction.
+
+    Attributes
+    ----------
+    distance_threshold
+        Plane thickness d (m): a point within d of the plane is an inlier.
+    confidence
+        Wanted probability p that at least one all-inlier sample is drawn.
+    outlier_ratio
+        Assumed outlier share ε used in the iteration bound
+        ``k = log(1 − p) / log(1 − (1 − ε)³)``; ``None`` runs exactly ``max_iterations``.
+    max_iterations
+        Upper limit on the number of hypotheses per plane.
+    min_inliers
+        A plane with fewer inliers ends :func:`extract_planes`.
+    max_planes
+        Largest number of planes :func:`extract_planes` returns.
+    batch_size
+        Hypotheses scored together in one distance matrix.
+    cluster_radius
+        When set (m), a plane keeps only the largest connected group of its inliers, points
+        being connected when closer than this; the rest stay for later planes. A RANSAC slab is
+        infinite, so without it a plane also collects strips of other parts that happen to lie
+        in it (a panel and a band across the bus side). About 3 sample spacings works.
+    seed
+        Seed of the sampling RNG.
+    """
+
+    distance_threshold: float = Field(0.005, gt=0)
+    confidence: float = Field(0.99, gt=0, lt=1)
+    outlier_ratio: float | None = Field(0.5, ge=0, lt=1)
+    max_iterations: int = Field(1000, ge=1)
+    min_inliers: int = Field(50, ge=3)
+    max_planes: int = Field(10, ge=1)
+    batch_size: int = Field(64, ge=1)
+    cluster_radius: float | None = Field(None, gt=0)
+    seed: int = 0
+
+
+@dataclass(frozen=True, eq=False)
+class Plane:
+    """A plane found in a cloud.
+
+    Attributes
+    ----------
+    normal
+        (3,) unit normal, pointing towards the origin of the cloud's frame.
+    offset
+        Plane equation ``normal · x = offset`` (m).
+    inliers
+        Integer indices (K,) of the inlier points in the cloud given to the caller's function.
+    centroid
+        (3,) mean of the inliers.
+    """
+
+    normal: NDArray[np.float64]
+    offset: float
+    inliers: NDArray[np.intp]
+    centroid: NDArray[np.float64]
+
+    @property
+    def n_inliers(self) -> int:
+        return len(self.inliers)
+
+    def distances(self, points: ArrayLike) -> NDArray[np.float64]:
+        """Signed distances (N,) of points (N, 3) from the plane, positive on the normal's side."""
+        return np.asarray(points, dtype=np.float64) @ self.normal - self.offset
+
+
+def as_points(cloud_or_points: PointCloud | ArrayLike, what: str = "points") -> NDArray[np.float64]:
+    """Validate an (N, 3) finite array with N >= 3 (or take a PointCloud's points).
+
+    Raises
+    ------
+    InputError
+        On a wrong shape, non-finite values or fewer than 3 points.
+    """
+    if isinstance(cloud_or_points, PointCloud):
+        pts, source = cloud_or_points.points, cloud_or_points.source
+    else:
+        source = None
+        try:
+            pts = np.asarray(cloud_or_points, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{what} are not numeric: {exc}") from None
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}", source)
+    if not np.all(np.isfinite(pts)):
+        raise InputError(f"{what} contain NaN or inf", source)
+    if len(pts) < 3:
+        raise InputError(f"{what}: need at least 3 points for a plane, got {len(pts)}", source)
+    return pts
+
+
+def distribution(
+    points: ArrayLike,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Centroid and eigen-decomposition of the distribution matrix (METHODS §2.2).
+
+    Parameters
+    ----------
+    points
+        (N, 3) points, N >= 3, finite.
+
+    Returns
+    -------
+    centroid
+        (3,) mean point.
+    eigenvalues
+        (3,) eigenvalues of ``M = (1/N) Σ (p − c)(p − c)ᵀ``, ascending (m²).
+    eigenvectors
+        (3, 3) orthonormal eigenvectors as columns, in the same order.
+    """
+    pts = as_points(points)
+    centroid = pts.mean(axis=0)
+    centred = pts - centroid
+    M = centred.T @ centred / len(pts)
+    eigenvalues, eigenvectors = np.linalg.eigh(M)
+    return centroid, np.clip(eigenvalues, 0.0, None), eigenvectors
+
+
+def is_collinear(eigenvalues: NDArray[np.float64]) -> bool:
+    """Whether ascending eigenvalues (3,) of a distribution matrix describe a line or a point."""
+    return bool(eigenvalues[1] <= _COLLINEAR_RTOL * max(eigenvalues[2], 1e-300))
+
+
+def fit_plane(points: ArrayLike) -> tuple[NDArray[np.float64], float]:
+    """Least-squares plane (PCA) through points (N, 3).
+
+    Returns
+    -------
+    normal
+        (3,) unit normal (eigenvector of the smallest eigenvalue), towards the frame's origin.
+    offset
+        ``normal · centroid`` (m), so the plane is ``normal · x = offset``.
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 points or non-finite values.
+    DegenerateGeometryError
+        Collinear or coincident points, which do not determine a plane.
+    """
+    centroid, eigenvalues, eigenvectors = distribution(points)
+    if is_collinear(eigenvalues):
+        raise DegenerateGeometryError("points are collinear or coincident: no unique plane")
+    normal = eigenvectors[:, 0]
+    offset = float(normal @ centroid)
+    # Face the sensor (origin): a visible surface's normal points back along the ray.
+    if offset > 0:
+        normal, offset = -normal, -offset
+    return normal, offset
+
+
+def iteration_bound(confidence: float, outlier_ratio: float) -> int:
+    """RANSAC iterations ``ceil(log(1 − p) / log(1 − (1 − ε)³))`` for a 3-point sample."""
+    good = (1.0 - outlier_ratio) ** 3
+    if good >= 1.0:
+        return 1
+    return max(1, math.ceil(math.log(1.0 - confidence) / math.log(1.0 - good)))
+
+
+def _sample_triples(rng: np.random.Generator, n: int, size: int) -> NDArray[np.intp]:
+    """``size`` triples of three distinct indices in [0, n), uniformly, without rejection."""
+    i0 = rng.integers(0, n, size)
+    i1 = rng.integers(0, n - 1, size)
+    i1 = i1 + (i1 >= i0)
+    lo, hi = np.minimum(i0, i1), np.maximum(i0, i1)
+    i2 = rng.integers(0, n - 2, size)
+    i2 = i2 + (i2 >= lo)
+    i2 = i2 + (i2 >= hi)
+    return np.stack([i0, i1, i2], axis=1)
+
+
+def _count_inliers(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    offsets: NDArray[np.float64],
+    threshold: float,
+) -> NDArray[np.intp]:
+    """Inlier counts (B,) of B planes, scoring the points in chunks of a (B, chunk) matrix."""
+    counts = np.zeros(len(normals), dtype=np.intp)
+    chunk = max(1, _SCORE_BLOCK // max(len(normals), 1))
+    for start in range(0, len(points), chunk):
+        d = np.abs(normals @ points[start : start + chunk].T - offsets[:, None])
+        counts += np.count_nonzero(d <= threshold, axis=1)
+    return counts
+
+
+def largest_component(points: ArrayLike, radius: float) -> NDArray[np.intp]:
+    """Indices (sorted) of the largest group of points connected by steps shorter than radius.
+
+    Ties go to the group holding the lowest index, so the result is deterministic.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix(
+        (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(pts),) * 2
+    )
+    _, labels = connected_components(graph, directed=False)
+    return np.flatnonzero(labels == np.argmax(np.bincount(labels)))
+
+
+def _refit(points: NDArray[np.float64], inliers: NDArray[np.intp], config: PlaneConfig) -> Plane:
+    """PCA refit of a hypothesis' inliers, the refitted plane's inliers, their largest group."""
+    normal, offset = fit_plane(points[inliers])
+    refit = np.flatnonzero(np.abs(points @ normal - offset) <= config.distance_threshold)
+    if config.cluster_radius is not None:
+        refit = refit[largest_component(points[refit], config.cluster_radius)]
+    # Refit once more so normal, offset and centroid describe the reported inliers, unless
+    # these alone are degenerate (a thin strip): then the first refit stands.
+    if len(refit) >= 3 and not is_collinear(distribution(points[refit])[1]):
+        normal, offset = fit_plane(points[refit])
+    return Plane(normal, offset, refit, points[refit].mean(axis=0))
+
+
+def ransac_plane(
+    points: PointCloud | ArrayLike,
+    config: PlaneConfig = PlaneConfig(),
+    rng: np.random.Generator | None = None,
+) -> Plane:
+    """The plane with most inliers among RANSAC hypotheses, refitted to its inliers.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points or a PointCloud, any frame (m).
+    config
+        Thresholds and iteration limits.
+    rng
+        Random generator; ``np.random.default_rng(config.seed)`` when omitted.
+
+    Returns
+    -------
+    Plane whose ``inliers`` index ``points``.
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 points, a wrong shape or non-finite values.
+    DegenerateGeometryError
+        All points collinear.
+    """
+    pts = as_points(points)
+    _, eigenvalues, _ = distribution(pts)
+    if is_collinear(eigenvalues):
+        raise DegenerateGeometryError(f"all {len(pts)} points are collinear: no plane to fit")
+    rng = np.random.default_rng(config.seed) if rng is None else rng
+    n_hyp = config.max_iterations
+    if config.outlier_ratio is not None:
+        n_hyp = min(n_hyp, iteration_bound(config.confidence, config.outlier_ratio))
+    best_count, best_normal, best_offset = -1, None, 0.0
+    for start in range(0, n_hyp, config.batch_size):
+        triples = _sample_triples(rng, len(pts), min(config.batch_size, n_hyp - start))
+        p0, p1, p2 = pts[triples[:, 0]], pts[triples[:, 1]], pts[triples[:, 2]]
+        e1, e2 = p1 - p0, p2 - p0
+        cross = np.cross(e1, e2)
+        norm = np.linalg.norm(cross, axis=1)
+        scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+        valid = norm > 1e-9 * np.maximum(scale, 1e-300)
+        if not np.any(valid):
+            continue
+        normals = cross[valid] / norm[valid, None]
+        offsets = np.einsum("bi,bi->b", normals, p0[valid])
+        counts = _count_inliers(pts, normals, offsets, config.distance_threshold)
+        k = int(np.argmax(counts))  # first maximum: ties go to the earliest hypothesis
+        if counts[k] > best_count:
+            best_count, best_normal, best_offset = int(counts[k]), normals[k], offsets[k]
+    if best_normal is None or best_count < 3:
+        raise DegenerateGeometryError(
+            f"no plane with 3 inliers among {n_hyp} hypotheses on {len(pts)} points"
+        )
+    inliers = np.flatnonzero(np.abs(pts @ best_normal - best_offset) <= config.distance_threshold)
+    return _refit(pts, inliers, config)
+
+
+def extract_planes(
+    cloud_or_points: PointCloud | ArrayLike, config: PlaneConfig = PlaneConfig()
+) -> list[Plane]:
+    """Planes found one after the other, each on the points the previous ones left.
+
+    Parameters
+    ----------
+    cloud_or_points
+        (N, 3) points or a PointCloud (m).
+    config
+        RANSAC settings; ``min_inliers`` and ``max_planes`` end the loop.
+
+    Returns
+    -------
+    Planes in the order found (most inliers first, as a rule); their ``inliers`` index the
+    ORIGINAL cloud and are disjoint.
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 points, a wrong shape or non-finite values.
+    DegenerateGeometryError
+        All points collinear.
+    """
+    pts = as_points(cloud_or_points)
+    if is_collinear(distribution(pts)[1]):
+        raise DegenerateGeometryError(f"all {len(pts)} points are collinear: no plane to fit")
+    rng = np.random.default_rng(config.seed)
+    remaining = np.arange(len(pts))
+    planes: list[Plane] = []
+    while len(planes) < config.max_planes and len(remaining) >= config.min_inliers:
+        subset = pts[remaining]
+        if planes and is_collinear(distribution(subset)[1]):
+            break  # the leftover points are a line: nothing planar remains
+        plane = ransac_plane(subset, config, rng)
+        if plane.n_inliers < config.min_inliers:
+            break
+        planes.append(Plane(plane.normal, plane.offset, remaining[plane.inliers], plane.centroid))
+        remaining = np.delete(remaining, plane.inliers)
+    return planes

@@ -1,0 +1,479 @@
+"""Rectangle recognition from the distribution matrix of a plane's points (METHODS §2.2).
+
+For an a×b rectangle (a <= b) sampled uniformly with isotropic noise σ, the distribution matrix has
+eigenvalues ``(σ², a²/12 + σ², b²/12 + σ²)``, so the noise-corrected sides are
+``a = √(12(λ_mid − σ²))`` and ``b = √(12(λ_max − σ²))``. A measured plane is matched to a
+catalogue of the target's known rectangles by these sides.
+
+A plane that is only part of a rectangle (occluded, or cut by the field of view) must not be
+matched: its centroid is not the rectangle's centre, so it would bias the pose. These checks
+reject such planes before the size match:
+
+* the fourth-moment ratio ``E[u⁴] / E[u²]²`` along each side must be 1.8 (uniform on a segment;
+  a disc or an ellipse gives 2.0, a triangle 2.4 along its height);
+* the quantile extent along each side must agree with the side from the second moment (an
+  L-shaped, occluded rectangle keeps its full extent but loses variance), and the centroid must
+  sit at the middle of that extent (a hole or a band hidden off-centre, e.g. behind a boom or a
+  panel, moves the centroid but not the extent);
+* for a range camera with known focal length, the point count must be what a whole rectangle of
+  the measured size gives at its range and incidence (:func:`fill_ratio`): a hidden part
+  inside the outline lowers it;
+* the two sides must differ by more than the side tolerance, since for a square the
+  distribution matrix leaves the in-plane axes (hence the attitude) undetermined;
+* the sides must match a catalogue entry (a rectangle cut straight is a smaller rectangle; the
+  catalogue's entries are kept apart by more than the tolerance, see
+  :func:`spacepose.tools.catalogue.load_catalogue`, except faces of equal size whose outward
+  normals differ by more than 90°, which a predicted attitude tells apart).
+
+All vectors are in the frame of the points (the sensor frame), in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import StageConfig
+from spacepose.core.planes import (
+    Plane,
+    PlaneConfig,
+    as_points,
+    distribution,
+    extract_planes,
+    is_collinear,
+)
+from spacepose.errors import DegenerateGeometryError
+
+__all__ = [
+    "UNIFORM_KURTOSIS",
+    "CatalogueEntry",
+    "FoundPlane",
+    "RectangleConfig",
+    "RectangleMeasurement",
+    "candidates",
+    "distribution",
+    "fill_ratio",
+    "find_rectangles",
+    "measure_rectangle",
+    "recognise",
+    "rejection_reason",
+    "side_tolerance",
+]
+
+# E[u⁴] / E[u²]² of a uniform distribution on a segment.
+UNIFORM_KURTOSIS = 1.8
+# Tail share cut on each side by the quantile extent (robust to stray points and noise).
+_EXTENT_QUANTILE = 0.02
+
+
+class CatalogueEntry(BaseModel):
+    """A known rectangular face of the target.
+
+    Attributes
+    ----------
+    name
+        Unique name of the face.
+    center
+        (3,) centre of the rectangle in the model frame B' (m).
+    R_model_plane
+        (3, 3) rotation whose columns are, in the model frame, the short side (x), the long side
+        (y) and the outward normal (z).
+    a, b
+        Full side lengths (m), ``0 < a <= b``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(min_length=1)
+    center: tuple[float, float, float]
+    R_model_plane: tuple[
+        tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]
+    ]
+    a: float = Field(gt=0)
+    b: float = Field(gt=0)
+
+    @field_validator("R_model_plane")
+    @classmethod
+    def _rotation(cls, R: tuple) -> tuple:
+        M = np.asarray(R, dtype=np.float64)
+        if not np.all(np.isfinite(M)):
+            raise ValueError("R_model_plane has non-finite entries")
+        if not np.allclose(M.T @ M, np.eye(3), atol=1e-6) or np.linalg.det(M) < 0:
+            raise ValueError("R_model_plane is not a proper rotation (orthonormal, det +1)")
+        return R
+
+    @model_validator(mode="after")
+    def _sides(self) -> CatalogueEntry:
+        if self.a > self.b:
+            raise ValueError(f"short side a = {self.a} exceeds long side b = {self.b}")
+        return self
+
+    @property
+    def rotation(self) -> NDArray[np.float64]:
+        """``R_model_plane`` as a (3, 3) float64 array."""
+        return np.asarray(self.R_model_plane, dtype=np.float64)
+
+    @property
+    def centre(self) -> NDArray[np.float64]:
+        """``center`` as a (3,) float64 array."""
+        return np.asarray(self.center, dtype=np.float64)
+
+
+class RectangleConfig(StageConfig):
+    """Settings of rectangle recognition.
+
+    Attributes
+    ----------
+    sigma
+        Noise standard deviation of the points (m), removed from the eigenvalues.
+    side_tolerance_abs, side_tolerance_rel
+        A measured side s matches a catalogue side s₀ when
+        ``|s − s₀| <= side_tolerance_abs + side_tolerance_rel · s₀``.
+    sampling
+        How the points were drawn. ``"grid"``: one range image (a sensor's pixel grid), whose
+        moments scatter little, so the shape checks use the tolerances below as they are.
+        ``"random"``: independent uniform points, whose moment ratios, extents and centroid
+        scatter by about ``2.4/√N``, ``0.5 s/√N`` and ``0.29 s/√N`` (side s); 3 of these are
+        added to the tolerances so that whole rectangles are not rejected by chance.
+    kurtosis_tolerance
+        Largest allowed ``|E[u⁴]/E[u²]² − 1.8|`` along either side (noise-corrected); a disc or
+        an ellipse gives 2.0; hidden corners and bands move it by 0.1 and more (1.64 to 2.74
+        on the occluded faces of the simulated orbit target).
+    extent_tolerance
+        Largest relative difference between the quantile extent of a side and the side from the
+        second moment (an allowance of 3σ is added).
+    max_centre_offset
+        Largest distance between the centroid and the middle of the quantile extent, as a share
+        of the side (an allowance of σ is added).
+    focal_px
+        Focal length (pixels) of the range camera that took the points, enabling the fill check;
+        None for clouds that are not one camera image.
+    min_fill
+        Smallest :func:`fill_ratio` accepted when ``focal_px`` is set (dropped pixels lower it
+        by their rate; whole faces of the simulated orbit target give 0.99–1.0).
+    min_points
+        Fewer points are not measured reliably and are rejected.
+    max_thickness
+        Largest noise-corrected out-of-plane spread ``√(λ_min − σ²)`` (m).
+    """
+
+    sigma: float = Field(0.0, ge=0)
+    side_tolerance_abs: float = Field(0.01, ge=0)
+    side_tolerance_rel: float = Field(0.05, ge=0)
+    sampling: Literal["grid", "random"] = "grid"
+    kurtosis_tolerance: float = Field(0.1, gt=0)
+    extent_tolerance: float = Field(0.03, gt=0)
+    max_centre_offset: float = Field(0.02, gt=0)
+    focal_px: float | None = Field(None, gt=0)
+    min_fill: float = Field(0.95, gt=0)
+    min_points: int = Field(50, ge=3)
+    max_thickness: float = Field(0.01, gt=0)
+
+
+@dataclass(frozen=True, eq=False)
+class RectangleMeasurement:
+    """What the point distribution of one plane says about it (sensor frame, metres).
+
+    Attributes
+    ----------
+    centroid
+        (3,) mean of the points.
+    normal
+        (3,) unit normal, the third column of ``R_sensor_plane``.
+    eigenvalues
+        (3,) eigenvalues of the distribution matrix, ascending (m²), noise included.
+    a, b
+        Noise-corrected short and long sides (m), ``a <= b`` (0 when the variance is below σ²).
+    kurtosis
+        (2,) noise-corrected ``E[u⁴]/E[u²]²`` along the short and the long side (1.8 when uniform).
+    extent
+        (2,) sides estimated from the 2 %–98 % quantile range along each axis (m).
+    centre_offset
+        (2,) centroid minus the middle of that quantile range, along each side (m).
+    R_sensor_plane
+        (3, 3) right-handed ``[v_mid v_max v_min]``: x along the short side, y along the long
+        side, z the normal, pointing towards the sensor (origin). The sign of x and y is one of
+        the four-fold ambiguous choices, fixed later by
+        :func:`spacepose.core.attitude_fix.fix_four_fold`.
+    n_points
+        Number of points measured.
+    sigma
+        The noise σ (m) assumed in the correction.
+    """
+
+    centroid: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    eigenvalues: NDArray[np.float64]
+    a: float
+    b: float
+    kurtosis: NDArray[np.float64]
+    extent: NDArray[np.float64]
+    centre_offset: NDArray[np.float64]
+    R_sensor_plane: NDArray[np.float64]
+    n_points: int
+    sigma: float
+
+
+def measure_rectangle(points: ArrayLike, sigma: float = 0.0) -> RectangleMeasurement:
+    """Centroid, sides, moment ratios and plane frame of the points of one plane.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points of one plane, sensor frame (m), N >= 3.
+    sigma
+        Isotropic noise standard deviation (m) to remove from the eigenvalues.
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 points, wrong shape or non-finite values.
+    DegenerateGeometryError
+        Collinear or coincident points (no plane, so no normal).
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    centroid, eigenvalues, V = distribution(pts)
+    if is_collinear(eigenvalues):
+        raise DegenerateGeometryError("rectangle points are collinear or coincident: no plane")
+    normal = V[:, 0]
+    if normal @ centroid > 0:  # face the sensor, which sits at the origin
+        normal = -normal
+    y = V[:, 2]
+    x = np.cross(y, normal)  # right-handed: x = y × z
+    R = np.column_stack([x, y, normal])
+    s2 = sigma**2
+    var = eigenvalues[[1, 2]] - s2
+    a, b = np.sqrt(12.0 * np.clip(var, 0.0, None))
+    # In-plane coordinates along the short and long side.
+    uv = (pts - centroid) @ R[:, :2]
+    m2 = np.mean(uv**2, axis=0)
+    m4 = np.mean(uv**4, axis=0)
+    # Remove Gaussian noise: E[(u+n)⁴] = E[u⁴] + 6 E[u²] σ² + 3σ⁴ with E[(u+n)²] = E[u²] + σ².
+    m2c = m2 - s2
+    m4c = m4 - 6.0 * m2c * s2 - 3.0 * s2**2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kurtosis = np.where(m2c > 0, m4c / m2c**2, np.nan)
+    lo, hi = np.quantile(uv, [_EXTENT_QUANTILE, 1.0 - _EXTENT_QUANTILE], axis=0)
+    extent = (hi - lo) / (1.0 - 2.0 * _EXTENT_QUANTILE)
+    return RectangleMeasurement(
+        centroid=centroid,
+        normal=normal,
+        eigenvalues=eigenvalues,
+        a=float(a),
+        b=float(b),
+        kurtosis=kurtosis,
+        extent=extent,
+        centre_offset=-0.5 * (lo + hi),
+        R_sensor_plane=R,
+        n_points=len(pts),
+        sigma=float(sigma),
+    )
+
+
+def side_tolerance(side: float, config: RectangleConfig) -> float:
+    """Allowed difference (m) between a measured and a catalogue side of length ``side``."""
+    return config.side_tolerance_abs + config.side_tolerance_rel * side
+
+
+def fill_ratio(measurement: RectangleMeasurement, focal_px: float) -> float:
+    """Measured point count over the count a whole ``a × b`` rectangle gives a range camera.
+
+    One pixel (focal length f pixels) covers ``(r/f)² / cos θ`` of a surface at range r seen at
+    incidence θ, so a whole rectangle yields ``a b cos θ f² / r²`` points; the centroid's range
+    and the normal's incidence stand for the whole face.
+    """
+    m = measurement
+    r = float(np.linalg.norm(m.centroid))
+    cos_incidence = abs(float(m.normal @ m.centroid)) / r
+    expected = m.a * m.b * cos_incidence * focal_px**2 / r**2
+    return m.n_points / expected if expected > 0 else float("inf")
+
+
+def _shape_problem(m: RectangleMeasurement, config: RectangleConfig) -> str | None:
+    """Why the points are not a whole uniform rectangle, or None."""
+    if m.n_points < config.min_points:
+        return f"{m.n_points} points, fewer than min_points = {config.min_points}"
+    thickness = float(np.sqrt(max(m.eigenvalues[0] - m.sigma**2, 0.0)))
+    if thickness > config.max_thickness:
+        return f"out-of-plane spread {thickness:.4g} m exceeds max_thickness"
+    if m.a <= 0:
+        return "short side variance does not exceed the noise variance"
+    if m.b - m.a < side_tolerance(m.b, config):
+        # Equal in-plane eigenvalues leave the eigenvectors anywhere in the plane.
+        return f"near-square ({m.a:.4g} x {m.b:.4g} m): the in-plane axes are undetermined"
+    # Sampling scatter of independent points, per unit of the coefficients in the docstring.
+    scatter = 3.0 / np.sqrt(m.n_points) if config.sampling == "random" else 0.0
+    # NaN-safe: a NaN ratio fails the comparison and is rejected.
+    if not np.all(
+        np.abs(m.kurtosis - UNIFORM_KURTOSIS) <= config.kurtosis_tolerance + 2.4 * scatter
+    ):
+        k = ", ".join(f"{v:.3f}" for v in m.kurtosis)
+        return f"fourth-moment ratios ({k}) are not those of a uniform rectangle (1.8)"
+    sides = np.array([m.a, m.b])
+    allowed = (config.extent_tolerance + 0.5 * scatter) * sides + 3.0 * m.sigma
+    if np.any(np.abs(m.extent - sides) > allowed):
+        return (
+            f"extents ({m.extent[0]:.4g}, {m.extent[1]:.4g}) m disagree with the sides "
+            f"({m.a:.4g}, {m.b:.4g}) m: not a whole rectangle (occluded?)"
+        )
+    if config.focal_px is not None and fill_ratio(m, config.focal_px) < config.min_fill:
+        return (
+            f"{m.n_points} points are {fill_ratio(m, config.focal_px):.1%} of what a whole "
+            f"{m.a:.4g} x {m.b:.4g} m rectangle gives the camera: part of it is hidden"
+        )
+    allowed = (config.max_centre_offset + 0.29 * scatter) * sides + m.sigma
+    if np.any(np.abs(m.centre_offset) > allowed):
+        return (
+            f"centroid off the middle of the extent by ({m.centre_offset[0]:.3g}, "
+            f"{m.centre_offset[1]:.3g}) m: part of the rectangle is hidden"
+        )
+    return None
+
+
+def candidates(
+    measurement: RectangleMeasurement,
+    catalogue: Sequence[CatalogueEntry],
+    config: RectangleConfig = RectangleConfig(),
+) -> list[CatalogueEntry]:
+    """Catalogue entries the measurement may be, best size match first.
+
+    Empty when a shape check fails (not a whole uniform rectangle) or no entry has both sides
+    within :func:`side_tolerance`. Several entries come back for faces of equal size, such as
+    the opposite faces of a box.
+    """
+    if _shape_problem(measurement, config) is not None:
+        return []
+    scored = []
+    for entry in catalogue:
+        da = abs(measurement.a - entry.a) / side_tolerance(entry.a, config)
+        db = abs(measurement.b - entry.b) / side_tolerance(entry.b, config)
+        if da <= 1.0 and db <= 1.0:
+            scored.append((max(da, db), entry))
+    return [entry for _, entry in sorted(scored, key=lambda item: item[0])]
+
+
+def _decide(
+    m: RectangleMeasurement,
+    catalogue: Sequence[CatalogueEntry],
+    config: RectangleConfig,
+    predicted_R_sensor_model: ArrayLike | None,
+) -> tuple[CatalogueEntry | None, str | None]:
+    """The recognised entry, or None and the reason."""
+    problem = _shape_problem(m, config)
+    if problem is not None:
+        return None, problem
+    found = candidates(m, catalogue, config)
+    if not found:
+        return None, (
+            f"sides {m.a:.4g} x {m.b:.4g} m match no catalogue rectangle "
+            "(a partial rectangle, or an unknown face)"
+        )
+    if len(found) == 1:
+        return found[0], None
+    if predicted_R_sensor_model is None:
+        names = ", ".join(e.name for e in found)
+        return None, f"sides match several rectangles ({names}); a predicted attitude is needed"
+    # The visible face's outward normal points at the sensor, as the measured normal does.
+    R_pred = np.asarray(predicted_R_sensor_model, dtype=np.float64)
+    alignment = [float(m.normal @ (R_pred @ e.rotation[:, 2])) for e in found]
+    return found[int(np.argmax(alignment))], None
+
+
+def rejection_reason(
+    measurement: RectangleMeasurement,
+    catalogue: Sequence[CatalogueEntry],
+    config: RectangleConfig = RectangleConfig(),
+    predicted_R_sensor_model: ArrayLike | None = None,
+) -> str | None:
+    """Why ``measurement`` is not recognised (see :func:`recognise`), or None if it is."""
+    return _decide(measurement, catalogue, config, predicted_R_sensor_model)[1]
+
+
+def recognise(
+    measurement: RectangleMeasurement,
+    catalogue: Sequence[CatalogueEntry],
+    config: RectangleConfig = RectangleConfig(),
+    predicted_R_sensor_model: ArrayLike | None = None,
+) -> str | None:
+    """Name of the catalogue rectangle the measurement is, or None.
+
+    Parameters
+    ----------
+    measurement
+        From :func:`measure_rectangle`.
+    catalogue
+        The target's known rectangles.
+    config
+        Tolerances of the shape checks and the size match.
+    predicted_R_sensor_model
+        Optional (3, 3) predicted target attitude. Faces of equal size (opposite faces of a box,
+        the two faces of a panel) are told apart only with it: the entry whose predicted outward
+        normal is nearest the measured normal (which faces the sensor) wins. Without it such a
+        measurement is ambiguous and None is returned.
+
+    Returns
+    -------
+    The entry's name; None for a partial or non-rectangular plane, unknown sizes, or an
+    ambiguity no prediction resolves.
+    """
+    entry = _decide(measurement, catalogue, config, predicted_R_sensor_model)[0]
+    return None if entry is None else entry.name
+
+
+@dataclass(frozen=True, eq=False)
+class FoundPlane:
+    """One extracted plane, its measurement and, if recognised, its catalogue entry's name.
+
+    Attributes
+    ----------
+    plane
+        From :func:`spacepose.core.planes.extract_planes`; inliers index the input cloud.
+    measurement
+        :func:`measure_rectangle` of the plane's inliers.
+    name
+        The recognised catalogue rectangle, or None.
+    """
+
+    plane: Plane
+    measurement: RectangleMeasurement
+    name: str | None
+
+
+def find_rectangles(
+    cloud_or_points: PointCloud | ArrayLike,
+    catalogue: Sequence[CatalogueEntry] = (),
+    plane_config: PlaneConfig = PlaneConfig(),
+    config: RectangleConfig = RectangleConfig(),
+    predicted_R_sensor_model: ArrayLike | None = None,
+) -> list[FoundPlane]:
+    """Extract planes, measure each as a rectangle and recognise it against the catalogue.
+
+    Parameters
+    ----------
+    cloud_or_points
+        (N, 3) points or a PointCloud in the sensor frame (m).
+    catalogue
+        Known rectangles; with none, every ``name`` is None.
+    plane_config, config
+        RANSAC and recognition settings (``config.sigma`` is the noise removed).
+    predicted_R_sensor_model
+        Optional (3, 3) predicted attitude, to tell faces of equal size apart.
+
+    Returns
+    -------
+    One :class:`FoundPlane` per extracted plane, in extraction order.
+    """
+    pts = as_points(cloud_or_points)
+    found = []
+    for plane in extract_planes(pts, plane_config):
+        m = measure_rectangle(pts[plane.inliers], config.sigma)
+        found.append(
+            FoundPlane(plane, m, recognise(m, catalogue, config, predicted_R_sensor_model))
+        )
+    return found
