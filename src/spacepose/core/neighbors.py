@@ -1,0 +1,166 @@
+"""Shared neighbour searches and neighbourhood statistics on :class:`scipy.spatial.cKDTree`.
+
+Every stage that needs neighbours (normals, mpp-MLS, FPFH, GICP covariances, ICP) goes through
+these few functions so that padding conventions and argument checks are the same everywhere.
+Neighbour arrays are padded: an (M, k) index array holds ``-1`` where a query has fewer than k
+neighbours, and the matching distances are ``inf``. ``workers`` is passed straight to
+``cKDTree.query``; the results do not depend on it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from spacepose.errors import InputError
+
+TreeOrPoints = cKDTree | ArrayLike
+
+
+def as_tree(tree_or_points: TreeOrPoints) -> cKDTree:
+    """Return ``tree_or_points`` if it is a ``cKDTree``, else a tree built on the (N, 3) points."""
+    if isinstance(tree_or_points, cKDTree):
+        return tree_or_points
+    return cKDTree(_as_points(tree_or_points, "points"))
+
+
+def knn(
+    tree_or_points: TreeOrPoints, queries: ArrayLike, k: int, workers: int = -1
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """The k nearest neighbours of each query point.
+
+    Parameters
+    ----------
+    tree_or_points
+        A ``cKDTree`` or the (N, 3) points to search.
+    queries
+        (M, 3) query points, same frame as the searched points.
+    k
+        Number of neighbours, ``1 <= k <= N``. A query that is itself one of the points gets
+        itself as its first neighbour.
+    workers
+        Threads for the search (-1: all cores).
+
+    Returns
+    -------
+    dist, idx
+        (M, k) Euclidean distances, ascending, and the (M, k) indices into the searched points.
+    """
+    tree = as_tree(tree_or_points)
+    q = _as_points(queries, "queries")
+    k = int(k)
+    if not 1 <= k <= tree.n:
+        raise InputError(f"knn: k must be in 1..{tree.n} (number of points), got {k}")
+    # A list of k values keeps the (M, k) shape even for k = 1.
+    dist, idx = tree.query(q, k=list(range(1, k + 1)), workers=workers)
+    return dist, idx
+
+
+def hybrid(
+    tree_or_points: TreeOrPoints,
+    queries: ArrayLike,
+    radius: float,
+    max_nn: int,
+    workers: int = -1,
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Radius search capped at the ``max_nn`` nearest (Open3D's ``KDTreeSearchParamHybrid``).
+
+    Parameters
+    ----------
+    tree_or_points
+        A ``cKDTree`` or the (N, 3) points to search.
+    queries
+        (M, 3) query points.
+    radius
+        Search radius in metres (> 0).
+    max_nn
+        Largest number of neighbours kept per query (>= 1); the nearest ones are kept.
+    workers
+        Threads for the search (-1: all cores).
+
+    Returns
+    -------
+    idx, dist
+        (M, max_nn) indices, ascending by distance, padded with ``-1``; (M, max_nn) distances
+        padded with ``inf``. ``idx >= 0`` is the validity mask.
+    """
+    tree = as_tree(tree_or_points)
+    q = _as_points(queries, "queries")
+    if not np.isfinite(radius) or radius <= 0:
+        raise InputError(f"hybrid search radius must be a positive number, got {radius}")
+    if int(max_nn) < 1:
+        raise InputError(f"hybrid search max_nn must be >= 1, got {max_nn}")
+    dist, idx = tree.query(
+        q, k=list(range(1, int(max_nn) + 1)), distance_upper_bound=radius, workers=workers
+    )
+    # cKDTree marks missing neighbours with index n; use -1 so that a bad index fails loudly.
+    idx = np.where(idx >= tree.n, -1, idx)
+    return idx, dist
+
+
+def weighted_moments(
+    points: ArrayLike, idx: NDArray[np.intp], weights: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Weighted mean and covariance of each neighbourhood, batched.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points the indices refer to.
+    idx
+        (M, k) neighbour indices, ``-1`` for padding.
+    weights
+        (M, k) non-negative weights; padded entries are ignored whatever their weight.
+
+    Returns
+    -------
+    mean, cov, total
+        (M, 3) weighted means, (M, 3, 3) weighted covariances ``Σ w (p − μ)(p − μ)ᵀ / Σ w`` and
+        the (M,) total weights. Rows with zero total weight get a zero mean and covariance.
+    """
+    pts = _as_points(points, "points")
+    idx = np.asarray(idx)
+    valid = idx >= 0
+    w = np.where(valid, np.asarray(weights, dtype=np.float64), 0.0)
+    nb = pts[np.where(valid, idx, 0)]  # (M, k, 3)
+    total = w.sum(axis=1)
+    safe = np.where(total > 0, total, 1.0)
+    mean = np.einsum("mk,mki->mi", w, nb) / safe[:, None]
+    # Centre before the outer products: cumulant sums lose digits far from the origin.
+    d = nb - mean[:, None, :]
+    cov = np.einsum("mk,mki,mkj->mij", w, d, d) / safe[:, None, None]
+    return mean, cov, total
+
+
+def local_covariances(
+    points: ArrayLike, idx: NDArray[np.intp], mask: ArrayLike | None = None
+) -> NDArray[np.float64]:
+    """Covariance ``Σ (p − μ)(p − μ)ᵀ / n`` of each point's neighbours, batched.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points the indices refer to.
+    idx
+        (M, k) neighbour indices (from :func:`knn` or :func:`hybrid`), ``-1`` for padding.
+    mask
+        Optional (M, k) boolean mask of the neighbours to use (``idx >= 0`` when omitted).
+
+    Returns
+    -------
+    (M, 3, 3) covariances, normalised by the neighbour count (zero for an empty neighbourhood).
+    """
+    idx = np.asarray(idx)
+    use = idx >= 0 if mask is None else np.asarray(mask, dtype=bool) & (idx >= 0)
+    _, cov, _ = weighted_moments(points, idx, use.astype(np.float64))
+    return cov
+
+
+def _as_points(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) == 0:
+        raise InputError(f"{name} must be a non-empty (N, 3) array, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} contain NaN or inf")
+    return arr

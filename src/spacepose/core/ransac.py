@@ -1,0 +1,351 @@
+"""Coarse registration: RANSAC on FPFH correspondences (METHODS §1.4, Li §2.3.1).
+
+Correspondences are nearest neighbours in feature space (optionally mutual). Hypotheses are drawn
+and scored in batches: three distinct correspondences per hypothesis, a cheap edge-length test,
+a batched Kabsch fit, a test that the three sampled pairs land within the correspondence
+distance, and inlier counting on the whole correspondence set. Sampling stops at the confidence
+bound ``k = log(1 − p) / log(1 − w³)`` (w the best inlier ratio so far) or at the iteration limit;
+the best hypothesis is refitted on its inliers with Kabsch. All randomness comes from one seeded
+generator consumed in a fixed order, so the result is the same for any ``workers``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import Field
+from scipy.spatial import cKDTree
+
+from spacepose.core import se3
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import StageConfig
+from spacepose.core.fpfh import FPFHConfig, compute_fpfh
+from spacepose.core.icp import (
+    as_registration_cloud,
+    find_correspondences,
+    point_to_point_information,
+)
+from spacepose.core.normals import NormalsConfig, estimate_normals
+from spacepose.core.registration import RegistrationResult, kabsch
+from spacepose.errors import InputError, RegistrationError
+
+
+class RansacConfig(StageConfig):
+    """Parameters of :func:`feature_ransac`.
+
+    Attributes
+    ----------
+    max_correspondence_distance
+        Inlier gate ε (m): a correspondence is an inlier when the hypothesis maps its source
+        point within ε of its target point. Typically 1.5× the point spacing.
+    mutual_filter
+        Keep only correspondences that are nearest neighbours in feature space both ways.
+    edge_length_ratio
+        Reject a sample when any edge of its source triangle and the matching target edge
+        differ by more than this ratio (Open3D's edge-length checker); 0 disables the test.
+    max_iterations
+        Largest number of hypotheses drawn.
+    confidence
+        Probability p of having drawn at least one all-inlier sample when sampling stops.
+    seed
+        Seed of the sampling.
+    batch_size
+        Hypotheses drawn and scored together; memory grows as batch_size × correspondences.
+        The result depends on it (sampling stops at a batch boundary), never on ``workers``.
+    min_inliers
+        Fewest inlier correspondences the best hypothesis needs; fewer means no consensus.
+        Three of them are the sampled pairs themselves, so this must exceed 3.
+    """
+
+    max_correspondence_distance: float = Field(default=0.015, gt=0)
+    mutual_filter: bool = True
+    edge_length_ratio: float = Field(default=0.9, ge=0, lt=1)
+    max_iterations: int = Field(default=100_000, ge=1)
+    confidence: float = Field(default=0.999, gt=0, lt=1)
+    seed: int = 0
+    batch_size: int = Field(default=256, ge=1)
+    min_inliers: int = Field(default=10, ge=4)
+
+
+def match_features(
+    source_features: ArrayLike,
+    target_features: ArrayLike,
+    mutual: bool = True,
+    workers: int = -1,
+) -> NDArray[np.intp]:
+    """Nearest-neighbour correspondences in feature space.
+
+    Parameters
+    ----------
+    source_features, target_features
+        (N, D) and (M, D) descriptors (e.g. FPFH, D = 33).
+    mutual
+        Keep a pair only if each is the other's nearest neighbour.
+    workers
+        Threads for the searches.
+
+    Returns
+    -------
+    (K, 2) pairs ``(source index, target index)``, ascending in source index.
+    """
+    src = _as_features(source_features, "source_features")
+    tgt = _as_features(target_features, "target_features")
+    if src.shape[1] != tgt.shape[1]:
+        raise InputError(
+            f"source and target features differ in dimension: {src.shape[1]} vs {tgt.shape[1]}"
+        )
+    _, forward = cKDTree(tgt).query(src, k=1, workers=workers)
+    pairs = np.column_stack([np.arange(len(src)), forward])
+    if mutual:
+        _, backward = cKDTree(src).query(tgt, k=1, workers=workers)
+        pairs = pairs[backward[forward] == pairs[:, 0]]
+    return pairs
+
+
+def sample_triples(rng: np.random.Generator, n: int, size: int) -> NDArray[np.intp]:
+    """(size, 3) triples of distinct indices in ``0..n-1`` (n >= 3), uniformly drawn."""
+    i0 = rng.integers(0, n, size)
+    i1 = rng.integers(0, n - 1, size)
+    i1 = i1 + (i1 >= i0)
+    lo, hi = np.minimum(i0, i1), np.maximum(i0, i1)
+    i2 = rng.integers(0, n - 2, size)
+    # Skip over the two indices already taken, smallest first, to stay uniform and distinct.
+    i2 = i2 + (i2 >= lo)
+    i2 = i2 + (i2 >= hi)
+    return np.column_stack([i0, i1, i2])
+
+
+def edge_lengths_agree(
+    source_triples: NDArray[np.float64], target_triples: NDArray[np.float64], ratio: float
+) -> NDArray[np.bool_]:
+    """Whether every edge of each source triangle matches its target edge within ``ratio``.
+
+    Parameters
+    ----------
+    source_triples, target_triples
+        (B, 3, 3) sampled points (three per hypothesis) in their own frames.
+    ratio
+        Smallest accepted ratio of the shorter to the longer of two matching edges.
+    """
+    a, b = [0, 1, 0], [1, 2, 2]
+    ls = np.linalg.norm(source_triples[:, a] - source_triples[:, b], axis=2)
+    lt = np.linalg.norm(target_triples[:, a] - target_triples[:, b], axis=2)
+    return np.all((ls >= ratio * lt) & (lt >= ratio * ls), axis=1)
+
+
+def iteration_bound(inlier_ratio: float, confidence: float) -> float:
+    """Hypotheses needed to draw an all-inlier triple with probability ``confidence``."""
+    if inlier_ratio <= 0.0:
+        return math.inf
+    miss = 1.0 - inlier_ratio**3
+    if miss <= 0.0:
+        return 0.0
+    return math.log(1.0 - confidence) / math.log(miss)
+
+
+def ransac_correspondences(
+    source: PointCloud | ArrayLike,
+    target: PointCloud | ArrayLike,
+    correspondences: ArrayLike,
+    config: RansacConfig = RansacConfig(),
+    workers: int = -1,
+) -> RegistrationResult:
+    """RANSAC rigid fit on given point correspondences.
+
+    Parameters
+    ----------
+    source, target
+        Clouds ((N, 3) arrays or :class:`PointCloud`), each in its own frame.
+    correspondences
+        (K, 2) putative pairs ``(source index, target index)``, K >= 3.
+    config
+        Gate, sampling and stopping parameters.
+    workers
+        Threads for the final neighbour search (the result does not depend on it).
+
+    Returns
+    -------
+    RegistrationResult
+        ``T_target_source`` refitted on the inlier correspondences; ``fitness``, ``inlier_rmse``,
+        ``information`` (point-to-point ``Σ JᵀJ``, 1/m²) and ``n_correspondences`` from the
+        nearest target point within ε of every mapped source point; ``iterations`` is the number
+        of hypotheses drawn; ``converged`` says the confidence bound was reached.
+
+    Raises
+    ------
+    InputError
+        Clouds with fewer than 3 points, malformed or out-of-range correspondences.
+    RegistrationError
+        Fewer than 3 correspondences, or no hypothesis with ``min_inliers`` inliers.
+    """
+    src = as_registration_cloud(source, "source")
+    tgt = as_registration_cloud(target, "target")
+    pairs = np.asarray(correspondences)
+    if pairs.ndim != 2 or pairs.shape[1] != 2 or not np.issubdtype(pairs.dtype, np.integer):
+        raise InputError(f"correspondences must be a (K, 2) integer array, got {pairs.shape}")
+    if len(pairs) and (
+        pairs.min() < 0 or pairs[:, 0].max() >= len(src) or pairs[:, 1].max() >= len(tgt)
+    ):
+        raise InputError("correspondences index outside the source or target cloud")
+    if len(pairs) < 3:
+        raise RegistrationError(f"RANSAC needs at least 3 correspondences, got {len(pairs)}")
+    src_c, tgt_c = src.points[pairs[:, 0]], tgt.points[pairs[:, 1]]
+    eps2 = config.max_correspondence_distance**2
+    rng = np.random.default_rng(config.seed)
+
+    best_T, best_count, best_sq = None, 0, math.inf
+    drawn, bound = 0, math.inf
+    while drawn < min(bound, config.max_iterations):
+        size = min(config.batch_size, config.max_iterations - drawn)
+        sample = sample_triples(rng, len(pairs), size)
+        drawn += size
+        S, D = src_c[sample], tgt_c[sample]
+        ok = edge_lengths_agree(S, D, config.edge_length_ratio)
+        if not ok.any():
+            continue
+        T = kabsch(S[ok], D[ok])
+        moved = np.einsum("hij,hkj->hki", T[:, :3, :3], S[ok]) + T[:, None, :3, 3]
+        T = T[np.all(np.sum((moved - D[ok]) ** 2, axis=2) < eps2, axis=1)]
+        if len(T) == 0:
+            continue
+        r2 = np.sum(
+            (np.einsum("hij,mj->hmi", T[:, :3, :3], src_c) + T[:, None, :3, 3] - tgt_c) ** 2,
+            axis=2,
+        )
+        inl = r2 < eps2
+        count = inl.sum(axis=1)
+        sq = np.where(inl, r2, 0.0).sum(axis=1)
+        # Most inliers, then smallest squared error; lexsort keeps the first on a full tie.
+        h = np.lexsort((sq, -count))[0]
+        if count[h] > best_count or (count[h] == best_count and sq[h] < best_sq):
+            best_T, best_count, best_sq = T[h], int(count[h]), float(sq[h])
+            bound = iteration_bound(best_count / len(pairs), config.confidence)
+
+    if best_T is None or best_count < config.min_inliers:
+        raise RegistrationError(
+            f"RANSAC found no consensus: best hypothesis has {best_count} of {len(pairs)} "
+            f"correspondences within {config.max_correspondence_distance} m after {drawn} "
+            f"hypotheses (need {config.min_inliers})"
+        )
+    inliers = np.sum((se3.transform_points(best_T, src_c) - tgt_c) ** 2, axis=1) < eps2
+    T_target_source = kabsch(src_c[inliers], tgt_c[inliers])
+    return evaluate_alignment(src, tgt, T_target_source, config, drawn, drawn >= bound, workers)
+
+
+def evaluate_alignment(
+    source: PointCloud,
+    target: PointCloud,
+    T_target_source: NDArray[np.float64],
+    config: RansacConfig,
+    iterations: int,
+    converged: bool,
+    workers: int = -1,
+) -> RegistrationResult:
+    """Fitness, RMSE and information of ``T_target_source`` from nearest target points within ε."""
+    moved = se3.transform_points(T_target_source, source.points)
+    s, _, d2 = find_correspondences(
+        cKDTree(target.points), moved, config.max_correspondence_distance, workers
+    )
+    return RegistrationResult(
+        T_target_source=T_target_source,
+        fitness=len(s) / len(source),
+        inlier_rmse=float(np.sqrt(d2.mean())) if len(s) else 0.0,
+        iterations=iterations,
+        converged=converged,
+        information=point_to_point_information(moved[s]),
+        n_correspondences=len(s),
+    )
+
+
+def feature_ransac(
+    source: PointCloud | ArrayLike,
+    target: PointCloud | ArrayLike,
+    source_features: ArrayLike,
+    target_features: ArrayLike,
+    config: RansacConfig = RansacConfig(),
+    workers: int = -1,
+) -> RegistrationResult:
+    """Coarse ``T_target_source`` from feature correspondences by RANSAC.
+
+    Parameters
+    ----------
+    source, target
+        Clouds ((N, 3), (M, 3)), each in its own frame.
+    source_features, target_features
+        (N, D) and (M, D) descriptors, one row per point.
+    config
+        Matching, gate, sampling and stopping parameters.
+    workers
+        Threads for the searches (the result does not depend on it).
+
+    Raises
+    ------
+    InputError
+        A feature count that differs from the point count, mismatched dimensions, NaNs, or
+        fewer than 3 points.
+    RegistrationError
+        Fewer than 3 correspondences (after the mutual filter) or no consensus.
+    """
+    src = as_registration_cloud(source, "source")
+    tgt = as_registration_cloud(target, "target")
+    for name, cloud, feats in (
+        ("source", src, source_features),
+        ("target", tgt, target_features),
+    ):
+        n_feat = len(_as_features(feats, f"{name}_features"))
+        if n_feat != len(cloud):
+            raise InputError(f"{n_feat} {name} features for {len(cloud)} {name} points")
+    pairs = match_features(source_features, target_features, config.mutual_filter, workers)
+    return ransac_correspondences(src, tgt, pairs, config, workers)
+
+
+def global_registration(
+    source: PointCloud,
+    target: PointCloud,
+    voxel_size: float,
+    ransac: RansacConfig | None = None,
+    normals: NormalsConfig | None = None,
+    fpfh: FPFHConfig | None = None,
+    viewpoint: ArrayLike = (0.0, 0.0, 0.0),
+    workers: int = -1,
+) -> RegistrationResult:
+    """Normals → FPFH → RANSAC in one call, scales derived from the point spacing.
+
+    Parameters
+    ----------
+    source, target
+        Clouds with a roughly even spacing ``voxel_size`` (e.g. mpp-MLS output). Normals they
+        carry are used as they are; missing ones are estimated and turned towards ``viewpoint``
+        (both clouds in sensor frames: the sensor origin).
+    voxel_size
+        Point spacing (m). Defaults follow Open3D's global-registration recipe: normals within
+        2×, FPFH within 5× (at most 100 neighbours), inlier gate 1.5× the spacing.
+    ransac, normals, fpfh
+        Override the derived configs.
+    viewpoint
+        (3,) position the estimated normals face.
+    workers
+        Threads for the neighbour searches.
+    """
+    if not np.isfinite(voxel_size) or voxel_size <= 0:
+        raise InputError(f"voxel_size must be a positive number of metres, got {voxel_size}")
+    normals = normals or NormalsConfig(k=30, radius=2.0 * voxel_size)
+    fpfh = fpfh or FPFHConfig(radius=5.0 * voxel_size, max_nn=100)
+    ransac = ransac or RansacConfig(max_correspondence_distance=1.5 * voxel_size)
+    clouds = [
+        c if c.has_normals else estimate_normals(c, normals, viewpoint, workers)
+        for c in (source, target)
+    ]
+    features = [compute_fpfh(c, fpfh, workers) for c in clouds]
+    return feature_ransac(clouds[0], clouds[1], features[0], features[1], ransac, workers)
+
+
+def _as_features(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[0] == 0 or arr.shape[1] == 0:
+        raise InputError(f"{name} must be a non-empty (N, D) array, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} contain NaN or inf")
+    return arr

@@ -1,0 +1,104 @@
+"""Normals against Open3D and closed-form surfaces; the consistency histogram against theory."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import validate_config
+from spacepose.core.neighbors import hybrid
+from spacepose.core.normals import (
+    NormalsConfig,
+    estimate_normals,
+    normal_consistency,
+)
+from spacepose.errors import ConfigError, InputError
+
+
+def _noisy_sphere(n: int, seed: int, sigma: float = 0.002) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return 0.5 * d + rng.normal(0, sigma, (n, 3))
+
+
+@pytest.mark.peers
+@pytest.mark.parametrize("radius", [None, 0.08])
+def test_normals_match_open3d(radius):
+    o3d = pytest.importorskip("open3d")
+    pts = _noisy_sphere(1500, seed=1) + np.array([0.3, -0.2, 2.0])
+    cloud = estimate_normals(PointCloud(pts), NormalsConfig(k=15, radius=radius), workers=1)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    param = (
+        o3d.geometry.KDTreeSearchParamKNN(15)
+        if radius is None
+        else o3d.geometry.KDTreeSearchParamHybrid(radius, 15)
+    )
+    pcd.estimate_normals(param, fast_normal_computation=False)
+    ref = np.asarray(pcd.normals)
+    # Points with < 3 neighbours in the radius have no plane; the two libraries fall back
+    # differently (Open3D: an axis; here: the line of sight), so they are compared elsewhere.
+    ok = np.ones(len(pts), dtype=bool)
+    if radius is not None:
+        ok = (hybrid(pts, pts, radius, 15)[0] >= 0).sum(axis=1) >= 3
+        assert ok.sum() > 1490
+    sign = np.sign(np.einsum("ij,ij->i", cloud.normals, ref))
+    assert np.max(np.abs(cloud.normals - sign[:, None] * ref)[ok]) < 1e-6
+
+
+def test_plane_and_sphere_closed_form():
+    rng = np.random.default_rng(2)
+    plane = np.column_stack([rng.uniform(-1, 1, (500, 2)), np.full(500, 3.0)])
+    n = estimate_normals(PointCloud(plane), NormalsConfig(k=10)).normals
+    # Sensor at the origin looks along +z: the normals of the plane z = 3 point back at it.
+    np.testing.assert_allclose(n, np.tile([0.0, 0.0, -1.0], (500, 1)), atol=1e-12)
+
+    sphere = _noisy_sphere(20000, seed=4, sigma=0.0)
+    n = estimate_normals(PointCloud(sphere), NormalsConfig(k=12), viewpoint=(0, 0, 10)).normals
+    radial = sphere / np.linalg.norm(sphere, axis=1, keepdims=True)
+    facing = sphere[:, 2] > 0.1  # the side that sees the viewpoint gets outward normals
+    cos = np.einsum("ij,ij->i", n, radial)
+    assert np.min(cos[facing]) > 0.999
+    # Every normal has a non-negative component towards the viewpoint.
+    assert np.all(np.einsum("ij,ij->i", n, (0, 0, 10) - sphere) >= 0)
+
+
+def test_isolated_point_gets_line_of_sight():
+    pts = np.array([[0, 0, 2.0], [0.01, 0, 2.0], [0, 0.01, 2.0], [0.01, 0.01, 2.0], [5, 5, 5.0]])
+    n = estimate_normals(PointCloud(pts), NormalsConfig(k=4, radius=0.1)).normals
+    np.testing.assert_allclose(n[4], -np.array([5, 5, 5.0]) / np.sqrt(75), atol=1e-12)
+    np.testing.assert_allclose(n[:4], np.tile([0, 0, -1.0], (4, 1)), atol=1e-12)
+
+
+def test_consistency_plane_and_random_normals():
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-1, 1, (2000, 3))
+    plane = PointCloud(pts, np.tile([0.0, 0.0, 1.0], (2000, 1)))
+    c = normal_consistency(plane, k=8)
+    assert c.share_below_20 == 1.0
+    assert c.angles_deg.shape == (2000 * 8,)
+    assert c.counts[0] == 2000 * 8 and c.counts.sum() == 2000 * 8
+    # Independent uniform unit normals: P(angle < 20°) = (1 − cos 20°) / 2 = 0.0302.
+    d = rng.normal(size=(2000, 3))
+    rand = PointCloud(pts, d / np.linalg.norm(d, axis=1, keepdims=True))
+    c = normal_consistency(rand, k=10, bin_width_deg=20.0)
+    assert c.share_below_20 == pytest.approx((1 - np.cos(np.radians(20))) / 2, abs=0.005)
+    assert len(c.counts) == 9 and c.bin_edges_deg[-1] == 180.0
+    # Uniform directions: the angle density is sin(θ)/2, so the 80–100° bin holds ~0.174.
+    assert c.shares[4] == pytest.approx(np.cos(np.radians(80)), abs=0.01)
+
+
+def test_bad_input_raises():
+    with pytest.raises(InputError, match="at least 3"):
+        estimate_normals(PointCloud(np.zeros((2, 3))))
+    with pytest.raises(InputError, match="needs a cloud with normals"):
+        normal_consistency(PointCloud(np.random.default_rng(0).uniform(size=(20, 3))))
+    with pytest.raises(InputError, match="more than 10"):
+        normal_consistency(PointCloud(np.zeros((5, 3)), np.ones((5, 3))))
+    with pytest.raises(InputError, match="divide 180"):
+        normal_consistency(PointCloud(np.zeros((50, 3)), np.ones((50, 3))), bin_width_deg=7.0)
+    with pytest.raises(ConfigError, match="k"):
+        validate_config(NormalsConfig, {"k": 2})
+    with pytest.raises(ConfigError, match="radius"):
+        validate_config(NormalsConfig, {"radius": -1.0})
