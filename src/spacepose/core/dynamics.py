@@ -162,12 +162,22 @@ def propagate_attitude(
     q, omega
         (4,) unit quaternion (sign kept continuous with the input) and (3,) rate at ``t + dt``.
     """
+    return propagate_attitude_k(q_I_B_xyzw, omega_B, inertia_ratios(inertia_diag), dt, substeps)
+
+
+def propagate_attitude_k(
+    q_I_B_xyzw: ArrayLike,
+    omega_B: ArrayLike,
+    k: ArrayLike,
+    dt: float,
+    substeps: int = 10,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """As :func:`propagate_attitude`, with the inertia given as the ratios ``k`` (3,)."""
     q = _vector(q_I_B_xyzw, 4, "q_I_B_xyzw")
     w = _vector(omega_B, 3, "omega_B")
-    inertia = _vector(inertia_diag, 3, "inertia_diag")
+    k = _vector(k, 3, "k")
     if substeps < 1:
         raise InputError(f"substeps must be >= 1, got {substeps}")
-    k = inertia_ratios(inertia)
 
     def f(x: NDArray[np.float64]) -> NDArray[np.float64]:
         wx, wy, wz = x[4:]

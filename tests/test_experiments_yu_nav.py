@@ -1,0 +1,84 @@
+"""Tests of the Y4 experiment (spacepose.tools.experiments.yu_nav)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from spacepose.core.ekf import N_FIXED
+from spacepose.core.sim.scenarios import OrbitConfig
+from spacepose.tools.experiments import available
+from spacepose.tools.experiments.yu_nav import (
+    PRIOR_ERROR_DEG,
+    attitude_prior,
+    navigate_with_truth,
+    score,
+    write_figures,
+)
+
+
+class _FakeEKF:
+    k = np.array([0.17, -0.4, 0.25])
+    com = np.array([0.021, -0.03, 0.05])
+    n_rejected = 2
+    n_accepted = 40
+
+
+def test_score_on_known_errors() -> None:
+    N = 10
+    errors = np.zeros((N, N_FIXED))
+    errors[:, 0] = 0.002  # 2 mm along x everywhere
+    errors[5:, 6] = np.deg2rad(0.05) * np.array([1, -1, 1, -1, 1])
+    lo, hi = chi2.ppf([0.025, 0.975], N_FIXED)
+    nees = np.array([lo - 1, hi + 1] + [N_FIXED] * 8, dtype=float)
+    truth = np.zeros((N, 20))
+    truth[:, 14:17] = [1 / 6, -0.4, 0.25]
+    truth[:, 17:20] = [0.02, -0.03, 0.05]
+    truth[:, 10] = 1.0
+    result = {
+        "t": 3.0 * np.arange(N),
+        "errors": errors,
+        "nees": nees,
+        "coarse_att_deg": np.full(N, 1.0),
+        "raw_att_deg": np.array([1.0, 180.0] * 5),
+        "coarse_pos_mm": np.ones((N, 3)),
+        "n_rect": np.ones(N, dtype=int),
+        "truth": truth,
+        "ekf": _FakeEKF(),
+    }
+    table = score(result)
+    np.testing.assert_allclose(table["position_rms_mm"], [2.0, 0.0, 0.0])
+    np.testing.assert_allclose(table["position_mean_mm"], [2.0, 0.0, 0.0])
+    np.testing.assert_allclose(table["attitude_rms_deg"], [0.05, 0.0, 0.0])
+    np.testing.assert_allclose(table["inertia_error_pct"], [2.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(table["com_error_mm"], [1.0, 0.0, 0.0], atol=1e-9)
+    assert table["nees_inside_95_all"] == pytest.approx(0.8)
+    assert table["nees_inside_95_second_half"] == 1.0
+    assert table["coarse_frames_unfixed_over_90deg"] == 5
+    # The attitude error steps by 0.05° then flips sign: 0.1° is the largest jump.
+    assert table["attitude_jump_deg"] == pytest.approx(0.1)
+    assert table["attitude_jump_after_10s_deg"] == pytest.approx(0.1)  # from t = 12 s on
+    assert table["meets_target"]["position_rms_mm"] and table["meets_target"]["attitude_rms_deg"]
+
+
+def test_prior_is_the_stated_angle_away() -> None:
+    q = Rotation.from_rotvec([0.2, 0.5, -0.1]).as_quat()
+    prior = attitude_prior(q, seed=3)
+    angle = (Rotation.from_quat(q).inv() * Rotation.from_quat(prior)).magnitude()
+    assert np.rad2deg(angle) == pytest.approx(PRIOR_ERROR_DEG)
+    assert attitude_prior(q, seed=3) == prior
+
+
+def test_short_orbit_run_end_to_end(tmp_path) -> None:
+    assert "yu-y4" in available()
+    result = navigate_with_truth(OrbitConfig(frames=20), seed=0)
+    table = score(result)
+    assert table["frames_navigated"] == 20
+    # After 10 s of filtering the attitude is far better than the coarse ~1°.
+    assert max(table["attitude_rms_deg"]) < 0.3
+    assert table["coarse_attitude_fixed_max_deg"] < 30.0
+    assert table["coarse_frames_unfixed_over_90deg"] >= 3
+    names = write_figures(result, tmp_path)
+    assert all((tmp_path / n).stat().st_size > 1000 for n in names)
