@@ -150,3 +150,35 @@ def test_pose_errors_bad_shapes() -> None:
         pose_errors(np.tile(np.eye(4), (2, 1, 1)), np.tile(np.eye(4), (3, 1, 1)))
     with pytest.raises(InputError, match="non-finite"):
         pose_errors(np.full((4, 4), np.nan), np.eye(4))
+
+
+def test_navigation_errors_per_group_and_attitude_in_body_frame() -> None:
+    from spacepose.core.metrics import NAV_GROUPS, navigation_errors
+
+    n = 10
+    q_true = Rotation.from_euler("ZYX", [30.0, -20.0, 45.0], degrees=True)
+    # The estimate is off by 0.2° about body x: R_true = R_est · exp(δθ) with δθ = (0.2°, 0, 0).
+    q_est = q_true * Rotation.from_rotvec(np.radians([-0.2, 0.0, 0.0]))
+    truth = {"t": np.arange(n, dtype=float)}
+    nav = {"t": np.arange(n, dtype=float)}
+    for axis, (qt, qe) in zip("xyzw", zip(q_true.as_quat(), q_est.as_quat(), strict=True)):
+        truth[f"q{axis}"] = np.full(n, qt)
+        nav[f"q{axis}"] = np.full(n, qe)
+    for _, cols, _, _ in NAV_GROUPS:
+        for c in cols:
+            truth[c] = np.zeros(n)
+            nav[c] = np.zeros(n)
+            nav[f"sig_{c}"] = np.full(n, 1e-3)
+    for a in "xyz":
+        nav[f"sig_att_{a}"] = np.full(n, 1e-3)
+    nav["rho_y"] = np.full(n, 0.004)  # 4 mm along y
+    nav["qx"][:3] = np.nan  # filter not started on the first three frames
+    errors = navigation_errors(nav, truth)
+    rms = errors.rms(0.5)
+    np.testing.assert_allclose(rms["position"], [0.0, 4.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(rms["attitude"], [0.2, 0.0, 0.0], atol=1e-9)
+    assert np.isnan(errors.groups["attitude"][2][:3]).all()
+    np.testing.assert_allclose(errors.groups["velocity"][3], 1.0)  # σ of 1 mm/s shown in mm/s
+    del nav["com_z"]
+    with pytest.raises(InputError, match="com_z"):
+        navigation_errors(nav, truth)

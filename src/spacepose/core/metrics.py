@@ -231,3 +231,78 @@ def evaluate(
         T_est = T_est @ se3.invert(T_est[0])
         T_gt = T_gt @ se3.invert(T_gt[0])
     return error_table(T_est, T_gt)
+
+
+#: Navigation state groups scored against truth: (name, columns, scale to display unit, unit).
+NAV_GROUPS: tuple[tuple[str, tuple[str, str, str], float, str], ...] = (
+    ("position", ("rho_x", "rho_y", "rho_z"), 1e3, "mm"),
+    ("velocity", ("v_x", "v_y", "v_z"), 1e3, "mm/s"),
+    ("angular rate", ("w_x", "w_y", "w_z"), float(np.degrees(1.0)), "deg/s"),
+    ("inertia ratios", ("k_x", "k_y", "k_z"), 1.0, "-"),
+    ("centre-of-mass offset", ("com_x", "com_y", "com_z"), 1e3, "mm"),
+)
+
+
+@dataclass(frozen=True)
+class NavigationErrors:
+    """Navigation errors per state group against truth, in display units.
+
+    Attributes
+    ----------
+    t
+        (N,) time, s.
+    groups
+        Group name -> (unit, columns (3,), error (N, 3), sigma (N, 3)); ``attitude`` is the
+        rotation vector δθ in B with ``R_true = R_est · exp(δθ)``, in degrees.
+    """
+
+    t: NDArray[np.float64]
+    groups: dict[str, tuple[str, tuple[str, ...], NDArray[np.float64], NDArray[np.float64]]]
+
+    def rms(self, start_fraction: float = 0.5) -> dict[str, list[float]]:
+        """Per-axis RMS of each group over the frames after ``start_fraction`` of the run
+        (frames before the filter started, NaN, are left out)."""
+        first = int(len(self.t) * start_fraction)
+        return {
+            name: np.sqrt(np.nanmean(err[first:] ** 2, axis=0)).tolist()
+            for name, (_, _, err, _) in self.groups.items()
+        }
+
+
+def navigation_errors(
+    nav: dict[str, NDArray[np.float64]], truth: dict[str, NDArray[np.float64]]
+) -> NavigationErrors:
+    """Compare a NAV table with the simulator's truth table, frame by frame.
+
+    Parameters
+    ----------
+    nav
+        Column name -> (N,) values, with the NAV.csv state columns and their ``sig_`` columns
+        (``sig_att_x/y/z`` for the attitude, radians).
+    truth
+        Column name -> (M,) values with the truth.csv columns; the first min(N, M) rows pair.
+    """
+    missing = [c for _, cols, _, _ in NAV_GROUPS for c in cols if c not in nav or c not in truth]
+    if missing:
+        raise InputError(f"navigation table lacks columns {missing}")
+    n = min(len(nav["t"]), len(truth["t"]))
+    q_est = np.stack([nav[c][:n] for c in ("qx", "qy", "qz", "qw")], axis=1)
+    q_true = np.stack([truth[c][:n] for c in ("qx", "qy", "qz", "qw")], axis=1)
+    started = np.all(np.isfinite(q_est), axis=1)
+    att = np.full((n, 3), np.nan)
+    att[started] = (
+        Rotation.from_quat(q_est[started]).inv() * Rotation.from_quat(q_true[started])
+    ).as_rotvec()
+    groups = {
+        "attitude": (
+            "deg",
+            ("att_x", "att_y", "att_z"),
+            np.degrees(att),
+            np.degrees(np.stack([nav[f"sig_att_{a}"][:n] for a in "xyz"], axis=1)),
+        )
+    }
+    for name, cols, scale, unit in NAV_GROUPS:
+        err = np.stack([scale * (nav[c][:n] - truth[c][:n]) for c in cols], axis=1)
+        sig = np.stack([scale * nav[f"sig_{c}"][:n] for c in cols], axis=1)
+        groups[name] = (unit, cols, err, sig)
+    return NavigationErrors(np.asarray(nav["t"][:n], dtype=np.float64), groups)

@@ -18,10 +18,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from spacepose import __version__
-from spacepose.core.metrics import ErrorTable, evaluate, pose_errors
+from spacepose.core.metrics import ErrorTable, evaluate, navigation_errors, pose_errors
 from spacepose.errors import InputError
 from spacepose.tools import plots
 from spacepose.tools.trajectory_io import read_tum
@@ -124,15 +123,6 @@ def _table_cells(d: dict) -> list[tuple[float, float]]:
     return [(d["mean"][k], d["std"][k]) for k in keys]
 
 
-_NAV_GROUPS = (
-    ("position", ("rho_x", "rho_y", "rho_z"), 1e3, "mm"),
-    ("velocity", ("v_x", "v_y", "v_z"), 1e3, "mm/s"),
-    ("angular rate", ("w_x", "w_y", "w_z"), np.degrees(1.0), "deg/s"),
-    ("inertia ratios", ("k_x", "k_y", "k_z"), 1.0, "-"),
-    ("centre-of-mass offset", ("com_x", "com_y", "com_z"), 1e3, "mm"),
-)
-
-
 def _navigation_section(run: Path) -> str:
     truth_path = run / "truth.csv"
     navs = sorted(run.rglob("nav*.csv"))
@@ -141,38 +131,23 @@ def _navigation_section(run: Path) -> str:
     truth = {k: np.asarray(v, dtype=float) for k, v in _read_csv(truth_path).items()}
     parts = []
     for nav_path in navs:
-        nav_raw = _read_csv(nav_path)
-        nav = {k: np.asarray(v, dtype=float) for k, v in nav_raw.items() if k != "status"}
-        n = min(len(nav["t"]), len(truth["t"]))
-        t = nav["t"][:n]
-        half = slice(n // 2, n)
-        q_est = np.stack([nav[c][:n] for c in ("qx", "qy", "qz", "qw")], axis=1)
-        q_true = np.stack([truth[c][:n] for c in ("qx", "qy", "qz", "qw")], axis=1)
-        # Attitude error as a rotation vector in B: R_true = R_est · exp(δθ).
-        att_err = (Rotation.from_quat(q_est).inv() * Rotation.from_quat(q_true)).as_rotvec()
-        groups = [
-            (
-                "attitude",
-                np.degrees(att_err),
-                np.degrees(np.stack([nav[f"sig_att_{a}"][:n] for a in "xyz"], axis=1)),
-                ("att_x", "att_y", "att_z"),
-                "deg",
-            ),
-        ]
-        for title, cols, scale, unit in _NAV_GROUPS:
-            err = np.stack([scale * (nav[c][:n] - truth[c][:n]) for c in cols], axis=1)
-            sig = np.stack([scale * nav[f"sig_{c}"][:n] for c in cols], axis=1)
-            groups.append((title, err, sig, cols, unit))
-        rows, figures = [], []
-        for title, err, sig, cols, unit in groups:
-            rows.append((f"{title} ({unit})", *np.sqrt(np.mean(err[half] ** 2, axis=0))))
-            fig = plots.error_with_envelope(
-                t, err, sig, [f"{c} ({unit})" for c in cols], f"{nav_path.stem}: {title} error"
-            )
-            figures.append(_figure(plots.figure_png(fig), f"{title} error with ±3σ"))
+        nav = {
+            k: np.asarray(v, dtype=float) for k, v in _read_csv(nav_path).items() if k != "status"
+        }
+        errors = navigation_errors(nav, truth)
+        rms = errors.rms(0.5)
+        rows = [(f"{name} ({unit})", *rms[name]) for name, (unit, *_) in errors.groups.items()]
         parts.append(f"<h4>{html.escape(nav_path.name)}</h4>")
         parts.append(_table(("state (RMS over the second half)", "x", "y", "z"), rows))
-        parts.extend(figures)
+        for name, (unit, cols, err, sig) in errors.groups.items():
+            fig = plots.error_with_envelope(
+                errors.t,
+                err,
+                sig,
+                [f"{c} ({unit})" for c in cols],
+                f"{nav_path.stem}: {name} error",
+            )
+            parts.append(_figure(plots.figure_png(fig), f"{name} error with ±3σ"))
     return "<h3>Relative navigation</h3>" + "".join(parts)
 
 
