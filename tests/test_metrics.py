@@ -161,7 +161,8 @@ def test_navigation_errors_per_group_and_attitude_in_body_frame() -> None:
     q_est = q_true * Rotation.from_rotvec(np.radians([-0.2, 0.0, 0.0]))
     truth = {"t": np.arange(n, dtype=float)}
     nav = {"t": np.arange(n, dtype=float)}
-    for axis, (qt, qe) in zip("xyzw", zip(q_true.as_quat(), q_est.as_quat(), strict=True)):
+    pairs = zip(q_true.as_quat(), q_est.as_quat(), strict=True)
+    for axis, (qt, qe) in zip("xyzw", pairs, strict=True):
         truth[f"q{axis}"] = np.full(n, qt)
         nav[f"q{axis}"] = np.full(n, qe)
     for _, cols, _, _ in NAV_GROUPS:
