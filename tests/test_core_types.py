@@ -134,3 +134,13 @@ def test_pointcloud_leaves_the_callers_array_writable() -> None:
     PointCloud(pts)
     pts[0, 0] = 1.0  # must not raise: the cloud froze its own copy, not the caller's array
     assert pts[0, 0] == 1.0
+
+
+def test_cli_error_message_keeps_square_brackets(tmp_path, capsys) -> None:
+    # A config file name with brackets must come out verbatim, not eaten as rich markup.
+    bad = tmp_path / "cfg[v2].yaml"
+    bad.write_text("unknown_option: 1\n")
+    assert (
+        main(["track", str(tmp_path), "--out", str(tmp_path / "e.tum"), "--config", str(bad)]) == 1
+    )
+    assert "cfg[v2].yaml" in capsys.readouterr().err

@@ -36,7 +36,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = app(args=argv, prog_name="spacepose", standalone_mode=False)
     except SpaceposeError as exc:
-        err_console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        # The message goes out as plain text: file names and "spacepose[peers]" hold brackets
+        # that rich would read as markup.
+        err_console.print("[bold red]error:[/] ", end="")
+        err_console.print(str(exc), markup=False, highlight=False, soft_wrap=True)
         return 1
     except typer.Abort:
         err_console.print("aborted")
