@@ -1,0 +1,46 @@
+"""``spacepose bench``: stage times, registration accuracy, memory and scaling, as JSON."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from spacepose.cli.app import app, console
+
+
+@app.command()
+def bench(
+    out: Path = typer.Option(..., help="JSON file to write (BENCH.json)."),
+    quick: bool = typer.Option(False, help="320x240 frames, scaling up to 20k points."),
+    peers: bool = typer.Option(False, help="Also time Open3D and small_gicp (peers extra)."),
+    repeats: int = typer.Option(5, help="Timed calls per stage and contender."),
+    seed: int = typer.Option(0, help="Seed of the simulated frames and of every RANSAC."),
+    workers: int = typer.Option(-1, help="Threads for every contender (-1: all cores)."),
+    config: Path | None = typer.Option(
+        None, help="YAML/JSON file of benchmark options overriding the (--quick) defaults."
+    ),
+) -> None:
+    """Benchmark every stage (interleaved with the peers) on simulated lab frames."""
+    from spacepose.tools.bench import (
+        accuracy_table,
+        bench_config,
+        run_benchmark,
+        stage_table,
+        write_bench,
+    )
+
+    options = bench_config(quick, config)
+    with console.status("benchmarking"):
+        result = run_benchmark(quick, peers, repeats, seed, workers, config=options)
+    console.print(stage_table(result))
+    console.print(accuracy_table(result))
+    memory = result["memory"]
+    console.print(
+        f"peak traced memory {memory['pipeline_peak_mb']:.1f} MB, "
+        f"max RSS {memory['max_rss_mb']:.0f} MB"
+    )
+    for stage, series in result["scaling"]["stages"].items():
+        exponents = ", ".join(f"{who} {s['exponent']:.2f}" for who, s in series.items())
+        console.print(f"scaling {stage}: t ~ N^b with b = {exponents}")
+    console.print(f"wrote {write_bench(result, out)}")
