@@ -17,6 +17,7 @@ from spacepose.cli import main
 from spacepose.core import se3
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError
+from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.report import build_report
 from spacepose.tools.trajectory_io import write_tum
 
@@ -43,6 +44,10 @@ def _make_run(root: Path) -> dict[str, float]:
     lab = root / "lab"
     lab.mkdir(parents=True)
     (lab / "scenario.json").write_text(json.dumps({"scenario": "lab", "seed": 3}))
+    # One noisy planar frame, enough for the mpp-MLS before/after view.
+    grid = np.stack(np.meshgrid(np.linspace(-0.1, 0.1, 40), np.linspace(-0.1, 0.1, 40)), -1)
+    plane = np.c_[grid.reshape(-1, 2), np.full(1600, 1.2) + rng.normal(0, 1e-3, 1600)]
+    write_cloud(lab / "frames" / "000000.ply", plane)
     t = np.arange(10.0)
     gt = np.stack(
         [
@@ -95,9 +100,11 @@ def test_report_holds_the_tables_and_every_figure(tmp_path: Path) -> None:
     # Navigation table: 3 mm RMS on rho_x over the second half.
     nav_row = re.search(r"<tr><td>position \(mm\)</td><td>([\d.]+)</td>", page)
     assert nav_row and float(nav_row.group(1)) == pytest.approx(expected["nav_rho_x_mm"], rel=1e-6)
-    # Figures: error curves, health, 6 navigation groups, the experiment's own PNG; all decodable.
+    # Figures: mpp-MLS view, error curves, health, 6 navigation groups, the experiment's own PNG;
+    # all decodable.
     uris = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
-    assert len(uris) == 1 + 1 + 6 + 1
+    assert "mpp-MLS before / after" in page
+    assert len(uris) == 1 + 1 + 1 + 6 + 1
     for uri in uris:
         image = mpimg.imread(__import__("io").BytesIO(base64.b64decode(uri)), format="png")
         assert image.shape[0] > 50 and image.shape[1] > 50
@@ -160,4 +167,4 @@ def test_report_renders_in_headless_chromium_without_console_errors(tmp_path: Pa
     _, log = _run_chromium(checker, tmp_path / "profile-b")
     counts = re.search(r"IMGCHECK (\d+) (\d+)", log)
     assert counts, log[-2000:]
-    assert int(counts.group(1)) == 9 and counts.group(1) == counts.group(2)
+    assert int(counts.group(1)) == 10 and counts.group(1) == counts.group(2)
