@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
+from spacepose.core.ransac import sample_triples
 from spacepose.errors import DegenerateGeometryError, InputError
 
 # Largest number of distances held at once when scoring a batch (32 MB of float64).
@@ -193,18 +194,6 @@ def iteration_bound(confidence: float, outlier_ratio: float) -> int:
     return max(1, math.ceil(math.log(1.0 - confidence) / math.log(1.0 - good)))
 
 
-def _sample_triples(rng: np.random.Generator, n: int, size: int) -> NDArray[np.intp]:
-    """``size`` triples of three distinct indices in [0, n), uniformly, without rejection."""
-    i0 = rng.integers(0, n, size)
-    i1 = rng.integers(0, n - 1, size)
-    i1 = i1 + (i1 >= i0)
-    lo, hi = np.minimum(i0, i1), np.maximum(i0, i1)
-    i2 = rng.integers(0, n - 2, size)
-    i2 = i2 + (i2 >= lo)
-    i2 = i2 + (i2 >= hi)
-    return np.stack([i0, i1, i2], axis=1)
-
-
 def _count_inliers(
     points: NDArray[np.float64],
     normals: NDArray[np.float64],
@@ -284,7 +273,7 @@ def ransac_plane(
         n_hyp = min(n_hyp, iteration_bound(config.confidence, config.outlier_ratio))
     best_count, best_normal, best_offset = -1, None, 0.0
     for start in range(0, n_hyp, config.batch_size):
-        triples = _sample_triples(rng, len(pts), min(config.batch_size, n_hyp - start))
+        triples = sample_triples(rng, len(pts), min(config.batch_size, n_hyp - start))
         p0, p1, p2 = pts[triples[:, 0]], pts[triples[:, 1]], pts[triples[:, 2]]
         e1, e2 = p1 - p0, p2 - p0
         cross = np.cross(e1, e2)
