@@ -20,6 +20,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
 from spacepose.core.ransac import sample_triples
@@ -187,11 +188,8 @@ def fit_plane(points: ArrayLike) -> tuple[NDArray[np.float64], float]:
 
 
 def iteration_bound(confidence: float, outlier_ratio: float) -> int:
-    """RANSAC iterations ``ceil(log(1 − p) / log(1 − (1 − ε)³))`` for a 3-point sample."""
-    good = (1.0 - outlier_ratio) ** 3
-    if good >= 1.0:
-        return 1
-    return max(1, math.ceil(math.log(1.0 - confidence) / math.log(1.0 - good)))
+    """RANSAC iterations ``ceil(log(1 − p) / log(1 − (1 − ε)³))`` for a 3-point sample (Yu §2.1)."""
+    return max(1, math.ceil(ransac.iteration_bound(1.0 - outlier_ratio, confidence)))
 
 
 def _count_inliers(
