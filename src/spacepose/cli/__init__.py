@@ -3,7 +3,16 @@
 import sys
 
 from spacepose.cli import (  # noqa: F401  (importing a module registers its command)
+    bench,
+    campaign,
+    demo,
+    evaluate,
     experiment,
+    navigate,
+    planes,
+    report,
+    simulate,
+    track,
     version,
 )
 from spacepose.cli.app import app, main

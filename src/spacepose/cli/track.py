@@ -1,0 +1,62 @@
+"""``spacepose track INPUT --out EST.tum``: track the target through a sequence of frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from spacepose.cli.app import app, console
+
+
+@app.command()
+def track(
+    input: Path = typer.Argument(
+        ..., help="A run folder, or a folder of frame files (PLY/PCD/XYZ/NPY, sorted by name)."
+    ),
+    out: Path = typer.Option(..., "--out", help="Estimated trajectory (TUM)."),
+    method: str | None = typer.Option(
+        None, help="Fine registration: icp, gicp or jicp (default: the config's, else jicp)."
+    ),
+    model: Path | None = typer.Option(
+        None, help="Reference model cloud (target frame): model-based tracking."
+    ),
+    mls: bool | None = typer.Option(
+        None,
+        "--mls/--no-mls",
+        help="Preprocess by mpp-MLS, or by voxel downsampling (default: the config's, voxels).",
+    ),
+    background: bool = typer.Option(
+        False, "--background", help="Remove the background (walls, turntable) first."
+    ),
+    config: Path | None = typer.Option(None, help="Tracker config file (YAML or JSON)."),
+    workers: int = typer.Option(-1, help="Threads for neighbour searches (-1: all cores)."),
+) -> None:
+    """Track every frame; writes EST.tum, EST.health.csv and EST.config.json.
+
+    Without --model the first frame defines the target frame (its pose is the identity).
+    """
+    from spacepose.tools.frames import track_folder, tracker_config
+
+    cfg = tracker_config(config, method=method, mls=mls, background=background)
+    with Progress(
+        TextColumn("tracking"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[status]}"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=True,
+    ) as progress:
+        task = progress.add_task("track", total=None, status="")
+
+        def report(done: int, total: int, status: str) -> None:
+            progress.update(task, completed=done, total=total, status=status)
+
+        summary = track_folder(input, out, cfg, model=model, workers=workers, progress=report)
+    console.print(
+        f"{summary['frames']} frames: {summary['ok']} ok, {summary['degraded']} degraded, "
+        f"{summary['lost']} lost; {summary['mean_time_ms']:.1f} ms/frame -> {out}",
+        highlight=False,
+    )

@@ -1,0 +1,181 @@
+"""`spacepose track` and the frame folder reader (tools/frames.py)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spacepose.cli import main
+from spacepose.core.metrics import evaluate
+from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+from spacepose.core.trajectory import Trajectory
+from spacepose.errors import ConfigError, FileFormatError, InputError
+from spacepose.tools.cloud_io import write_cloud
+from spacepose.tools.frames import HEALTH_COLUMNS, open_frames, read_timestamps, tracker_config
+from spacepose.tools.runs import write_run
+from spacepose.tools.trajectory_io import read_tum
+
+N_FRAMES = 4
+
+
+@pytest.fixture(scope="module")
+def lab():
+    return simulate_lab(LabConfig(frames=N_FRAMES, seed=3))
+
+
+@pytest.fixture(scope="module")
+def frame_dir(lab, tmp_path_factory) -> Path:
+    """A folder of N_FRAMES PLY files (names sorted = time order) and a timestamps.txt."""
+    root = tmp_path_factory.mktemp("frames")
+    for k in range(N_FRAMES):
+        write_cloud(root / f"f{k:03d}.ply", lab.frame(k).cloud)
+    (root / "timestamps.txt").write_text("".join(f"{100.0 + 0.5 * k}\n" for k in range(N_FRAMES)))
+    return root
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    return err
+
+
+def test_track_writes_tum_health_and_config(frame_dir, lab, tmp_path, capsys):
+    out = tmp_path / "est.tum"
+    code = main(["track", str(frame_dir), "--out", str(out), "--method", "icp", "--no-mls"])
+    assert code == 0, capsys.readouterr().err
+    est = read_tum(out)
+    assert len(est) == N_FRAMES
+    np.testing.assert_allclose(est.timestamps, 100.0 + 0.5 * np.arange(N_FRAMES))
+    np.testing.assert_allclose(est.poses[0], np.eye(4), atol=1e-12)  # model-free: identity
+    # Accuracy against the re-based ground truth (timestamps of the files, not the sim's).
+    gt = Trajectory(est.timestamps, lab.T_sensor_target)
+    table = evaluate(est, gt, rebase_first=True).to_dict()
+    assert max(table["mean"][a] for a in ("x_mm", "y_mm", "z_mm")) < 2.0
+    assert max(table["mean"][a] for a in ("pitch_deg", "yaw_deg", "roll_deg")) < 0.1
+
+    with (tmp_path / "est.health.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == HEALTH_COLUMNS
+    assert [int(r["frame"]) for r in rows] == list(range(N_FRAMES))
+    assert {r["status"] for r in rows} <= {"ok", "degraded"}
+    assert all(float(r["sig_tx"]) >= 0 for r in rows)
+
+    config = json.loads((tmp_path / "est.config.json").read_text())
+    assert config["method"] == "icp" and config["use_mls"] is False
+    assert "jicp" in config and "health" in config  # every value, defaults included
+
+
+def test_track_run_folder_model_based(tmp_path, capsys):
+    run = write_run(tmp_path / "run", simulate_lab(LabConfig(frames=3, seed=3)))
+    out = tmp_path / "model_based.tum"
+    code = main(
+        [
+            "track",
+            str(run),
+            "--out",
+            str(out),
+            "--method",
+            "gicp",
+            "--no-mls",
+            "--model",
+            str(run / "model.ply"),
+        ]
+    )
+    assert code == 0, capsys.readouterr().err
+    est = read_tum(out)
+    assert len(est) == 3
+    # Model-based: absolute poses, compared without re-basing.
+    table = evaluate(est, read_tum(run / "groundtruth.tum")).to_dict()
+    assert max(table["mean"][a] for a in ("x_mm", "y_mm", "z_mm")) < 3.0
+
+
+def test_config_file_is_applied(frame_dir, tmp_path, capsys):
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("method: gicp\nuse_mls: false\nhealth:\n  min_points: 50\n")
+    out = tmp_path / "est.tum"
+    assert main(["track", str(frame_dir), "--out", str(out), "--config", str(cfg)]) == 0
+    written = json.loads((tmp_path / "est.config.json").read_text())
+    assert written["method"] == "gicp" and written["health"]["min_points"] == 50
+
+
+def test_empty_folder_exits_1(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    code = main(["track", str(tmp_path / "empty"), "--out", str(tmp_path / "e.tum")])
+    assert code == 1
+    assert "no frame files" in _one_line_error(capsys)
+
+
+def test_unknown_method_exits_1(frame_dir, tmp_path, capsys):
+    code = main(["track", str(frame_dir), "--out", str(tmp_path / "e.tum"), "--method", "ndt"])
+    assert code == 1
+    assert "method" in _one_line_error(capsys)
+
+
+def test_corrupt_frame_exits_1_naming_the_file(frame_dir, tmp_path, capsys):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for p in sorted(frame_dir.glob("*.ply"))[:2]:
+        (bad / p.name).write_bytes(p.read_bytes())
+    (bad / "f999.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 50\n")
+    code = main(["track", str(bad), "--out", str(tmp_path / "e.tum"), "--no-mls"])
+    assert code == 1
+    assert "f999.ply" in _one_line_error(capsys)
+
+
+def test_timestamps_count_mismatch(frame_dir, tmp_path):
+    bad = tmp_path / "ts"
+    bad.mkdir()
+    for p in frame_dir.glob("*.ply"):
+        (bad / p.name).write_bytes(p.read_bytes())
+    (bad / "timestamps.txt").write_text("0\n1\n")
+    with pytest.raises(InputError, match="2 timestamps for 4 frame files"):
+        open_frames(bad)
+
+
+def test_timestamps_not_a_number(tmp_path):
+    path = tmp_path / "timestamps.txt"
+    path.write_text("0.0\nabc\n")
+    with pytest.raises(InputError, match="line 2"):
+        read_timestamps(path, 2)
+
+
+def test_frames_sorted_by_name_and_index_timestamps(tmp_path, lab):
+    for name in ("b.npy", "a.xyz", "c.pcd"):
+        write_cloud(tmp_path / name, lab.frame(0).cloud)
+    (tmp_path / "notes.md").write_text("not a frame")
+    seq = open_frames(tmp_path)
+    assert [p.name for p in seq.paths] == ["a.xyz", "b.npy", "c.pcd"]
+    np.testing.assert_array_equal(seq.timestamps, [0.0, 1.0, 2.0])
+    assert all(f.cloud is not None and len(f.cloud) > 1000 for f in seq)
+
+
+def test_frame_without_points_is_yielded_empty(tmp_path, lab):
+    write_cloud(tmp_path / "0.xyz", lab.frame(0).cloud)
+    (tmp_path / "1.xyz").write_text("nan nan nan\n")
+    frames = list(open_frames(tmp_path))
+    assert frames[0].cloud is not None and frames[1].cloud is None
+
+
+def test_not_a_folder(tmp_path):
+    with pytest.raises(InputError, match="not a folder"):
+        open_frames(tmp_path / "missing")
+    (tmp_path / "x.ply").write_text("garbage")
+    with pytest.raises(FileFormatError):
+        list(open_frames(tmp_path))
+
+
+def test_tracker_config_overrides(tmp_path):
+    assert tracker_config().use_mls is False
+    cfg = tracker_config(method="gicp", mls=True, background=True)
+    assert (cfg.method, cfg.use_mls, cfg.use_background_removal) == ("gicp", True, True)
+    path = tmp_path / "c.json"
+    path.write_text('{"use_mls": true, "method": "icp"}')
+    assert tracker_config(path).use_mls is True  # no override: the file's value stands
+    assert tracker_config(path, mls=False, method="jicp").use_mls is False
+    path.write_text('{"use_mls": "maybe"}')
+    with pytest.raises(ConfigError, match=r"c\.json"):
+        tracker_config(path)
