@@ -20,7 +20,7 @@ def _hat(xi: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("seed", range(5))
 def test_exp_log_match_matrix_exponential(seed: int) -> None:
     rng = np.random.default_rng(seed)
-    # Rotation angles below π: log returns the shortest rotation, so larger ones would not round-trip.
+    # Angles below π: log returns the shortest rotation, so larger ones would not round-trip.
     xi = rng.uniform(-1.5, 1.5, size=6) * np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
     T = se3.exp(xi)
     np.testing.assert_allclose(T, expm(_hat(xi)), atol=1e-12)
