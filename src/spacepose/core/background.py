@@ -43,6 +43,7 @@ from spacepose.core.config import StageConfig
 from spacepose.core.neighbors import hybrid, local_covariances
 from spacepose.core.normals import normals_from_covariances
 from spacepose.core.planes import PlaneConfig, fit_plane, largest_component, ransac_plane
+from spacepose.core.voxel import voxel_cells
 from spacepose.errors import DegenerateGeometryError, InputError
 
 # RANSAC outlier share assumed in the plane search: once the wall is gone, a turntable top is
@@ -181,35 +182,6 @@ class BackgroundPlane:
         mask = np.zeros(len(points), dtype=bool)
         mask[idx[inside]] = True
         return mask
-
-
-def voxel_cells(
-    points: NDArray[np.float64], voxel_size: float
-) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """Centroids of the occupied voxel cells and the cell of each point.
-
-    Parameters
-    ----------
-    points
-        (N, 3) points, any frame (m).
-    voxel_size
-        Cell edge (m).
-
-    Returns
-    -------
-    centroids, cell
-        (M, 3) mean point of each occupied cell, ordered by cell key; (N,) cell index of each
-        point.
-    """
-    grid = np.floor(points / voxel_size).astype(np.int64)
-    grid -= grid.min(axis=0)
-    size = grid.max(axis=0) + 1
-    # One integer key per cell: a 1-D unique is several times faster than unique(axis=0).
-    keys = (grid[:, 0] * size[1] + grid[:, 1]) * size[2] + grid[:, 2]
-    _, cell, counts = np.unique(keys, return_inverse=True, return_counts=True)
-    cell = cell.reshape(-1)
-    sums = np.stack([np.bincount(cell, weights=c, minlength=len(counts)) for c in points.T], 1)
-    return sums / counts[:, None], cell
 
 
 def cell_normals(
