@@ -7,7 +7,14 @@ import pytest
 from scipy.spatial import cKDTree
 
 from spacepose.core import se3
-from spacepose.core.gicp import GICPConfig, compute_covariances, gicp, gicp_linearize
+from spacepose.core.gicp import (
+    GICPConfig,
+    compute_covariances,
+    gicp,
+    gicp_linearize,
+    symmetric_inverse,
+    whitening_columns,
+)
 from spacepose.core.sim.targets import Target, sample_surface
 from spacepose.errors import DegenerateGeometryError, InputError, RegistrationError
 from test_icp import asymmetric_target, perturbation, pose_error
@@ -195,3 +202,51 @@ def test_collinear_points_are_degenerate(lm: bool) -> None:
     line = np.outer(np.linspace(-1, 1, 200), [1.0, 2.0, 2.0]) / 3.0
     with pytest.raises(DegenerateGeometryError, match="degrees of freedom"):
         gicp(line + 0.001, line, config=GICPConfig(lm=lm))
+
+
+def test_linearize_matches_explicit_normal_equations(rng: np.random.Generator) -> None:
+    # Reference: numpy's inverse and the explicit Jacobians J = [−skew(p) I] (METHODS §1.5).
+    p = rng.normal(size=(50, 3))
+    q = p + 0.05 * rng.normal(size=(50, 3))
+    Cp = compute_covariances(rng.normal(size=(80, 3)), 6, 1e-3, 1)[:50]
+    Cq = compute_covariances(rng.normal(size=(80, 3)), 6, 1e-3, 1)[30:]
+    R = se3.exp([0.3, -0.1, 0.2, 0, 0, 0])[:3, :3]
+    H, g, W, cost = gicp_linearize(p, q, R, Cp, Cq)
+    W_ref = np.linalg.inv(Cq + R @ Cp @ R.T)
+    J = np.concatenate([-se3.skew(p), np.broadcast_to(np.eye(3), (50, 3, 3))], axis=2)
+    d = p - q
+    np.testing.assert_allclose(W, W_ref, rtol=1e-12, atol=1e-9)
+    H_ref = np.einsum("nai,nab,nbj->ij", J, W_ref, J)
+    np.testing.assert_allclose(H, H_ref, rtol=1e-11, atol=1e-9 * np.abs(H_ref).max())
+    np.testing.assert_allclose(g, np.einsum("nai,nab,nb->i", J, W_ref, d), rtol=1e-10)
+    assert cost == pytest.approx(np.einsum("na,nab,nb->", d, W_ref, d), rel=1e-12)
+
+
+def test_closed_form_inverse_and_whitening(rng: np.random.Generator) -> None:
+    A = rng.normal(size=(200, 3, 3))
+    C = A @ np.swapaxes(A, 1, 2) + 1e-3 * np.eye(3)  # positive definite, condition up to ~1e6
+    W = symmetric_inverse(C)
+    np.testing.assert_allclose(W @ C, np.broadcast_to(np.eye(3), C.shape), atol=1e-8)
+    np.testing.assert_allclose(W, np.linalg.inv(C), rtol=1e-9, atol=1e-9 * np.abs(W).max())
+    L = whitening_columns(W)  # L[m, r] is column r of the lower Cholesky factor
+    np.testing.assert_allclose(
+        np.swapaxes(L, 1, 2) @ L, W, rtol=1e-12, atol=1e-12 * np.abs(W).max()
+    )
+    np.testing.assert_allclose(np.swapaxes(L, 1, 2), np.linalg.cholesky(W), rtol=1e-10)
+
+
+def test_singular_covariances_raise(noisy_pair) -> None:
+    src, tgt, _ = noisy_pair
+    # Rank-1 covariances on both sides leave C_q + R C_p Rᵀ singular: a clear error, not inf/NaN.
+    line = np.zeros((3, 3))
+    line[0, 0] = 1.0
+    with pytest.raises(InputError, match="positive definite"):
+        gicp(
+            src,
+            tgt,
+            config=CFG,
+            source_covariances=np.broadcast_to(line, (len(src), 3, 3)),
+            target_covariances=np.broadcast_to(line, (len(tgt), 3, 3)),
+        )
+    with pytest.raises(InputError, match="positive definite"):
+        symmetric_inverse(np.array([np.diag([1.0, -1.0, 1.0])]))

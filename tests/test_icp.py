@@ -12,7 +12,9 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import validate_config
 from spacepose.core.icp import (
+    CorrespondenceSearch,
     ICPConfig,
+    find_correspondences,
     icp,
     point_to_plane_rows,
     point_to_point_information,
@@ -213,3 +215,56 @@ def test_single_plane_is_degenerate_for_point_to_plane(rng: np.random.Generator)
     target = PointCloud(plane, np.tile([0.0, 0.0, 1.0], (500, 1)))
     with pytest.raises(DegenerateGeometryError, match="degrees of freedom"):
         icp(plane + np.array([0.0, 0.0, 0.01]), target, config=ICPConfig(method="point_to_plane"))
+
+
+def test_correspondence_search_equals_tree_search(noisy_pair) -> None:
+    # Steps shrinking from 5 cm / 5° (most points searched again) to micrometres (most
+    # certified), with a gate that leaves points unmatched, then a jump back: every call must give
+    # the plain tree search's answer.
+    src, tgt, T_true = noisy_pair
+    tree = cKDTree(tgt)
+    searched = []
+
+    class CountingTree:  # the tree, recording how many points each call searches again
+        data, n = tree.data, tree.n
+
+        def query(self, x, **kwargs):
+            searched.append(len(x))
+            return tree.query(x, **kwargs)
+
+    search = CorrespondenceSearch(CountingTree(), 0.02, workers=1)
+    # Poses closing in on the truth (errors 3 cm .. 3 µm), from and back to the identity.
+    closing = [
+        se3.exp(np.random.default_rng(k).normal(0, 10.0 ** -(k / 2 + 1.5), 6)) @ T_true
+        for k in range(10)
+    ]
+    counts = []
+    for T in [np.eye(4), *closing, np.eye(4)]:
+        moved = se3.transform_points(T, src)
+        s, t, d2 = search(moved)
+        s_ref, t_ref, d2_ref = find_correspondences(tree, moved, 0.02, workers=1)
+        np.testing.assert_array_equal(s, s_ref)
+        np.testing.assert_array_equal(t, t_ref)
+        np.testing.assert_allclose(d2, d2_ref, rtol=1e-12, atol=1e-30)
+        counts.append(len(s))
+    # Both regimes occur: few matches early (gate 2 cm, offsets up to 5 cm), nearly all later;
+    # the first call searches every point, the micrometre steps almost none.
+    assert min(counts) < 0.5 * len(src) and max(counts) > 0.85 * len(src)  # measured 0.42, 0.91
+    assert searched[0] == len(src) and min(searched) < 0.05 * len(src), searched  # min 1 point
+
+
+def test_correspondence_search_single_target_and_new_size() -> None:
+    # One target point: no second neighbour exists, so the bound is twice the gate.
+    tree = cKDTree(np.zeros((1, 3)))
+    search = CorrespondenceSearch(tree, 1.0, workers=1)
+    pts = np.array([[0.5, 0, 0], [1.5, 0, 0], [0.0, 0.9, 0.0]])
+    for shift in (0.0, 0.3, 0.45, -0.5):
+        moved = pts + np.array([shift, 0.0, 0.0])
+        s, t, d2 = search(moved)
+        expect = np.flatnonzero(np.linalg.norm(moved, axis=1) < 1.0)
+        np.testing.assert_array_equal(s, expect)
+        np.testing.assert_array_equal(t, 0)
+        np.testing.assert_allclose(d2, (moved[expect] ** 2).sum(axis=1), rtol=1e-15)
+    # A different number of query points starts afresh.
+    s, _, _ = search(np.array([[0.1, 0.0, 0.0]]))
+    np.testing.assert_array_equal(s, [0])

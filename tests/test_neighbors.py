@@ -104,3 +104,29 @@ def test_bad_input_raises(call, message):
     pts = np.random.default_rng(1).uniform(size=(10, 3))
     with pytest.raises(InputError, match=message):
         call(pts)
+
+
+def test_weighted_moments_across_blocks_match_per_row_numpy():
+    # More rows than one block (256), with padding, zero-weight rows and varying weights: every
+    # row must equal numpy's weighted mean and biased weighted covariance of its own neighbours.
+    rng = np.random.default_rng(7)
+    pts = rng.normal(size=(500, 3)) + np.array([0.0, 0.0, 20.0])
+    idx = rng.integers(0, 500, size=(700, 9))
+    idx[rng.uniform(size=idx.shape) < 0.3] = -1
+    idx[5] = -1  # a row with no neighbour at all
+    w = rng.uniform(0.0, 2.0, size=idx.shape)
+    w[11] = 0.0  # neighbours, but zero total weight
+    mean, cov, total = weighted_moments(pts, idx, w)
+    for m in range(len(idx)):
+        ok = idx[m] >= 0
+        wm = w[m][ok]
+        np.testing.assert_allclose(total[m], wm.sum(), rtol=1e-14)
+        if wm.sum() == 0:
+            np.testing.assert_array_equal(mean[m], 0.0)
+            np.testing.assert_array_equal(cov[m], 0.0)
+            continue
+        ref_mean = np.average(pts[idx[m][ok]], axis=0, weights=wm)
+        np.testing.assert_allclose(mean[m], ref_mean, rtol=1e-13, atol=1e-13)
+        if ok.sum() > 1:
+            ref = np.cov(pts[idx[m][ok]].T, aweights=wm, bias=True)
+            np.testing.assert_allclose(cov[m], ref, atol=1e-13)

@@ -19,13 +19,13 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
 from spacepose.core.icp import (
+    CorrespondenceSearch,
     as_registration_cloud,
-    find_correspondences,
-    point_to_point_jacobians,
     solve_normal_equations,
     target_kdtree,
 )
 from spacepose.core.neighbors import knn, local_covariances
+from spacepose.core.normals import normals_from_covariances
 from spacepose.core.registration import RegistrationResult
 from spacepose.errors import InputError, RegistrationError
 
@@ -94,8 +94,9 @@ def compute_covariances(
     if not 0 < epsilon <= 1:
         raise InputError(f"covariance epsilon must be in (0, 1], got {epsilon}")
     _, idx = knn(pts, pts, k, workers=workers)
-    _, V = np.linalg.eigh(local_covariances(pts, idx))
-    return np.einsum("nik,k,njk->nij", V, np.array([epsilon, 1.0, 1.0]), V)
+    normals, _ = normals_from_covariances(local_covariances(pts, idx))
+    # V diag(ε, 1, 1) Vᵀ = I − (1 − ε) n nᵀ: only the smallest eigenvector n is needed.
+    return np.eye(3) - (1.0 - epsilon) * normals[:, :, None] * normals[:, None, :]
 
 
 def _check_covariances(C: ArrayLike | None, n: int, name: str) -> NDArray[np.float64] | None:
@@ -133,14 +134,66 @@ def gicp_linearize(
         6×6 ``Σ JᵀWJ``, (6,) ``Σ JᵀWd``, the (M, 3, 3) weights ``(C_q + R C_p Rᵀ)⁻¹`` and the
         cost ``Σ dᵀWd``; twist order (omega, v), left perturbation.
     """
-    combined = target_covariances + R @ source_covariances @ R.T
-    W = np.linalg.inv(combined)
+    # R C Rᵀ for the whole stack as one product: vec(R C Rᵀ) = (R ⊗ R) vec(C). einsum rather
+    # than a BLAS call: a (M, 9) x (9, 9) GEMM pays more in thread hand-off than it computes.
+    rotated = np.einsum("nj,ij->ni", source_covariances.reshape(-1, 9), np.kron(R, R))
+    W = symmetric_inverse(target_covariances + rotated.reshape(-1, 3, 3))
     d = points - target_points
-    J = point_to_point_jacobians(points)
-    WJ = np.einsum("nab,nbj->naj", W, J)
-    H = np.einsum("nai,naj->ij", J, WJ)
-    g = np.einsum("naj,na->j", WJ, d)
-    return H, g, W, float(np.einsum("na,nab,nb->", d, W, d))
+    # With W = L Lᵀ, JᵀWJ = Σ_r (L_rᵀ J)ᵀ (L_rᵀ J) over the columns L_r of L, and L_rᵀ J is the
+    # point-to-plane row of "normal" L_r: H is one (3M, 6) Gram product (a BLAS syrk).
+    L = whitening_columns(W)  # (M, 3 columns, 3)
+    rows = np.concatenate([np.cross(points[:, None, :], L), L], axis=2).reshape(-1, 6)
+    residuals = np.einsum("mri,mi->mr", L, d).reshape(-1)
+    return rows.T @ rows, rows.T @ residuals, W, mahalanobis_sum(d, W)
+
+
+def symmetric_inverse(C: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Inverses (M, 3, 3) of symmetric positive definite 3×3 matrices, from their adjugates.
+
+    Raises
+    ------
+    InputError
+        When a matrix is singular or not positive definite (e.g. zero covariances).
+    """
+    a, b, c = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2]
+    d, e, f = C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]
+    A00, A01, A02 = d * f - e * e, c * e - b * f, b * e - c * d
+    det = a * A00 + b * A01 + c * A02
+    if not np.all(det > 0) or not np.all(a > 0) or not np.all(a * d - b * b > 0):
+        raise InputError(
+            "GICP needs positive definite covariances: C_target + R C_source Rᵀ is singular "
+            "or indefinite for some correspondence (use compute_covariances)"
+        )
+    adj = np.empty_like(C)
+    adj[:, 0, 0], adj[:, 0, 1], adj[:, 0, 2] = A00, A01, A02
+    adj[:, 1, 0], adj[:, 1, 1], adj[:, 1, 2] = A01, a * f - c * c, b * c - a * e
+    adj[:, 2, 0], adj[:, 2, 1], adj[:, 2, 2] = A02, adj[:, 1, 2], a * d - b * b
+    return adj / det[:, None, None]
+
+
+def whitening_columns(W: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Columns of the Cholesky factors ``W = L Lᵀ`` of symmetric positive definite 3×3 matrices.
+
+    Returns
+    -------
+    (M, 3, 3) array whose ``[m, r]`` is column r of ``L_m`` (lower triangular), so that
+    ``dᵀ W d = Σ_r (L[m, r] · d)²``.
+    """
+    l00 = np.sqrt(W[:, 0, 0])
+    l10, l20 = W[:, 0, 1] / l00, W[:, 0, 2] / l00
+    l11 = np.sqrt(W[:, 1, 1] - l10 * l10)
+    l21 = (W[:, 1, 2] - l20 * l10) / l11
+    l22 = np.sqrt(W[:, 2, 2] - l20 * l20 - l21 * l21)
+    L = np.zeros_like(W)
+    L[:, 0, 0], L[:, 0, 1], L[:, 0, 2] = l00, l10, l20
+    L[:, 1, 1], L[:, 1, 2] = l11, l21
+    L[:, 2, 2] = l22
+    return L
+
+
+def mahalanobis_sum(d: NDArray[np.float64], W: NDArray[np.float64]) -> float:
+    """``Σ dᵢᵀ Wᵢ dᵢ`` over residuals d (M, 3) and weights W (M, 3, 3)."""
+    return float(np.einsum("na,na->", d, np.einsum("nab,nb->na", W, d)))
 
 
 def gicp(
@@ -203,47 +256,41 @@ def gicp(
         Cs = compute_covariances(src, config.k_covariance, config.epsilon, workers)
     if Ct is None:
         Ct = compute_covariances(tgt, config.k_covariance, config.epsilon, workers)
-    tree = target_kdtree(tgt, target_tree)
     gate = config.max_correspondence_distance
+    search = CorrespondenceSearch(target_kdtree(tgt, target_tree), gate, workers)
 
-    def correspond(T_cur: NDArray[np.float64]) -> tuple[NDArray[np.intp], NDArray[np.intp], float]:
-        s, t, d2 = find_correspondences(
-            tree, se3.transform_points(T_cur, src.points), gate, workers
-        )
+    def correspond(
+        T_cur: NDArray[np.float64],
+    ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64], float]:
+        moved = se3.transform_points(T_cur, src.points)
+        s, t, d2 = search(moved)
         if len(s) < 3:
             raise RegistrationError(
                 f"GICP found {len(s)} correspondences within {gate} m (of {len(src)} source "
                 "points); the initial guess is too far off or the gate too small"
             )
-        return s, t, float(np.sqrt(d2.mean()))
+        return s, t, moved[s], float(np.sqrt(d2.mean()))
 
     def linearize(
-        T_cur: NDArray[np.float64], s: NDArray[np.intp], t: NDArray[np.intp]
+        T_cur: NDArray[np.float64], s: NDArray[np.intp], t: NDArray[np.intp], p: NDArray
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
-        p = se3.transform_points(T_cur, src.points[s])
+        """Normal equations at T_cur; p are the matched source points already moved by it."""
         return gicp_linearize(p, tgt.points[t], T_cur[:3, :3], Cs[s], Ct[t])
-
-    def cost_at(
-        T_cur: NDArray[np.float64],
-        s: NDArray[np.intp],
-        t: NDArray[np.intp],
-        W: NDArray[np.float64],
-    ) -> float:
-        d = se3.transform_points(T_cur, src.points[s]) - tgt.points[t]
-        return float(np.einsum("na,nab,nb->", d, W, d))
 
     lam = _LM_INIT_LAMBDA
     converged = False
     iterations = 0
     while iterations < config.max_iterations:
         iterations += 1
-        s, t, _ = correspond(T)
-        H, g, W, cost = linearize(T, s, t)
+        s, t, p, _ = correspond(T)
+        H, g, W, cost = linearize(T, s, t, p)
         if config.lm:
+            src_s, tgt_t = src.points[s], tgt.points[t]
             # Damped steps on fixed correspondences and weights until one lowers the cost.
             for _ in range(_LM_MAX_TRIALS):
                 delta = solve_normal_equations(H, g, damping=lam)
-                if cost_at(se3.exp(delta) @ T, s, t, W) <= cost:
+                moved = se3.transform_points(se3.exp(delta) @ T, src_s)
+                if mahalanobis_sum(moved - tgt_t, W) <= cost:
                     lam /= _LM_FACTOR
                     break
                 lam *= _LM_FACTOR
@@ -260,8 +307,8 @@ def gicp(
             converged = True
             break
 
-    s, t, rmse = correspond(T)
-    H, _, _, cost = linearize(T, s, t)
+    s, t, p, rmse = correspond(T)
+    H, _, _, cost = linearize(T, s, t, p)
     dof = max(len(s) - 6, 1)
     return RegistrationResult(
         T_target_source=T,

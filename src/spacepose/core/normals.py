@@ -51,9 +51,82 @@ def normals_from_covariances(
     normals, eigenvalues
         (M, 3) unit eigenvectors of the smallest eigenvalue, and the (M, 3) eigenvalues in
         ascending order (``λ0 / Σλ`` is the surface variation).
+
+    Notes
+    -----
+    Closed form and vectorised (a batched ``eigh`` costs as much as the neighbour search). The
+    trigonometric eigenvalues (Smith 1961) are exact to rounding only for an eigenvalue set
+    apart from the other two, so the eigenvector of the more isolated extreme eigenvalue is
+    taken first, as the kernel of ``A − λI``; the other two then come from the 2×2 problem in
+    its orthogonal complement, solved with a Jacobi rotation. Every eigenvalue is then exact to
+    rounding relative to ``‖A‖`` (as ``eigh``); when ``λ0`` is a double eigenvalue (a
+    line-shaped neighbourhood) the normal is one unit vector of its eigenplane.
     """
-    eigenvalues, eigenvectors = np.linalg.eigh(covariances)
-    return eigenvectors[:, :, 0], eigenvalues
+    A = np.asarray(covariances, dtype=np.float64)
+    lam = _trigonometric_eigenvalues(A)
+    # ">=" sends a multiple of the identity down the λ0 branch, where it gets the x axis (eigh's
+    # choice too).
+    low_isolated = lam[:, 1] - lam[:, 0] >= lam[:, 2] - lam[:, 1]
+    shift = np.where(low_isolated, lam[:, 0], lam[:, 2])
+    e = _kernel_directions(A - shift[:, None, None] * np.eye(3))
+    u, v = _orthonormal_complement(e)
+    Au, Av = np.einsum("mij,mj->mi", A, u), np.einsum("mij,mj->mi", A, v)
+    a, b, c = _dot(u, Au), _dot(u, Av), _dot(v, Av)
+    # Jacobi rotation of the 2×2 block [[a, b], [b, c]]: θ turns u onto the larger eigenvector.
+    theta = 0.5 * np.arctan2(2.0 * b, a - c)
+    sin, cos = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    mean, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
+    lam_e = _dot(e, np.einsum("mij,mj->mi", A, e))
+    normals = np.where(low_isolated[:, None], e, cos * v - sin * u)
+    eigenvalues = np.where(
+        low_isolated[:, None],
+        np.column_stack([lam_e, mean - radius, mean + radius]),
+        np.column_stack([mean - radius, mean + radius, lam_e]),
+    )
+    return normals, eigenvalues
+
+
+def _trigonometric_eigenvalues(A: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Ascending eigenvalues (M, 3) of symmetric 3×3 matrices from the cubic's cosine form."""
+    q = np.trace(A, axis1=1, axis2=2) / 3.0
+    d0, d1, d2 = A[:, 0, 0] - q, A[:, 1, 1] - q, A[:, 2, 2] - q
+    a01, a02, a12 = A[:, 0, 1], A[:, 0, 2], A[:, 1, 2]
+    p = np.sqrt((d0**2 + d1**2 + d2**2 + 2.0 * (a01**2 + a02**2 + a12**2)) / 6.0)
+    # (A − qI) / p has eigenvalues 2cos(φ + 2πj/3), with cos 3φ = det((A − qI) / p) / 2.
+    det = d0 * (d1 * d2 - a12**2) - a01 * (a01 * d2 - a12 * a02) + a02 * (a01 * a12 - d1 * a02)
+    safe = np.where(p > 0, p, 1.0)
+    phi = np.arccos(np.clip(0.5 * det / safe**3, -1.0, 1.0)) / 3.0
+    largest = q + 2.0 * p * np.cos(phi)
+    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    return np.column_stack([smallest, 3.0 * q - largest - smallest, largest])
+
+
+def _kernel_directions(M: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Unit vectors (M, 3) spanning the kernel of rank-2 3×3 matrices: a cross product of rows.
+
+    The longest of the three cross products is the best conditioned; a matrix with no two
+    independent rows (rank <= 1, only for a multiple of the identity here) gets the x axis.
+    """
+    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
+    cross = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)
+    norm2 = np.einsum("mci,mci->mc", cross, cross)
+    best = np.argmax(norm2, axis=1)
+    rows = np.arange(len(M))
+    vec, length = cross[rows, best], np.sqrt(norm2[rows, best])[:, None]
+    return np.where(length > 0, vec / np.where(length > 0, length, 1.0), (1.0, 0.0, 0.0))
+
+
+def _orthonormal_complement(e: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
+    """Two unit vectors (M, 3) completing unit vectors ``e`` (M, 3) to right-handed bases."""
+    # Cross with the axis least aligned with e, so the product is never short.
+    axis = np.eye(3)[np.argmin(np.abs(e), axis=1)]
+    u = np.cross(e, axis)
+    u /= np.sqrt(_dot(u, u))[:, None]
+    return u, np.cross(e, u)
+
+
+def _dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.einsum("mi,mi->m", a, b)
 
 
 def orient_towards(
