@@ -275,6 +275,7 @@ def test_peers_interleaved_with_ratios_and_same_answers() -> None:
         "ransac": {"open3d"},
         "icp": {"open3d"},
         "gicp": {"open3d", "small_gicp"},
+        "tracking_step": {"open3d"},
     }
     for name, stage in result["stages"].items():
         assert set(stage["peer"]) == expected.get(name, set()), name

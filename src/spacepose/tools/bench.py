@@ -16,7 +16,9 @@ Inputs (METHODS §3 lab scenario, frames 0, 1, 2 of a three-frame run):
   (target) from the identity; truth ``T_s0_s1 = T_s0_target · T_s1_target⁻¹``.
 * ``jicp_step``: the third step of a fresh :class:`~spacepose.core.jicp.JointICP` (window 3).
 * ``tracking_step``: the second frame of a fresh model-free
-  :class:`~spacepose.core.tracker.Tracker` (preprocess + fine registration).
+  :class:`~spacepose.core.tracker.Tracker` (preprocess + fine registration + health and
+  covariance); Open3D does the same core steps (voxel downsampling, normals, point-to-plane ICP
+  against frame 0 prepared as a keyframe) without health checks or covariance.
 * ``ekf_step``: one predict + pose update of the orbit EKF, from the orbit truth.
 
 Set-up that a stage needs but is not part of it (the earlier frames of a tracker) is done before
@@ -447,6 +449,23 @@ class _Open3D:
         )
         return np.asarray(result.transformation)
 
+    def tracking_step(
+        self, frame: PointCloud, keyframe: Any, voxel_size: float, k: int, config: ICPConfig
+    ) -> NDArray:
+        """The tracker's steps for one frame: voxel downsampling, normals, point-to-plane ICP
+        against the (prepared) keyframe from the previous pose."""
+        pcd = self.cloud(frame, normals=False).voxel_down_sample(voxel_size)
+        pcd.estimate_normals(self.o3d.geometry.KDTreeSearchParamKNN(k))
+        result = self.reg.registration_icp(
+            pcd,
+            keyframe,
+            config.max_correspondence_distance,
+            np.eye(4),
+            self.reg.TransformationEstimationPointToPlane(),
+            self._criteria(config),
+        )
+        return np.asarray(result.transformation)
+
     def gicp(self, source: PointCloud, target: PointCloud, config: GICPConfig) -> NDArray:
         # Points only: Open3D estimates the covariances itself, as ours does. It has no
         # update-size criterion; its ICP defaults stop it, with the same iteration limit.
@@ -589,17 +608,32 @@ def _jicp_trials(data: BenchData, workers: int) -> dict[str, Trial]:
     return {"ours": setup}
 
 
-def _tracking_trials(data: BenchData, workers: int) -> dict[str, Trial]:
+def _tracking_trials(data: BenchData, workers: int, peers: _Peers) -> dict[str, Trial]:
     from spacepose.core.tracker import Tracker, TrackerConfig
 
     f0, f1 = data.frames[:2]
+    config = TrackerConfig()
 
     def setup() -> Callable[[], Any]:
-        tracker = Tracker(TrackerConfig(), None, workers)
+        tracker = Tracker(config, None, workers)
         tracker.track_frame(f0.cloud, f0.timestamp)
         return lambda: tracker.track_frame(f1.cloud, f1.timestamp)
 
-    return {"ours": setup}
+    trials: dict[str, Trial] = {"ours": setup}
+    o3d = peers.open3d
+    if o3d is not None:
+
+        def setup_open3d() -> Callable[[], Any]:
+            # Frame 0 as the keyframe, prepared as the tracker prepares its keyframes.
+            keyframe = o3d.cloud(f0.cloud, normals=False).voxel_down_sample(config.voxel_size)
+            keyframe.estimate_normals(o3d.o3d.geometry.KDTreeSearchParamKNN(config.normals.k))
+            keyframe.orient_normals_towards_camera_location(np.zeros(3))
+            return lambda: o3d.tracking_step(
+                f1.cloud, keyframe, config.voxel_size, config.normals.k, config.jicp.icp
+            )
+
+        trials["open3d"] = setup_open3d
+    return trials
 
 
 def _ekf_trials(seed: int) -> dict[str, Trial]:
@@ -883,7 +917,7 @@ def _measure(
         "icp": _icp_trials(src, tgt, _icp_config(config), workers, contenders),
         "gicp": _gicp_trials(src, tgt, _gicp_config(config), workers, contenders),
         "jicp_step": _jicp_trials(data, workers),
-        "tracking_step": _tracking_trials(data, workers),
+        "tracking_step": _tracking_trials(data, workers, contenders),
         "ekf_step": _ekf_trials(seed),
     }
     n_points = {
