@@ -2,7 +2,9 @@
 
 Hypotheses (planes through three sampled points) are scored in batches: a (B, chunk) matrix of
 point-to-plane distances at a time, so no Python loop runs over points. The best plane is refitted
-to its inliers by PCA. :func:`extract_planes` repeats this on the points left over.
+to its inliers by PCA. :func:`extract_planes` repeats this on the points left over and, for a
+range sensor, finally gives every point to the plane nearest along its ray
+(:func:`assign_along_rays`).
 
 All coordinates are in the frame of the input cloud (usually the sensor frame), in metres. Each
 plane's normal is oriented towards the origin of that frame (the sensor), so ``offset <= 0``.
@@ -57,6 +59,15 @@ class PlaneConfig(StageConfig):
         being connected when closer than this; the rest stay for later planes. A RANSAC slab is
         infinite, so without it a plane also collects strips of other parts that happen to lie
         in it (a panel and a band across the bus side). About 3 sample spacings works.
+    range_threshold
+        When set (m), the points the planes took are shared out again once every plane is found
+        (:func:`assign_along_rays`): each goes to the plane whose surface its ray from the origin
+        meets nearest its measured range, if that is within this distance, and every plane is
+        refitted. For a range sensor about 3 σ_r. A fixed slab along the normal is the wrong
+        test for range noise: it is ``σ_r |cos θ|`` thick on a face seen at incidence θ, so
+        the slab is many σ thick on an oblique face, and the plane found first takes a strip
+        of each neighbouring face along their shared edge (about 5 mm of centroid shift on
+        the orbit run).
     seed
         Seed of the sampling RNG.
     """
@@ -69,6 +80,7 @@ class PlaneConfig(StageConfig):
     max_planes: int = Field(10, ge=1)
     batch_size: int = Field(64, ge=1)
     cluster_radius: float | None = Field(None, gt=0)
+    range_threshold: float | None = Field(None, gt=0)
     seed: int = 0
 
 
@@ -294,6 +306,91 @@ def ransac_plane(
     return _refit(pts, inliers, config)
 
 
+def range_residuals(
+    points: ArrayLike, normals: ArrayLike, offsets: ArrayLike
+) -> NDArray[np.float64]:
+    """Distances (N, K), along each point's ray from the origin, from the point to K planes.
+
+    A range sensor at the origin measures a point p on the ray ``p / |p|``; the ray meets the
+    plane ``n · x = o`` where the range is ``o / (n · p/|p|)``. The difference from ``|p|`` is
+    ``|n · p − o| / |n · p/|p||``: the normal distance over the cosine of the incidence, the
+    quantity range noise σ_r scatters. A plane the ray grazes (or a point at the origin) gets
+    a distance so large that no threshold accepts it.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points in the frame of the sensor (origin at the sensor), m.
+    normals
+        (K, 3) unit normals.
+    offsets
+        (K,) plane offsets, ``normal · x = offset``.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    N = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    o = np.asarray(offsets, dtype=np.float64).reshape(-1)
+    r = np.linalg.norm(p, axis=1)
+    cos = np.abs(p @ N.T) / np.maximum(r, 1e-300)[:, None]
+    return np.abs(p @ N.T - o) / np.maximum(cos, 1e-300)
+
+
+def assign_along_rays(
+    points: PointCloud | ArrayLike,
+    planes: list[Plane],
+    max_residual: float,
+    min_inliers: int = 3,
+) -> list[Plane]:
+    """Share the planes' inliers out again by their distance along the ray, then refit.
+
+    Every point some plane holds goes to the plane with the smallest :func:`range_residuals`,
+    if that is at most ``max_residual``; else to none. Near the edge two faces share, the
+    residual grows with the distance from the edge on both sides, so each point returns to
+    its own face, where a normal-distance slab leaves it with whichever plane was found first.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points (or a PointCloud) in the sensor frame, the cloud the inliers index (m).
+    planes
+        Planes of that cloud with disjoint inliers, e.g. from :func:`extract_planes`.
+    max_residual
+        Largest distance along the ray (m) at which a point may join a plane (about 3 σ_r).
+    min_inliers
+        A plane left with fewer points (or fewer than 3) is dropped and the points are shared
+        among the others.
+
+    Returns
+    -------
+    The remaining planes in their input order, each with its new inliers (sorted) and refitted
+    by PCA (the old normal stands if the new inliers alone are collinear).
+    """
+    pts = as_points(points)
+    if max_residual <= 0:
+        raise InputError(f"max_residual must be positive, got {max_residual}")
+    need = max(min_inliers, 3)  # a plane needs three points
+    kept = [p for p in planes if p.n_inliers > 0]
+    held = np.unique(np.concatenate([p.inliers for p in kept])) if kept else np.arange(0)
+    while kept:
+        normals = np.array([p.normal for p in kept])
+        offsets = np.array([p.offset for p in kept])
+        res = range_residuals(pts[held], normals, offsets)
+        best = np.argmin(res, axis=1)
+        best[res[np.arange(len(held)), best] > max_residual] = -1
+        counts = np.bincount(best + 1, minlength=len(kept) + 1)[1:]
+        if np.all(counts >= need):
+            break
+        # Drop the weakest plane only, so the others still compete for its points.
+        kept.pop(int(np.argmin(counts)))
+    out = []
+    for k, plane in enumerate(kept):
+        idx = held[best == k]
+        normal, offset = plane.normal, plane.offset
+        if not is_collinear(distribution(pts[idx])[1]):
+            normal, offset = fit_plane(pts[idx])
+        out.append(Plane(normal, offset, idx, pts[idx].mean(axis=0)))
+    return out
+
+
 def extract_planes(
     cloud_or_points: PointCloud | ArrayLike, config: PlaneConfig = PlaneConfig()
 ) -> list[Plane]:
@@ -304,7 +401,9 @@ def extract_planes(
     cloud_or_points
         (N, 3) points or a PointCloud (m).
     config
-        RANSAC settings; ``min_inliers`` and ``max_planes`` end the loop.
+        RANSAC settings; ``min_inliers`` and ``max_planes`` end the loop. With
+        ``range_threshold`` set, the points of all the planes are then shared out again along
+        their rays (:func:`assign_along_rays`); the cloud's frame must be the sensor's.
 
     Returns
     -------
@@ -333,4 +432,6 @@ def extract_planes(
             break
         planes.append(Plane(plane.normal, plane.offset, remaining[plane.inliers], plane.centroid))
         remaining = np.delete(remaining, plane.inliers)
+    if config.range_threshold is not None and planes:
+        planes = assign_along_rays(pts, planes, config.range_threshold, config.min_inliers)
     return planes
