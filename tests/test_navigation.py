@@ -104,7 +104,7 @@ def test_other_inertia_rate_and_noise_converge() -> None:
         nav.step(frame.timestamp, frame.cloud)
         err.append(nav.ekf.error_state(_truth_state(sim.truth[k])))
     err = np.array(err)
-    # Measured (frames 55-59): attitude 0.19-0.24°, rate 0.03°/s, position 3-8 cm; more frames
+    # Measured (frames 55-59): attitude 0.019°, rate 0.0012°/s, position 1.8 cm; more frames
     # without a whole rectangle than on the default run, so convergence is slower.
     assert np.max(np.rad2deg(np.linalg.norm(err[-5:, 6:9], axis=1))) < 0.4
     assert np.max(np.rad2deg(np.linalg.norm(err[-5:, 9:12], axis=1))) < 0.05
