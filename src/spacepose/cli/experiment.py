@@ -12,7 +12,7 @@ from spacepose.cli.app import app, console
 
 @app.command()
 def experiment(
-    name: str = typer.Argument(..., help="li-l1 ... li-l4, yu-y1 ... yu-y4"),
+    name: str = typer.Argument(..., help="li-l1 ... li-l4, li-global, yu-y1 ... yu-y4"),
     out: Path = typer.Option(Path("runs/experiments"), help="Folder; NAME/ is created inside."),
     seed: int = typer.Option(0, help="Seed of every random draw."),
     quick: bool = typer.Option(False, help="Smaller sizes, for a smoke run."),
