@@ -161,8 +161,12 @@ def test_frame_without_points_is_yielded_empty(tmp_path, lab):
 
 
 def test_not_a_folder(tmp_path):
-    with pytest.raises(InputError, match="not a folder"):
+    with pytest.raises(InputError, match="does not exist"):
         open_frames(tmp_path / "missing")
+    (tmp_path / "file.ply").write_text("")
+    with pytest.raises(InputError, match="not a folder"):
+        open_frames(tmp_path / "file.ply")
+    (tmp_path / "file.ply").unlink()
     (tmp_path / "x.ply").write_text("garbage")
     with pytest.raises(FileFormatError):
         list(open_frames(tmp_path))

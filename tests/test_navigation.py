@@ -361,3 +361,28 @@ def test_cli_navigate_config_file(run_dir, tmp_path, capsys) -> None:
     assert main([*args, "--config", str(bad)]) == 1
     err = capsys.readouterr().err
     assert "bad.yaml" in err and "spin_scal" in err
+
+
+def test_cli_navigate_a_frame_folder_with_a_scenario_file(run_dir, tmp_path, capsys) -> None:
+    # The same frames as loose files plus a YAML scenario give the run folder's NAV.csv exactly.
+    import shutil
+
+    import yaml
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for ply in sorted((run_dir / "frames").glob("*.ply")):
+        shutil.copy(ply, frames / f"scan_{ply.name}")
+    scenario = json.loads((run_dir / "scenario.json").read_text())
+    stamps = np.loadtxt(run_dir / "groundtruth.tum", usecols=0, ndmin=1)
+    (frames / "timestamps.txt").write_text("".join(f"{float(t)!r}\n" for t in stamps))
+    keep = ("mean_motion", "R_O_C", "rectangles", "initial_q_I_B")
+    (tmp_path / "scenario.yaml").write_text(yaml.safe_dump({k: scenario[k] for k in keep}))
+    ref, out = tmp_path / "ref.csv", tmp_path / "nav.csv"
+    assert main(["navigate", str(run_dir), "--out", str(ref), "--prior-from-scenario"]) == 0
+    args = ["navigate", str(frames), "--out", str(out), "--prior-from-scenario"]
+    assert main([*args, "--scenario", str(tmp_path / "scenario.yaml")]) == 0
+    assert out.read_text() == ref.read_text()
+    capsys.readouterr()
+    assert main(args) == 1
+    assert "needs a scenario file" in capsys.readouterr().err

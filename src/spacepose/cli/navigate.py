@@ -11,10 +11,15 @@ from spacepose.cli.app import app, console, err_console
 
 @app.command()
 def navigate(
-    run: Path = typer.Argument(..., help="Run folder written by 'spacepose simulate orbit'."),
+    run: Path = typer.Argument(
+        ..., help="Run folder from 'spacepose simulate orbit', or a folder of frame files."
+    ),
     out: Path = typer.Option(..., "--out", help="NAV.csv: one row of state, 1-σ and status."),
     config: Path | None = typer.Option(
         None, "--config", help="YAML/JSON NavigationConfig (defaults in code)."
+    ),
+    scenario: Path | None = typer.Option(
+        None, help="YAML/JSON with mean_motion, R_O_C and rectangles (needed for a frame folder)."
     ),
     prior_from_scenario: bool = typer.Option(
         False,
@@ -28,7 +33,9 @@ def navigate(
     from spacepose.tools.navigation_io import navigate_run
 
     cfg = None if config is None else load_config(NavigationConfig, config)
-    summary = navigate_run(run, out, cfg, prior_from_scenario=prior_from_scenario)
+    summary = navigate_run(
+        run, out, cfg, scenario=scenario, prior_from_scenario=prior_from_scenario
+    )
     if summary.navigated == 0:
         err_console.print(
             "warning: the filter never started (no rectangle told apart without a prediction; "

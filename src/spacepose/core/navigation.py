@@ -310,12 +310,15 @@ class RelativeNavigator:
         R_I_B = Rotation.from_quat(self.config.prior_q_I_B).as_matrix()
         return self.R_O_C.T @ dynamics.R_I_O(self.n, t).T @ R_I_B
 
-    def step(self, t: float, cloud: PointCloud) -> NavRow:
-        """Process one frame taken at time ``t`` (s since the epoch where I and O coincide)."""
+    def step(self, t: float, cloud: PointCloud | None) -> NavRow:
+        """Process one frame taken at time ``t`` (s since the epoch where I and O coincide).
+
+        A frame without data (``cloud`` None) is a prediction-only step, never dropped.
+        """
         if self.ekf is not None:
             self.ekf.predict(t)
         R_pred = self.predicted_R_sensor_model(t)
-        rects = self.recognise(cloud, R_pred)
+        rects = [] if cloud is None else self.recognise(cloud, R_pred)
         coarse = raw = None
         if rects:
             coarse = consistent_rectangles(rects, R_pred)
@@ -333,7 +336,7 @@ class RelativeNavigator:
             status = "update"
         return NavRow(t, self.ekf.state(), self.ekf.sigmas(), used, status, coarse, raw)
 
-    def run(self, frames: Iterable[tuple[float, PointCloud]]) -> list[NavRow]:
+    def run(self, frames: Iterable[tuple[float, PointCloud | None]]) -> list[NavRow]:
         """:meth:`step` over ``(t, cloud)`` pairs in time order; one row per frame."""
         return [self.step(t, cloud) for t, cloud in frames]
 

@@ -123,6 +123,8 @@ def open_frames(path: str | Path) -> FrameSequence:
         finite number per frame.
     """
     root = Path(path)
+    if not root.exists():
+        raise InputError("does not exist", root)
     if not root.is_dir():
         raise InputError("not a folder of frames (or a run folder)", root)
     if (root / "scenario.json").is_file():
