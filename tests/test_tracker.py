@@ -8,12 +8,14 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
+from spacepose.core import tracker as tracker_module
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import validate_config
 from spacepose.core.metrics import pose_errors
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.tracker import (
     HealthConfig,
+    PreparedCloud,
     Tracker,
     TrackerConfig,
     assess_health,
@@ -226,3 +228,39 @@ def test_model_based_tracking_starts_by_coarse_registration(lab):
     dt, de = pose_errors(out.trajectory.poses, sim.T_sensor_target[:4])
     assert np.abs(dt).max() < 2e-3 and np.degrees(np.abs(de)).max() < 0.2
     assert all(r.reference_index == -1 for r in out.results)
+
+
+# ---------------------------------------------------------------------------------------------
+# Speed shortcuts that must not change the answer
+
+
+def test_prepared_cloud_centroid_and_radius_closed_form():
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(500, 3))
+    c = np.array([0.1, -0.05, 1.2])
+    prepared = PreparedCloud(PointCloud(c + 0.2 * d / np.linalg.norm(d, axis=1, keepdims=True)))
+    # Every point is 0.2 m from c, so the mean squared distance from the centroid m is exactly
+    # 0.2² − |m − c|² (parallel-axis theorem).
+    m = prepared.centroid
+    np.testing.assert_allclose(m, c, atol=0.02)
+    assert prepared.radius == pytest.approx(np.sqrt(0.04 - np.sum((m - c) ** 2)), rel=1e-12)
+    # The cached values stay right once the tracker gives the cloud its normals (same points).
+    Tracker()._as_target(prepared)
+    assert prepared.cloud.has_normals
+    np.testing.assert_allclose(prepared.centroid, prepared.cloud.points.mean(axis=0), rtol=1e-15)
+
+
+def test_pose_graph_tolerance_is_below_what_matters(lab, monkeypatch):
+    """J-ICP stops its pose graph at a 1e-6 update; iterating to 1e-12 (the solver's default)
+    moves no pose by more than 1e-8 m / rad on the lab frames (measured 1.1e-10)."""
+    sim, frames = lab
+    clouds = [f.cloud for f in frames]
+    fast = track_sequence(clouds, sim.timestamps, TrackerConfig(), workers=1)
+    monkeypatch.setattr(tracker_module, "_POSE_GRAPH_TOLERANCE", 1e-12)
+    full = track_sequence(clouds, sim.timestamps, TrackerConfig(), workers=1)
+    assert sum(r.keyframe for r in full.results) >= 3  # the window holds free keyframe nodes
+    err = _twist_errors(fast.trajectory.poses, full.trajectory.poses)
+    assert np.abs(err).max() < 1e-8
+    sig_fast = np.array([r.sigma for r in fast.results])
+    sig_full = np.array([r.sigma for r in full.results])
+    np.testing.assert_allclose(sig_fast, sig_full, rtol=1e-6)

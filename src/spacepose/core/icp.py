@@ -249,7 +249,22 @@ def icp(
     workers: int = -1,
     target_tree: cKDTree | None = None,
 ) -> RegistrationResult:
-    """Align ``source`` to ``target`` by ICP.
+    """Align ``source`` to ``target`` by ICP (see :func:`icp_correspondences`)."""
+    result, _, _ = icp_correspondences(
+        source, target, init_T_target_source, config, workers, target_tree
+    )
+    return result
+
+
+def icp_correspondences(
+    source: PointCloud | ArrayLike,
+    target: PointCloud | ArrayLike,
+    init_T_target_source: ArrayLike = np.eye(4),
+    config: ICPConfig = ICPConfig(),
+    workers: int = -1,
+    target_tree: cKDTree | None = None,
+) -> tuple[RegistrationResult, NDArray[np.intp], NDArray[np.intp]]:
+    """Align ``source`` to ``target`` by ICP; also return the final correspondences.
 
     Parameters
     ----------
@@ -268,10 +283,14 @@ def icp(
 
     Returns
     -------
-    RegistrationResult
+    result
         ``T_target_source``, fitness and inlier RMSE of the final correspondences, and the
         information ``Σ JᵀJ`` (1/m², twist (omega, v), left perturbation): point-to-point with
         ``J = [−skew(p) I]``, point-to-plane with rows ``h = (p × n, n)``.
+    src_idx, tgt_idx
+        (M,) the source points matched at the returned transform and their target points
+        (what :func:`find_correspondences` would return there), so that a caller computing
+        statistics at the solution need not search again.
 
     Raises
     ------
@@ -294,7 +313,7 @@ def icp(
 
     def evaluate(
         T_cur: NDArray[np.float64],
-    ) -> tuple[NDArray[np.float64], NDArray[np.intp], float, float]:
+    ) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp], float, float]:
         moved = se3.transform_points(T_cur, src.points)
         s, t, d2 = search(moved)
         if len(s) < 3:
@@ -303,9 +322,9 @@ def icp(
                 f"(of {len(src)} source points); the initial guess is too far off or the gate "
                 "too small"
             )
-        return moved[s], t, len(s) / len(src), float(np.sqrt(d2.mean()))
+        return moved[s], s, t, len(s) / len(src), float(np.sqrt(d2.mean()))
 
-    p, t_idx, fitness, rmse = evaluate(T)
+    p, s_idx, t_idx, fitness, rmse = evaluate(T)
     converged = False
     iterations = 0
     while iterations < config.max_iterations:
@@ -314,7 +333,7 @@ def icp(
         update = point_to_plane_step(p, q, tgt.normals[t_idx]) if plane else kabsch(p, q)
         T = update @ T
         prev_fitness, prev_rmse = fitness, rmse
-        p, t_idx, fitness, rmse = evaluate(T)
+        p, s_idx, t_idx, fitness, rmse = evaluate(T)
         if (
             abs(prev_fitness - fitness) < config.relative_fitness
             and abs(prev_rmse - rmse) < config.relative_rmse
@@ -327,7 +346,7 @@ def icp(
         information = h.T @ h
     else:
         information = point_to_point_information(p)
-    return RegistrationResult(
+    result = RegistrationResult(
         T_target_source=T,
         fitness=fitness,
         inlier_rmse=rmse,
@@ -336,3 +355,4 @@ def icp(
         information=information,
         n_correspondences=len(t_idx),
     )
+    return result, s_idx, t_idx
