@@ -145,3 +145,16 @@ def test_closed_form_eigen_matches_eigh_on_hard_spectra():
     # Multiples of the identity (zero included) get the x axis, as from eigh.
     iso, _ = normals_from_covariances(np.array([np.zeros((3, 3)), 2.0 * np.eye(3)]))
     np.testing.assert_array_equal(iso, [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+
+
+def test_prebuilt_tree_gives_the_same_normals_and_is_checked() -> None:
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(11)
+    pts = rng.normal(size=(400, 3)) * np.array([0.2, 0.1, 0.01]) + np.array([0.0, 0.0, 1.0])
+    cloud = PointCloud(pts)
+    own = estimate_normals(cloud, NormalsConfig(k=12))
+    reused = estimate_normals(cloud, NormalsConfig(k=12), tree=cKDTree(pts))
+    np.testing.assert_array_equal(reused.normals, own.normals)
+    with pytest.raises(InputError, match="tree holds 10 points"):
+        estimate_normals(cloud, NormalsConfig(k=12), tree=cKDTree(pts[:10]))

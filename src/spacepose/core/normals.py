@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
+from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
@@ -145,6 +146,7 @@ def estimate_normals(
     config: NormalsConfig = NormalsConfig(),
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
     workers: int = -1,
+    tree: cKDTree | None = None,
 ) -> PointCloud:
     """The cloud with a unit normal per point, oriented towards ``viewpoint``.
 
@@ -158,6 +160,9 @@ def estimate_normals(
         (3,) position the normals are turned towards; the sensor origin by default.
     workers
         Threads for the neighbour search.
+    tree
+        A KD-tree of ``cloud.points`` already built by the caller (a tracker keeps one per
+        keyframe), so it is not built twice.
 
     Returns
     -------
@@ -171,7 +176,10 @@ def estimate_normals(
     pts = cloud.points
     if len(pts) < 3:
         raise InputError(f"normal estimation needs at least 3 points, got {len(pts)}", cloud.source)
-    tree = as_tree(pts)
+    if tree is None:
+        tree = as_tree(pts)
+    elif tree.n != len(pts):
+        raise InputError(f"the tree holds {tree.n} points, the cloud {len(pts)}", cloud.source)
     k = min(config.k, len(pts))
     if config.radius is None:
         _, idx = knn(tree, pts, k, workers=workers)

@@ -671,7 +671,7 @@ class Tracker:
         target (a keyframe): most frames never are, and sources need none."""
         if not prepared.cloud.has_normals:
             prepared.cloud = estimate_normals(
-                prepared.cloud, self.config.normals, workers=self.workers
+                prepared.cloud, self.config.normals, workers=self.workers, tree=prepared.tree
             )
         return prepared
 
