@@ -3,10 +3,17 @@
 Correspondences are nearest neighbours in feature space (optionally mutual). Hypotheses are drawn
 and scored in batches: three distinct correspondences per hypothesis, a cheap edge-length test,
 a batched Kabsch fit, a test that the three sampled pairs land within the correspondence
-distance, and inlier counting on the whole correspondence set. Sampling stops at the confidence
-bound ``k = log(1 − p) / log(1 − w³)`` (w the best inlier ratio so far) or at the iteration limit;
-the best hypothesis is refitted on its inliers with Kabsch. All randomness comes from one seeded
-generator consumed in a fixed order, so the result is the same for any ``workers``.
+distance, inlier counting on the whole correspondence set (at least ``min_inliers``), a few
+Kabsch refits of each surviving hypothesis on its own inliers, and then a coverage score:
+how many points of a fixed subsample of each cloud land within the gate of the other cloud (as
+PCL's SampleConsensusPrerejective validates by inlier fraction). Hypotheses are ranked by
+coverage, ties broken by correspondence inliers. Correspondence inliers alone cannot
+tell a near-symmetric target from its flip (the lab mock-up turned 180° about a body axis
+collects as many feature matches as the true pose), but the flip leaves part of the observed
+surface unexplained. Sampling stops at the confidence bound ``k = log(1 − p) / log(1 − w³)``
+(w the inlier ratio of the best hypothesis so far) or at the iteration limit; the best hypothesis
+is refitted on its inliers with Kabsch. All randomness comes from one seeded generator consumed
+in a fixed order, so the result is the same for any ``workers``.
 """
 
 from __future__ import annotations
@@ -30,6 +37,9 @@ from spacepose.core.icp import (
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.registration import RegistrationResult, kabsch
 from spacepose.errors import InputError, RegistrationError
+
+# Fewest query points for which coverage_counts searches with the caller's threads.
+_THREADED_QUERY = 20_000
 
 
 class RansacConfig(StageConfig):
@@ -55,8 +65,19 @@ class RansacConfig(StageConfig):
         Hypotheses drawn and scored together; memory grows as batch_size × correspondences.
         The result depends on it (sampling stops at a batch boundary), never on ``workers``.
     min_inliers
-        Fewest inlier correspondences the best hypothesis needs; fewer means no consensus.
-        Three of them are the sampled pairs themselves, so this must exceed 3.
+        Fewest inlier correspondences a hypothesis needs to be scored at all; when none has
+        them there is no consensus. Three of them are the sampled pairs themselves, so this
+        must exceed 3.
+    coverage_points
+        Size of the fixed, seeded subsample of each cloud behind the coverage score (all points
+        when a cloud is smaller). Hypotheses are ranked by how many subsampled source points
+        land within ε of the target cloud plus how many subsampled target points land within ε
+        of the moved source cloud; correspondence inliers only break ties and set the stopping
+        bound. Cost per batch: two KD-tree queries of (hypotheses × coverage_points) points.
+    local_refits
+        Rounds of Kabsch refit on the hypothesis' own inlier correspondences (and recount)
+        before it is scored, as in LO-RANSAC: hypotheses from three noisy pairs can be 10° off
+        and under-cover. Each round costs one pass over hypotheses × correspondences.
     """
 
     max_correspondence_distance: float = Field(default=0.015, gt=0)
@@ -67,6 +88,8 @@ class RansacConfig(StageConfig):
     seed: int = 0
     batch_size: int = Field(default=256, ge=1)
     min_inliers: int = Field(default=10, ge=4)
+    coverage_points: int = Field(default=300, ge=1)
+    local_refits: int = Field(default=3, ge=0)
 
 
 def match_features(
@@ -145,6 +168,51 @@ def iteration_bound(inlier_ratio: float, confidence: float) -> float:
     return math.log(1.0 - confidence) / math.log(miss)
 
 
+def coverage_counts(
+    T_target_source: NDArray[np.float64],
+    source_points: NDArray[np.float64],
+    target_tree: cKDTree,
+    max_distance: float,
+    workers: int = -1,
+) -> NDArray[np.intp]:
+    """How many source points each transform maps within ``max_distance`` of the target cloud.
+
+    Parameters
+    ----------
+    T_target_source
+        (H, 4, 4) hypotheses mapping the source frame into the target frame.
+    source_points
+        (m, 3) points in the source frame (usually a fixed subsample).
+    target_tree
+        KD-tree of the target cloud, target frame.
+    max_distance
+        Gate (m); a point counts when its nearest target point is strictly closer.
+    workers
+        Threads for the single query of all H × m moved points.
+
+    Returns
+    -------
+    (H,) counts in ``0..m``.
+
+    Raises
+    ------
+    InputError
+        Transforms not shaped (H, 4, 4) or points not (m, 3).
+    """
+    if T_target_source.ndim != 3 or T_target_source.shape[1:] != (4, 4):
+        raise InputError(f"coverage_counts needs (H, 4, 4) transforms, got {T_target_source.shape}")
+    if source_points.ndim != 2 or source_points.shape[1] != 3:
+        raise InputError(f"coverage_counts needs (m, 3) points, got {source_points.shape}")
+    moved = np.einsum("hij,mj->hmi", T_target_source[:, :3, :3], source_points)
+    moved += T_target_source[:, None, :3, 3]
+    moved = moved.reshape(-1, 3)
+    # Most batches leave a handful of hypotheses, and starting threads then costs more than the
+    # search (the counts do not depend on it).
+    threads = workers if len(moved) >= _THREADED_QUERY else 1
+    dist, _ = target_tree.query(moved, k=1, distance_upper_bound=max_distance, workers=threads)
+    return np.count_nonzero((dist < max_distance).reshape(len(T_target_source), -1), axis=1)
+
+
 def ransac_correspondences(
     source: PointCloud | ArrayLike,
     target: PointCloud | ArrayLike,
@@ -161,17 +229,20 @@ def ransac_correspondences(
     correspondences
         (K, 2) putative pairs ``(source index, target index)``, K >= 3.
     config
-        Gate, sampling and stopping parameters.
+        Gate, sampling, coverage and stopping parameters.
     workers
-        Threads for the final neighbour search (the result does not depend on it).
+        Threads for the coverage and final neighbour searches (the result does not depend on
+        it).
 
     Returns
     -------
     RegistrationResult
-        ``T_target_source`` refitted on the inlier correspondences; ``fitness``, ``inlier_rmse``,
-        ``information`` (point-to-point ``Σ JᵀJ``, 1/m²) and ``n_correspondences`` from the
-        nearest target point within ε of every mapped source point; ``iterations`` is the number
-        of hypotheses drawn; ``converged`` says the confidence bound was reached.
+        ``T_target_source`` of the best-covering (refitted) hypothesis, refitted once more on
+        its inlier correspondences; ``fitness`` (the coverage of the whole source cloud),
+        ``inlier_rmse``, ``information`` (point-to-point ``Σ JᵀJ``, 1/m²) and
+        ``n_correspondences`` from the nearest target point within ε of every mapped source
+        point; ``iterations`` is the number of hypotheses drawn; ``converged`` says the
+        confidence bound was reached.
 
     Raises
     ------
@@ -192,10 +263,16 @@ def ransac_correspondences(
     if len(pairs) < 3:
         raise RegistrationError(f"RANSAC needs at least 3 correspondences, got {len(pairs)}")
     src_c, tgt_c = src.points[pairs[:, 0]], tgt.points[pairs[:, 1]]
-    eps2 = config.max_correspondence_distance**2
+    gate = config.max_correspondence_distance
+    eps2 = gate**2
     rng = np.random.default_rng(config.seed)
+    # Fixed subsamples for the coverage score, drawn before any hypothesis so that they do not
+    # depend on how many batches run.
+    src_sub = src.points[_subsample(rng, len(src), config.coverage_points)]
+    tgt_sub = tgt.points[_subsample(rng, len(tgt), config.coverage_points)]
+    src_tree, tgt_tree = cKDTree(src.points), cKDTree(tgt.points)
 
-    best_T, best_count, best_sq = None, 0, math.inf
+    best_T, best_key, best_count, most = None, (-1, -1, -math.inf), 0, 0
     drawn, bound = 0, math.inf
     while drawn < min(bound, config.max_iterations):
         size = min(config.batch_size, config.max_iterations - drawn)
@@ -210,24 +287,43 @@ def ransac_correspondences(
         T = T[np.all(np.sum((moved - D[ok]) ** 2, axis=2) < eps2, axis=1)]
         if len(T) == 0:
             continue
-        r2 = np.sum(
-            (np.einsum("hij,mj->hmi", T[:, :3, :3], src_c) + T[:, None, :3, 3] - tgt_c) ** 2,
-            axis=2,
-        )
+        r2 = _squared_residuals(T, src_c, tgt_c)
         inl = r2 < eps2
+        most = max(most, int(inl.sum(axis=1).max()))
+        # Score each hypothesis where refits on its own inliers take it: a fit to three noisy
+        # pairs can be 10° off, and a flip would then out-cover a true pose sampled less
+        # exactly. Too few inliers (at any round) is no consensus, whatever the coverage.
+        keep = inl.sum(axis=1) >= config.min_inliers
+        for _ in range(config.local_refits):
+            T, inl = T[keep], inl[keep]
+            shape = (len(T), *src_c.shape)
+            T = kabsch(np.broadcast_to(src_c, shape), np.broadcast_to(tgt_c, shape), inl)
+            r2 = _squared_residuals(T, src_c, tgt_c)
+            inl = r2 < eps2
+            keep = inl.sum(axis=1) >= config.min_inliers
+        if not keep.any():
+            continue
+        T, inl, r2 = T[keep], inl[keep], r2[keep]
         count = inl.sum(axis=1)
         sq = np.where(inl, r2, 0.0).sum(axis=1)
-        # Most inliers, then smallest squared error; lexsort keeps the first on a full tie.
-        h = np.lexsort((sq, -count))[0]
-        if count[h] > best_count or (count[h] == best_count and sq[h] < best_sq):
-            best_T, best_count, best_sq = T[h], int(count[h]), float(sq[h])
+        # Both directions: a partial view registered to a whole model (either way round) is
+        # judged by how much of the view the model explains, and a flip loses on both.
+        cover = coverage_counts(T, src_sub, tgt_tree, gate, workers) + coverage_counts(
+            se3.invert(T), tgt_sub, src_tree, gate, workers
+        )
+        # Best coverage, then most inliers, then smallest squared error; lexsort keeps the
+        # first on a full tie, and so does the strict comparison across batches.
+        h = np.lexsort((sq, -count, -cover))[0]
+        key = (int(cover[h]), int(count[h]), -float(sq[h]))
+        if key > best_key:
+            best_T, best_key, best_count = T[h], key, int(count[h])
             bound = iteration_bound(best_count / len(pairs), config.confidence)
 
-    if best_T is None or best_count < config.min_inliers:
+    if best_T is None:
         raise RegistrationError(
-            f"RANSAC found no consensus: best hypothesis has {best_count} of {len(pairs)} "
-            f"correspondences within {config.max_correspondence_distance} m after {drawn} "
-            f"hypotheses (need {config.min_inliers})"
+            f"RANSAC found no consensus: best hypothesis has {most} of {len(pairs)} "
+            f"correspondences within {gate} m after {drawn} hypotheses "
+            f"(need {config.min_inliers})"
         )
     inliers = np.sum((se3.transform_points(best_T, src_c) - tgt_c) ** 2, axis=1) < eps2
     T_target_source = kabsch(src_c[inliers], tgt_c[inliers])
@@ -340,6 +436,21 @@ def global_registration(
     ]
     features = [compute_fpfh(c, fpfh, workers) for c in clouds]
     return feature_ransac(clouds[0], clouds[1], features[0], features[1], ransac, workers)
+
+
+def _squared_residuals(
+    T_target_source: NDArray[np.float64], src_c: NDArray[np.float64], tgt_c: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(H, K) squared distances between mapped source and target points of K pairs."""
+    moved = np.einsum("hij,mj->hmi", T_target_source[:, :3, :3], src_c)
+    return np.sum((moved + T_target_source[:, None, :3, 3] - tgt_c) ** 2, axis=2)
+
+
+def _subsample(rng: np.random.Generator, n: int, m: int) -> NDArray[np.intp]:
+    """``min(m, n)`` distinct indices of ``0..n-1`` in ascending order (all of them if m >= n)."""
+    if m >= n:
+        return np.arange(n)
+    return np.sort(rng.choice(n, m, replace=False))
 
 
 def _as_features(values: ArrayLike, name: str) -> NDArray[np.float64]:
