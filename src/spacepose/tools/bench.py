@@ -689,12 +689,15 @@ def _tracking_shares(timing: Timing) -> dict:
 
     reports = [result.time_ms for result in timing.outputs]
     medians = {s: float(np.median([r.get(s, 0.0) for r in reports])) for s in TRACKER_STAGES}
-    total = medians.get("total", 0.0)
+    # Shares as ratios of sums over the calls: the stages partition each call's total, so the
+    # shares add up to 1 (medians of the parts need not add up to the median of the whole).
+    sums = {s: float(sum(r.get(s, 0.0) for r in reports)) for s in TRACKER_STAGES}
+    total = sums["total"]
     return {
         "tracker": TrackerConfig().model_dump(include={"method", "use_mls", "voxel_size"}),
         "status": timing.last.status,
         "median_ms": medians,
-        "share": {s: v / total for s, v in medians.items() if s != "total" and total > 0},
+        "share": {s: v / total for s, v in sums.items() if s != "total" and total > 0},
     }
 
 
