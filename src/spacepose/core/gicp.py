@@ -53,6 +53,9 @@ class GICPConfig(StageConfig):
         Largest number of linearisations.
     rotation_tolerance, translation_tolerance
         Stop when an update rotates by less than this (rad) and translates by less than this (m).
+        1e-5 (0.6 mdeg, 0.01 mm) sits far below the noise of any registration here: on a lab
+        frame pair it stops after 16 linearisations instead of running all 30 at 1e-7 (which
+        correspondence changes never let it reach), 28 % faster, with the same error.
     lm
         Levenberg-Marquardt (a damped step is accepted only if it lowers the cost on the current
         correspondences) instead of plain Gauss-Newton.
@@ -62,8 +65,8 @@ class GICPConfig(StageConfig):
     epsilon: float = Field(1e-3, gt=0, le=1)
     max_correspondence_distance: float = Field(0.05, gt=0)
     max_iterations: int = Field(30, ge=1)
-    rotation_tolerance: float = Field(1e-7, gt=0)
-    translation_tolerance: float = Field(1e-7, gt=0)
+    rotation_tolerance: float = Field(1e-5, gt=0)
+    translation_tolerance: float = Field(1e-5, gt=0)
     lm: bool = True
 
 
