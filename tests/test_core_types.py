@@ -144,3 +144,21 @@ def test_cli_error_message_keeps_square_brackets(tmp_path, capsys) -> None:
         main(["track", str(tmp_path), "--out", str(tmp_path / "e.tum"), "--config", str(bad)]) == 1
     )
     assert "cfg[v2].yaml" in capsys.readouterr().err
+
+
+def test_as_points_is_the_one_array_check() -> None:
+    from spacepose.core.cloud import as_points
+
+    np.testing.assert_array_equal(as_points([[1, 2, 3]]), [[1.0, 2.0, 3.0]])
+    cloud = PointCloud(np.ones((4, 3)), source="f.ply")
+    assert as_points(cloud) is cloud.points
+    with pytest.raises(InputError, match=r"f\.ply: q: need at least 5 point"):
+        as_points(cloud, "q", min_points=5)
+    with pytest.raises(InputError, match="not numeric"):
+        as_points([["a", "b", "c"]])
+    with pytest.raises(InputError, match=r"shape \(N, 3\)"):
+        as_points(np.zeros((3, 2)))
+    with pytest.raises(InputError, match="non-empty"):
+        as_points(np.zeros((0, 3)))
+    with pytest.raises(InputError, match="NaN or inf"):
+        as_points([[0.0, np.nan, 1.0]], source="scan.pcd")

@@ -111,3 +111,36 @@ def _as_rows(values: ArrayLike, width: int, name: str, source: str | None) -> ND
     if arr.ndim != 2 or arr.shape[1] != width:
         raise InputError(f"{name} must have shape (N, {width}), got {arr.shape}", source)
     return arr
+
+
+def as_points(
+    values: PointCloud | ArrayLike,
+    name: str = "points",
+    source: str | None = None,
+    min_points: int = 1,
+) -> NDArray[np.float64]:
+    """Validate a non-empty, finite (N, 3) float64 array (or take a PointCloud's points).
+
+    The one check behind every stage that accepts raw arrays, so that bad input fails here with
+    the package's own error rather than deep inside numpy or scipy.
+
+    Raises
+    ------
+    InputError
+        Not numeric, not (N, 3), fewer than ``min_points`` rows (an empty array included), or
+        holding NaN / inf; the message names ``name`` and ``source``.
+    """
+    if isinstance(values, PointCloud):
+        arr = values.points
+        source = values.source if source is None else source
+    else:
+        arr = _as_rows(values, 3, name, source)
+    if len(arr) < max(min_points, 1):
+        raise InputError(
+            f"{name}: need at least {max(min_points, 1)} point(s) in a non-empty (N, 3) array, "
+            f"got {len(arr)}",
+            source,
+        )
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"{name} have non-finite entries (NaN or inf)", source)
+    return arr

@@ -14,19 +14,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from spacepose.core.cloud import as_points
 from spacepose.errors import InputError
 
 #: Eigenvalues of J below ``RANK_RTOL × max eigenvalue`` count as unobservable directions.
 RANK_RTOL = 1e-9
-
-
-def _rows(values: ArrayLike, name: str) -> NDArray[np.float64]:
-    arr = np.asarray(values, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) == 0:
-        raise InputError(f"{name} must have shape (N, 3) with N > 0, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} have non-finite entries")
-    return arr
 
 
 def range_sigma_along_normal(
@@ -49,8 +41,8 @@ def range_sigma_along_normal(
     (N,) σ along the normal, metres. A ray at grazing incidence gives σ → 0: the range noise
     then moves the point within the surface, which the point-to-plane residual does not see.
     """
-    r = _rows(rays, "rays")
-    n = _rows(normals, "normals")
+    r = as_points(rays, "rays")
+    n = as_points(normals, "normals")
     if len(r) != len(n):
         raise InputError(f"{len(r)} rays for {len(n)} normals")
     r_len = np.linalg.norm(r, axis=1)
@@ -80,8 +72,8 @@ def fisher_point_to_plane(
     ``J = Σ h_i h_iᵀ / σ_i²`` with ``h_i = (p_i × n_i, n_i)``, in units of (1/rad², 1/(rad·m),
     1/m²) by block.
     """
-    p = _rows(points, "points")
-    n = _rows(normals, "normals")
+    p = as_points(points, "points")
+    n = as_points(normals, "normals")
     if len(p) != len(n):
         raise InputError(f"{len(p)} points for {len(n)} normals")
     s = np.asarray(sigma, dtype=np.float64)

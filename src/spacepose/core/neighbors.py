@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from spacepose.core.cloud import as_points
 from spacepose.errors import InputError
 
 TreeOrPoints = cKDTree | ArrayLike
@@ -24,7 +25,7 @@ def as_tree(tree_or_points: TreeOrPoints) -> cKDTree:
     """Return ``tree_or_points`` if it is a ``cKDTree``, else a tree built on the (N, 3) points."""
     if isinstance(tree_or_points, cKDTree):
         return tree_or_points
-    return cKDTree(_as_points(tree_or_points, "points"))
+    return cKDTree(as_points(tree_or_points, "points"))
 
 
 def knn(
@@ -50,7 +51,7 @@ def knn(
         (M, k) Euclidean distances, ascending, and the (M, k) indices into the searched points.
     """
     tree = as_tree(tree_or_points)
-    q = _as_points(queries, "queries")
+    q = as_points(queries, "queries")
     k = int(k)
     if not 1 <= k <= tree.n:
         raise InputError(f"knn: k must be in 1..{tree.n} (number of points), got {k}")
@@ -88,7 +89,7 @@ def hybrid(
         padded with ``inf``. ``idx >= 0`` is the validity mask.
     """
     tree = as_tree(tree_or_points)
-    q = _as_points(queries, "queries")
+    q = as_points(queries, "queries")
     if not np.isfinite(radius) or radius <= 0:
         raise InputError(f"hybrid search radius must be a positive number, got {radius}")
     if int(max_nn) < 1:
@@ -121,7 +122,7 @@ def weighted_moments(
         (M, 3) weighted means, (M, 3, 3) weighted covariances ``Σ w (p − μ)(p − μ)ᵀ / Σ w`` and
         the (M,) total weights. Rows with zero total weight get a zero mean and covariance.
     """
-    pts = _as_points(points, "points")
+    pts = as_points(points, "points")
     idx = np.asarray(idx)
     w = np.where(idx >= 0, np.asarray(weights, dtype=np.float64), 0.0)
     total = w.sum(axis=1)
@@ -164,12 +165,3 @@ def local_covariances(
     use = idx >= 0 if mask is None else np.asarray(mask, dtype=bool) & (idx >= 0)
     _, cov, _ = weighted_moments(points, idx, use.astype(np.float64))
     return cov
-
-
-def _as_points(values: ArrayLike, name: str) -> NDArray[np.float64]:
-    arr = np.asarray(values, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) == 0:
-        raise InputError(f"{name} must be a non-empty (N, 3) array, got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} contain NaN or inf")
-    return arr

@@ -24,6 +24,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import as_points as _finite_points
 from spacepose.core.config import StageConfig
 from spacepose.core.ransac import sample_triples
 from spacepose.errors import DegenerateGeometryError, InputError
@@ -122,21 +123,7 @@ def as_points(cloud_or_points: PointCloud | ArrayLike, what: str = "points") -> 
     InputError
         On a wrong shape, non-finite values or fewer than 3 points.
     """
-    if isinstance(cloud_or_points, PointCloud):
-        pts, source = cloud_or_points.points, cloud_or_points.source
-    else:
-        source = None
-        try:
-            pts = np.asarray(cloud_or_points, dtype=np.float64)
-        except (TypeError, ValueError) as exc:
-            raise InputError(f"{what} are not numeric: {exc}") from None
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise InputError(f"{what} must have shape (N, 3), got {pts.shape}", source)
-    if not np.all(np.isfinite(pts)):
-        raise InputError(f"{what} contain NaN or inf", source)
-    if len(pts) < 3:
-        raise InputError(f"{what}: need at least 3 points for a plane, got {len(pts)}", source)
-    return pts
+    return _finite_points(cloud_or_points, what, min_points=3)
 
 
 def distribution(
