@@ -17,7 +17,7 @@ from spacepose.core.gicp import (
 )
 from spacepose.core.sim.targets import Target, sample_surface
 from spacepose.errors import DegenerateGeometryError, InputError, RegistrationError
-from test_icp import asymmetric_target, perturbation, pose_error
+from test_icp import asymmetric_target, make_noisy_pair, perturbation, pose_error
 
 CFG = GICPConfig(max_correspondence_distance=0.1, max_iterations=50)
 
@@ -36,14 +36,7 @@ def dense_target(shape: Target) -> tuple[np.ndarray, np.ndarray, cKDTree]:
 
 @pytest.fixture(scope="module")
 def noisy_pair(shape: Target) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Noisy source and target (σ = 2 mm, different samples) and the true T_target_source."""
-    rng = np.random.default_rng(0)
-    tgt = sample_surface(shape, 3000, seed=1).points
-    src = sample_surface(shape, 2000, seed=2).points
-    tgt = tgt + rng.normal(0, 0.002, tgt.shape)
-    src = src + rng.normal(0, 0.002, src.shape)
-    T_true = perturbation(rng)
-    return se3.transform_points(se3.invert(T_true), src), tgt, T_true
+    return make_noisy_pair(shape, 0, 3000, 2000, (1, 2))
 
 
 def test_covariances_are_plane_shaped(rng: np.random.Generator) -> None:

@@ -68,16 +68,22 @@ def dense_target(shape: Target) -> PointCloud:
     return sample_surface(shape, 20000, seed=1)
 
 
-@pytest.fixture(scope="module")
-def noisy_pair(shape: Target) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def make_noisy_pair(
+    shape: Target, seed: int, n_target: int, n_source: int, sample_seeds: tuple[int, int]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Noisy source and target (σ = 2 mm, different samples) and the true T_target_source."""
-    rng = np.random.default_rng(7)
-    tgt = sample_surface(shape, 4000, seed=2).points
-    src = sample_surface(shape, 3000, seed=3).points
+    rng = np.random.default_rng(seed)
+    tgt = sample_surface(shape, n_target, seed=sample_seeds[0]).points
+    src = sample_surface(shape, n_source, seed=sample_seeds[1]).points
     tgt = tgt + rng.normal(0, 0.002, tgt.shape)
     src = src + rng.normal(0, 0.002, src.shape)
     T_true = perturbation(rng)
     return se3.transform_points(se3.invert(T_true), src), tgt, T_true
+
+
+@pytest.fixture(scope="module")
+def noisy_pair(shape: Target) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return make_noisy_pair(shape, 7, 4000, 3000, (2, 3))
 
 
 @pytest.mark.peers
