@@ -11,12 +11,13 @@ from scipy.spatial.transform import Rotation
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import validate_config
+from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import (
     CorrespondenceSearch,
     ICPConfig,
     find_correspondences,
     icp,
-    point_to_plane_rows,
+    point_to_plane_system,
     point_to_point_information,
 )
 from spacepose.core.sim.targets import Target, sample_surface
@@ -169,7 +170,12 @@ def test_information_matches_numerical_jacobian(rng: np.random.Generator) -> Non
         J_point[:, :, a] = (moved[0] - moved[1]) / (2 * h)
         r = [np.einsum("ni,ni->n", m - q, n) for m in moved]
         J_plane[:, a] = (r[0] - r[1]) / (2 * h)
-    np.testing.assert_allclose(point_to_plane_rows(p, n), J_plane, atol=1e-7)
+    r0 = np.einsum("ni,ni->n", p - q, n)
+    for workers in (1, 2):
+        H, g, sse = point_to_plane_system(p, q, n, workers=workers)
+        np.testing.assert_allclose(H, J_plane.T @ J_plane, atol=1e-6)
+        np.testing.assert_allclose(g, J_plane.T @ r0, atol=1e-8)
+        assert sse == pytest.approx(r0 @ r0, rel=1e-12)
     np.testing.assert_allclose(
         point_to_point_information(p), np.einsum("nai,naj->ij", J_point, J_point), atol=1e-6
     )
@@ -183,8 +189,13 @@ def test_estimates_missing_normals_and_reuses_tree(shape: Target, dense_target: 
     res = icp(src, bare, config=PLANE, workers=1)
     rot, trans = pose_error(res.T_target_source, T_true)
     assert rot < 0.05 and trans < 0.5e-3, (rot, trans)
-    again = icp(src, bare, config=PLANE, workers=1, target_tree=cKDTree(bare))
+    again = icp(src, bare, config=PLANE, workers=1, target_tree=VoxelIndex(bare))
     np.testing.assert_array_equal(again.T_target_source, res.T_target_source)
+    # A cKDTree takes the generic (numpy) path: the same matches, sums in another order.
+    generic = icp(src, bare, config=PLANE, workers=1, target_tree=cKDTree(bare))
+    np.testing.assert_allclose(generic.T_target_source, res.T_target_source, atol=1e-12)
+    np.testing.assert_allclose(generic.information, res.information, rtol=1e-10)
+    assert (generic.fitness, generic.iterations) == (res.fitness, res.iterations)
 
 
 @pytest.mark.parametrize("method", ["point_to_point", "point_to_plane"])

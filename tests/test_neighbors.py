@@ -130,3 +130,35 @@ def test_weighted_moments_across_blocks_match_per_row_numpy():
         if ok.sum() > 1:
             ref = np.cov(pts[idx[m][ok]].T, aweights=wm, bias=True)
             np.testing.assert_allclose(cov[m], ref, atol=1e-13)
+
+
+def test_weighted_moments_same_on_any_thread_count():
+    # Several parallel chunks (256 rows each) with padding: bit-identical on 1, 2 and all threads.
+    rng = np.random.default_rng(12)
+    pts = rng.normal(size=(2000, 3)) * 0.05 + np.array([0.0, 0.0, 1.2])
+    idx = rng.integers(0, 2000, size=(3000, 15))
+    idx[rng.uniform(size=idx.shape) < 0.2] = -1
+    w = rng.uniform(0.0, 1.0, size=idx.shape)
+    one = weighted_moments(pts, idx, w, workers=1)
+    for workers in (2, -1):
+        for a, b in zip(one, weighted_moments(pts, idx, w, workers=workers), strict=True):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(
+        local_covariances(pts, idx, workers=1), local_covariances(pts, idx, workers=2)
+    )
+
+
+@pytest.mark.parametrize(
+    ("idx", "weights", "workers", "message"),
+    [
+        (np.array([[0, 1, 10]]), np.ones((1, 3)), 1, "1 neighbour indices are >= the number"),
+        (np.array([0, 1, 2]), np.ones(3), 1, r"\(M, k\) integer array"),
+        (np.array([[0.0, 1.0]]), np.ones((1, 2)), 1, r"\(M, k\) integer array"),
+        (np.array([[0, 1, 2]]), np.ones((1, 2)), 1, "weights must have the shape"),
+        (np.array([[0, 1, 2]]), np.ones((1, 3)), 0, "workers must be"),
+    ],
+)
+def test_weighted_moments_bad_input_raises(idx, weights, workers, message):
+    pts = np.random.default_rng(2).uniform(size=(10, 3))
+    with pytest.raises(InputError, match=message):
+        weighted_moments(pts, idx, weights, workers=workers)

@@ -158,3 +158,59 @@ def test_prebuilt_tree_gives_the_same_normals_and_is_checked() -> None:
     np.testing.assert_array_equal(reused.normals, own.normals)
     with pytest.raises(InputError, match="tree holds 10 points"):
         estimate_normals(cloud, NormalsConfig(k=12), tree=cKDTree(pts[:10]))
+
+
+def _stress_stack(rng: np.random.Generator, m: int) -> np.ndarray:
+    """m random symmetric PSD matrices, one kind in six: distinct spectra, multiples of the
+    identity (zero included), rank 1, rank 2, a huge isotropic offset (1 + 1e-9 spreads) and a
+    double smallest eigenvalue; random rotations, scales 1e-8..1e3."""
+    from scipy.spatial.transform import Rotation
+
+    lam = np.sort(rng.uniform(0.0, 1.0, (m, 3)), axis=1)
+    kind = np.arange(m) % 6
+    lam[kind == 2, :2] = 0.0
+    lam[kind == 3, 0] = 0.0
+    lam[kind == 4] = 1.0 + 1e-9 * lam[kind == 4]
+    lam[kind == 5, 0] = lam[kind == 5, 1]
+    lam *= 10 ** rng.uniform(-8, 3, (m, 1))
+    Q = Rotation.random(m, random_state=rng).as_matrix()
+    A = np.einsum("mij,mj,mkj->mik", Q, lam, Q)
+    A = 0.5 * (A + np.swapaxes(A, 1, 2))
+    # Multiples c·I exactly, not rotated, with short mantissas so that trace / 3 == c (an
+    # inexact trace / 3 leaves ~1-ulp diagonal differences, which pick some other unit vector).
+    iso = np.flatnonzero(kind == 1)
+    c = rng.integers(0, 2**20, len(iso)) * 2.0 ** rng.integers(-60, 0, len(iso))
+    c[::50] = 0.0
+    A[iso] = c[:, None, None] * np.eye(3)
+    return A
+
+
+def test_closed_form_eigen_stress_one_million_against_eigh():
+    A = _stress_stack(np.random.default_rng(21), 1_000_000)
+    normals, ev = normals_from_covariances(A, workers=2)
+    ref_ev, ref_vec = np.linalg.eigh(A)
+    scale = np.maximum(np.abs(ref_ev).max(axis=1), 1e-300)
+    assert np.all(np.diff(ev, axis=1) >= 0)
+    assert np.max(np.abs(ev - ref_ev) / scale[:, None]) < 1e-13
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-14)
+    residual = np.einsum("mij,mj->mi", A, normals) - ev[:, :1] * normals
+    assert np.max(np.linalg.norm(residual, axis=1) / scale) < 1e-13
+    isolated = (ref_ev[:, 1] - ref_ev[:, 0]) > 1e-6 * scale
+    assert isolated.sum() > 330_000  # distinct spectra and rank 2: two kinds in six
+    cos = np.abs(np.einsum("mi,mi->m", normals, ref_vec[:, :, 0]))[isolated]
+    assert np.min(cos) > 1.0 - 1e-9
+    # Multiples of the identity get the x axis exactly.
+    identity = np.arange(len(A)) % 6 == 1
+    np.testing.assert_array_equal(normals[identity], np.tile([1.0, 0.0, 0.0], (identity.sum(), 1)))
+
+
+def test_closed_form_eigen_same_on_any_thread_count_and_checks_shape():
+    A = _stress_stack(np.random.default_rng(22), 5000)
+    one = normals_from_covariances(A, workers=1)
+    for workers in (2, -1):
+        for a, b in zip(one, normals_from_covariances(A, workers=workers), strict=True):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(InputError, match=r"\(M, 3, 3\)"):
+        normals_from_covariances(np.zeros((4, 3)))
+    with pytest.raises(InputError, match="workers must be"):
+        normals_from_covariances(A, workers=0)

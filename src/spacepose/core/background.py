@@ -194,7 +194,9 @@ def cell_normals(
     """
     k = min(_NORMAL_NEIGHBOURS, len(centroids))
     idx, _ = hybrid(centroids, centroids, _NORMAL_RADIUS_VOXELS * voxel_size, k, workers=workers)
-    normals, _ = normals_from_covariances(local_covariances(centroids, idx))
+    normals, _ = normals_from_covariances(
+        local_covariances(centroids, idx, workers=workers), workers
+    )
     normals[(idx >= 0).sum(axis=1) < 3] = 0.0
     return normals
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
-from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
@@ -24,7 +23,7 @@ from spacepose.core.icp import (
     solve_normal_equations,
     target_kdtree,
 )
-from spacepose.core.neighbors import knn, local_covariances
+from spacepose.core.neighbors import SearchIndex, knn, local_covariances
 from spacepose.core.normals import normals_from_covariances
 from spacepose.core.registration import RegistrationResult
 from spacepose.errors import InputError, RegistrationError
@@ -97,7 +96,7 @@ def compute_covariances(
     if not 0 < epsilon <= 1:
         raise InputError(f"covariance epsilon must be in (0, 1], got {epsilon}")
     _, idx = knn(pts, pts, k, workers=workers)
-    normals, _ = normals_from_covariances(local_covariances(pts, idx))
+    normals, _ = normals_from_covariances(local_covariances(pts, idx, workers=workers), workers)
     # V diag(ε, 1, 1) Vᵀ = I − (1 − ε) n nᵀ: only the smallest eigenvector n is needed.
     return np.eye(3) - (1.0 - epsilon) * normals[:, :, None] * normals[:, None, :]
 
@@ -207,7 +206,7 @@ def gicp(
     workers: int = -1,
     source_covariances: ArrayLike | None = None,
     target_covariances: ArrayLike | None = None,
-    target_tree: cKDTree | None = None,
+    target_tree: SearchIndex | None = None,
 ) -> RegistrationResult:
     """Align ``source`` to ``target`` by Generalized ICP.
 
@@ -225,7 +224,7 @@ def gicp(
         Optional (N, 3, 3) covariances from :func:`compute_covariances`, each in its cloud's
         frame, so that a tracker computes them once per frame; computed when omitted.
     target_tree
-        Optional prebuilt ``cKDTree`` of the target points.
+        Optional prebuilt search index (``cKDTree``, VoxelIndex) of the target points.
 
     Returns
     -------

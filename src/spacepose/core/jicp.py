@@ -18,12 +18,12 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
-from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
 from spacepose.core.gicp import GICPConfig, compute_covariances, gicp
+from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import ICPConfig, as_registration_cloud, icp
 from spacepose.core.normals import estimate_normals
 from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
@@ -167,7 +167,7 @@ class JointICP:
             T_k_prev = prev.T_k0 @ se3.invert(self._window[-2].T_k0)
         else:
             T_k_prev = np.eye(4)
-        tree = cKDTree(cloud.points)
+        tree = VoxelIndex(cloud.points)
         # Newest pair first: its result seeds the guesses for the older, larger motions.
         X_k = T_k_prev @ prev.T_k0
         results: list[RegistrationResult] = []
@@ -196,7 +196,7 @@ class JointICP:
         cloud: PointCloud,
         covs: NDArray[np.float64] | None,
         init_T_k_m: NDArray[np.float64],
-        tree: cKDTree,
+        tree: VoxelIndex,
     ) -> RegistrationResult:
         """Register an earlier window frame (source) onto the new frame (target)."""
         if self.config.registration == "gicp":

@@ -1,31 +1,37 @@
-"""Shared neighbour searches and neighbourhood statistics on :class:`scipy.spatial.cKDTree`.
+"""Shared neighbour searches and neighbourhood statistics.
 
 Every stage that needs neighbours (normals, mpp-MLS, FPFH, GICP covariances, ICP) goes through
 these few functions so that padding conventions and argument checks are the same everywhere.
 Neighbour arrays are padded: an (M, k) index array holds ``-1`` where a query has fewer than k
-neighbours, and the matching distances are ``inf``. ``workers`` is passed straight to
-``cKDTree.query``; the results do not depend on it.
+neighbours, and the matching distances are ``inf``. A search runs on a
+:class:`~spacepose.core.grid.VoxelIndex` (built from points by default: exact and 1.2–2× faster
+than ``cKDTree`` on lab clouds, more with two threads) or on a ``cKDTree`` the caller passes;
+both answer with the same contract. ``workers`` is passed straight to their ``query``; the
+results do not depend on it.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import as_points
+from spacepose.core.grid import VoxelIndex, numba_threads
 from spacepose.errors import InputError
 
-TreeOrPoints = cKDTree | ArrayLike
-# Rows per block of the neighbourhood statistics (measured best of 128..4096 for k = 20..30).
+SearchIndex = cKDTree | VoxelIndex
+TreeOrPoints = SearchIndex | ArrayLike
+# Rows per unit of parallel work in the neighbourhood statistics: amortises scheduling.
 _BLOCK_ROWS = 256
 
 
-def as_tree(tree_or_points: TreeOrPoints) -> cKDTree:
-    """Return ``tree_or_points`` if it is a ``cKDTree``, else a tree built on the (N, 3) points."""
-    if isinstance(tree_or_points, cKDTree):
+def as_tree(tree_or_points: TreeOrPoints) -> SearchIndex:
+    """Return ``tree_or_points`` if it is a search index, else a VoxelIndex of the (N, 3) points."""
+    if isinstance(tree_or_points, cKDTree | VoxelIndex):
         return tree_or_points
-    return cKDTree(as_points(tree_or_points, "points"))
+    return VoxelIndex(as_points(tree_or_points, "points"))
 
 
 def knn(
@@ -36,7 +42,7 @@ def knn(
     Parameters
     ----------
     tree_or_points
-        A ``cKDTree`` or the (N, 3) points to search.
+        A search index (``cKDTree``, VoxelIndex) or the (N, 3) points.
     queries
         (M, 3) query points, same frame as the searched points.
     k
@@ -56,7 +62,7 @@ def knn(
     if not 1 <= k <= tree.n:
         raise InputError(f"knn: k must be in 1..{tree.n} (number of points), got {k}")
     dist, idx = tree.query(q, k=k, workers=workers)
-    # cKDTree drops the k axis for k = 1; keep (M, k) whatever k is.
+    # The indices drop the k axis for k = 1; keep (M, k) whatever k is.
     return dist.reshape(len(q), k), idx.reshape(len(q), k)
 
 
@@ -72,7 +78,7 @@ def hybrid(
     Parameters
     ----------
     tree_or_points
-        A ``cKDTree`` or the (N, 3) points to search.
+        A search index (``cKDTree``, VoxelIndex) or the (N, 3) points.
     queries
         (M, 3) query points.
     radius
@@ -97,13 +103,13 @@ def hybrid(
     k = int(max_nn)
     dist, idx = tree.query(q, k=k, distance_upper_bound=radius, workers=workers)
     dist, idx = dist.reshape(len(q), k), idx.reshape(len(q), k)
-    # cKDTree marks missing neighbours with index n; use -1 so that a bad index fails loudly.
+    # The indices mark missing neighbours with index n; use -1 so that a bad index fails loudly.
     idx[idx >= tree.n] = -1
     return idx, dist
 
 
 def weighted_moments(
-    points: ArrayLike, idx: NDArray[np.intp], weights: ArrayLike
+    points: ArrayLike, idx: NDArray[np.intp], weights: ArrayLike, workers: int = 1
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Weighted mean and covariance of each neighbourhood, batched.
 
@@ -115,6 +121,8 @@ def weighted_moments(
         (M, k) neighbour indices, ``-1`` for padding.
     weights
         (M, k) non-negative weights; padded entries are ignored whatever their weight.
+    workers
+        Threads (-1: all cores); the result does not depend on it.
 
     Returns
     -------
@@ -122,29 +130,87 @@ def weighted_moments(
         (M, 3) weighted means, (M, 3, 3) weighted covariances ``Σ w (p − μ)(p − μ)ᵀ / Σ w`` and
         the (M,) total weights. Rows with zero total weight get a zero mean and covariance.
     """
-    pts = as_points(points, "points")
+    pts = np.ascontiguousarray(as_points(points, "points"), dtype=np.float64)
     idx = np.asarray(idx)
-    w = np.where(idx >= 0, np.asarray(weights, dtype=np.float64), 0.0)
-    total = w.sum(axis=1)
-    # Normalised weights; a row with zero total weight keeps zeros, hence zero moments.
-    w /= np.where(total > 0, total, 1.0)[:, None]
+    if idx.ndim != 2 or not np.issubdtype(idx.dtype, np.integer):
+        raise InputError(f"neighbour indices must be an (M, k) integer array, got {idx.shape}")
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != idx.shape:
+        raise InputError(f"weights must have the shape of the indices {idx.shape}, got {w.shape}")
     mean = np.empty((len(idx), 3))
     cov = np.empty((len(idx), 3, 3))
-    # Blocks of rows keep the (rows, k, 3) temporaries in cache: twice as fast as one pass.
-    for start in range(0, len(idx), _BLOCK_ROWS):
-        rows = slice(start, start + _BLOCK_ROWS)
-        nb = pts[np.maximum(idx[rows], 0)]  # (B, k, 3); padding reads point 0 with weight 0
-        wb = w[rows]
-        mu = np.matmul(wb[:, None, :], nb)[:, 0]
-        # Centre before the outer products: cumulant sums lose digits far from the origin.
-        d = nb - mu[:, None, :]
-        cov[rows] = np.matmul(np.swapaxes(d * wb[:, :, None], 1, 2), d)
-        mean[rows] = mu
+    total = np.empty(len(idx))
+    with numba_threads(workers):
+        out_of_range = _moments_kernel(
+            pts,
+            np.ascontiguousarray(idx, dtype=np.int64),
+            np.ascontiguousarray(w),
+            mean,
+            cov,
+            total,
+        )
+    if out_of_range:
+        raise InputError(
+            f"{out_of_range} neighbour indices are >= the number of points ({len(pts)})"
+        )
     return mean, cov, total
 
 
+@numba.njit(cache=True, parallel=True)
+def _moments_kernel(pts, idx, w, mean, cov, total):
+    """Fill ``mean`` (M, 3), ``cov`` (M, 3, 3) and ``total`` (M,) row by row; return the number
+    of indices beyond the points (those entries are skipped), for the caller to report.
+
+    Each row is summed in its own fixed order, so the result is the same on any thread count.
+    """
+    n, k = len(pts), idx.shape[1]
+    n_rows = len(idx)
+    out_of_range = 0
+    for chunk in numba.prange((n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS):
+        for i in range(chunk * _BLOCK_ROWS, min(n_rows, (chunk + 1) * _BLOCK_ROWS)):
+            s = mx = my = mz = 0.0
+            for j in range(k):
+                p = idx[i, j]
+                if p >= n:
+                    out_of_range += 1
+                if p < 0 or p >= n:
+                    continue
+                wj = w[i, j]
+                s += wj
+                mx += wj * pts[p, 0]
+                my += wj * pts[p, 1]
+                mz += wj * pts[p, 2]
+            total[i] = s
+            # Zero total weight (all padding, or zero weights): zero moments, not 0 / 0.
+            inv = 1.0 / s if s > 0 else 0.0
+            mx *= inv
+            my *= inv
+            mz *= inv
+            # Centre before the outer products: cumulant sums lose digits far from the origin.
+            cxx = cxy = cxz = cyy = cyz = czz = 0.0
+            for j in range(k):
+                p = idx[i, j]
+                if p < 0 or p >= n:
+                    continue
+                wj = w[i, j] * inv
+                dx = pts[p, 0] - mx
+                dy = pts[p, 1] - my
+                dz = pts[p, 2] - mz
+                cxx += wj * dx * dx
+                cxy += wj * dx * dy
+                cxz += wj * dx * dz
+                cyy += wj * dy * dy
+                cyz += wj * dy * dz
+                czz += wj * dz * dz
+            mean[i, 0], mean[i, 1], mean[i, 2] = mx, my, mz
+            cov[i, 0, 0], cov[i, 0, 1], cov[i, 0, 2] = cxx, cxy, cxz
+            cov[i, 1, 0], cov[i, 1, 1], cov[i, 1, 2] = cxy, cyy, cyz
+            cov[i, 2, 0], cov[i, 2, 1], cov[i, 2, 2] = cxz, cyz, czz
+    return out_of_range
+
+
 def local_covariances(
-    points: ArrayLike, idx: NDArray[np.intp], mask: ArrayLike | None = None
+    points: ArrayLike, idx: NDArray[np.intp], mask: ArrayLike | None = None, workers: int = 1
 ) -> NDArray[np.float64]:
     """Covariance ``Σ (p − μ)(p − μ)ᵀ / n`` of each point's neighbours, batched.
 
@@ -156,6 +222,8 @@ def local_covariances(
         (M, k) neighbour indices (from :func:`knn` or :func:`hybrid`), ``-1`` for padding.
     mask
         Optional (M, k) boolean mask of the neighbours to use (``idx >= 0`` when omitted).
+    workers
+        Threads (-1: all cores); the result does not depend on it.
 
     Returns
     -------
@@ -163,5 +231,5 @@ def local_covariances(
     """
     idx = np.asarray(idx)
     use = idx >= 0 if mask is None else np.asarray(mask, dtype=bool) & (idx >= 0)
-    _, cov, _ = weighted_moments(points, idx, use.astype(np.float64))
+    _, cov, _ = weighted_moments(points, idx, use.astype(np.float64), workers=workers)
     return cov

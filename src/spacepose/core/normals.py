@@ -10,15 +10,19 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
-from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
-from spacepose.core.neighbors import as_tree, hybrid, knn, local_covariances
+from spacepose.core.grid import numba_threads
+from spacepose.core.neighbors import SearchIndex, as_tree, hybrid, knn, local_covariances
 from spacepose.errors import InputError
+
+# Matrices per unit of parallel work: amortises scheduling, balances the two threads.
+_CHUNK_ROWS = 256
 
 
 class NormalsConfig(StageConfig):
@@ -38,7 +42,7 @@ class NormalsConfig(StageConfig):
 
 
 def normals_from_covariances(
-    covariances: NDArray[np.float64],
+    covariances: NDArray[np.float64], workers: int = 1
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Unoriented normals and eigenvalues of a stack of 3×3 covariances.
 
@@ -46,6 +50,8 @@ def normals_from_covariances(
     ----------
     covariances
         (M, 3, 3) symmetric positive semi-definite matrices.
+    workers
+        Threads (-1: all cores); the result does not depend on it.
 
     Returns
     -------
@@ -55,8 +61,8 @@ def normals_from_covariances(
 
     Notes
     -----
-    Closed form and vectorised (a batched ``eigh`` costs as much as the neighbour search). The
-    trigonometric eigenvalues (Smith 1961) are exact to rounding only for an eigenvalue set
+    Closed form, compiled per matrix (a batched ``eigh`` costs as much as the neighbour search).
+    The trigonometric eigenvalues (Smith 1961) are exact to rounding only for an eigenvalue set
     apart from the other two, so the eigenvector of the more isolated extreme eigenvalue is
     taken first, as the kernel of ``A − λI``; the other two then come from the 2×2 problem in
     its orthogonal complement, solved with a Jacobi rotation. Every eigenvalue is then exact to
@@ -64,70 +70,107 @@ def normals_from_covariances(
     line-shaped neighbourhood) the normal is one unit vector of its eigenplane.
     """
     A = np.asarray(covariances, dtype=np.float64)
-    lam = _trigonometric_eigenvalues(A)
-    # ">=" sends a multiple of the identity down the λ0 branch, where it gets the x axis (eigh's
-    # choice too).
-    low_isolated = lam[:, 1] - lam[:, 0] >= lam[:, 2] - lam[:, 1]
-    shift = np.where(low_isolated, lam[:, 0], lam[:, 2])
-    e = _kernel_directions(A - shift[:, None, None] * np.eye(3))
-    u, v = _orthonormal_complement(e)
-    Au, Av = np.einsum("mij,mj->mi", A, u), np.einsum("mij,mj->mi", A, v)
-    a, b, c = _dot(u, Au), _dot(u, Av), _dot(v, Av)
-    # Jacobi rotation of the 2×2 block [[a, b], [b, c]]: θ turns u onto the larger eigenvector.
-    theta = 0.5 * np.arctan2(2.0 * b, a - c)
-    sin, cos = np.sin(theta)[:, None], np.cos(theta)[:, None]
-    mean, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
-    lam_e = _dot(e, np.einsum("mij,mj->mi", A, e))
-    normals = np.where(low_isolated[:, None], e, cos * v - sin * u)
-    eigenvalues = np.where(
-        low_isolated[:, None],
-        np.column_stack([lam_e, mean - radius, mean + radius]),
-        np.column_stack([mean - radius, mean + radius, lam_e]),
-    )
+    if A.ndim != 3 or A.shape[1:] != (3, 3):
+        raise InputError(f"covariances must be an (M, 3, 3) array, got shape {A.shape}")
+    normals = np.empty((len(A), 3))
+    eigenvalues = np.empty((len(A), 3))
+    with numba_threads(workers):
+        _eigen_kernel(np.ascontiguousarray(A), normals, eigenvalues)
     return normals, eigenvalues
 
 
-def _trigonometric_eigenvalues(A: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Ascending eigenvalues (M, 3) of symmetric 3×3 matrices from the cubic's cosine form."""
-    q = np.trace(A, axis1=1, axis2=2) / 3.0
-    d0, d1, d2 = A[:, 0, 0] - q, A[:, 1, 1] - q, A[:, 2, 2] - q
-    a01, a02, a12 = A[:, 0, 1], A[:, 0, 2], A[:, 1, 2]
-    p = np.sqrt((d0**2 + d1**2 + d2**2 + 2.0 * (a01**2 + a02**2 + a12**2)) / 6.0)
-    # (A − qI) / p has eigenvalues 2cos(φ + 2πj/3), with cos 3φ = det((A − qI) / p) / 2.
-    det = d0 * (d1 * d2 - a12**2) - a01 * (a01 * d2 - a12 * a02) + a02 * (a01 * a12 - d1 * a02)
-    safe = np.where(p > 0, p, 1.0)
-    phi = np.arccos(np.clip(0.5 * det / safe**3, -1.0, 1.0)) / 3.0
+@numba.njit(cache=True, parallel=True)
+def _eigen_kernel(A, normals, eigenvalues):
+    """:func:`_symmetric_eigen` of every matrix of ``A`` (M, 3, 3), in chunks of rows."""
+    m = len(A)
+    for chunk in numba.prange((m + _CHUNK_ROWS - 1) // _CHUNK_ROWS):
+        for i in range(chunk * _CHUNK_ROWS, min(m, (chunk + 1) * _CHUNK_ROWS)):
+            _symmetric_eigen(A[i], normals[i], eigenvalues[i])
+
+
+@numba.njit(cache=True)
+def _symmetric_eigen(A, normal, eigenvalues):
+    """Write the unit eigenvector of the smallest eigenvalue of the symmetric 3×3 ``A`` into
+    ``normal`` (3,) and its ascending eigenvalues into ``eigenvalues`` (3,)."""
+    a00, a01, a02 = A[0, 0], A[0, 1], A[0, 2]
+    a10, a11, a12 = A[1, 0], A[1, 1], A[1, 2]
+    a20, a21, a22 = A[2, 0], A[2, 1], A[2, 2]
+    # Trigonometric eigenvalues: (A − qI) / p has eigenvalues 2cos(φ + 2πj/3), with
+    # cos 3φ = det((A − qI) / p) / 2.
+    q = (a00 + a11 + a22) / 3.0
+    d0, d1, d2 = a00 - q, a11 - q, a22 - q
+    p = np.sqrt((d0 * d0 + d1 * d1 + d2 * d2 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)) / 6.0)
+    det = d0 * (d1 * d2 - a12 * a12) - a01 * (a01 * d2 - a12 * a02) + a02 * (a01 * a12 - d1 * a02)
+    safe = p if p > 0 else 1.0
+    phi = np.arccos(min(max(0.5 * det / safe**3, -1.0), 1.0)) / 3.0
     largest = q + 2.0 * p * np.cos(phi)
     smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    return np.column_stack([smallest, 3.0 * q - largest - smallest, largest])
+    middle = 3.0 * q - largest - smallest
+    # ">=" sends a multiple of the identity down the λ0 branch, where it gets the x axis (eigh's
+    # choice too).
+    low_isolated = middle - smallest >= largest - middle
+    shift = smallest if low_isolated else largest
+    # Kernel of the rank-2 A − shift·I: the longest cross product of two of its rows is the best
+    # conditioned; no two independent rows (a multiple of the identity) gives the x axis.
+    r00, r11, r22 = a00 - shift, a11 - shift, a22 - shift
+    best = _cross(r00, a01, a02, a10, r11, a12)
+    for cand in (_cross(r00, a01, a02, a20, a21, r22), _cross(a10, r11, a12, a20, a21, r22)):
+        if _dot(cand, cand) > _dot(best, best):
+            best = cand
+    length = np.sqrt(_dot(best, best))
+    e = (best[0] / length, best[1] / length, best[2] / length) if length > 0 else (1.0, 0.0, 0.0)
+    # Complete e to a right-handed basis (u, v): cross with the axis least aligned with e, so
+    # the product is never short.
+    ax, ay, az = abs(e[0]), abs(e[1]), abs(e[2])
+    if ax <= ay and ax <= az:
+        u = _cross(e[0], e[1], e[2], 1.0, 0.0, 0.0)
+    elif ay <= az:
+        u = _cross(e[0], e[1], e[2], 0.0, 1.0, 0.0)
+    else:
+        u = _cross(e[0], e[1], e[2], 0.0, 0.0, 1.0)
+    norm_u = np.sqrt(_dot(u, u))
+    u = (u[0] / norm_u, u[1] / norm_u, u[2] / norm_u)
+    v = _cross(e[0], e[1], e[2], u[0], u[1], u[2])
+    Au = (
+        a00 * u[0] + a01 * u[1] + a02 * u[2],
+        a10 * u[0] + a11 * u[1] + a12 * u[2],
+        a20 * u[0] + a21 * u[1] + a22 * u[2],
+    )
+    Av = (
+        a00 * v[0] + a01 * v[1] + a02 * v[2],
+        a10 * v[0] + a11 * v[1] + a12 * v[2],
+        a20 * v[0] + a21 * v[1] + a22 * v[2],
+    )
+    Ae = (
+        a00 * e[0] + a01 * e[1] + a02 * e[2],
+        a10 * e[0] + a11 * e[1] + a12 * e[2],
+        a20 * e[0] + a21 * e[1] + a22 * e[2],
+    )
+    a, b, c = _dot(u, Au), _dot(u, Av), _dot(v, Av)
+    mean, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
+    lam_e = _dot(e, Ae)
+    if low_isolated:
+        normal[0], normal[1], normal[2] = e
+        eigenvalues[0], eigenvalues[1], eigenvalues[2] = lam_e, mean - radius, mean + radius
+    else:
+        # Jacobi rotation of the 2×2 block [[a, b], [b, c]]: θ turns u onto the larger
+        # eigenvector, so the normal is v turned by θ.
+        theta = 0.5 * np.arctan2(2.0 * b, a - c)
+        sin, cos = np.sin(theta), np.cos(theta)
+        normal[0] = cos * v[0] - sin * u[0]
+        normal[1] = cos * v[1] - sin * u[1]
+        normal[2] = cos * v[2] - sin * u[2]
+        eigenvalues[0], eigenvalues[1], eigenvalues[2] = mean - radius, mean + radius, lam_e
 
 
-def _kernel_directions(M: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Unit vectors (M, 3) spanning the kernel of rank-2 3×3 matrices: a cross product of rows.
-
-    The longest of the three cross products is the best conditioned; a matrix with no two
-    independent rows (rank <= 1, only for a multiple of the identity here) gets the x axis.
-    """
-    r0, r1, r2 = M[:, 0], M[:, 1], M[:, 2]
-    cross = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)
-    norm2 = np.einsum("mci,mci->mc", cross, cross)
-    best = np.argmax(norm2, axis=1)
-    rows = np.arange(len(M))
-    vec, length = cross[rows, best], np.sqrt(norm2[rows, best])[:, None]
-    return np.where(length > 0, vec / np.where(length > 0, length, 1.0), (1.0, 0.0, 0.0))
+@numba.njit(cache=True, inline="always")
+def _cross(x0, x1, x2, y0, y1, y2):
+    return (x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0)
 
 
-def _orthonormal_complement(e: NDArray[np.float64]) -> tuple[NDArray, NDArray]:
-    """Two unit vectors (M, 3) completing unit vectors ``e`` (M, 3) to right-handed bases."""
-    # Cross with the axis least aligned with e, so the product is never short.
-    axis = np.eye(3)[np.argmin(np.abs(e), axis=1)]
-    u = np.cross(e, axis)
-    u /= np.sqrt(_dot(u, u))[:, None]
-    return u, np.cross(e, u)
-
-
-def _dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.einsum("mi,mi->m", a, b)
+@numba.njit(cache=True, inline="always")
+def _dot(x, y):
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
 def orient_towards(
@@ -146,7 +189,7 @@ def estimate_normals(
     config: NormalsConfig = NormalsConfig(),
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
     workers: int = -1,
-    tree: cKDTree | None = None,
+    tree: SearchIndex | None = None,
 ) -> PointCloud:
     """The cloud with a unit normal per point, oriented towards ``viewpoint``.
 
@@ -161,7 +204,7 @@ def estimate_normals(
     workers
         Threads for the neighbour search.
     tree
-        A KD-tree of ``cloud.points`` already built by the caller (a tracker keeps one per
+        A search index of ``cloud.points`` already built by the caller (a tracker keeps one per
         keyframe), so it is not built twice.
 
     Returns
@@ -185,7 +228,7 @@ def estimate_normals(
         _, idx = knn(tree, pts, k, workers=workers)
     else:
         idx, _ = hybrid(tree, pts, config.radius, k, workers=workers)
-    normals, _ = normals_from_covariances(local_covariances(pts, idx))
+    normals, _ = normals_from_covariances(local_covariances(pts, idx, workers=workers), workers)
     sparse = (idx >= 0).sum(axis=1) < 3
     if np.any(sparse):
         sight = np.asarray(viewpoint, dtype=np.float64).reshape(3) - pts[sparse]

@@ -40,7 +40,6 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
-from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
@@ -49,11 +48,12 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
 from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.gicp import GICPConfig, compute_covariances, gicp
+from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import (
     ICPConfig,
     find_correspondences,
     icp_correspondences,
-    point_to_plane_rows,
+    point_to_plane_system,
 )
 from spacepose.core.jicp import JICPConfig
 from spacepose.core.mls import MLSConfig, mpp_mls
@@ -282,9 +282,9 @@ class TrackResult:
 
 @dataclass(eq=False)
 class PreparedCloud:
-    """A preprocessed frame, its KD-tree and what the registrations reuse.
+    """A preprocessed frame, its search index and what the registrations reuse.
 
-    ``covariances`` (GICP) is filled once per frame; the normals of ``cloud``, the KD-tree and
+    ``covariances`` (GICP) is filled once per frame; the normals of ``cloud``, the index and
     ``coarse`` (sparse cloud + FPFH) lazily, when the frame is a registration target or coarse
     registration needs it.
     """
@@ -292,13 +292,13 @@ class PreparedCloud:
     cloud: PointCloud
     covariances: NDArray[np.float64] | None = None
     coarse: tuple[PointCloud, NDArray[np.float64]] | None = None
-    _tree: cKDTree | None = None
+    _tree: VoxelIndex | None = None
 
     @property
-    def tree(self) -> cKDTree:
-        """KD-tree of the points, built the first time the cloud is a registration target."""
+    def tree(self) -> VoxelIndex:
+        """Search index of the points, built the first time the cloud is a registration target."""
         if self._tree is None:
-            self._tree = cKDTree(self.cloud.points)
+            self._tree = VoxelIndex(self.cloud.points)
         return self._tree
 
     # Cached: the points never change (``cloud`` is only replaced by itself with normals), and
@@ -1067,12 +1067,12 @@ def plane_covariance(
         s, t = correspondences
     if len(s) < 7:
         raise RegistrationError(f"{len(s)} correspondences are too few for a covariance")
-    normals = target.cloud.normals[t]
-    r = np.einsum("ij,ij->i", moved[s] - target.cloud.points[t], normals)
-    h = point_to_plane_rows(moved[s], normals)
-    sigma2 = float(r @ r) / (len(r) - 6)
-    H_inv = np.linalg.pinv(h.T @ h, hermitian=True)
-    return sigma2 * H_inv, -H_inv @ (h.T @ r)
+    H, g, sse = point_to_plane_system(
+        moved[s], target.cloud.points[t], target.cloud.normals[t], workers
+    )
+    sigma2 = sse / (len(s) - 6)
+    H_inv = np.linalg.pinv(H, hermitian=True)
+    return sigma2 * H_inv, -H_inv @ g
 
 
 def _in_reference(estimate: FineEstimate, point_k: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -1,0 +1,135 @@
+"""VoxelIndex against brute force and cKDTree: exact neighbours, ties, far queries, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from spacepose.core.grid import VoxelIndex, numba_threads
+from spacepose.errors import InputError
+
+
+def _surface(n: int, seed: int) -> np.ndarray:
+    """A noisy curved sheet about 1.2 m in front of the sensor (a scanned surface)."""
+    rng = np.random.default_rng(seed)
+    uv = rng.uniform(-0.3, 0.3, (n, 2))
+    z = 1.2 + 0.2 * np.sin(4 * uv[:, 0]) * np.cos(3 * uv[:, 1]) + rng.normal(0, 0.002, n)
+    return np.column_stack([uv, z])
+
+
+def _brute(points: np.ndarray, queries: np.ndarray, k: int, bound: float = np.inf):
+    """(d2, idx) of the k nearest strictly within ``bound``, ties by index, padded (inf, -1)."""
+    d2 = ((queries[:, None, :] - points[None, :, :]) ** 2).sum(axis=2)
+    d2 = np.where(d2 < bound**2, d2, np.inf)
+    order = np.lexsort((np.broadcast_to(np.arange(len(points)), d2.shape), d2), axis=1)[:, :k]
+    best = np.take_along_axis(d2, order, axis=1)
+    return best, np.where(np.isfinite(best), order, -1)
+
+
+@pytest.mark.parametrize("cell_size", [None, 0.004, 0.05])
+@pytest.mark.parametrize("k", [1, 2, 15])
+def test_knn_matches_brute_force(cell_size, k):
+    pts = _surface(1500, seed=1)
+    rng = np.random.default_rng(2)
+    # Queries on the sheet, off it, and far outside the indexed box.
+    queries = np.vstack([pts[:200], pts[:100] + rng.normal(0, 0.03, (100, 3)), [[5, -3, 9]]])
+    index = VoxelIndex(pts, cell_size)
+    dist, idx = index.query(queries, k=k, workers=1)
+    ref_d2, ref_idx = _brute(pts, queries, k)
+    dist, idx = dist.reshape(len(queries), k), idx.reshape(len(queries), k)
+    np.testing.assert_array_equal(idx, ref_idx)
+    np.testing.assert_allclose(dist**2, ref_d2, rtol=1e-12)
+
+
+@pytest.mark.parametrize("bound", [0.003, 0.01, 0.2])
+def test_bounded_query_matches_ckdtree(bound):
+    pts = _surface(3000, seed=3)
+    queries = pts + np.random.default_rng(4).normal(0, 0.004, pts.shape)
+    index, tree = VoxelIndex(pts), cKDTree(pts)
+    for k in (1, 4):
+        d, i = index.query(queries, k=k, distance_upper_bound=bound, workers=2)
+        d_ref, i_ref = tree.query(queries, k=k, distance_upper_bound=bound)
+        np.testing.assert_array_equal(i, i_ref)
+        np.testing.assert_array_equal(np.isinf(d), np.isinf(d_ref))
+        np.testing.assert_allclose(d[np.isfinite(d)], d_ref[np.isfinite(d_ref)], rtol=1e-12)
+        # Some queries have fewer than k neighbours in the smallest bound: padding is exercised.
+        if bound == 0.003 and k == 4:
+            assert np.any(i == len(pts))
+
+
+def test_ties_are_broken_by_index_and_duplicates_survive():
+    # A lattice: many neighbours at exactly equal distances, plus exact duplicates.
+    g = np.arange(6) * 0.01
+    lattice = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1).reshape(-1, 3)
+    pts = np.vstack([lattice, lattice[:20]])
+    index = VoxelIndex(pts, 0.013)
+    dist, idx = index.query(lattice, k=8, workers=1)
+    ref_d2, ref_idx = _brute(pts, lattice, 8)
+    np.testing.assert_array_equal(idx, ref_idx)
+    np.testing.assert_allclose(dist**2, ref_d2, atol=1e-18)
+    # A duplicated point has its twin at distance zero as its second neighbour.
+    assert idx[0, 1] == len(lattice) and dist[0, 1] == 0.0
+
+
+def test_nearest_within_is_exact_whatever_the_hint():
+    pts = _surface(4000, seed=5)
+    queries = pts[::3] + np.random.default_rng(6).normal(0, 0.003, (len(pts[::3]), 3))
+    index = VoxelIndex(pts)
+    ref_d2, ref_idx = _brute(pts, queries, 1, 0.005)
+    cold_idx, cold_d2 = index.nearest_within(queries, 0.005, workers=1)
+    np.testing.assert_array_equal(cold_idx, ref_idx[:, 0])
+    np.testing.assert_allclose(cold_d2, ref_d2[:, 0], rtol=1e-12)
+    # Warm starts: the right answer, a wrong point, a far point, nothing.
+    rng = np.random.default_rng(7)
+    for hint in (cold_idx, rng.integers(0, len(pts), len(queries)), np.full(len(queries), -1)):
+        idx, d2 = index.nearest_within(queries, 0.005, hint=hint, workers=2)
+        np.testing.assert_array_equal(idx, cold_idx)
+        np.testing.assert_array_equal(d2, cold_d2)
+
+
+def test_thread_count_does_not_change_the_answer():
+    pts = _surface(20000, seed=8)
+    index = VoxelIndex(pts)
+    one = index.query(pts, k=10, workers=1)
+    two = index.query(pts, k=10, workers=2)
+    np.testing.assert_array_equal(one[1], two[1])
+    np.testing.assert_array_equal(one[0], two[0])
+
+
+def test_degenerate_clouds():
+    # One point, and many copies of one point (zero extent).
+    single = VoxelIndex([[1.0, 2.0, 3.0]])
+    d, i = single.query([[1.0, 2.0, 4.0]], k=1)
+    assert i[0] == 0 and d[0] == pytest.approx(1.0)
+    d, i = single.query([[1.0, 2.0, 4.0]], k=3)
+    np.testing.assert_array_equal(i[0], [0, 1, 1])
+    assert np.isinf(d[0, 1:]).all()
+    same = VoxelIndex(np.ones((50, 3)))
+    d, i = same.query(np.zeros((2, 3)), k=5)
+    np.testing.assert_array_equal(i, np.tile(np.arange(5), (2, 1)))
+    np.testing.assert_allclose(d, np.sqrt(3.0))
+    # A cloud kilometres wide gets cells large enough for its keys.
+    wide = VoxelIndex([[0.0, 0.0, 0.0], [5e3, 0.0, 0.0], [0.0, 0.0, 1e-3]], cell_size=1e-3)
+    assert wide.cell_size >= 5e3 / (1 << 20)
+    assert wide.query([[4e3, 0, 0]], k=1)[1][0] == 1
+
+
+def test_bad_input_is_reported():
+    with pytest.raises(InputError, match="at least 1 point"):
+        VoxelIndex(np.empty((0, 3)))
+    with pytest.raises(InputError):
+        VoxelIndex([[0.0, np.nan, 1.0]])
+    with pytest.raises(InputError):
+        VoxelIndex(np.zeros((4, 2)))
+    with pytest.raises(InputError, match="cell_size"):
+        VoxelIndex(np.zeros((4, 3)), cell_size=-1.0)
+    index = VoxelIndex(_surface(100, seed=9))
+    with pytest.raises(InputError, match="k must be"):
+        index.query(np.zeros((1, 3)), k=0)
+    with pytest.raises(InputError, match="distance_upper_bound"):
+        index.query(np.zeros((1, 3)), distance_upper_bound=0.0)
+    with pytest.raises(InputError, match="hints"):
+        index.nearest_within(np.zeros((3, 3)), 0.01, hint=np.zeros(2, dtype=np.int64))
+    with pytest.raises(InputError, match="workers"), numba_threads(0):
+        pass
