@@ -88,13 +88,29 @@ def test_nearest_within_is_exact_whatever_the_hint():
         np.testing.assert_array_equal(d2, cold_d2)
 
 
+@pytest.mark.parametrize("k", [1, 15, 40])
+def test_query_self_equals_query_of_the_points(k):
+    # A scanned sheet with a sparse fringe: the fringe's k-th neighbours lie beyond the 27
+    # cells around them and take the per-point search; the rest the shared-cell one.
+    rng = np.random.default_rng(10)
+    fringe = rng.uniform(-1, 1, (40, 3)) + np.array([0.0, 0.0, 1.2])
+    pts = np.vstack([_surface(3000, seed=11), fringe])
+    index = VoxelIndex(pts)
+    dist, idx = index.query_self(k, workers=2)
+    ref_d2, ref_idx = _brute(pts, pts, k)
+    np.testing.assert_array_equal(idx, ref_idx)
+    np.testing.assert_allclose(dist**2, ref_d2, rtol=1e-12)
+    with pytest.raises(InputError, match="k must be"):
+        index.query_self(len(pts) + 1)
+
+
 def test_thread_count_does_not_change_the_answer():
     pts = _surface(20000, seed=8)
     index = VoxelIndex(pts)
-    one = index.query(pts, k=10, workers=1)
-    two = index.query(pts, k=10, workers=2)
-    np.testing.assert_array_equal(one[1], two[1])
-    np.testing.assert_array_equal(one[0], two[0])
+    for search in (lambda w: index.query(pts, k=10, workers=w), lambda w: index.query_self(10, w)):
+        one, two = search(1), search(2)
+        np.testing.assert_array_equal(one[1], two[1])
+        np.testing.assert_array_equal(one[0], two[0])
 
 
 def test_degenerate_clouds():

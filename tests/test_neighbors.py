@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from spacepose.core.neighbors import as_tree, hybrid, knn, local_covariances, weighted_moments
@@ -28,6 +29,13 @@ def test_knn_matches_brute_force(clouds):
     assert i1.shape == (50, 1)
     np.testing.assert_array_equal(i1[:, 0], order[:, 0])
     np.testing.assert_allclose(d1[:, 0], dist[:, 0])
+    # No queries: the searched points themselves, on either kind of index.
+    d_self = cdist(pts, pts)
+    self_order = np.argsort(d_self, axis=1, kind="stable")[:, :5]
+    for index in (as_tree(pts), cKDTree(pts)):
+        dist, idx = knn(index, None, k=5, workers=2)
+        np.testing.assert_array_equal(idx, self_order)
+        np.testing.assert_allclose(dist, np.take_along_axis(d_self, self_order, axis=1), atol=1e-12)
 
 
 def test_hybrid_matches_brute_force(clouds):

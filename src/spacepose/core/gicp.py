@@ -95,7 +95,7 @@ def compute_covariances(
         raise InputError(f"covariances need 3 <= k <= {len(pts)} (number of points), got k={k}")
     if not 0 < epsilon <= 1:
         raise InputError(f"covariance epsilon must be in (0, 1], got {epsilon}")
-    _, idx = knn(pts, pts, k, workers=workers)
+    _, idx = knn(pts, None, k, workers=workers)
     normals, _ = normals_from_covariances(local_covariances(pts, idx, workers=workers), workers)
     # V diag(ε, 1, 1) Vᵀ = I − (1 − ε) n nᵀ: only the smallest eigenvector n is needed.
     return np.eye(3) - (1.0 - epsilon) * normals[:, :, None] * normals[:, None, :]

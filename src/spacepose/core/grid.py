@@ -176,6 +176,42 @@ class VoxelIndex:
             return dist[:, 0], idx[:, 0]
         return dist, idx
 
+    def query_self(self, k: int, workers: int = 1) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+        """The ``k`` nearest indexed points of every indexed point (itself included): the
+        answer of ``query(data, k)``, about twice as fast.
+
+        Queries are taken a cell at a time: the points of the 27 cells around a cell are the
+        candidates of all its points, so the cell lookups are shared, and a point whose k-th
+        distance stays within one cell edge of it needs nothing else (every point outside the
+        27 cells is farther). The few others (sparse borders) are searched one by one.
+
+        Parameters
+        ----------
+        k
+            Number of neighbours, 1 <= k <= n.
+        workers
+            Threads (-1: all cores); the result does not depend on it.
+
+        Returns
+        -------
+        dist, idx
+            (n, k) distances ascending and indices into ``data`` (ties by index).
+        """
+        k = int(k)
+        if not 1 <= k <= self.n:
+            raise InputError(f"k must be in 1..{self.n} (number of points), got {k}")
+        # Zeros: the rows left unsure are filled below, not read before.
+        d2 = np.zeros((self.n, k))
+        idx = np.empty((self.n, k), dtype=np.int64)
+        unsure = np.zeros(self.n, dtype=np.bool_)
+        with numba_threads(workers):
+            _self_knn(self.kernel_grid, k, d2, idx, unsure)
+        dist = np.sqrt(d2)
+        if unsure.any():
+            rows = np.flatnonzero(unsure)
+            dist[rows], idx[rows] = self.query(self.data[rows], k=k, workers=workers)
+        return dist, idx
+
     def nearest_within(
         self,
         points: NDArray[np.float64],
@@ -246,10 +282,12 @@ def _auto_cell_size(
 
 @numba.njit(cache=True, inline="always")
 def _cell_range(x: float, radius: float, origin: float, h: float, dim: int) -> tuple[int, int]:
-    """First and last cell index along one axis overlapping ``[x − radius, x + radius]``."""
-    return max(int(np.floor((x - radius - origin) / h)), 0), min(
-        int(np.floor((x + radius - origin) / h)), dim - 1
-    )
+    """First and last cell index along one axis overlapping ``[x − radius, x + radius]``.
+
+    ``int`` truncates rather than floors: it differs only below zero, where the clamp makes the
+    first index 0 either way and the last at worst admits cell 0 needlessly (never misses one).
+    """
+    return max(int((x - radius - origin) / h), 0), min(int((x + radius - origin) / h), dim - 1)
 
 
 @numba.njit(cache=True, inline="always")
@@ -362,23 +400,40 @@ def _search(grid, queries, k, bound, d2, idx):
 
 
 @numba.njit(cache=True, inline="always")
-def nearest_point(grid, q, gate, hint, bd, bi):
-    """Compiled core of :meth:`VoxelIndex.nearest_within` for one query ``q`` (3,), for other
-    kernels to call: original index of its nearest point strictly within ``gate`` (-1: none),
-    its squared distance left in ``bd[0]``. ``hint`` is a candidate's original index (-1: none);
-    ``bd``, ``bi`` are (1,) scratch buffers. ``grid`` is a VoxelIndex's ``kernel_grid``."""
-    points, order, rank = grid[0], grid[1], grid[9]
-    bd[0] = gate * gate
-    bi[0] = -1
+def nearest_point(grid, qx, qy, qz, gate, hint):
+    """Compiled core of :meth:`VoxelIndex.nearest_within` for one query point, for other kernels
+    to call: ``(original index, squared distance)`` of its nearest point strictly within
+    ``gate`` (``(-1, gate²)`` when none). ``hint`` is a candidate's original index (-1: none).
+    ``grid`` is a VoxelIndex's ``kernel_grid``.
+
+    Scalar code rather than :func:`_collect`'s k-best buffer: half the time per query.
+    """
+    points, order, starts, cell_keys, table, bits, origin, h, dims, rank = grid
+    best, found = gate * gate, -1
     if hint >= 0:
         j = rank[hint]
-        dh = (points[j, 0] - q[0]) ** 2 + (points[j, 1] - q[1]) ** 2 + (points[j, 2] - q[2]) ** 2
-        if dh < bd[0]:
-            bd[0] = dh
-            bi[0] = j
+        d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
+        if d2 < best:
+            best, found = d2, j
     # (1 + 1e-12): a tie at exactly the hint's distance must fall inside the box.
-    _collect(grid, q, np.sqrt(bd[0]) * (1.0 + 1e-12), bd, bi)
-    return order[bi[0]] if bi[0] >= 0 else -1
+    radius = np.sqrt(best) * (1.0 + 1e-12)
+    x0, x1 = _cell_range(qx, radius, origin[0], h, dims[0])
+    y0, y1 = _cell_range(qy, radius, origin[1], h, dims[1])
+    z0, z1 = _cell_range(qz, radius, origin[2], h, dims[2])
+    for cx in range(x0, x1 + 1):
+        for cy in range(y0, y1 + 1):
+            row = (cx * dims[1] + cy) * dims[2]
+            for cz in range(z0, z1 + 1):
+                cell = find_cell(table, cell_keys, bits, row + cz)
+                if cell < 0:
+                    continue
+                for j in range(starts[cell], starts[cell + 1]):
+                    d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2
+                    d2 += (points[j, 2] - qz) ** 2
+                    # Ties go to the smaller original index, as everywhere in this module.
+                    if d2 < best or (d2 == best and found >= 0 and order[j] < order[found]):
+                        best, found = d2, j
+    return (order[found] if found >= 0 else -1), best
 
 
 @numba.njit(cache=True, parallel=True)
@@ -386,8 +441,80 @@ def _nearest(grid, queries, hint, gate, idx, d2):
     """:func:`nearest_point` of every query into ``idx`` and ``d2`` (``inf`` for none)."""
     n_queries = len(queries)
     for chunk in numba.prange((n_queries + _CHUNK - 1) // _CHUNK):
-        bd = np.empty(1)
-        bi = np.empty(1, dtype=np.int64)
         for i in range(chunk * _CHUNK, min(n_queries, (chunk + 1) * _CHUNK)):
-            idx[i] = nearest_point(grid, queries[i], gate, hint[i], bd, bi)
-            d2[i] = bd[0] if idx[i] >= 0 else np.inf
+            q = queries[i]
+            idx[i], best = nearest_point(grid, q[0], q[1], q[2], gate, hint[i])
+            d2[i] = best if idx[i] >= 0 else np.inf
+
+
+# The 27 cell offsets around a cell, nearest first (own cell, faces, edges, corners): the k-best
+# buffer then fills with near points and rejects most of the rest at the first comparison.
+_NEAR_FIRST = (
+    np.array(sorted(np.ndindex(3, 3, 3), key=lambda o: sum(abs(c - 1) for c in o)), dtype=np.int64)
+    - 1
+)
+
+
+@numba.njit(cache=True, parallel=True)
+def _self_knn(grid, k, d2, idx, unsure):
+    """k nearest of every indexed point among the 27 cells around its own, a cell at a time;
+    rows (original indices) whose k-th distance may reach beyond those cells are flagged in
+    ``unsure`` instead."""
+    points, order, starts, cell_keys, table, bits, origin, h, dims, _ = grid
+    for c in numba.prange(len(cell_keys)):
+        key = cell_keys[c]
+        cz = key % dims[2]
+        cy = (key // dims[2]) % dims[1]
+        cx = key // (dims[2] * dims[1])
+        first = np.empty(27, dtype=np.int64)
+        last = np.empty(27, dtype=np.int64)
+        runs = 0
+        for o in range(27):
+            x, y, z = cx + _NEAR_FIRST[o, 0], cy + _NEAR_FIRST[o, 1], cz + _NEAR_FIRST[o, 2]
+            if not (0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]):
+                continue
+            rank = find_cell(table, cell_keys, bits, (x * dims[1] + y) * dims[2] + z)
+            if rank >= 0:
+                first[runs] = starts[rank]
+                last[runs] = starts[rank + 1]
+                runs += 1
+        # Distance from a point to the far side of the 27 cells, per axis and side: a face at
+        # the grid's border has nothing beyond it.
+        low_x = origin[0] + (cx - 1) * h if cx > 0 else -np.inf
+        high_x = origin[0] + (cx + 2) * h if cx + 2 < dims[0] else np.inf
+        low_y = origin[1] + (cy - 1) * h if cy > 0 else -np.inf
+        high_y = origin[1] + (cy + 2) * h if cy + 2 < dims[1] else np.inf
+        low_z = origin[2] + (cz - 1) * h if cz > 0 else -np.inf
+        high_z = origin[2] + (cz + 2) * h if cz + 2 < dims[2] else np.inf
+        bd = np.empty(k)
+        bi = np.empty(k, dtype=np.int64)
+        for i in range(starts[c], starts[c + 1]):
+            qx, qy, qz = points[i, 0], points[i, 1], points[i, 2]
+            bd[:] = np.inf
+            bi[:] = -1
+            for r in range(runs):
+                for j in range(first[r], last[r]):
+                    dd = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2
+                    dd += (points[j, 2] - qz) ** 2
+                    if dd > bd[k - 1] or (
+                        dd == bd[k - 1] and (bi[k - 1] < 0 or order[j] > order[bi[k - 1]])
+                    ):
+                        continue
+                    pos = k - 1
+                    while pos > 0 and (
+                        bd[pos - 1] > dd or (bd[pos - 1] == dd and order[bi[pos - 1]] > order[j])
+                    ):
+                        bd[pos] = bd[pos - 1]
+                        bi[pos] = bi[pos - 1]
+                        pos -= 1
+                    bd[pos] = dd
+                    bi[pos] = j
+            reach = min(qx - low_x, high_x - qx, qy - low_y, high_y - qy, qz - low_z, high_z - qz)
+            row = order[i]
+            # Exact when every point not seen is strictly farther than the k-th (ties too).
+            if bi[k - 1] < 0 or bd[k - 1] >= reach * reach:
+                unsure[row] = True
+                continue
+            for j in range(k):
+                d2[row, j] = bd[j]
+                idx[row, j] = order[bi[j]]

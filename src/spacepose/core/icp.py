@@ -300,18 +300,16 @@ def _plane_matches_kernel(grid, targets, normals, src, R, t, gate, hint, nearest
     m = len(src)
     for c in numba.prange(len(partial)):
         acc = partial[c]
-        bd = np.empty(1)
-        bi = np.empty(1, dtype=np.int64)
         q = np.empty(3)
         h = np.empty(6)
         for i in range(c * _SYSTEM_CHUNK, min(m, (c + 1) * _SYSTEM_CHUNK)):
             for a in range(3):
                 q[a] = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
-            j = nearest_point(grid, q, gate, hint[i], bd, bi)
+            j, d2 = nearest_point(grid, q[0], q[1], q[2], gate, hint[i])
             nearest[i] = j
             if j >= 0:
                 acc[28] += 1.0
-                acc[29] += bd[0]
+                acc[29] += d2
                 _accumulate_plane(acc, q, targets[j], normals[j], h)
 
 

@@ -35,7 +35,7 @@ def as_tree(tree_or_points: TreeOrPoints) -> SearchIndex:
 
 
 def knn(
-    tree_or_points: TreeOrPoints, queries: ArrayLike, k: int, workers: int = -1
+    tree_or_points: TreeOrPoints, queries: ArrayLike | None, k: int, workers: int = -1
 ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
     """The k nearest neighbours of each query point.
 
@@ -44,7 +44,9 @@ def knn(
     tree_or_points
         A search index (``cKDTree``, VoxelIndex) or the (N, 3) points.
     queries
-        (M, 3) query points, same frame as the searched points.
+        (M, 3) query points, same frame as the searched points; None for the searched points
+        themselves (a VoxelIndex then shares its cell lookups between neighbouring queries,
+        :meth:`~spacepose.core.grid.VoxelIndex.query_self`).
     k
         Number of neighbours, ``1 <= k <= N``. A query that is itself one of the points gets
         itself as its first neighbour.
@@ -57,10 +59,12 @@ def knn(
         (M, k) Euclidean distances, ascending, and the (M, k) indices into the searched points.
     """
     tree = as_tree(tree_or_points)
-    q = as_points(queries, "queries")
     k = int(k)
     if not 1 <= k <= tree.n:
         raise InputError(f"knn: k must be in 1..{tree.n} (number of points), got {k}")
+    if queries is None and isinstance(tree, VoxelIndex):
+        return tree.query_self(k, workers)
+    q = tree.data if queries is None else as_points(queries, "queries")
     dist, idx = tree.query(q, k=k, workers=workers)
     # The indices drop the k axis for k = 1; keep (M, k) whatever k is.
     return dist.reshape(len(q), k), idx.reshape(len(q), k)

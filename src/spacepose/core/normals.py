@@ -225,7 +225,7 @@ def estimate_normals(
         raise InputError(f"the tree holds {tree.n} points, the cloud {len(pts)}", cloud.source)
     k = min(config.k, len(pts))
     if config.radius is None:
-        _, idx = knn(tree, pts, k, workers=workers)
+        _, idx = knn(tree, None, k, workers=workers)
     else:
         idx, _ = hybrid(tree, pts, config.radius, k, workers=workers)
     normals, _ = normals_from_covariances(local_covariances(pts, idx, workers=workers), workers)
@@ -289,7 +289,7 @@ def normal_consistency(
     n_bins = 180.0 / bin_width_deg
     if bin_width_deg <= 0 or abs(n_bins - round(n_bins)) > 1e-9:
         raise InputError(f"bin_width_deg must divide 180, got {bin_width_deg}")
-    _, idx = knn(cloud.points, cloud.points, k + 1, workers=workers)
+    _, idx = knn(cloud.points, None, k + 1, workers=workers)
     # Drop each point itself (not simply column 0, which a duplicate point may occupy).
     own = idx == np.arange(len(idx))[:, None]
     own[own.sum(axis=1) == 0, -1] = True
