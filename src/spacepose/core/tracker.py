@@ -1067,9 +1067,8 @@ def plane_covariance(
         s, t = correspondences
     if len(s) < 7:
         raise RegistrationError(f"{len(s)} correspondences are too few for a covariance")
-    H, g, sse = point_to_plane_system(
-        moved[s], target.cloud.points[t], target.cloud.normals[t], workers
-    )
+    # One thread: a few thousand rows are summed faster than a second thread wakes up.
+    H, g, sse = point_to_plane_system(moved[s], target.cloud.points[t], target.cloud.normals[t])
     sigma2 = sse / (len(s) - 6)
     H_inv = np.linalg.pinv(H, hermitian=True)
     return sigma2 * H_inv, -H_inv @ g

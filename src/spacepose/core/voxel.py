@@ -110,16 +110,28 @@ def voxel_cells(
         (M, 3) mean point of each occupied cell, ordered by cell key; (N,) cell index of each
         point.
     """
-    keys, _, _ = cell_keys(points, voxel_size)
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    keys, _, _ = cell_keys(pts, voxel_size)
     first_seen, unique, _, _ = group_cells(keys)
+    sums = np.zeros((len(unique), 3))
+    counts = np.zeros(len(unique))
+    # Point by point in index order: the same sums, to the bit, as a bincount per axis.
+    _accumulate(first_seen, pts, sums, counts)
     # Rank the occupied cells by key: sorting M cells, not N points.
     by_key = np.argsort(unique)
     rank = np.empty_like(by_key)
     rank[by_key] = np.arange(len(by_key))
-    cell = rank[first_seen]
-    counts = np.bincount(cell, minlength=len(unique))
-    sums = np.stack([np.bincount(cell, weights=c, minlength=len(unique)) for c in points.T], 1)
-    return sums / counts[:, None], cell
+    return sums[by_key] / counts[by_key, None], rank[first_seen]
+
+
+@numba.njit(cache=True)
+def _accumulate(cell, points, sums, counts):
+    for i in range(len(cell)):
+        c = cell[i]
+        sums[c, 0] += points[i, 0]
+        sums[c, 1] += points[i, 1]
+        sums[c, 2] += points[i, 2]
+        counts[c] += 1.0
 
 
 @numba.njit(cache=True)
