@@ -293,7 +293,7 @@ def _accumulate_plane(acc, p, q, n, h):
 
 
 @numba.njit(cache=True, parallel=True)
-def _plane_matches_kernel(grid, targets, normals, src, R, t, gate, hint, nearest, partial):
+def _plane_matches_kernel(grid, rings, targets, normals, src, R, t, gate, hint, nearest, partial):
     """Point-to-plane ICP's work at one transform, per chunk of source points: move each point
     (``R p + t``), find its nearest target within the gate (warm-started at ``hint``), and
     accumulate :func:`_accumulate_plane` (28 sums), the match count and Σ d² (2 more)."""
@@ -305,7 +305,7 @@ def _plane_matches_kernel(grid, targets, normals, src, R, t, gate, hint, nearest
         for i in range(c * _SYSTEM_CHUNK, min(m, (c + 1) * _SYSTEM_CHUNK)):
             for a in range(3):
                 q[a] = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
-            j, d2 = nearest_point(grid, q[0], q[1], q[2], gate, hint[i])
+            j, d2 = nearest_point(grid, rings, q[0], q[1], q[2], gate, hint[i])
             nearest[i] = j
             if j >= 0:
                 acc[28] += 1.0
@@ -517,6 +517,7 @@ class _FusedPlaneMatcher:
         workers: int,
     ) -> None:
         self.index, self.gate, self.workers = index, float(gate), workers
+        self.rings = index.rings(gate)
         self.normals = np.ascontiguousarray(normals, dtype=np.float64)
         self.source_points = np.ascontiguousarray(source_points, dtype=np.float64)
         self.nearest = np.full(len(source_points), -1, dtype=np.int64)
@@ -528,6 +529,7 @@ class _FusedPlaneMatcher:
         with numba_threads(self.workers):
             _plane_matches_kernel(
                 self.index.kernel_grid,
+                self.rings,
                 self.index.data,
                 self.normals,
                 self.source_points,
