@@ -220,7 +220,8 @@ class VoxelIndex:
         dist = np.sqrt(d2)
         if unsure.any():
             rows = np.flatnonzero(unsure)
-            dist[rows], idx[rows] = self.query(self.data[rows], k=k, workers=workers)
+            # A few per cent of the rows: one thread, as waking a second costs more.
+            dist[rows], idx[rows] = self.query(self.data[rows], k=k, workers=1)
         return dist, idx
 
     def rings(self, max_distance: float) -> NDArray[np.int64]:

@@ -21,6 +21,8 @@ from spacepose.errors import InputError
 
 _SMALL_ANGLE = 1e-8
 _I3 = np.eye(3)
+# Rotation angle beyond which log() takes scipy's route (the axis is ill-conditioned there).
+_NEAR_PI = np.pi - 0.1
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
 
@@ -133,7 +135,18 @@ def exp(xi: ArrayLike) -> NDArray[np.float64]:
 def log(T: ArrayLike) -> NDArray[np.float64]:
     """Logarithm map: transform (4, 4) -> twist ``(omega, v)`` (6,). Inverse of :func:`exp`."""
     T = np.asarray(T, dtype=np.float64)
-    omega = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    R = T[:3, :3]
+    # 2 sin θ · axis from the skew part, cos θ from the trace; atan2 of the two is accurate at
+    # every angle, unlike arccos near 0. Near π the skew part vanishes and the axis with it:
+    # there scipy's quaternion route takes over. Written out because this runs for every edge
+    # of every pose-graph iteration and scipy costs ~40 µs a call.
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin = 0.5 * math.sqrt(w @ w)
+    theta = math.atan2(sin, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
+    if theta > _NEAR_PI:
+        omega = Rotation.from_matrix(R).as_rotvec()
+    else:
+        omega = 0.5 * w * (theta / sin if sin > 0.0 else 1.0)
     v = np.linalg.solve(_left_jacobian_so3(omega), T[:3, 3])
     return np.concatenate([omega, v])
 
