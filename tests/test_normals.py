@@ -214,3 +214,21 @@ def test_closed_form_eigen_same_on_any_thread_count_and_checks_shape():
         normals_from_covariances(np.zeros((4, 3)))
     with pytest.raises(InputError, match="workers must be"):
         normals_from_covariances(A, workers=0)
+
+
+def test_neighbourhood_normals_equal_the_two_step_route():
+    # One compiled pass must give the bits of local_covariances -> normals_from_covariances,
+    # padding and sparse rows included, on any thread count.
+    from spacepose.core.neighbors import local_covariances
+    from spacepose.core.normals import neighbourhood_normals
+
+    pts = _noisy_sphere(3000, seed=12) + np.array([0.1, 0.2, 1.5])
+    idx, _ = hybrid(pts, pts, 0.03, 12)
+    assert (idx < 0).any() and ((idx >= 0).sum(axis=1) < 3).any()
+    two_step, _ = normals_from_covariances(local_covariances(pts, idx))
+    for workers in (1, 2):
+        np.testing.assert_array_equal(neighbourhood_normals(pts, idx, workers), two_step)
+    with pytest.raises(InputError, match="beyond"):
+        neighbourhood_normals(pts, np.array([[0, len(pts)]]))
+    with pytest.raises(InputError, match="integer"):
+        neighbourhood_normals(pts, np.zeros((2, 3)))

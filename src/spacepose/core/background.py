@@ -40,8 +40,8 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
-from spacepose.core.neighbors import hybrid, local_covariances
-from spacepose.core.normals import normals_from_covariances
+from spacepose.core.neighbors import hybrid
+from spacepose.core.normals import neighbourhood_normals
 from spacepose.core.planes import PlaneConfig, fit_plane, largest_component, ransac_plane
 from spacepose.core.voxel import voxel_cells
 from spacepose.errors import DegenerateGeometryError, InputError
@@ -194,9 +194,7 @@ def cell_normals(
     """
     k = min(_NORMAL_NEIGHBOURS, len(centroids))
     idx, _ = hybrid(centroids, centroids, _NORMAL_RADIUS_VOXELS * voxel_size, k, workers=workers)
-    normals, _ = normals_from_covariances(
-        local_covariances(centroids, idx, workers=workers), workers
-    )
+    normals = neighbourhood_normals(centroids, idx, workers)
     normals[(idx >= 0).sum(axis=1) < 3] = 0.0
     return normals
 

@@ -23,8 +23,8 @@ from spacepose.core.icp import (
     solve_normal_equations,
     target_kdtree,
 )
-from spacepose.core.neighbors import SearchIndex, knn, local_covariances
-from spacepose.core.normals import normals_from_covariances
+from spacepose.core.neighbors import SearchIndex, knn
+from spacepose.core.normals import neighbourhood_normals
 from spacepose.core.registration import RegistrationResult
 from spacepose.errors import InputError, RegistrationError
 
@@ -96,7 +96,7 @@ def compute_covariances(
     if not 0 < epsilon <= 1:
         raise InputError(f"covariance epsilon must be in (0, 1], got {epsilon}")
     _, idx = knn(pts, None, k, workers=workers)
-    normals, _ = normals_from_covariances(local_covariances(pts, idx, workers=workers), workers)
+    normals = neighbourhood_normals(pts, idx, workers)
     # V diag(ε, 1, 1) Vᵀ = I − (1 − ε) n nᵀ: only the smallest eigenvector n is needed.
     return np.eye(3) - (1.0 - epsilon) * normals[:, :, None] * normals[:, None, :]
 

@@ -353,7 +353,7 @@ def icp(
     target_tree: SearchIndex | None = None,
 ) -> RegistrationResult:
     """Align ``source`` to ``target`` by ICP (see :func:`icp_correspondences`)."""
-    result, _, _ = icp_correspondences(
+    result, _ = icp_correspondences(
         source, target, init_T_target_source, config, workers, target_tree
     )
     return result
@@ -390,10 +390,10 @@ def icp_correspondences(
         ``T_target_source``, fitness and inlier RMSE of the final correspondences, and the
         information ``Σ JᵀJ`` (1/m², twist (omega, v), left perturbation): point-to-point with
         ``J = [−skew(p) I]``, point-to-plane with rows ``h = (p × n, n)``.
-    src_idx, tgt_idx
-        (M,) the source points matched at the returned transform and their target points
-        (what :func:`find_correspondences` would return there), so that a caller computing
-        statistics at the solution need not search again.
+    correspondences
+        :class:`Correspondences` at the returned transform (what :func:`find_correspondences`
+        would return there, and for point-to-plane the normal equations), so that a caller
+        computing statistics at the solution need not search or sum again.
 
     Raises
     ------
@@ -423,7 +423,7 @@ def icp_correspondences(
     while iterations < config.max_iterations:
         iterations += 1
         if plane:
-            update = se3.exp(solve_normal_equations(*matches.system))
+            update = se3.exp(solve_normal_equations(*matches.system[:2]))
         else:
             update = kabsch(matches.points, tgt.points[matches.tgt_idx])
         T = update @ T
@@ -448,15 +448,24 @@ def icp_correspondences(
         information=information,
         n_correspondences=len(matches.tgt_idx),
     )
-    return result, matches.src_idx, matches.tgt_idx
+    return result, matches
 
 
 @dataclass(frozen=True)
-class _Matches:
-    """The correspondences of one ICP iteration and what its update needs.
+class Correspondences:
+    """The correspondences of ICP at one transform and what an update from there needs.
 
-    ``points`` are the matched source points in the target frame (point-to-point); ``system``
-    the point-to-plane normal equations (H, g) at them.
+    Attributes
+    ----------
+    src_idx, tgt_idx
+        (M,) matched source points and their nearest target points.
+    fitness, rmse
+        Share of source points matched; RMSE (m) of the match distances.
+    points
+        (M, 3) matched source points in the target frame (point-to-point only).
+    system
+        Point-to-plane only: ``(H, g, sse)`` of :func:`point_to_plane_system` at the matches
+        (information, gradient, Σ r²).
     """
 
     src_idx: NDArray[np.intp]
@@ -464,7 +473,7 @@ class _Matches:
     fitness: float
     rmse: float
     points: NDArray[np.float64] | None = None
-    system: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+    system: tuple[NDArray[np.float64], NDArray[np.float64], float] | None = None
 
 
 def _checked(n_matched: int, n_source: int, gate: float) -> None:
@@ -490,16 +499,15 @@ class _Matcher:
         self.search = CorrespondenceSearch(tree, gate, workers)
         self.target, self.source_points, self.gate, self.plane = target, source_points, gate, plane
 
-    def __call__(self, T: NDArray[np.float64]) -> _Matches:
+    def __call__(self, T: NDArray[np.float64]) -> Correspondences:
         moved = se3.transform_points(T, self.source_points)
         s, t, d2 = self.search(moved)
         _checked(len(s), len(moved), self.gate)
         p = moved[s]
         system = None
         if self.plane:
-            H, g, _ = point_to_plane_system(p, self.target.points[t], self.target.normals[t])
-            system = (H, g)
-        return _Matches(s, t, len(s) / len(moved), float(np.sqrt(d2.mean())), p, system)
+            system = point_to_plane_system(p, self.target.points[t], self.target.normals[t])
+        return Correspondences(s, t, len(s) / len(moved), float(np.sqrt(d2.mean())), p, system)
 
 
 class _FusedPlaneMatcher:
@@ -522,7 +530,7 @@ class _FusedPlaneMatcher:
         self.source_points = np.ascontiguousarray(source_points, dtype=np.float64)
         self.nearest = np.full(len(source_points), -1, dtype=np.int64)
 
-    def __call__(self, T: NDArray[np.float64]) -> _Matches:
+    def __call__(self, T: NDArray[np.float64]) -> Correspondences:
         n = len(self.source_points)
         partial = np.zeros((max(1, -(-n // _SYSTEM_CHUNK)), 30))
         nearest = np.empty(n, dtype=np.int64)
@@ -546,4 +554,5 @@ class _FusedPlaneMatcher:
         _checked(count, n, self.gate)
         s = np.flatnonzero(nearest >= 0)
         rmse = float(np.sqrt(total[29] / count))
-        return _Matches(s, nearest[s], count / n, rmse, system=_system_from_sums(total))
+        H, g = _system_from_sums(total)
+        return Correspondences(s, nearest[s], count / n, rmse, system=(H, g, float(total[27])))

@@ -162,55 +162,67 @@ def weighted_moments(
 
 @numba.njit(cache=True, parallel=True)
 def _moments_kernel(pts, idx, w, mean, cov, total):
-    """Fill ``mean`` (M, 3), ``cov`` (M, 3, 3) and ``total`` (M,) row by row; return the number
-    of indices beyond the points (those entries are skipped), for the caller to report.
-
-    Each row is summed in its own fixed order, so the result is the same on any thread count.
-    """
-    n, k = len(pts), idx.shape[1]
+    """Fill ``mean`` (M, 3), ``cov`` (M, 3, 3) and ``total`` (M,) row by row
+    (:func:`row_moments`); return the number of indices beyond the points (those entries are
+    skipped), for the caller to report."""
     n_rows = len(idx)
     out_of_range = 0
     for chunk in numba.prange((n_rows + _BLOCK_ROWS - 1) // _BLOCK_ROWS):
         for i in range(chunk * _BLOCK_ROWS, min(n_rows, (chunk + 1) * _BLOCK_ROWS)):
-            s = mx = my = mz = 0.0
-            for j in range(k):
-                p = idx[i, j]
-                if p >= n:
-                    out_of_range += 1
-                if p < 0 or p >= n:
-                    continue
-                wj = w[i, j]
-                s += wj
-                mx += wj * pts[p, 0]
-                my += wj * pts[p, 1]
-                mz += wj * pts[p, 2]
-            total[i] = s
-            # Zero total weight (all padding, or zero weights): zero moments, not 0 / 0.
-            inv = 1.0 / s if s > 0 else 0.0
-            mx *= inv
-            my *= inv
-            mz *= inv
-            # Centre before the outer products: cumulant sums lose digits far from the origin.
-            cxx = cxy = cxz = cyy = cyz = czz = 0.0
-            for j in range(k):
-                p = idx[i, j]
-                if p < 0 or p >= n:
-                    continue
-                wj = w[i, j] * inv
-                dx = pts[p, 0] - mx
-                dy = pts[p, 1] - my
-                dz = pts[p, 2] - mz
-                cxx += wj * dx * dx
-                cxy += wj * dx * dy
-                cxz += wj * dx * dz
-                cyy += wj * dy * dy
-                cyz += wj * dy * dz
-                czz += wj * dz * dz
-            mean[i, 0], mean[i, 1], mean[i, 2] = mx, my, mz
-            cov[i, 0, 0], cov[i, 0, 1], cov[i, 0, 2] = cxx, cxy, cxz
-            cov[i, 1, 0], cov[i, 1, 1], cov[i, 1, 2] = cxy, cyy, cyz
-            cov[i, 2, 0], cov[i, 2, 1], cov[i, 2, 2] = cxz, cyz, czz
+            total[i], bad = row_moments(pts, idx[i], w[i], mean[i], cov[i])
+            out_of_range += bad
     return out_of_range
+
+
+@numba.njit(cache=True, inline="always")
+def row_moments(pts, idx_row, w_row, mean_row, cov_row):
+    """Weighted mean (3,) and covariance (3, 3) of one neighbourhood into ``mean_row`` and
+    ``cov_row``, for compiled callers; returns (total weight, number of indices beyond the
+    points). ``w_row`` empty: unit weights. Padding (-1) and out-of-range indices are skipped.
+
+    Summed in the row's own fixed order, so the result is the same on any thread count.
+    """
+    n, k = len(pts), len(idx_row)
+    unit = len(w_row) == 0
+    s = mx = my = mz = 0.0
+    out_of_range = 0
+    for j in range(k):
+        p = idx_row[j]
+        if p >= n:
+            out_of_range += 1
+        if p < 0 or p >= n:
+            continue
+        wj = 1.0 if unit else w_row[j]
+        s += wj
+        mx += wj * pts[p, 0]
+        my += wj * pts[p, 1]
+        mz += wj * pts[p, 2]
+    # Zero total weight (all padding, or zero weights): zero moments, not 0 / 0.
+    inv = 1.0 / s if s > 0 else 0.0
+    mx *= inv
+    my *= inv
+    mz *= inv
+    # Centre before the outer products: cumulant sums lose digits far from the origin.
+    cxx = cxy = cxz = cyy = cyz = czz = 0.0
+    for j in range(k):
+        p = idx_row[j]
+        if p < 0 or p >= n:
+            continue
+        wj = (1.0 if unit else w_row[j]) * inv
+        dx = pts[p, 0] - mx
+        dy = pts[p, 1] - my
+        dz = pts[p, 2] - mz
+        cxx += wj * dx * dx
+        cxy += wj * dx * dy
+        cxz += wj * dx * dz
+        cyy += wj * dy * dy
+        cyz += wj * dy * dz
+        czz += wj * dz * dz
+    mean_row[0], mean_row[1], mean_row[2] = mx, my, mz
+    cov_row[0, 0], cov_row[0, 1], cov_row[0, 2] = cxx, cxy, cxz
+    cov_row[1, 0], cov_row[1, 1], cov_row[1, 2] = cxy, cyy, cyz
+    cov_row[2, 0], cov_row[2, 1], cov_row[2, 2] = cxz, cyz, czz
+    return s, out_of_range
 
 
 def local_covariances(

@@ -50,6 +50,7 @@ from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.gicp import GICPConfig, compute_covariances, gicp
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import (
+    Correspondences,
     ICPConfig,
     find_correspondences,
     icp_correspondences,
@@ -873,8 +874,9 @@ class Tracker:
             )
             matches = None
         else:
-            # ICP hands back its final correspondences: the covariance need not search again.
-            res, src_idx, tgt_idx = icp_correspondences(
+            # ICP hands back its final correspondences (and point-to-plane sums): the covariance
+            # need not search or sum again.
+            res, matches = icp_correspondences(
                 prepared.cloud,
                 tgt.cloud,
                 init_T_ref_k,
@@ -882,7 +884,6 @@ class Tracker:
                 workers=self.workers,
                 target_tree=tgt.tree,
             )
-            matches = (src_idx, tgt_idx)
         gate = (gicp_cfg if kind == "gicp" else icp_cfg).max_correspondence_distance
         cov, step = plane_covariance(
             res.T_target_source, prepared.cloud, tgt, gate, self.workers, matches
@@ -1031,7 +1032,7 @@ def plane_covariance(
     target: PreparedCloud,
     max_distance: float,
     workers: int = -1,
-    correspondences: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
+    correspondences: Correspondences | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Covariance of a registration from its point-to-plane residuals at the solution.
 
@@ -1042,9 +1043,9 @@ def plane_covariance(
     GICP's own information, built on plane-regularised covariances, understated the error:
     only 77 % of the lab frames within 3 σ.)
 
-    ``correspondences`` (source indices, target indices) are the matches at
-    ``T_target_source`` when the registration already has them (:func:`icp_correspondences`);
-    otherwise they are searched within ``max_distance``.
+    ``correspondences`` are the matches at ``T_target_source`` when the registration already
+    has them (:func:`icp_correspondences`; its point-to-plane sums are used as they are, being
+    these very sums); otherwise they are searched within ``max_distance``.
 
     Returns
     -------
@@ -1060,16 +1061,21 @@ def plane_covariance(
     RegistrationError
         Fewer than 7 correspondences within ``max_distance``.
     """
-    moved = se3.transform_points(T_target_source, source.points)
-    if correspondences is None:
-        s, t, _ = find_correspondences(target.tree, moved, max_distance, workers)
+    if correspondences is not None and correspondences.system is not None:
+        n_matches = len(correspondences.src_idx)
+        H, g, sse = correspondences.system
     else:
-        s, t = correspondences
-    if len(s) < 7:
-        raise RegistrationError(f"{len(s)} correspondences are too few for a covariance")
-    # One thread: a few thousand rows are summed faster than a second thread wakes up.
-    H, g, sse = point_to_plane_system(moved[s], target.cloud.points[t], target.cloud.normals[t])
-    sigma2 = sse / (len(s) - 6)
+        moved = se3.transform_points(T_target_source, source.points)
+        if correspondences is None:
+            s, t, _ = find_correspondences(target.tree, moved, max_distance, workers)
+        else:
+            s, t = correspondences.src_idx, correspondences.tgt_idx
+        n_matches = len(s)
+        # One thread: a few thousand rows are summed faster than a second thread wakes up.
+        H, g, sse = point_to_plane_system(moved[s], target.cloud.points[t], target.cloud.normals[t])
+    if n_matches < 7:
+        raise RegistrationError(f"{n_matches} correspondences are too few for a covariance")
+    sigma2 = sse / (n_matches - 6)
     H_inv = np.linalg.pinv(H, hermitian=True)
     return sigma2 * H_inv, -H_inv @ g
 
