@@ -264,3 +264,26 @@ def test_pose_graph_tolerance_is_below_what_matters(lab, monkeypatch):
     sig_fast = np.array([r.sigma for r in fast.results])
     sig_full = np.array([r.sigma for r in full.results])
     np.testing.assert_allclose(sig_fast, sig_full, rtol=1e-6)
+
+
+def test_plane_covariance_from_icp_sums_equals_a_fresh_search(lab):
+    # The tracker's covariance takes ICP's final point-to-plane sums as they are; they must be
+    # the sums a fresh correspondence search at the returned transform gives.
+    from spacepose.core.icp import Correspondences, ICPConfig, icp_correspondences
+    from spacepose.core.tracker import plane_covariance
+
+    _, frames = lab
+    cfg = TrackerConfig()
+    tracker = Tracker(cfg)
+    target = tracker._as_target(tracker._prepared(voxel_downsample(frames[0].cloud, 0.006)))
+    source = voxel_downsample(frames[1].cloud, 0.006)
+    icp_cfg = ICPConfig(max_correspondence_distance=0.005, method="point_to_plane")
+    res, matches = icp_correspondences(source, target.cloud, config=icp_cfg, workers=1)
+    assert matches.system is not None and res.fitness > 0.9
+    reused = plane_covariance(res.T_target_source, source, target, 0.005, 1, matches)
+    indices_only = Correspondences(matches.src_idx, matches.tgt_idx, res.fitness, res.inlier_rmse)
+    recomputed = plane_covariance(res.T_target_source, source, target, 0.005, 1, indices_only)
+    searched = plane_covariance(res.T_target_source, source, target, 0.005, 1)
+    for other in (recomputed, searched):
+        np.testing.assert_allclose(reused[0], other[0], rtol=1e-9, atol=1e-20)
+        np.testing.assert_allclose(reused[1], other[1], rtol=1e-6, atol=1e-12)

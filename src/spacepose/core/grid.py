@@ -321,6 +321,25 @@ def _gap(x: float, cell: int, origin: float, h: float) -> float:
 
 
 @numba.njit(cache=True, inline="always")
+def _offer(points, order, j, qx, qy, qz, bd, bi):
+    """Insert point ``j`` (sorted rank) into the k-best buffer ``(bd, bi)`` (squared distances
+    ascending, sorted ranks) if it belongs there. Ties compare the original index (cells are
+    visited in no particular order); an empty slot holds the bound itself (or ``inf``), which
+    admits only strictly nearer points."""
+    k = len(bd)
+    d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
+    if d2 > bd[k - 1] or (d2 == bd[k - 1] and (bi[k - 1] < 0 or order[j] > order[bi[k - 1]])):
+        return
+    pos = k - 1
+    while pos > 0 and (bd[pos - 1] > d2 or (bd[pos - 1] == d2 and order[bi[pos - 1]] > order[j])):
+        bd[pos] = bd[pos - 1]
+        bi[pos] = bi[pos - 1]
+        pos -= 1
+    bd[pos] = d2
+    bi[pos] = j
+
+
+@numba.njit(cache=True, inline="always")
 def _collect(grid, q, radius, bd, bi):
     """Offer the points of the cells overlapping the box ``q ± radius`` to the k-best buffer
     ``(bd, bi)``: squared distances ascending and sorted ranks; empty slots hold the bound and -1.
@@ -345,25 +364,7 @@ def _collect(grid, q, radius, bd, bi):
                 if rank < 0:
                     continue
                 for j in range(starts[rank], starts[rank + 1]):
-                    dx = points[j, 0] - qx
-                    dy = points[j, 1] - qy
-                    dz = points[j, 2] - qz
-                    d2 = dx * dx + dy * dy + dz * dz
-                    # Ties compare the original index (cells are visited in no particular
-                    # order); an empty slot holds the bound itself: only strictly nearer enters.
-                    if d2 > bd[k - 1] or (
-                        d2 == bd[k - 1] and (bi[k - 1] < 0 or order[j] > order[bi[k - 1]])
-                    ):
-                        continue
-                    pos = k - 1
-                    while pos > 0 and (
-                        bd[pos - 1] > d2 or (bd[pos - 1] == d2 and order[bi[pos - 1]] > order[j])
-                    ):
-                        bd[pos] = bd[pos - 1]
-                        bi[pos] = bi[pos - 1]
-                        pos -= 1
-                    bd[pos] = d2
-                    bi[pos] = j
+                    _offer(points, order, j, qx, qy, qz, bd, bi)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -555,21 +556,7 @@ def _self_knn(grid, k, offsets, w, d2, idx, unsure):
             bi[:] = -1
             for r in range(runs):
                 for j in range(first[r], last[r]):
-                    dd = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2
-                    dd += (points[j, 2] - qz) ** 2
-                    if dd > bd[k - 1] or (
-                        dd == bd[k - 1] and (bi[k - 1] < 0 or order[j] > order[bi[k - 1]])
-                    ):
-                        continue
-                    pos = k - 1
-                    while pos > 0 and (
-                        bd[pos - 1] > dd or (bd[pos - 1] == dd and order[bi[pos - 1]] > order[j])
-                    ):
-                        bd[pos] = bd[pos - 1]
-                        bi[pos] = bi[pos - 1]
-                        pos -= 1
-                    bd[pos] = dd
-                    bi[pos] = j
+                    _offer(points, order, j, qx, qy, qz, bd, bi)
             reach = min(qx - low_x, high_x - qx, qy - low_y, high_y - qy, qz - low_z, high_z - qz)
             row = order[i]
             # Exact when every point not seen is strictly farther than the k-th (ties too).
