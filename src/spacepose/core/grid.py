@@ -168,6 +168,10 @@ class VoxelIndex:
         bound = float(distance_upper_bound)
         if np.isnan(bound) or bound <= 0:
             raise InputError(f"distance_upper_bound must be positive, got {distance_upper_bound}")
+        if k == 1 and np.isfinite(bound):
+            # The gated nearest neighbour: the ring-by-ring search of nearest_within.
+            nearest, d2_1 = self.nearest_within(q, bound, workers=workers)
+            return np.sqrt(d2_1), np.where(nearest < 0, self.n, nearest)
         d2 = np.empty((len(q), k))
         idx = np.empty((len(q), k), dtype=np.int64)
         with numba_threads(workers):

@@ -29,11 +29,13 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
 from spacepose.core.fpfh import FPFHConfig, compute_fpfh
+from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import (
     as_registration_cloud,
     find_correspondences,
     point_to_point_information,
 )
+from spacepose.core.neighbors import SearchIndex
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.registration import RegistrationResult, kabsch
 from spacepose.errors import InputError, RegistrationError
@@ -171,7 +173,7 @@ def iteration_bound(inlier_ratio: float, confidence: float) -> float:
 def coverage_counts(
     T_target_source: NDArray[np.float64],
     source_points: NDArray[np.float64],
-    target_tree: cKDTree,
+    target_tree: SearchIndex,
     max_distance: float,
     workers: int = -1,
 ) -> NDArray[np.intp]:
@@ -184,7 +186,7 @@ def coverage_counts(
     source_points
         (m, 3) points in the source frame (usually a fixed subsample).
     target_tree
-        KD-tree of the target cloud, target frame.
+        Search index (VoxelIndex, ``cKDTree``) of the target cloud, target frame.
     max_distance
         Gate (m); a point counts when its nearest target point is strictly closer.
     workers
@@ -270,7 +272,7 @@ def ransac_correspondences(
     # depend on how many batches run.
     src_sub = src.points[_subsample(rng, len(src), config.coverage_points)]
     tgt_sub = tgt.points[_subsample(rng, len(tgt), config.coverage_points)]
-    src_tree, tgt_tree = cKDTree(src.points), cKDTree(tgt.points)
+    src_tree, tgt_tree = VoxelIndex(src.points), VoxelIndex(tgt.points)
 
     best_T, best_key, best_count, most = None, (-1, -1, -math.inf), 0, 0
     drawn, bound = 0, math.inf
@@ -342,7 +344,7 @@ def evaluate_alignment(
     """Fitness, RMSE and information of ``T_target_source`` from nearest target points within ε."""
     moved = se3.transform_points(T_target_source, source.points)
     s, _, d2 = find_correspondences(
-        cKDTree(target.points), moved, config.max_correspondence_distance, workers
+        VoxelIndex(target.points), moved, config.max_correspondence_distance, workers
     )
     return RegistrationResult(
         T_target_source=T_target_source,
