@@ -6,13 +6,19 @@ gains nothing from a second thread at that size; the tracker asks for such searc
 numpy (every query visits a different, variable number of candidates). So the search is a numba
 kernel over a hash of voxel cells:
 
-* the points are sorted by cell; an open-addressing hash maps a cell key to its run of points;
+* the points are grouped by cell; a direct table (or, for a sparse box, an open-addressing
+  hash) maps a cell key to its run of points;
 * a query visits the cells overlapping the box around its search ball and keeps the k best
   candidates ordered by (squared distance, index): ties are broken by index, so the answer does
   not depend on the visiting order;
 * without an upper bound the ball radius starts at the previous query's k-th distance (queries
   arrive spatially sorted in practice) and grows until the k-th best lies inside it, which makes
-  the answer exact: every point nearer than it sits in a visited cell.
+  the answer exact: every point nearer than it sits in a visited cell;
+* the k nearest of every indexed point (normals, covariances) are taken a cell at a time, the
+  block of cells around it shared by all its points (:meth:`VoxelIndex.query_self`);
+* the gated nearest point (ICP correspondences) starts at the point's previous match, or else
+  visits cells ring by ring, nearest first (:func:`nearest_point`, also called from other
+  modules' kernels).
 
 Queries are independent, so the result is the same on any thread count. :class:`VoxelIndex`
 answers ``query`` with the contract of ``cKDTree.query`` (missing neighbours: index ``n``,
@@ -50,9 +56,9 @@ _DENSE_CELLS_MIN = 1 << 16
 # OpenMP before TBB: Open3D (the optional peer) bundles a TBB older than numba accepts, and the
 # OpenMP layer, unlike the workqueue fallback, takes concurrent calls from several threads.
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-# Idle OpenMP threads sleep instead of spinning: between two short kernels a spinning thread
-# takes a core from the numpy work in between (a lab tracking step took 80 ms instead of 27 on
-# two cores). Read when the OpenMP runtime starts; a user's own setting wins.
+# Idle OpenMP threads sleep instead of spinning: after a short kernel a spinning thread takes a
+# core from the work that follows (a lab tracking step interleaved with Open3D took 80 ms instead
+# of 27 on two cores). Read when the OpenMP runtime starts; a user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
@@ -92,6 +98,9 @@ class VoxelIndex:
         Number of points and dimension (3), as on a ``cKDTree``.
     cell_size
         Cell edge (m).
+    kernel_grid
+        The arrays and scalars the compiled searches take, as one tuple (for kernels in other
+        modules that call :func:`nearest_point`).
     """
 
     def __init__(self, points: ArrayLike, cell_size: float | None = None) -> None:

@@ -75,7 +75,7 @@ class RansacConfig(StageConfig):
         when a cloud is smaller). Hypotheses are ranked by how many subsampled source points
         land within ε of the target cloud plus how many subsampled target points land within ε
         of the moved source cloud; correspondence inliers only break ties and set the stopping
-        bound. Cost per batch: two KD-tree queries of (hypotheses × coverage_points) points.
+        bound. Cost per batch: two neighbour searches of (hypotheses × coverage_points) points.
     local_refits
         Rounds of Kabsch refit on the hypothesis' own inlier correspondences (and recount)
         before it is scored, as in LO-RANSAC: hypotheses from three noisy pairs can be 10° off

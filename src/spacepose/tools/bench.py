@@ -814,6 +814,16 @@ def max_rss_mb() -> float:
     return rss / 2**20 if sys.platform == "darwin" else rss / 2**10
 
 
+def _threading_layer() -> str | None:
+    """numba's threading layer once a parallel kernel has run (None before)."""
+    import numba
+
+    try:
+        return numba.threading_layer()
+    except ValueError:
+        return None
+
+
 def environment(workers: int, threads: int, peers: dict[str, ModuleType]) -> dict:
     """Machine, library versions and the thread settings every contender ran with."""
 
@@ -832,17 +842,24 @@ def environment(workers: int, threads: int, peers: dict[str, ModuleType]) -> dic
         "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         "numpy": np.__version__,
         "scipy": scipy.__version__,
+        "numba": version("numba"),
         "open3d": version("open3d"),
         "small_gicp": version("small_gicp"),
         "threads": {
             "workers": workers,
-            "ours_cKDTree_workers": workers,
+            "ours_workers": workers,
             "resolved": threads,
+            "numba_threading_layer": _threading_layer(),
             "open3d_set_max_threads": threads if "open3d" in peers else None,
             "small_gicp_num_threads": threads if "small_gicp" in peers else None,
             "env": {
                 k: os.environ.get(k)
-                for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+                for k in (
+                    "OMP_NUM_THREADS",
+                    "OMP_WAIT_POLICY",
+                    "OPENBLAS_NUM_THREADS",
+                    "MKL_NUM_THREADS",
+                )
             },
         },
     }
