@@ -10,6 +10,7 @@ correspondences are searched again at every iteration.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
@@ -17,10 +18,12 @@ from pydantic import Field
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
+from spacepose.core.grid import numba_threads
 from spacepose.core.icp import (
     CorrespondenceSearch,
     as_registration_cloud,
     solve_normal_equations,
+    system_from_sums,
     target_kdtree,
 )
 from spacepose.core.neighbors import SearchIndex, knn
@@ -29,6 +32,8 @@ from spacepose.core.registration import RegistrationResult
 from spacepose.errors import InputError, RegistrationError
 
 # Levenberg-Marquardt damping schedule (the values small_gicp uses).
+# Correspondences per chunk of the compiled normal equations (fixed: so is the sum order).
+_CHUNK = 512
 _LM_INIT_LAMBDA = 1e-3
 _LM_FACTOR = 10.0
 _LM_MAX_TRIALS = 10
@@ -116,8 +121,13 @@ def gicp_linearize(
     R: NDArray[np.float64],
     source_covariances: NDArray[np.float64],
     target_covariances: NDArray[np.float64],
+    workers: int = 1,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
     """Normal equations of the GICP cost at the current transform.
+
+    Compiled, one pass per correspondence: ``W = (C_q + R C_p Rᵀ)⁻¹`` from the adjugate, then
+    ``JᵀWJ``, ``JᵀWd`` and ``dᵀWd`` with ``J = [−skew(p) I]``, summed in fixed chunks (the same
+    bits on any thread count). The numpy form took ~5 ms of each 18 000-point iteration.
 
     Parameters
     ----------
@@ -129,68 +139,103 @@ def gicp_linearize(
         (3, 3) current rotation ``R_target_source`` (rotates the source covariances).
     source_covariances, target_covariances
         (M, 3, 3) matched covariances, each in its own cloud's frame.
+    workers
+        Threads (-1: all cores).
 
     Returns
     -------
     H, g, W, cost
         6×6 ``Σ JᵀWJ``, (6,) ``Σ JᵀWd``, the (M, 3, 3) weights ``(C_q + R C_p Rᵀ)⁻¹`` and the
         cost ``Σ dᵀWd``; twist order (omega, v), left perturbation.
-    """
-    # R C Rᵀ for the whole stack as one product: vec(R C Rᵀ) = (R ⊗ R) vec(C). einsum rather
-    # than a BLAS call: a (M, 9) x (9, 9) GEMM pays more in thread hand-off than it computes.
-    rotated = np.einsum("nj,ij->ni", source_covariances.reshape(-1, 9), np.kron(R, R))
-    W = symmetric_inverse(target_covariances + rotated.reshape(-1, 3, 3))
-    d = points - target_points
-    # With W = L Lᵀ, JᵀWJ = Σ_r (L_rᵀ J)ᵀ (L_rᵀ J) over the columns L_r of L, and L_rᵀ J is the
-    # point-to-plane row of "normal" L_r: H is one (3M, 6) Gram product (a BLAS syrk).
-    L = whitening_columns(W)  # (M, 3 columns, 3)
-    rows = np.concatenate([np.cross(points[:, None, :], L), L], axis=2).reshape(-1, 6)
-    residuals = np.einsum("mri,mi->mr", L, d).reshape(-1)
-    return rows.T @ rows, rows.T @ residuals, W, mahalanobis_sum(d, W)
-
-
-def symmetric_inverse(C: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Inverses (M, 3, 3) of symmetric positive definite 3×3 matrices, from their adjugates.
 
     Raises
     ------
     InputError
-        When a matrix is singular or not positive definite (e.g. zero covariances).
+        When some ``C_q + R C_p Rᵀ`` is singular or not positive definite (e.g. zero
+        covariances).
     """
-    a, b, c = C[:, 0, 0], C[:, 0, 1], C[:, 0, 2]
-    d, e, f = C[:, 1, 1], C[:, 1, 2], C[:, 2, 2]
-    A00, A01, A02 = d * f - e * e, c * e - b * f, b * e - c * d
-    det = a * A00 + b * A01 + c * A02
-    if not np.all(det > 0) or not np.all(a > 0) or not np.all(a * d - b * b > 0):
+    m = len(points)
+    W = np.empty((m, 3, 3))
+    partial = np.zeros((max(1, -(-m // _CHUNK)), 28))
+    with numba_threads(workers):
+        singular = _linearize_kernel(
+            np.ascontiguousarray(points, dtype=np.float64),
+            np.ascontiguousarray(target_points, dtype=np.float64),
+            np.ascontiguousarray(R, dtype=np.float64),
+            np.ascontiguousarray(source_covariances, dtype=np.float64),
+            np.ascontiguousarray(target_covariances, dtype=np.float64),
+            W,
+            partial,
+        )
+    if singular:
         raise InputError(
             "GICP needs positive definite covariances: C_target + R C_source Rᵀ is singular "
-            "or indefinite for some correspondence (use compute_covariances)"
+            f"or indefinite for {singular} correspondences (use compute_covariances)"
         )
-    adj = np.empty_like(C)
-    adj[:, 0, 0], adj[:, 0, 1], adj[:, 0, 2] = A00, A01, A02
-    adj[:, 1, 0], adj[:, 1, 1], adj[:, 1, 2] = A01, a * f - c * c, b * c - a * e
-    adj[:, 2, 0], adj[:, 2, 1], adj[:, 2, 2] = A02, adj[:, 1, 2], a * d - b * b
-    return adj / det[:, None, None]
+    total = partial.sum(axis=0)
+    H, g = system_from_sums(total)
+    return H, g, W, float(total[27])
 
 
-def whitening_columns(W: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Columns of the Cholesky factors ``W = L Lᵀ`` of symmetric positive definite 3×3 matrices.
-
-    Returns
-    -------
-    (M, 3, 3) array whose ``[m, r]`` is column r of ``L_m`` (lower triangular), so that
-    ``dᵀ W d = Σ_r (L[m, r] · d)²``.
-    """
-    l00 = np.sqrt(W[:, 0, 0])
-    l10, l20 = W[:, 0, 1] / l00, W[:, 0, 2] / l00
-    l11 = np.sqrt(W[:, 1, 1] - l10 * l10)
-    l21 = (W[:, 1, 2] - l20 * l10) / l11
-    l22 = np.sqrt(W[:, 2, 2] - l20 * l20 - l21 * l21)
-    L = np.zeros_like(W)
-    L[:, 0, 0], L[:, 0, 1], L[:, 0, 2] = l00, l10, l20
-    L[:, 1, 1], L[:, 1, 2] = l11, l21
-    L[:, 2, 2] = l22
-    return L
+@numba.njit(cache=True, parallel=True)
+def _linearize_kernel(points, target_points, R, Cs, Ct, W, partial):
+    """Fill ``W`` and, per chunk of rows, the upper triangle of Σ JᵀWJ (21), Σ JᵀWd (6) and
+    Σ dᵀWd; return how many rows had no positive definite ``C_q + R C_p Rᵀ``."""
+    m = len(points)
+    singular = 0
+    for c in numba.prange(len(partial)):
+        acc = partial[c]
+        RC = np.empty((3, 3))
+        C = np.empty((3, 3))
+        J = np.zeros((3, 6))
+        WJ = np.empty((3, 6))
+        Wd = np.empty(3)
+        d = np.empty(3)
+        for a in range(3):
+            J[a, 3 + a] = 1.0
+        for i in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
+            for a in range(3):
+                for b in range(3):
+                    RC[a, b] = R[a, 0] * Cs[i, 0, b] + R[a, 1] * Cs[i, 1, b] + R[a, 2] * Cs[i, 2, b]
+            for a in range(3):
+                for b in range(a, 3):
+                    C[a, b] = (
+                        Ct[i, a, b] + RC[a, 0] * R[b, 0] + RC[a, 1] * R[b, 1] + RC[a, 2] * R[b, 2]
+                    )
+            # Inverse from the adjugate; Sylvester's criterion for positive definiteness.
+            c00, c01, c02, c11, c12, c22 = C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2]
+            a00, a01, a02 = c11 * c22 - c12 * c12, c02 * c12 - c01 * c22, c01 * c12 - c02 * c11
+            det = c00 * a00 + c01 * a01 + c02 * a02
+            if not (det > 0 and c00 > 0 and c00 * c11 - c01 * c01 > 0):
+                singular += 1
+                W[i] = 0.0
+                continue
+            inv = 1.0 / det
+            W[i, 0, 0], W[i, 0, 1], W[i, 0, 2] = a00 * inv, a01 * inv, a02 * inv
+            W[i, 1, 1] = (c00 * c22 - c02 * c02) * inv
+            W[i, 1, 2] = (c01 * c02 - c00 * c12) * inv
+            W[i, 2, 2] = (c00 * c11 - c01 * c01) * inv
+            W[i, 1, 0], W[i, 2, 0], W[i, 2, 1] = W[i, 0, 1], W[i, 0, 2], W[i, 1, 2]
+            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+            # J = [−skew(p) I]: the derivative of exp(δ) p at δ = 0.
+            J[0, 1], J[0, 2] = pz, -py
+            J[1, 0], J[1, 2] = -pz, px
+            J[2, 0], J[2, 1] = py, -px
+            for a in range(3):
+                d[a] = points[i, a] - target_points[i, a]
+            for a in range(3):
+                Wd[a] = W[i, a, 0] * d[0] + W[i, a, 1] * d[1] + W[i, a, 2] * d[2]
+                for b in range(6):
+                    WJ[a, b] = W[i, a, 0] * J[0, b] + W[i, a, 1] * J[1, b] + W[i, a, 2] * J[2, b]
+            pos = 0
+            for a in range(6):
+                for b in range(a, 6):
+                    acc[pos] += J[0, a] * WJ[0, b] + J[1, a] * WJ[1, b] + J[2, a] * WJ[2, b]
+                    pos += 1
+            for a in range(6):
+                acc[21 + a] += J[0, a] * Wd[0] + J[1, a] * Wd[1] + J[2, a] * Wd[2]
+            acc[27] += d[0] * Wd[0] + d[1] * Wd[1] + d[2] * Wd[2]
+    return singular
 
 
 def mahalanobis_sum(d: NDArray[np.float64], W: NDArray[np.float64]) -> float:
@@ -277,7 +322,7 @@ def gicp(
         T_cur: NDArray[np.float64], s: NDArray[np.intp], t: NDArray[np.intp], p: NDArray
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
         """Normal equations at T_cur; p are the matched source points already moved by it."""
-        return gicp_linearize(p, tgt.points[t], T_cur[:3, :3], Cs[s], Ct[t])
+        return gicp_linearize(p, tgt.points[t], T_cur[:3, :3], Cs[s], Ct[t], workers)
 
     lam = _LM_INIT_LAMBDA
     converged = False

@@ -257,7 +257,7 @@ def point_to_plane_system(
             partial,
         )
     total = partial.sum(axis=0)
-    H, g = _system_from_sums(total)
+    H, g = system_from_sums(total)
     return H, g, float(total[27])
 
 
@@ -315,8 +315,9 @@ def _plane_matches_kernel(grid, rings, targets, normals, src, R, t, gate, hint, 
                 _accumulate_plane(acc, q, targets[j], normals[j], h)
 
 
-def _system_from_sums(total: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
-    """(H (6, 6), g (6,)) from the 27 leading sums of :func:`_accumulate_plane`."""
+def system_from_sums(total: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+    """(H (6, 6), g (6,)) from 27 compiled sums: the row-major upper triangle of H (21), then g
+    (as :func:`_accumulate_plane` and GICP's kernel lay them out)."""
     H = np.empty((6, 6))
     H[_UPPER] = total[:21]
     H.T[_UPPER] = total[:21]
@@ -556,5 +557,5 @@ class _FusedPlaneMatcher:
         _checked(count, n, self.gate)
         s = np.flatnonzero(nearest >= 0)
         rmse = float(np.sqrt(total[29] / count))
-        H, g = _system_from_sums(total)
+        H, g = system_from_sums(total)
         return Correspondences(s, nearest[s], count / n, rmse, system=(H, g, float(total[27])))
