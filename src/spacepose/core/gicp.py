@@ -24,7 +24,7 @@ from spacepose.core.icp import (
     as_registration_cloud,
     solve_normal_equations,
     system_from_sums,
-    target_kdtree,
+    target_index,
 )
 from spacepose.core.neighbors import SearchIndex, knn
 from spacepose.core.normals import neighbourhood_normals
@@ -304,7 +304,7 @@ def gicp(
     if Ct is None:
         Ct = compute_covariances(tgt, config.k_covariance, config.epsilon, workers)
     gate = config.max_correspondence_distance
-    search = CorrespondenceSearch(target_kdtree(tgt, target_tree), gate, workers)
+    search = CorrespondenceSearch(target_index(tgt, target_tree), gate, workers)
 
     def correspond(
         T_cur: NDArray[np.float64],

@@ -75,7 +75,7 @@ def as_registration_cloud(cloud: PointCloud | ArrayLike, name: str) -> PointClou
     return pc
 
 
-def target_kdtree(target: PointCloud, target_tree: SearchIndex | None) -> SearchIndex:
+def target_index(target: PointCloud, target_tree: SearchIndex | None) -> SearchIndex:
     """The search index of ``target``: ``target_tree`` if given (checked to match), else a new
     :class:`~spacepose.core.grid.VoxelIndex`."""
     if target_tree is None:
@@ -413,7 +413,7 @@ def icp_correspondences(
     plane = config.method == "point_to_plane"
     if plane and tgt.normals is None:
         tgt = estimate_normals(tgt, config.normals, workers=workers)
-    tree = target_kdtree(tgt, target_tree)
+    tree = target_index(tgt, target_tree)
     gate = config.max_correspondence_distance
     if plane and isinstance(tree, VoxelIndex):
         evaluate = _FusedPlaneMatcher(tree, tgt.normals, src.points, gate, workers)
