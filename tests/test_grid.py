@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from spacepose.core.grid import VoxelIndex, numba_threads
+from spacepose.core.voxel import bounds, cell_keys, voxel_cells
 from spacepose.errors import InputError
 
 
@@ -147,5 +148,44 @@ def test_bad_input_is_reported():
         index.query(np.zeros((1, 3)), distance_upper_bound=0.0)
     with pytest.raises(InputError, match="hints"):
         index.nearest_within(np.zeros((3, 3)), 0.01, hint=np.zeros(2, dtype=np.int64))
+    # A hint the kernel would look up out of range, a float hint, bad points and gates.
+    with pytest.raises(InputError, match="hints must lie"):
+        index.nearest_within(np.zeros((2, 3)), 0.01, hint=np.array([0, 100]))
+    with pytest.raises(InputError, match="hints must lie"):
+        index.nearest_within(np.zeros((2, 3)), 0.01, hint=np.array([0, -2]))
+    with pytest.raises(InputError, match="integers"):
+        index.nearest_within(np.zeros((2, 3)), 0.01, hint=np.zeros(2))
+    with pytest.raises(InputError):
+        index.nearest_within(np.full((2, 3), np.nan), 0.01)
+    for gate in (0.0, -1.0, np.nan):
+        with pytest.raises(InputError, match="max_distance"):
+            index.nearest_within(np.zeros((2, 3)), gate)
     with pytest.raises(InputError, match="workers"), numba_threads(0):
         pass
+
+
+def test_voxel_primitives_refuse_bad_input():
+    # Empty, non-finite or misshaped points and non-positive cells: the compiled passes would
+    # otherwise read points[0] of an empty array or index cells from NaN coordinates.
+    for bad in (np.empty((0, 3)), np.array([[0.0, np.inf, 1.0]]), np.zeros((3, 2))):
+        with pytest.raises(InputError):
+            bounds(bad)
+        with pytest.raises(InputError):
+            cell_keys(bad, 0.01)
+        with pytest.raises(InputError):
+            voxel_cells(bad, 0.01)
+    for size in (0.0, -0.01, np.nan, np.inf):
+        with pytest.raises(InputError, match="cell size"):
+            cell_keys(np.zeros((3, 3)), size)
+    # And the right answer on good input: min/max as numpy, keys that order cells as the
+    # lexicographic (x, y, z) cell indices do.
+    pts = _surface(500, seed=12)
+    low, high = bounds(pts)
+    np.testing.assert_array_equal(low, pts.min(axis=0))
+    np.testing.assert_array_equal(high, pts.max(axis=0))
+    keys, dims, offset = cell_keys(pts, 0.05)
+    cells = np.floor(pts / 0.05).astype(np.int64)
+    np.testing.assert_array_equal(offset, cells.min(axis=0))
+    np.testing.assert_array_equal(dims, cells.max(axis=0) - cells.min(axis=0) + 1)
+    lexical = np.lexsort(((cells - offset)[:, 2], (cells - offset)[:, 1], (cells - offset)[:, 0]))
+    np.testing.assert_array_equal(np.sort(keys), keys[lexical])

@@ -171,11 +171,10 @@ def test_information_matches_numerical_jacobian(rng: np.random.Generator) -> Non
         r = [np.einsum("ni,ni->n", m - q, n) for m in moved]
         J_plane[:, a] = (r[0] - r[1]) / (2 * h)
     r0 = np.einsum("ni,ni->n", p - q, n)
-    for workers in (1, 2):
-        H, g, sse = point_to_plane_system(p, q, n, workers=workers)
-        np.testing.assert_allclose(H, J_plane.T @ J_plane, atol=1e-6)
-        np.testing.assert_allclose(g, J_plane.T @ r0, atol=1e-8)
-        assert sse == pytest.approx(r0 @ r0, rel=1e-12)
+    H, g, sse = point_to_plane_system(p, q, n)
+    np.testing.assert_allclose(H, J_plane.T @ J_plane, atol=1e-6)
+    np.testing.assert_allclose(g, J_plane.T @ r0, atol=1e-8)
+    assert sse == pytest.approx(r0 @ r0, rel=1e-12)
     np.testing.assert_allclose(
         point_to_point_information(p), np.einsum("nai,naj->ij", J_point, J_point), atol=1e-6
     )
@@ -285,3 +284,24 @@ def test_correspondence_search_single_target_and_new_size() -> None:
     # A different number of query points starts afresh.
     s, _, _ = search(np.array([[0.1, 0.0, 0.0]]))
     np.testing.assert_array_equal(s, [0])
+
+
+def test_point_to_plane_system_sums_in_fixed_chunks(rng: np.random.Generator) -> None:
+    # 5000 rows span ten chunks: the same bits on one and two threads, and the sums of
+    # numpy's rows to rounding.
+    p = rng.normal(size=(5000, 3))
+    n = rng.normal(size=(5000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    q = p + 0.01 * rng.normal(size=(5000, 3))
+    one, two = point_to_plane_system(p, q, n, workers=1), point_to_plane_system(p, q, n, workers=2)
+    for a, b in zip(one, two, strict=True):
+        np.testing.assert_array_equal(a, b)
+    rows = np.concatenate([np.cross(p, n), n], axis=1)
+    r = np.einsum("ni,ni->n", p - q, n)
+    np.testing.assert_allclose(one[0], rows.T @ rows, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(one[1], rows.T @ r, rtol=1e-10, atol=1e-12)
+    # Rows that do not line up are refused before the kernel reads past an array.
+    with pytest.raises(InputError, match="one row count"):
+        point_to_plane_system(p, q[:-1], n)
+    with pytest.raises(InputError, match="one row count"):
+        point_to_plane_system(p[:, :2], q[:, :2], n[:, :2])

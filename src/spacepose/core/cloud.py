@@ -144,3 +144,16 @@ def as_points(
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name} have non-finite entries (NaN or inf)", source)
     return arr
+
+
+def check_rows(name: str, *arrays: ArrayLike, shapes: tuple[tuple[int, ...], ...] = ()) -> None:
+    """Raise :class:`InputError` unless the arrays share one row count M and are each (M, 3),
+    or (M, *shape) for the ``shapes`` given: the check before a compiled kernel that indexes
+    several arrays by the same row without bounds checks."""
+    shapes = shapes or ((3,),) * len(arrays)
+    rows = {np.shape(a)[0] if np.ndim(a) else None for a in arrays}
+    if len(rows) != 1 or any(
+        np.shape(a)[1:] != shape for a, shape in zip(arrays, shapes, strict=True)
+    ):
+        got = ", ".join(str(np.shape(a)) for a in arrays)
+        raise InputError(f"{name} needs arrays of one row count shaped {shapes}, got {got}")

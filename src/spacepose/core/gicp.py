@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, check_rows
 from spacepose.core.config import StageConfig
 from spacepose.core.grid import numba_threads
 from spacepose.core.icp import (
@@ -152,8 +152,19 @@ def gicp_linearize(
     ------
     InputError
         When some ``C_q + R C_p Rᵀ`` is singular or not positive definite (e.g. zero
-        covariances).
+        covariances), or the arrays do not share their row count and shapes (the kernel
+        indexes them unchecked).
     """
+    check_rows(
+        "gicp_linearize",
+        points,
+        target_points,
+        source_covariances,
+        target_covariances,
+        shapes=((3,), (3,), (3, 3), (3, 3)),
+    )
+    if np.shape(R) != (3, 3):
+        raise InputError(f"gicp_linearize needs a (3, 3) rotation, got {np.shape(R)}")
     m = len(points)
     W = np.empty((m, 3, 3))
     partial = np.zeros((max(1, -(-m // _CHUNK)), 28))

@@ -252,8 +252,7 @@ class VoxelIndex:
     ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Nearest indexed point strictly within ``max_distance`` of each point.
 
-        The correspondence search of ICP-like loops: no input checks beyond the shapes (the
-        caller owns finite (N, 3) float64 points), and an optional warm start. A point's
+        The correspondence search of ICP-like loops, with an optional warm start. A point's
         previous nearest (``hint``) bounds its search ball before any cell is visited; after a
         small move that ball is a few millimetres wide instead of the whole gate, so late
         iterations visit a cell or two per point. The answer does not depend on the hint.
@@ -276,10 +275,18 @@ class VoxelIndex:
             (N,) index into ``data`` of each point's nearest (-1: none within the gate) and its
             squared distance (``inf`` when none).
         """
+        points = as_points(points, "points")
+        if not np.isfinite(max_distance) or max_distance <= 0:
+            raise InputError(f"max_distance must be a positive number, got {max_distance}")
         if hint is None:
             hint = np.full(len(points), -1, dtype=np.int64)
-        elif len(hint) != len(points):
-            raise InputError(f"{len(hint)} hints for {len(points)} points")
+        else:
+            hint = np.asarray(hint)
+            if hint.shape != (len(points),) or not np.issubdtype(hint.dtype, np.integer):
+                raise InputError(f"hints must be ({len(points)},) integers, got {hint.shape}")
+            # The kernel looks a hint up unchecked: out of range would read stray memory.
+            if len(hint) and (hint.min() < -1 or hint.max() >= self.n):
+                raise InputError(f"hints must lie in -1..{self.n - 1}")
         idx = np.empty(len(points), dtype=np.int64)
         d2 = np.empty(len(points))
         with numba_threads(workers):

@@ -23,7 +23,7 @@ from pydantic import Field
 from scipy.spatial import cKDTree
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, check_rows
 from spacepose.core.config import StageConfig
 from spacepose.core.grid import VoxelIndex, nearest_point, numba_threads
 from spacepose.core.neighbors import SearchIndex, hybrid
@@ -246,7 +246,13 @@ def point_to_plane_system(
     -------
     H, g, sse
         (6, 6) information ``Σ h hᵀ`` (1/m²), (6,) gradient ``Σ h r`` and ``Σ r²`` (m²).
+
+    Raises
+    ------
+    InputError
+        The three arrays are not (M, 3) alike (the kernel indexes them unchecked).
     """
+    check_rows("point_to_plane_system", points, target_points, normals)
     chunks = max(1, -(-len(points) // _SYSTEM_CHUNK))
     partial = np.zeros((chunks, 28))
     with numba_threads(workers):
@@ -369,7 +375,7 @@ def icp_correspondences(
     config: ICPConfig = ICPConfig(),
     workers: int = -1,
     target_tree: SearchIndex | None = None,
-) -> tuple[RegistrationResult, NDArray[np.intp], NDArray[np.intp]]:
+) -> tuple[RegistrationResult, Correspondences]:
     """Align ``source`` to ``target`` by ICP; also return the final correspondences.
 
     Parameters

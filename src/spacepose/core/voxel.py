@@ -12,6 +12,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from spacepose.core.cloud import as_points
 from spacepose.errors import InputError
 
 # Largest key: three cell indices pack into one int64.
@@ -43,10 +44,13 @@ def cell_keys(
     Raises
     ------
     InputError
-        The cloud spans more cells than one int64 key can number (a cell size far too small).
+        Points not finite (N, 3) with N >= 1, a cell size that is not a positive number, or a
+        cloud spanning more cells than one int64 key can number (a cell size far too small).
     """
-    o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
-    pts = np.ascontiguousarray(points, dtype=np.float64)
+    pts = _finite_points(points)
+    if not np.isfinite(cell_size) or cell_size <= 0:
+        raise InputError(f"cell size must be a positive number of metres, got {cell_size}")
+    o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
     cells = np.empty(pts.shape, dtype=np.int64)
     low, high = _cells(pts, o, float(cell_size), cells)
     dims = high - low + 1
@@ -58,8 +62,14 @@ def cell_keys(
 
 
 def bounds(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """(3,) smallest and (3,) largest coordinates of the (N, 3) points, N >= 1."""
-    return _bounds(np.ascontiguousarray(points, dtype=np.float64))
+    """(3,) smallest and (3,) largest coordinates of the (N, 3) finite points, N >= 1."""
+    return _bounds(_finite_points(points))
+
+
+def _finite_points(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    # The kernels read points[0] and index cells from coordinates: an empty, misshaped or
+    # non-finite array must stop here, not read out of bounds.
+    return np.ascontiguousarray(as_points(points, "points"), dtype=np.float64)
 
 
 def hash_bits(n_keys: int) -> int:
