@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 
 import numpy as np
 
 from spacepose.cli import main
 from spacepose.tools.runs import read_run
 
-HUBBLE = "/work/shared/data/models/hubble_model_kit.obj"
+# The NASA mesh shipped in the repository (data/README.md).
+HUBBLE = str(Path(__file__).resolve().parents[1] / "data" / "models" / "hubble_model_kit.obj")
 
 
 def _files(root):
