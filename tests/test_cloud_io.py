@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from spacepose.core.cloud import PointCloud
-from spacepose.errors import FileFormatError, InputError
+from spacepose.core.cloud import PointCloud, check_scale
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 
 EXTENSIONS = [".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz"]
@@ -302,3 +303,113 @@ def test_bad_write_arguments(tmp_path: Path, cloud: PointCloud) -> None:
     with _raises_naming(path, r"must be \(N, 3\) or \(N, 6\)", InputError):
         write_cloud(path, np.zeros((3, 4)))
     assert not path.exists()
+
+
+# --------------------------------------------------------------------------------------------
+# Headers that disagree with themselves or with the body, odd encodings, implausible values
+
+_PCD_HEADER = "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH {w}\nHEIGHT 1\nPOINTS {p}\n"
+_FIVE_ROWS = "".join(f"{i} {i + 1} {i + 2}\n" for i in range(5))
+
+
+@pytest.mark.parametrize(
+    ("width", "points", "match"),
+    [
+        (5, -5, "POINTS is negative: -5"),
+        (-5, 5, "WIDTH is negative"),
+        (4, 5, "POINTS 5 disagrees with WIDTH 4 x HEIGHT 1"),
+        (3, 3, "inconsistent ASCII PCD: POINTS 3 of 3 values need 9 numbers, the body has 15"),
+        (7, 7, "truncated ASCII PCD: POINTS 7 of 3 values need 21 numbers, the body has 15"),
+    ],
+)
+def test_pcd_counts_must_agree_with_each_other_and_the_body(
+    tmp_path: Path, width: int, points: int, match: str
+) -> None:
+    path = tmp_path / "n.pcd"
+    path.write_text(_PCD_HEADER.format(w=width, p=points) + "DATA ascii\n" + _FIVE_ROWS)
+    with _raises_naming(path, match):
+        read_cloud(path)
+
+
+def test_binary_pcd_with_more_bytes_than_points(tmp_path: Path) -> None:
+    path = tmp_path / "b.pcd"
+    body = np.arange(15, dtype="<f4").tobytes()  # five points
+    path.write_bytes((_PCD_HEADER.format(w=4, p=4) + "DATA binary\n").encode() + body)
+    with _raises_naming(path, "POINTS 4 of 12 bytes need 48 bytes of data, file has 60"):
+        read_cloud(path)
+    path.write_bytes((_PCD_HEADER.format(w=5, p=5) + "DATA binary\n").encode() + body)
+    np.testing.assert_array_equal(read_cloud(path).points, np.arange(15.0).reshape(5, 3))
+
+
+@pytest.mark.parametrize("empty", ["FIELDS", "SIZE", "TYPE", "COUNT"])
+def test_pcd_with_an_empty_header_list(tmp_path: Path, empty: str) -> None:
+    lines = {"FIELDS": "x y z", "SIZE": "4 4 4", "TYPE": "F F F", "COUNT": "1 1 1"}
+    lines[empty] = ""
+    header = "".join(f"{k} {v}\n" for k, v in lines.items())
+    path = tmp_path / "e.pcd"
+    path.write_text(header + "WIDTH 5\nHEIGHT 1\nPOINTS 5\nDATA ascii\n" + _FIVE_ROWS)
+    with _raises_naming(path, f"PCD header {empty} is empty"):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("ext", [".xyz", ".csv"])
+def test_text_with_a_utf8_byte_order_mark_keeps_its_first_row(tmp_path: Path, ext: str) -> None:
+    path = tmp_path / f"bom{ext}"
+    sep = "," if ext == ".csv" else " "
+    rows = [[1.5, 2.0, 3.0], [4.0, 5.0, 6.0]]
+    path.write_text("\n".join(sep.join(map(str, r)) for r in rows) + "\n", encoding="utf-8-sig")
+    assert path.read_bytes()[:3] == b"\xef\xbb\xbf"
+    np.testing.assert_array_equal(read_cloud(path).points, rows)
+    path.write_text("x,y,z\n1,2,3\n", encoding="utf-8-sig")  # a BOM before a header line
+    np.testing.assert_array_equal(read_cloud(path).points, [[1, 2, 3]])
+
+
+def test_ply_with_list_properties_for_xyz(tmp_path: Path) -> None:
+    path = tmp_path / "list.ply"
+    path.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 2\nproperty list uchar float x\n"
+        "property list uchar float y\nproperty list uchar float z\nend_header\n"
+        "2 1 1 1 2 1 3\n2 4 4 1 5 1 6\n"
+    )
+    with _raises_naming(path, "PLY vertex property 'x' is not one number per point"):
+        read_cloud(path)
+
+
+def test_coordinates_whose_squares_overflow_are_refused(tmp_path: Path) -> None:
+    path = tmp_path / "huge.npy"
+    np.save(path, np.full((10, 3), 1e300) * np.arange(1, 11)[:, None])
+    with _raises_naming(path, "reach .coordinate. 1e\\+301.*squares overflow", InputError):
+        read_cloud(path)
+
+
+def test_millimetres_are_warned_about_naming_the_file(tmp_path: Path) -> None:
+    from spacepose.core.sim import scenario_config, simulate
+
+    frame_m = simulate(scenario_config("lab", frames=1)).frame(0).cloud
+    path = write_cloud(tmp_path / "frame_mm.ply", frame_m.points * 1e3)
+    with pytest.warns(
+        SpaceposeWarning, match=rf"^{_re(str(path))}: coordinates look like millimetres"
+    ):
+        cloud = read_cloud(path)
+    np.testing.assert_allclose(cloud.points, frame_m.points * 1e3, rtol=1e-6)
+    # Read with scale=1e-3 it is the metre frame again (float32 on file), and nothing is said.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rescaled = read_cloud(path, scale=1e-3)
+        read_cloud(write_cloud(tmp_path / "frame_m.ply", frame_m))
+    np.testing.assert_allclose(rescaled.points, frame_m.points, atol=1e-6)
+    with _raises_naming(path, "scale must be a positive number", InputError):
+        read_cloud(path, scale=0.0)
+
+
+def test_real_outdoor_lidar_in_metres_is_not_taken_for_millimetres() -> None:
+    """The small_gicp pair: 73 and 95 m across, 12 mm median spacing, genuinely metres."""
+    data = Path(__file__).resolve().parents[1] / "data" / "real" / "small_gicp"
+    for name in ("source.ply", "target.ply"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            cloud = read_cloud(data / name)
+        check = check_scale(cloud.points)
+        assert check.extent > 50.0 and check.spacing < 0.02 and not check.millimetres
+        mm = check_scale(cloud.points * 1e3)
+        assert mm.millimetres and mm.spacing == pytest.approx(1e3 * check.spacing)

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import MAX_ABS_COORDINATE, PointCloud, as_cloud
 from spacepose.core.config import StageConfig, dump_config, load_config
 from spacepose.core.registration import RegistrationResult, kabsch
 from spacepose.errors import ConfigError, DegenerateGeometryError, InputError
@@ -126,7 +126,26 @@ def test_cli_maps_package_errors_to_one_line_and_exit_1(capsys) -> None:
     assert main(["experiment", "no-such-experiment", "--out", "unused"]) == 1
     err = capsys.readouterr().err
     assert "unknown experiment" in err and "Traceback" not in err
-    assert main(["--definitely-not-an-option"]) == 2
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--definitely-not-an-option"], "spacepose: No such option: --definitely-not-an-option"),
+        (["evaluate", "a.tum", "b.tum", "--jsn"], "spacepose evaluate: No such option: --jsn"),
+        (["no-such-command"], "spacepose: No such command 'no-such-command'"),
+        (["evaluate", "a.tum"], "spacepose evaluate: Missing argument 'gt'"),
+        (["planes", "x.ply", "--sigma", "abc"], "spacepose planes: Invalid value for '--sigma'"),
+    ],
+)
+def test_cli_usage_errors_are_one_line_and_exit_1_as_the_readme_says(
+    argv: list[str], message: str, capsys
+) -> None:
+    assert main(argv) == 1
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert len(err.strip().splitlines()) == 1
+    assert err.startswith(f"error: {message}") and "--help" in err and "Usage" not in err
 
 
 def test_pointcloud_leaves_the_callers_array_writable() -> None:
@@ -162,3 +181,92 @@ def test_as_points_is_the_one_array_check() -> None:
         as_points(np.zeros((0, 3)))
     with pytest.raises(InputError, match="NaN or inf"):
         as_points([[0.0, np.nan, 1.0]], source="scan.pcd")
+
+
+def test_stage_config_errors_are_config_errors_naming_the_field() -> None:
+    from pydantic import Field
+
+    class _Inner(StageConfig):
+        k: int = Field(10, ge=1)
+
+    class _Outer(StageConfig):
+        voxel_size: float = Field(0.01, gt=0)
+        inner: _Inner = _Inner()
+
+    with pytest.raises(ConfigError, match=r"^invalid _Outer: voxel_size: .*greater than 0$"):
+        _Outer(voxel_size=-1)
+    with pytest.raises(ConfigError, match=r"^invalid _Outer: inner\.k: .*greater than or equal"):
+        _Outer(inner={"k": 0})
+    with pytest.raises(ConfigError, match=r"^invalid _Outer: bogus: Extra inputs"):
+        _Outer.model_validate({"bogus": 1})
+    assert _Outer(inner={"k": 3}).inner.k == 3 and _Outer().voxel_size == 0.01
+
+
+def test_tracker_config_with_a_negative_voxel_is_a_config_error() -> None:
+    from spacepose.core.tracker import TrackerConfig
+
+    with pytest.raises(ConfigError, match=r"invalid TrackerConfig: voxel_size: .*greater than 0"):
+        TrackerConfig(voxel_size=-1)
+
+
+@pytest.mark.parametrize(
+    ("text", "where"),
+    [
+        ("voxel_size: [1, 2\niterations: 3\n", r"line 2:11: expected ',' or '\]', but got ':'"),
+        ("voxel_size: 1: 2\n", "line 1:14: mapping values are not allowed here"),
+        ("voxel_size: 1\n\titerations: 3\n", r"line 2:1: found character '\\t'"),
+    ],
+)
+def test_malformed_yaml_config_is_one_line_with_line_and_column(tmp_path, text, where) -> None:
+    path = tmp_path / "cfg.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(_Demo, path)
+    message = str(info.value)
+    assert "\n" not in message
+    assert message.startswith(f"{path}: not valid YAML: ")
+    assert __import__("re").search(where, message), message
+
+
+def test_malformed_json_config_is_one_line_with_line_and_column(tmp_path) -> None:
+    path = tmp_path / "cfg.json"
+    path.write_text('{"voxel_size": 0.1,\n "iterations": }\n')
+    with pytest.raises(
+        ConfigError, match=r"cfg\.json: not valid JSON: line 2:16: Expecting value$"
+    ):
+        load_config(_Demo, path)
+
+
+def test_as_cloud_wraps_an_array_and_passes_a_cloud_through() -> None:
+    cloud = PointCloud(np.ones((4, 3)), source="f.ply")
+    assert as_cloud(cloud) is cloud
+    wrapped = as_cloud([[1, 2, 3], [4, 5, np.nan]], "source")
+    np.testing.assert_array_equal(wrapped.points, [[1.0, 2.0, 3.0]])
+    assert wrapped.source == "source" and wrapped.n_dropped == 1
+    with pytest.raises(InputError, match=r"^f\.ply: need at least 5 points, got 4$"):
+        as_cloud(cloud, min_points=5)
+    with pytest.raises(InputError, match=r"^src: points must have shape \(N, 3\)"):
+        as_cloud(np.zeros((3, 2)), "src")
+
+
+def test_coordinates_beyond_the_float64_square_range_are_refused() -> None:
+    # sqrt(max float64) / 2**32: squared and summed over 2**32 points it is still finite.
+    assert MAX_ABS_COORDINATE**2 * 2.0**32 * 3 < np.finfo(np.float64).max
+    ok = np.full((3, 3), MAX_ABS_COORDINATE)
+    assert np.all(np.isfinite(PointCloud(ok).points ** 2))
+    with pytest.raises(InputError, match=r"^scan\.ply: points reach \|coordinate\| 1e\+300"):
+        PointCloud(np.full((5, 3), -1e300), source="scan.ply")
+    from spacepose.core.cloud import as_points
+
+    with pytest.raises(InputError, match=r"squares overflow"):
+        as_points(np.full((5, 3), 1e200))
+
+
+def test_planes_on_a_cloud_at_1e300_is_one_line_naming_the_file(tmp_path, capsys) -> None:
+    path = tmp_path / "far.npy"
+    rng = np.random.default_rng(0)
+    np.save(path, rng.normal(size=(500, 3)) * 1e300)
+    assert main(["planes", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1
+    assert err.startswith(f"error: {path}: points reach |coordinate|")

@@ -10,6 +10,13 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def _located(error: Exception, message: str, source: str | Path | None) -> str:
+    """Store ``source`` and ``reason`` on ``error``; the message with the source prefixed."""
+    error.source = None if source is None else str(source)
+    error.reason = message
+    return f"{error.source}: {message}" if error.source else message
+
+
 class SpaceposeError(Exception):
     """Base class of every error spacepose raises on purpose."""
 
@@ -27,9 +34,7 @@ class InputError(SpaceposeError, ValueError):
     """
 
     def __init__(self, message: str, source: str | Path | None = None) -> None:
-        self.source = None if source is None else str(source)
-        self.reason = message
-        super().__init__(f"{self.source}: {message}" if self.source else message)
+        super().__init__(_located(self, message, source))
 
 
 class FileFormatError(InputError):
@@ -46,3 +51,18 @@ class ConfigError(SpaceposeError, ValueError):
 
 class RegistrationError(SpaceposeError):
     """A registration that cannot produce a transform (no correspondences, no consensus)."""
+
+
+class SpaceposeWarning(UserWarning):
+    """Input that is accepted but looks wrong (coordinates in millimetres, a skipped file).
+
+    Parameters
+    ----------
+    message
+        What looks wrong, in one sentence.
+    source
+        The file it concerns, if any; prefixed to the message as for :class:`InputError`.
+    """
+
+    def __init__(self, message: str, source: str | Path | None = None) -> None:
+        super().__init__(_located(self, message, source))

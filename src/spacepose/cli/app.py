@@ -1,13 +1,23 @@
-"""The typer application object and the one error handler of the command line."""
+"""The typer application object, the one error handler and the warning printer of the CLI.
+
+Every error ends as one line on stderr and exit code 1: a :class:`SpaceposeError` (bad input,
+bad config) and a usage error alike (an unknown option or command, a missing argument, a value
+that does not parse), as the README promises. A :class:`SpaceposeWarning` is one line
+``warning: FILE: problem``; past the first few files with the same problem (every frame of a
+folder in millimetres) the others are only counted, and the count printed at the end.
+"""
 
 from __future__ import annotations
 
 import sys
+import warnings
+from collections import Counter
 
 import typer
 from rich.console import Console
+from typer._click.exceptions import NoArgsIsHelpError, UsageError
 
-from spacepose.errors import SpaceposeError
+from spacepose.errors import SpaceposeError, SpaceposeWarning
 
 app = typer.Typer(
     name="spacepose",
@@ -26,27 +36,87 @@ def _root() -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; a :class:`SpaceposeError` becomes one line on stderr and exit code 1.
+    """Run the CLI; errors become one line on stderr and exit code 1.
 
     Parameters
     ----------
     argv
         Arguments without the program name; ``sys.argv[1:]`` when omitted.
+
+    Returns
+    -------
+    The exit code: 0, 1 for any error in the input or on the command line, 130 when aborted.
+    A bare ``spacepose`` prints the help (exit code 2, as before).
     """
-    try:
-        result = app(args=argv, prog_name="spacepose", standalone_mode=False)
-    except SpaceposeError as exc:
-        # The message goes out as plain text: file names and "spacepose[peers]" hold brackets
-        # that rich would read as markup.
-        err_console.print("[bold red]error:[/] ", end="")
-        err_console.print(str(exc), markup=False, highlight=False, soft_wrap=True)
-        return 1
-    except typer.Abort:
-        err_console.print("aborted")
-        return 130
-    except typer.Exit as exc:
-        return exc.exit_code
-    except typer.TyperException as exc:  # usage errors: unknown option, missing argument
-        exc.show(file=sys.stderr)
-        return getattr(exc, "exit_code", 2)
+    with warnings.catch_warnings(), _OneLineWarnings() as shown:
+        warnings.simplefilter("always", SpaceposeWarning)
+        warnings.showwarning = shown.show
+        try:
+            result = app(args=argv, prog_name="spacepose", standalone_mode=False)
+        except SpaceposeError as exc:
+            print_error(str(exc))
+            return 1
+        except typer.Abort:
+            err_console.print("aborted")
+            return 130
+        except typer.Exit as exc:
+            return exc.exit_code
+        except NoArgsIsHelpError as exc:
+            exc.show(file=sys.stderr)
+            return exc.exit_code
+        except UsageError as exc:  # unknown option or command, missing argument, bad value
+            command = exc.ctx.command_path if exc.ctx is not None else "spacepose"
+            print_error(f"{command}: {exc.format_message()} (see '{command} --help')")
+            return 1
+        except typer.TyperException as exc:  # any other click error (e.g. an unreadable file)
+            print_error(exc.format_message())
+            return 1
     return result if isinstance(result, int) else 0
+
+
+def print_error(message: str) -> None:
+    """``error: message`` as one line on stderr (a multi-line message is joined)."""
+    # Plain text: file names and "spacepose[peers]" hold brackets rich would read as markup.
+    err_console.print("[bold red]error:[/] ", end="")
+    err_console.print(_one_line(message), markup=False, highlight=False, soft_wrap=True)
+
+
+def _one_line(message: str) -> str:
+    return " ".join(part.strip() for part in str(message).splitlines() if part.strip())
+
+
+class _OneLineWarnings:
+    """Print each :class:`SpaceposeWarning` as one line, a repeated problem ``shown`` times."""
+
+    shown = 3
+
+    def __init__(self) -> None:
+        self.repeats: Counter[tuple[type, str]] = Counter()
+        self.fallback = warnings.showwarning
+
+    def __enter__(self) -> _OneLineWarnings:
+        return self
+
+    def show(self, message, category, filename, lineno, file=None, line=None) -> None:
+        if not isinstance(message, SpaceposeWarning):
+            self.fallback(message, category, filename, lineno, file, line)
+            return
+        key = (category, message.reason)
+        self.repeats[key] += 1
+        if self.repeats[key] <= self.shown:
+            err_console.print("[yellow]warning:[/] ", end="")
+            err_console.print(
+                _one_line(str(message)), markup=False, highlight=False, soft_wrap=True
+            )
+
+    def __exit__(self, *exc_info: object) -> None:
+        for (_, reason), count in self.repeats.items():
+            if count > self.shown:
+                what = reason.split("(")[0].split(";")[0].strip()
+                err_console.print("[yellow]warning:[/] ", end="")
+                err_console.print(
+                    f"{count - self.shown} more file(s) with the same warning: {what}",
+                    markup=False,
+                    highlight=False,
+                    soft_wrap=True,
+                )

@@ -6,9 +6,23 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.errors import InputError
+
+#: A cloud is suspected to be in millimetres when it spans more than this many "metres" (bounding
+#: box diagonal) with a median nearest-neighbour spacing above MM_MIN_SPACING. No ToF camera or
+#: flash LiDAR samples a scene that wide that coarsely; the same data in millimetres do (a 1 m
+#: target sampled every 2 mm reads as 1000 m wide and 2 m apart), while outdoor LiDAR in metres
+#: spans 50-200 m at centimetre spacing. Units are the one place an absolute length is needed.
+MM_MIN_EXTENT = 50.0
+MM_MIN_SPACING = 0.25
+_SPACING_PROBES = 1000
+
+#: Largest accepted |coordinate|: sums of squares over any realistic cloud stay finite in float64
+#: (sqrt(max float64) / 2**32, about 3e144), so no stage overflows on a finite input.
+MAX_ABS_COORDINATE = float(np.sqrt(np.finfo(np.float64).max)) / 2.0**32
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,6 +73,7 @@ class PointCloud:
         if n_keep == 0:
             what = "is empty" if n == 0 else f"has no finite point (all {n} rows NaN/inf)"
             raise InputError(f"point cloud {what}", self.source)
+        _check_magnitude(pts[keep], "points", self.source)
         if n_keep < n:
             pts = pts[keep]
             normals = None if normals is None else normals[keep]
@@ -143,7 +158,38 @@ def as_points(
         )
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name} have non-finite entries (NaN or inf)", source)
+    _check_magnitude(arr, name, source)
     return arr
+
+
+def as_cloud(
+    values: PointCloud | ArrayLike, name: str = "points", min_points: int = 1
+) -> PointCloud:
+    """A :class:`PointCloud` as it is, or an (N, 3) array wrapped in one (validated).
+
+    The one coercion behind every one-call function that takes "a cloud": a caller may pass the
+    raw (N, 3) array of points (frame as the caller says) instead of building a PointCloud.
+
+    Raises
+    ------
+    InputError
+        Not (N, 3), no finite row, coordinates out of range, or fewer than ``min_points`` rows;
+        the message names ``name`` (or the cloud's source).
+    """
+    cloud = values if isinstance(values, PointCloud) else PointCloud(values, source=name)
+    if len(cloud) < min_points:
+        raise InputError(f"need at least {min_points} points, got {len(cloud)}", cloud.source)
+    return cloud
+
+
+def _check_magnitude(points: NDArray[np.float64], name: str, source: str | None) -> None:
+    """Refuse coordinates whose squares would overflow float64 in a covariance or a distance."""
+    if len(points) and (peak := max(points.max(), -points.min())) > MAX_ABS_COORDINATE:
+        raise InputError(
+            f"{name} reach |coordinate| {peak:.3g}, beyond {MAX_ABS_COORDINATE:.3g}: their squares "
+            "overflow float64 (wrong units or a corrupt file?)",
+            source,
+        )
 
 
 def check_rows(name: str, *arrays: ArrayLike, shapes: tuple[tuple[int, ...], ...] = ()) -> None:
@@ -157,3 +203,41 @@ def check_rows(name: str, *arrays: ArrayLike, shapes: tuple[tuple[int, ...], ...
     ):
         got = ", ".join(str(np.shape(a)) for a in arrays)
         raise InputError(f"{name} needs arrays of one row count shaped {shapes}, got {got}")
+
+
+@dataclass(frozen=True)
+class ScaleCheck:
+    """Extent and spacing of a cloud, and whether they look like millimetres read as metres.
+
+    Attributes
+    ----------
+    extent
+        Bounding-box diagonal, in the cloud's units (m if it is in metres).
+    spacing
+        Median distance from a point to its nearest neighbour (same units); NaN when the extent
+        alone rules millimetres out (it is not computed).
+    millimetres
+        ``extent > MM_MIN_EXTENT and spacing > MM_MIN_SPACING``.
+    """
+
+    extent: float
+    spacing: float
+    millimetres: bool
+
+
+def check_scale(points: ArrayLike, seed: int = 0) -> ScaleCheck:
+    """Whether an (N, 3) cloud looks like millimetres taken for metres.
+
+    The median nearest-neighbour spacing is measured on at most 1000 points drawn with
+    ``numpy.random.default_rng(seed)`` (against the whole cloud), and only when the extent
+    already exceeds ``MM_MIN_EXTENT``: a cloud of ordinary size costs one min/max.
+    """
+    pts = as_points(points)
+    extent = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    if extent <= MM_MIN_EXTENT or len(pts) < 2:
+        return ScaleCheck(extent, float("nan"), False)
+    rng = np.random.default_rng(seed)
+    probes = pts[rng.choice(len(pts), min(len(pts), _SPACING_PROBES), replace=False)]
+    distance, _ = cKDTree(pts).query(probes, k=2)
+    spacing = float(np.median(distance[:, 1]))
+    return ScaleCheck(extent, spacing, spacing > MM_MIN_SPACING)

@@ -1,15 +1,18 @@
 """Configuration models: one per stage, defaults in code, unknown options rejected.
 
 Every stage's config derives from :class:`StageConfig`. A pipeline config nests stage configs;
-:func:`load_config` reads a YAML or JSON file into any such model and turns validation failures
-into :class:`~spacepose.errors.ConfigError` naming the file and the offending option.
+:func:`load_config` reads a YAML or JSON file into any such model. Every validation failure,
+whether from a file or from ``XConfig(field=value)`` in code, is a one-line
+:class:`~spacepose.errors.ConfigError` naming the model, the offending field and, for a file, the
+file; a file that does not parse is named with the line and column of the problem
+(:func:`parse_problem`).
 """
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, ValidationError
@@ -18,12 +21,55 @@ from spacepose.errors import ConfigError
 
 
 class StageConfig(BaseModel):
-    """Base of every config model: immutable, unknown keys are an error."""
+    """Base of every config model: immutable, unknown keys are an error.
+
+    Constructing one with a bad value (``TrackerConfig(voxel_size=-1)``, an unknown keyword)
+    raises :class:`~spacepose.errors.ConfigError` naming the model and the field, not pydantic's
+    ``ValidationError``.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+    def __init__(self, /, **data: Any) -> None:
+        try:
+            super().__init__(**data)
+        except ValidationError as exc:
+            raise config_error(type(self), exc) from None
+
+    @classmethod
+    def model_validate(cls, obj: Any, **kwargs: Any) -> StageConfig:  # type: ignore[override]
+        """Pydantic's ``model_validate``; a failure is a :class:`ConfigError`."""
+        try:
+            return super().model_validate(obj, **kwargs)
+        except ValidationError as exc:
+            raise config_error(cls, exc) from None
+
 
 C = TypeVar("C", bound=BaseModel)
+
+
+def config_error(
+    model: type[BaseModel], exc: ValidationError, source: str | Path | None = None
+) -> ConfigError:
+    """One-line :class:`ConfigError` listing every field ``exc`` rejects, as ``field: problem``.
+
+    A nested StageConfig's own ConfigError (pydantic wraps it as a value error of the outer
+    field) is unwrapped, so the line reads ``icp.max_iterations: ...``, not the inner message
+    inside the outer one. The (field, problem) pairs are kept as ``error.problems``.
+    """
+    problems: list[tuple[str, str]] = []
+    for err in exc.errors():
+        loc = [str(p) for p in err["loc"]]
+        nested = getattr((err.get("ctx") or {}).get("error"), "problems", None)
+        if nested:
+            problems += [(".".join(filter(None, [*loc, field])), msg) for field, msg in nested]
+        else:
+            problems.append((".".join(loc), err["msg"]))
+    where = f"{source}: " if source else ""
+    listed = "; ".join(f"{field or '<root>'}: {msg}" for field, msg in problems)
+    error = ConfigError(f"{where}invalid {model.__name__}: {listed}")
+    error.problems = problems
+    return error
 
 
 def validate_config(model: type[C], data: dict | None, source: str | Path | None = None) -> C:
@@ -31,12 +77,41 @@ def validate_config(model: type[C], data: dict | None, source: str | Path | None
     try:
         return model.model_validate(data or {})
     except ValidationError as exc:
-        problems = "; ".join(
-            f"{'.'.join(str(p) for p in err['loc']) or '<root>'}: {err['msg']}"
-            for err in exc.errors()
-        )
-        where = f"{source}: " if source else ""
-        raise ConfigError(f"{where}invalid {model.__name__}: {problems}") from None
+        raise config_error(model, exc, source) from None
+    except ConfigError as exc:  # a StageConfig's own error, without the file
+        raise ConfigError(f"{source}: {exc}" if source else str(exc)) from None
+
+
+def parse_problem(exc: Exception) -> str:
+    """``line L:C: problem`` of a YAML or JSON parse error, on one line.
+
+    PyYAML's message spans several lines (the context, the offending line and a caret); this
+    keeps the position of the problem and the problem itself, and the context in brackets.
+    """
+    if isinstance(exc, json.JSONDecodeError):
+        return f"line {exc.lineno}:{exc.colno}: {exc.msg}"
+    mark = getattr(exc, "problem_mark", None)
+    problem = getattr(exc, "problem", None)
+    if problem is None:
+        return " ".join(str(exc).split())
+    where = f"line {mark.line + 1}:{mark.column + 1}: " if mark is not None else ""
+    context = getattr(exc, "context", None)
+    return f"{where}{problem}" + (f" ({context})" if context else "")
+
+
+def parse_structured(text: str, source: str | Path, kind: str | None = None) -> Any:
+    """Parse ``text`` as JSON (``kind == "json"`` or a ``.json`` source) or else YAML.
+
+    Raises
+    ------
+    ConfigError
+        One line: ``source: not valid YAML: line L:C: problem``.
+    """
+    kind = kind or ("json" if Path(source).suffix.lower() == ".json" else "yaml")
+    try:
+        return json.loads(text) if kind == "json" else yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as exc:
+        raise ConfigError(f"{source}: not valid {kind.upper()}: {parse_problem(exc)}") from None
 
 
 def load_config(model: type[C], path: str | Path) -> C:
@@ -46,10 +121,7 @@ def load_config(model: type[C], path: str | Path) -> C:
         text = path.read_text()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
-    try:
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as exc:
-        raise ConfigError(f"{path}: not valid {path.suffix.lstrip('.') or 'YAML'}: {exc}") from None
+    data = parse_structured(text, path)
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"{path}: a config file must hold a mapping, got {type(data).__name__}")
     return validate_config(model, data, path)

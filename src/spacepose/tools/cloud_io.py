@@ -10,6 +10,7 @@ always naming the file.
 from __future__ import annotations
 
 import io
+import warnings
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -18,8 +19,9 @@ import numpy as np
 import plyfile
 from numpy.typing import ArrayLike, NDArray
 
-from spacepose.core.cloud import PointCloud
-from spacepose.errors import FileFormatError, InputError
+from spacepose.core.cloud import PointCloud, check_scale
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
+from spacepose.tools.pcd_io import read_pcd_table, write_pcd
 
 _XYZ = ("x", "y", "z")
 _PLY_NORMALS = ("nx", "ny", "nz")
@@ -33,7 +35,7 @@ _DIGITS = {"float32": 9, "float64": 17}
 # Public API
 
 
-def read_cloud(path: str | Path) -> PointCloud:
+def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     """Read a point cloud file, choosing the format by extension.
 
     Parameters
@@ -44,10 +46,20 @@ def read_cloud(path: str | Path) -> PointCloud:
         ``.xyz``/``.txt``/``.csv`` (3 or 6 columns, whitespace- or comma-separated; a header
         line is allowed), ``.npy`` ((N, 3) or (N, 6) array) or ``.npz`` (``points``, optional
         ``normals``).
+    scale
+        Factor applied to the coordinates: ``1e-3`` reads a file in millimetres as metres.
 
     Returns
     -------
-    PointCloud in the frame the file's coordinates are in; rows with NaN are dropped.
+    PointCloud in the frame the file's coordinates are in, in metres (times ``scale``); rows
+    with NaN are dropped.
+
+    Warns
+    -----
+    SpaceposeWarning
+        When the coordinates, read with ``scale = 1``, look like millimetres
+        (:func:`spacepose.core.cloud.check_scale`): the message names the file, its extent and
+        its point spacing.
 
     Raises
     ------
@@ -66,8 +78,21 @@ def read_cloud(path: str | Path) -> PointCloud:
         )
     if not path.is_file():
         raise FileFormatError("no such file", path)
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(f"scale must be a positive number, got {scale}", path)
     points, normals = reader(path)
-    return PointCloud(points, normals, source=str(path))
+    cloud = PointCloud(points * scale, normals, source=str(path))
+    if scale == 1.0 and (check := check_scale(cloud.points)).millimetres:
+        warnings.warn(
+            SpaceposeWarning(
+                f"coordinates look like millimetres ({check.extent:.0f} m across, median point "
+                f"spacing {check.spacing:.2f} m); spacepose works in metres: scale the file by "
+                "0.001 (read_cloud(..., scale=1e-3))",
+                path,
+            ),
+            stacklevel=2,
+        )
+    return cloud
 
 
 def write_cloud(
@@ -151,94 +176,12 @@ def _write_ply(
 
 
 # --------------------------------------------------------------------------------------------
-# PCD (Point Cloud Library v0.7)
-
-_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
-    (kind, size): f"{code}{size}"
-    for kind, code in (("I", "i"), ("U", "u"))
-    for size in (1, 2, 4, 8)
-}
+# PCD (Point Cloud Library v0.7): the header checks live in pcd_io
 
 
 def _read_pcd(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    raw = path.read_bytes()
-    header: dict[str, list[str]] = {}
-    stream = io.BytesIO(raw)
-    while True:
-        line = stream.readline()
-        if not line:
-            raise FileFormatError("PCD header has no DATA line (truncated or not a PCD)", path)
-        text = line.decode("ascii", errors="replace").strip()
-        if not text or text.startswith("#"):
-            continue
-        key, *values = text.split()
-        header[key.upper()] = values
-        if key.upper() == "DATA":
-            break
-    missing = [k for k in ("FIELDS", "SIZE", "TYPE", "DATA") if k not in header]
-    if missing:
-        raise FileFormatError(f"PCD header lacks {', '.join(missing)}", path)
-    fields, sizes, types = header["FIELDS"], header["SIZE"], header["TYPE"]
-    counts = header.get("COUNT", ["1"] * len(fields))
-    if not len(fields) == len(sizes) == len(types) == len(counts):
-        raise FileFormatError("PCD header FIELDS/SIZE/TYPE/COUNT lengths differ", path)
-    try:
-        size_i = [int(s) for s in sizes]
-        count_i = [int(c) for c in counts]
-        n_points = int(header["POINTS"][0]) if "POINTS" in header else None
-        if n_points is None:
-            n_points = int(header["WIDTH"][0]) * int(header.get("HEIGHT", ["1"])[0])
-    except (ValueError, IndexError, KeyError):
-        raise FileFormatError(
-            "PCD header has a non-integer SIZE/COUNT/POINTS/WIDTH", path
-        ) from None
-    formats = []
-    for name, kind, size, count in zip(fields, types, size_i, count_i, strict=True):
-        code = _PCD_TYPES.get((kind.upper(), size))
-        if code is None:
-            raise FileFormatError(f"PCD field {name!r} has unknown TYPE {kind} SIZE {size}", path)
-        formats.append((code, count))
-    # Field names may repeat (e.g. the "_" padding field), so read into positional names.
-    dt = np.dtype([(f"f{i}", "<" + code, (count,)) for i, (code, count) in enumerate(formats)])
-    mode = header["DATA"][0].lower() if header["DATA"] else ""
-    body = raw[stream.tell() :]
-    if mode == "binary":
-        if len(body) < n_points * dt.itemsize:
-            raise FileFormatError(
-                f"truncated binary PCD: {n_points} points need {n_points * dt.itemsize} bytes, "
-                f"file has {len(body)}",
-                path,
-            )
-        data = np.frombuffer(body, dtype=dt, count=n_points)
-        table = np.column_stack([data[f"f{i}"].astype(np.float64) for i in range(len(fields))])
-    elif mode == "ascii":
-        width = sum(count_i)
-        try:
-            tokens = np.array(body.decode("ascii").split(), dtype=np.float64)
-        except (UnicodeDecodeError, ValueError):
-            raise FileFormatError("ASCII PCD body holds a non-number", path) from None
-        if len(tokens) < n_points * width:
-            raise FileFormatError(
-                f"truncated ASCII PCD: {n_points} points of {width} values need "
-                f"{n_points * width} numbers, file has {len(tokens)}",
-                path,
-            )
-        table = tokens[: n_points * width].reshape(n_points, width)
-    elif mode == "binary_compressed":
-        raise FileFormatError(
-            "PCD DATA binary_compressed (LZF) is not supported; save as binary or ascii", path
-        )
-    else:
-        raise FileFormatError(f"PCD DATA {mode!r} is not ascii or binary", path)
-    # Column index of each single-valued field in the flattened table.
-    offsets = np.cumsum([0, *count_i[:-1]])
-    column = {
-        name: int(off) for name, off, c in zip(fields, offsets, count_i, strict=True) if c == 1
-    }
-    names = tuple(column)
-    return _columns(
-        {name: table[:, column[name]] for name in names}, names, _XYZ, _PCD_NORMALS, path, "PCD"
-    )
+    table = read_pcd_table(path)
+    return _columns(table, tuple(table), _XYZ, _PCD_NORMALS, path, "PCD")
 
 
 def _write_pcd(
@@ -250,21 +193,7 @@ def _write_pcd(
 ) -> None:
     names = _XYZ if normals is None else _XYZ + _PCD_NORMALS
     values = points if normals is None else np.hstack([points, normals])
-    n, k = values.shape
-    header = (
-        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
-        f"FIELDS {' '.join(names)}\nSIZE {' '.join([str(dtype.itemsize)] * k)}\n"
-        f"TYPE {' '.join(['F'] * k)}\nCOUNT {' '.join(['1'] * k)}\n"
-        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
-        f"DATA {'binary' if binary else 'ascii'}\n"
-    )
-    if binary:
-        body = np.ascontiguousarray(values, dtype=dtype.newbyteorder("<")).tobytes()
-    else:
-        buf = io.StringIO()
-        np.savetxt(buf, values.astype(dtype), fmt=f"%.{_DIGITS[dtype.name]}g")
-        body = buf.getvalue().encode("ascii")
-    path.write_bytes(header.encode("ascii") + body)
+    write_pcd(path, values, names, binary, f"%.{_DIGITS[dtype.name]}g", dtype)
 
 
 # --------------------------------------------------------------------------------------------
@@ -273,7 +202,8 @@ def _write_pcd(
 
 def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
     try:
-        text = path.read_text()
+        # utf-8-sig drops a byte-order mark, which would otherwise hide the first row's number.
+        text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         raise FileFormatError("not a text point file (binary content)", path) from None
     lines = text.splitlines()
@@ -417,11 +347,26 @@ def _columns(
     """Stack the x/y/z (and, when all present, normal) columns of a record table."""
     if not all(n in names for n in xyz):
         raise FileFormatError(f"{what} has no x/y/z properties (found {list(names)})", path)
-    points = np.column_stack([np.asarray(data[n], dtype=np.float64) for n in xyz])
+    points = np.column_stack([_scalar_column(data, n, path, what) for n in xyz])
     normals = None
     if all(n in names for n in normal_names):
-        normals = np.column_stack([np.asarray(data[n], dtype=np.float64) for n in normal_names])
+        normals = np.column_stack([_scalar_column(data, n, path, what) for n in normal_names])
     return points, normals
+
+
+def _scalar_column(
+    data: np.ndarray | dict[str, NDArray[np.float64]], name: str, path: Path, what: str
+) -> NDArray[np.float64]:
+    """One property as an (N,) float64 column; a list property (one array per point) is refused."""
+    try:
+        column = np.asarray(data[name], dtype=np.float64)
+    except (TypeError, ValueError):
+        column = None
+    if column is None or column.ndim != 1:
+        raise FileFormatError(
+            f"{what} property {name!r} is not one number per point (a list property?)", path
+        )
+    return column
 
 
 def _is_number(token: str) -> bool:
