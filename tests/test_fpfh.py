@@ -125,3 +125,15 @@ def test_bad_input_raises():
         validate_config(FPFHConfig, {"max_nn": 1})
     with pytest.raises(ConfigError, match="radius"):
         validate_config(FPFHConfig, {"radius": 0.0})
+
+
+def test_compute_fpfh_takes_an_array_and_asks_for_normals():
+    cloud = _box_and_sphere(seed=41)
+    config = FPFHConfig(radius=0.05, max_nn=50)
+    with pytest.raises(InputError, match=r"needs a cloud with normals .*estimate_normals"):
+        compute_fpfh(cloud.points, config)
+    # The array through estimate_normals (which takes it too) gives the PointCloud's features.
+    from_array = compute_fpfh(estimate_normals(cloud.points, NormalsConfig(k=20)), config)
+    from_cloud = compute_fpfh(estimate_normals(cloud, NormalsConfig(k=20)), config)
+    np.testing.assert_array_equal(from_array, from_cloud)
+    assert from_array.shape == (len(cloud), 33)

@@ -138,3 +138,15 @@ def test_polynomial_terms_and_config_validation():
     for bad in ({"h": 0.0}, {"polynomial_order": 4}, {"min_neighbors": 2}, {"voxel": 1}):
         with pytest.raises(ConfigError):
             validate_config(MLSConfig, bad)
+
+
+def test_mpp_mls_takes_an_n_by_3_array():
+    pts = _sphere(6000, 0.2, 0.002, seed=31)
+    config = MLSConfig(voxel_size=0.02, h=0.02)
+    from_array = mpp_mls(pts, config)
+    from_cloud = mpp_mls(PointCloud(pts), config)
+    np.testing.assert_array_equal(from_array.points, from_cloud.points)
+    np.testing.assert_array_equal(from_array.normals, from_cloud.normals)
+    # The projected points lie closer to the true sphere than the 2 mm noise.
+    radius_error = np.linalg.norm(from_array.points - CENTRE, axis=1) - 0.2
+    assert np.sqrt(np.mean(radius_error**2)) < 0.001

@@ -232,3 +232,16 @@ def test_neighbourhood_normals_equal_the_two_step_route():
         neighbourhood_normals(pts, np.array([[0, len(pts)]]))
     with pytest.raises(InputError, match="integer"):
         neighbourhood_normals(pts, np.zeros((2, 3)))
+
+
+def test_estimate_normals_takes_an_n_by_3_array() -> None:
+    pts = _noisy_sphere(800, seed=21)
+    from_array = estimate_normals(pts, NormalsConfig(k=20))
+    from_cloud = estimate_normals(PointCloud(pts), NormalsConfig(k=20))
+    np.testing.assert_array_equal(from_array.normals, from_cloud.normals)
+    np.testing.assert_array_equal(from_array.points, pts)
+    # A sphere about the viewpoint: every normal points back to the centre, -p / |p|.
+    radial = -pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    assert np.median(np.einsum("ij,ij->i", from_array.normals, radial)) > 0.99
+    with pytest.raises(InputError, match=r"^cloud: points must have shape \(N, 3\)"):
+        estimate_normals(pts[:, :2])

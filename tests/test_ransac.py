@@ -283,3 +283,18 @@ def test_local_refits_let_the_true_pose_outcover_a_flip():
 def test_bad_coverage_options_raise(option, value):
     with pytest.raises(ConfigError, match=option):
         validate_config(RansacConfig, {option: value})
+
+
+def test_global_registration_takes_n_by_3_arrays():
+    # The model's samples and the same samples turned by a known pose about the model origin
+    # (the viewpoint of both clouds' normals): a closed-form case, from raw arrays.
+    source = sample_surface(lab_target(), 1500, seed=3).points
+    T_true = se3.make_transform(
+        Rotation.from_euler("xyz", [20, -35, 60], degrees=True), [0.02, 0, 0]
+    )
+    target = se3.transform_points(T_true, source)
+    from_arrays = global_registration(source, target, VOXEL)
+    from_clouds = global_registration(PointCloud(source), PointCloud(target), VOXEL)
+    np.testing.assert_array_equal(from_arrays.T_target_source, from_clouds.T_target_source)
+    angle, shift = _pose_error(from_arrays.T_target_source, T_true)
+    assert angle < 1.0 and shift < 0.01, (angle, shift)

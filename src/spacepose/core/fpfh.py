@@ -10,12 +10,12 @@ matrix product.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
 from scipy import sparse
 from scipy.spatial import cKDTree
 
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
 from spacepose.core.neighbors import hybrid
 from spacepose.errors import InputError
@@ -126,7 +126,7 @@ def feature_bins(features: NDArray[np.float64]) -> NDArray[np.intp]:
 
 
 def compute_fpfh(
-    cloud: PointCloud, config: FPFHConfig = FPFHConfig(), workers: int = -1
+    cloud: PointCloud | ArrayLike, config: FPFHConfig = FPFHConfig(), workers: int = -1
 ) -> NDArray[np.float64]:
     """FPFH descriptor of every point.
 
@@ -134,6 +134,9 @@ def compute_fpfh(
     ----------
     cloud
         Points (N, 3) with normals (N, 3); the normals' orientation matters (f1 and f3 are signed).
+        An (N, 3) array is taken as a cloud without normals, which is refused with a clear
+        :class:`~spacepose.errors.InputError` (estimate them with ``estimate_normals``, which
+        takes the same array).
     config
         Hybrid neighbourhood (radius, max_nn).
     workers
@@ -154,6 +157,7 @@ def compute_fpfh(
     and only those few are searched again for their ``max_nn`` nearest, as Open3D keeps them;
     otherwise every point gets the k-nearest search.
     """
+    cloud = as_cloud(cloud, "cloud")
     if not cloud.has_normals:
         raise InputError(
             "FPFH needs a cloud with normals (run estimate_normals first)", cloud.source

@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
 
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
 from spacepose.core.neighbors import as_tree, hybrid, weighted_moments
 from spacepose.core.normals import orient_towards
@@ -268,7 +268,7 @@ def mls_project(
 
 
 def mpp_mls(
-    cloud: PointCloud,
+    cloud: PointCloud | ArrayLike,
     config: MLSConfig = MLSConfig(),
     workers: int = -1,
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
@@ -278,7 +278,8 @@ def mpp_mls(
     Parameters
     ----------
     cloud
-        Raw points (N, 3), usually in the sensor frame.
+        Raw points (N, 3), usually in the sensor frame: a :class:`PointCloud` or an (N, 3)
+        array.
     config
         Voxel size, smoothing scale h and fit options.
     workers
@@ -297,6 +298,7 @@ def mpp_mls(
     DegenerateGeometryError
         When every index point is dropped (the cloud is too sparse for h, or a line).
     """
+    cloud = as_cloud(cloud, "cloud")
     anchors = cloud.points[voxel_index_points(cloud.points, config.voxel_size)]
     proj = mls_project(cloud.points, anchors, config, workers)
     kept = proj.kept

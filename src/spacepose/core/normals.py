@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
 
-from spacepose.core.cloud import PointCloud, as_points
+from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.core.config import StageConfig
 from spacepose.core.grid import numba_threads
 from spacepose.core.neighbors import SearchIndex, as_tree, hybrid, knn, row_moments
@@ -226,7 +226,7 @@ def orient_towards(
 
 
 def estimate_normals(
-    cloud: PointCloud,
+    cloud: PointCloud | ArrayLike,
     config: NormalsConfig = NormalsConfig(),
     viewpoint: ArrayLike = (0.0, 0.0, 0.0),
     workers: int = -1,
@@ -237,7 +237,8 @@ def estimate_normals(
     Parameters
     ----------
     cloud
-        Points (N, 3) in the sensor frame (or any frame ``viewpoint`` is given in).
+        Points (N, 3) in the sensor frame (or any frame ``viewpoint`` is given in): a
+        :class:`PointCloud` or an (N, 3) array.
     config
         Neighbourhood: ``k`` nearest, or within ``radius`` capped at ``k``.
     viewpoint
@@ -257,6 +258,7 @@ def estimate_normals(
     A point with fewer than 3 neighbours inside ``radius`` has no defined plane; it gets the
     unit line of sight towards ``viewpoint`` as its normal rather than an arbitrary axis.
     """
+    cloud = as_cloud(cloud, "cloud")
     pts = cloud.points
     if len(pts) < 3:
         raise InputError(f"normal estimation needs at least 3 points, got {len(pts)}", cloud.source)

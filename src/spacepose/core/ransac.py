@@ -26,7 +26,7 @@ from pydantic import Field
 from scipy.spatial import cKDTree
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
 from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.grid import VoxelIndex
@@ -400,8 +400,8 @@ def feature_ransac(
 
 
 def global_registration(
-    source: PointCloud,
-    target: PointCloud,
+    source: PointCloud | ArrayLike,
+    target: PointCloud | ArrayLike,
     voxel_size: float,
     ransac: RansacConfig | None = None,
     normals: NormalsConfig | None = None,
@@ -414,9 +414,10 @@ def global_registration(
     Parameters
     ----------
     source, target
-        Clouds with a roughly even spacing ``voxel_size`` (e.g. mpp-MLS output). Normals they
-        carry are used as they are; missing ones are estimated and turned towards ``viewpoint``
-        (both clouds in sensor frames: the sensor origin).
+        Clouds (:class:`PointCloud` or (N, 3) arrays) with a roughly even spacing ``voxel_size``
+        (e.g. mpp-MLS output). Normals they carry are used as they are; missing ones are
+        estimated and turned towards ``viewpoint`` (both clouds in sensor frames: the sensor
+        origin).
     voxel_size
         Point spacing (m). Defaults follow Open3D's global-registration recipe: normals within
         2×, FPFH within 5× (at most 100 neighbours), inlier gate 1.5× the spacing.
@@ -434,7 +435,7 @@ def global_registration(
     ransac = ransac or RansacConfig(max_correspondence_distance=1.5 * voxel_size)
     clouds = [
         c if c.has_normals else estimate_normals(c, normals, viewpoint, workers)
-        for c in (source, target)
+        for c in (as_cloud(source, "source"), as_cloud(target, "target"))
     ]
     features = [compute_fpfh(c, fpfh, workers) for c in clouds]
     return feature_ransac(clouds[0], clouds[1], features[0], features[1], ransac, workers)
