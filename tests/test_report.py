@@ -2,6 +2,7 @@
 
 import base64
 import csv
+import html
 import json
 import re
 import shutil
@@ -168,3 +169,34 @@ def test_report_renders_in_headless_chromium_without_console_errors(tmp_path: Pa
     counts = re.search(r"IMGCHECK (\d+) (\d+)", log)
     assert counts, log[-2000:]
     assert int(counts.group(1)) == 10 and counts.group(1) == counts.group(2)
+
+
+def test_report_skips_corrupt_files_names_them_and_builds_the_rest(tmp_path: Path, capsys) -> None:
+    expected = _make_run(tmp_path / "demo")
+    root = tmp_path / "demo"
+    (root / "lab" / "scenario.json").write_text('{"scenario": "lab",')
+    (root / "bench.json").write_text("[1, 2")
+    (root / "experiments" / "li-l1" / "table.json").write_text("{oops}")
+    _write_csv(root / "lab" / "tracks" / "icp.health.csv", ["frame", "timestamp"], [[0, 0.0]])
+    assert main(["report", str(root)]) == 0
+    out, err = capsys.readouterr()
+    page = (root / "report.html").read_text()
+    # Every bad file is named once on stderr, one line each, and listed in the page.
+    bad = {
+        "lab/scenario.json": "not valid JSON: line 1:20: Expecting property name",
+        "bench.json": "not valid JSON: line 1:6: Expecting ',' delimiter",
+        "experiments/li-l1/table.json": "not valid JSON: line 1:2: Expecting property name",
+        "lab/tracks/icp.health.csv": "CSV file has no status column",
+    }
+    lines = err.strip().splitlines()
+    assert len(lines) == len(bad) and "Traceback" not in err
+    for name, reason in bad.items():
+        assert sum(f"{root / name}: left out of the report: {reason}" in ln for ln in lines) == 1
+        assert f"<td>{name}</td><td>{html.escape(reason)}" in page
+    # The rest is all there: both tracks scored, navigation, the experiment's figure.
+    icp_row = re.search(r"<tr><td>icp</td><td>([\d.]+) \(", page)
+    assert icp_row and float(icp_row.group(1)) == pytest.approx(expected["icp_x_mm"], abs=1e-3)
+    nav_row = re.search(r"<tr><td>position \(mm\)</td><td>([\d.]+)</td>", page)
+    assert nav_row and float(nav_row.group(1)) == pytest.approx(expected["nav_rho_x_mm"], rel=1e-6)
+    assert "histogram" in page and "health flags" not in page
+    assert "report written" in out

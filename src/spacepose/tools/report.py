@@ -6,6 +6,11 @@ The report discovers what a folder holds rather than asking for it: every sub-fo
 ``truth.csv``); every folder of experiment, benchmark or campaign output adds its tables and
 figures.
 The page has no script, so it renders anywhere and leaves the browser console empty.
+
+A file that cannot be read (a corrupt ``scenario.json``, ``bench.json`` or experiment table, a
+health CSV without a ``status`` column, a truncated trajectory) does not stop the report: its part
+is left out, the page lists it under "Skipped" with the reason, and a
+:class:`~spacepose.errors.SpaceposeWarning` names the file.
 """
 
 from __future__ import annotations
@@ -13,18 +18,21 @@ from __future__ import annotations
 import csv
 import html
 import json
-from collections.abc import Iterable, Sequence
+import warnings
+from collections.abc import Callable, Iterable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
 from spacepose import __version__
+from spacepose.core.config import parse_problem
 from spacepose.core.metrics import ErrorTable, evaluate, navigation_errors, pose_errors
 from spacepose.core.mls import MLSConfig, mpp_mls
-from spacepose.errors import InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools import plots
 from spacepose.tools.cloud_io import read_cloud
+from spacepose.tools.evaluation import starts_at_identity
 from spacepose.tools.trajectory_io import read_tum
 
 # The lab experiments' setting (6 mm voxels and smoothing scale, about the ToF noise at 1.2 m).
@@ -60,16 +68,63 @@ def _figure(fig_png: bytes, caption: str) -> str:
     )
 
 
-def _read_csv(path: Path) -> dict[str, list[str]]:
+# What a part of the report may fail with when its file is bad: the package's own errors, an
+# unreadable file, a value that does not parse, a missing key or column.
+_BAD_FILE = (SpaceposeError, OSError, ValueError, KeyError)
+
+
+class _Skipped:
+    """The files left out of the report, with the reason; each is also warned about."""
+
+    def __init__(self) -> None:
+        self.files: list[tuple[Path, str]] = []
+
+    def guard(self, path: Path, build: Callable[[], str]) -> str:
+        """``build()``, or ``""`` and a record of why ``path`` was skipped."""
+        try:
+            return build()
+        except _BAD_FILE as exc:
+            reason = (
+                getattr(exc, "reason", None) or " ".join(str(exc).split()) or type(exc).__name__
+            )
+            if isinstance(exc, KeyError):
+                reason = f"missing key or column {exc}"
+            self.files.append((path, reason))
+            warnings.warn(SpaceposeWarning(f"left out of the report: {reason}", path), stacklevel=2)
+            return ""
+
+    def section(self, root: Path) -> str:
+        if not self.files:
+            return ""
+        rows = [
+            (str(p.relative_to(root)) if p.is_relative_to(root) else str(p), r)
+            for p, r in self.files
+        ]
+        return "<h2>Skipped</h2>" + _table(("file", "why it was left out"), rows)
+
+
+def _read_json(path: Path) -> object:
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"not valid JSON: {parse_problem(exc)}", path) from None
+
+
+def _read_csv(path: Path, required: Sequence[str] = ()) -> dict[str, list[str]]:
     with path.open(newline="") as fh:
         rows = list(csv.DictReader(fh))
     if not rows:
         raise InputError("CSV file has no data rows", path)
+    missing = [c for c in required if c not in rows[0]]
+    if missing:
+        raise FileFormatError(f"CSV file has no {', '.join(missing)} column", path)
     return {k: [r[k] for r in rows] for k in rows[0]}
 
 
 def _scenario_section(run: Path) -> str:
-    scenario = json.loads((run / "scenario.json").read_text())
+    scenario = _read_json(run / "scenario.json")
+    if not isinstance(scenario, dict):
+        raise FileFormatError("scenario.json must hold a mapping", run / "scenario.json")
     rows = []
     for key, value in sorted(scenario.items()):
         text = json.dumps(value)
@@ -78,13 +133,17 @@ def _scenario_section(run: Path) -> str:
 
 
 def scenario_name(run: Path) -> str | None:
-    """The ``scenario`` entry of a run's scenario.json (``lab``, ``orbit``), if any."""
-    return json.loads((run / "scenario.json").read_text()).get("scenario")
+    """The ``scenario`` entry of a run's scenario.json (``lab``, ``orbit``), if any.
 
-
-def _is_model_free(T_first: np.ndarray) -> bool:
-    """A model-free estimate starts at the identity (METHODS §0): score it re-based."""
-    return bool(np.allclose(T_first, np.eye(4), atol=1e-9))
+    Raises
+    ------
+    FileFormatError
+        scenario.json is not valid JSON or not a mapping.
+    """
+    scenario = _read_json(run / "scenario.json")
+    if not isinstance(scenario, dict):
+        raise FileFormatError("scenario.json must hold a mapping", run / "scenario.json")
+    return scenario.get("scenario")
 
 
 def _mls_section(run: Path) -> str:
@@ -101,7 +160,7 @@ def _mls_section(run: Path) -> str:
     return "<h3>mpp-MLS before / after</h3>" + _figure(plots.figure_png(fig), "mpp-MLS")
 
 
-def _tracking_section(run: Path) -> str:
+def _tracking_section(run: Path, skipped: _Skipped) -> str:
     gt_path = run / "groundtruth.tum"
     tracks = sorted(p for p in run.rglob("*.tum") if p != gt_path)
     if not gt_path.exists() or not tracks:
@@ -109,15 +168,15 @@ def _tracking_section(run: Path) -> str:
     gt = read_tum(gt_path)
     parts, rows, curves, health = [], [], {}, {}
     t = gt.timestamps - gt.timestamps[0]
-    for path in tracks:
+
+    def score(path: Path) -> str:
         est = read_tum(path)
-        rebase = _is_model_free(est.poses[0])
+        rebase = starts_at_identity(est.poses[0])  # model-free: score it re-based
         table: ErrorTable = evaluate(est, gt, rebase_first=rebase)
         d = table.to_dict()
-        name = path.stem
         rows.append(
             (
-                name,
+                path.stem,
                 *(f"{m:.3f} ({s:.3f})" for m, s in _table_cells(d)),
                 f"{1e3 * d['ate_translation_rmse']:.3f}",
                 f"{d['ate_rotation_rmse']:.4f}",
@@ -127,10 +186,20 @@ def _tracking_section(run: Path) -> str:
         if len(est) == len(gt_eval):
             dt, de = pose_errors(est.poses, gt_eval.poses)
             # Columns: x, y, z (mm), then pitch, yaw, roll (deg) as in Li's Table 2.
-            curves[name] = np.c_[1e3 * dt, np.degrees(de[:, [1, 0, 2]])]
-        health_csv = path.with_name(path.stem + ".health.csv")
-        if health_csv.exists():
-            health[name] = _read_csv(health_csv)["status"]
+            curves[path.stem] = np.c_[1e3 * dt, np.degrees(de[:, [1, 0, 2]])]
+        return "ok"
+
+    def flags(path: Path) -> str:
+        health[path.stem] = _read_csv(path, ("status",))["status"]
+        return "ok"
+
+    for path in tracks:
+        if skipped.guard(path, lambda path=path: score(path)):
+            health_csv = path.with_name(path.stem + ".health.csv")
+            if health_csv.exists():
+                skipped.guard(health_csv, lambda path=health_csv: flags(path))
+    if not rows:
+        return ""
     header = ("method", "x mm", "y mm", "z mm", "pitch °", "yaw °", "roll °", "ATE mm", "ATE °")
     parts.append("<p class='muted'>mean (std) of the absolute per-frame errors</p>")
     parts.append(_table(header, rows))
@@ -147,70 +216,82 @@ def _table_cells(d: dict) -> list[tuple[float, float]]:
     return [(d["mean"][k], d["std"][k]) for k in keys]
 
 
-def _navigation_section(run: Path) -> str:
+def _navigation_section(run: Path, skipped: _Skipped) -> str:
     truth_path = run / "truth.csv"
     navs = sorted(run.rglob("nav*.csv"))
     if not truth_path.exists() or not navs:
         return ""
     truth = {k: np.asarray(v, dtype=float) for k, v in _read_csv(truth_path).items()}
+    parts = [skipped.guard(nav_path, lambda p=nav_path: _nav_file(p, truth)) for nav_path in navs]
+    return "<h3>Relative navigation</h3>" + "".join(parts) if any(parts) else ""
+
+
+def _nav_file(nav_path: Path, truth: dict[str, np.ndarray]) -> str:
+    """The RMS table and error figures of one navigation output against truth."""
     parts = []
-    for nav_path in navs:
-        nav = {
-            k: np.asarray(v, dtype=float) for k, v in _read_csv(nav_path).items() if k != "status"
-        }
-        errors = navigation_errors(nav, truth)
-        rms = errors.rms(0.5)
-        rows = [(f"{name} ({unit})", *rms[name]) for name, (unit, *_) in errors.groups.items()]
-        parts.append(f"<h4>{html.escape(nav_path.name)}</h4>")
-        parts.append(_table(("state (RMS over the second half)", "x", "y", "z"), rows))
-        for name, (unit, cols, err, sig) in errors.groups.items():
-            fig = plots.error_with_envelope(
-                errors.t,
-                err,
-                sig,
-                [f"{c} ({unit})" for c in cols],
-                f"{nav_path.stem}: {name} error",
-            )
-            parts.append(_figure(plots.figure_png(fig), f"{name} error with ±3σ"))
-    return "<h3>Relative navigation</h3>" + "".join(parts)
+    nav = {k: np.asarray(v, dtype=float) for k, v in _read_csv(nav_path).items() if k != "status"}
+    errors = navigation_errors(nav, truth)
+    rms = errors.rms(0.5)
+    rows = [(f"{name} ({unit})", *rms[name]) for name, (unit, *_) in errors.groups.items()]
+    parts.append(f"<h4>{html.escape(nav_path.name)}</h4>")
+    parts.append(_table(("state (RMS over the second half)", "x", "y", "z"), rows))
+    for name, (unit, cols, err, sig) in errors.groups.items():
+        fig = plots.error_with_envelope(
+            errors.t,
+            err,
+            sig,
+            [f"{c} ({unit})" for c in cols],
+            f"{nav_path.stem}: {name} error",
+        )
+        parts.append(_figure(plots.figure_png(fig), f"{name} error with ±3σ"))
+    return "".join(parts)
 
 
-def _experiments_section(root: Path) -> str:
+def _experiments_section(root: Path, skipped: _Skipped) -> str:
     parts = []
     for folder in sorted({p.parent for p in root.rglob("*.png")}):
         if (folder / "scenario.json").exists():
             continue
         parts.append(f"<h3>{html.escape(str(folder.relative_to(root)) or folder.name)}</h3>")
         for table_path in sorted(folder.glob("*.json")):
-            parts.append(f"<pre class='muted'>{html.escape(_short_json(table_path))}</pre>")
+            text = skipped.guard(table_path, lambda p=table_path: _short_json(p))
+            if text:
+                parts.append(f"<pre class='muted'>{html.escape(text)}</pre>")
         for png in sorted(folder.glob("*.png")):
             parts.append(_figure(png.read_bytes(), png.stem))
     return "".join(parts)
 
 
 def _short_json(path: Path, limit: int = 4000) -> str:
-    text = json.dumps(json.loads(path.read_text()), indent=1, default=str)
+    text = json.dumps(_read_json(path), indent=1, default=str)
     return text if len(text) <= limit else text[:limit] + "\n..."
 
 
-def _benchmark_section(root: Path) -> str:
-    parts = []
-    for path in sorted(root.rglob("bench*.json")):
-        data = json.loads(path.read_text())
-        stages = data.get("stages", {})
-        rows = [
-            (
-                name,
-                s.get("median_ms", float("nan")),
-                s.get("min_ms", float("nan")),
-                s.get("max_ms", float("nan")),
-                s.get("peer_ratio", ""),
-            )
-            for name, s in stages.items()
-        ]
-        parts.append(f"<h3>{html.escape(path.name)}</h3>")
-        parts.append(_table(("stage", "median ms", "min ms", "max ms", "peer / ours"), rows))
-    return "".join(parts)
+def _benchmark_section(root: Path, skipped: _Skipped) -> str:
+    return "".join(
+        skipped.guard(path, lambda p=path: _bench_file(p))
+        for path in sorted(root.rglob("bench*.json"))
+    )
+
+
+def _bench_file(path: Path) -> str:
+    """The stage-time table of one ``spacepose bench`` output."""
+    data = _read_json(path)
+    stages = data.get("stages", {}) if isinstance(data, dict) else None
+    if not isinstance(stages, dict) or not all(isinstance(s, dict) for s in stages.values()):
+        raise FileFormatError("not a spacepose bench output (no 'stages' mapping)", path)
+    rows = [
+        (
+            name,
+            s.get("median_ms", float("nan")),
+            s.get("min_ms", float("nan")),
+            s.get("max_ms", float("nan")),
+            s.get("peer_ratio", ""),
+        )
+        for name, s in stages.items()
+    ]
+    header = ("stage", "median ms", "min ms", "max ms", "peer / ours")
+    return f"<h3>{html.escape(path.name)}</h3>" + _table(header, rows)
 
 
 def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
@@ -232,21 +313,28 @@ def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     if not root.is_dir():
         raise InputError("not a folder", root)
     runs = sorted(p.parent for p in root.rglob("scenario.json"))
+    skipped = _Skipped()
     body = []
     for run in runs:
         name = html.escape(str(run.relative_to(root)) if run != root else run.name)
         body.append(f"<h2>Run: {name}</h2>")
-        body.append(_scenario_section(run))
-        if scenario_name(run) == "lab":
-            body.append(_mls_section(run))
-        body.append(_tracking_section(run))
-        body.append(_navigation_section(run))
-    experiments = _experiments_section(root)
+        scenario = skipped.guard(run / "scenario.json", lambda run=run: _scenario_section(run))
+        body.append(scenario)
+        if scenario and scenario_name(run) == "lab":
+            body.append(skipped.guard(run / "frames", lambda run=run: _mls_section(run)))
+        body.append(
+            skipped.guard(run / "groundtruth.tum", lambda run=run: _tracking_section(run, skipped))
+        )
+        body.append(
+            skipped.guard(run / "truth.csv", lambda run=run: _navigation_section(run, skipped))
+        )
+    experiments = _experiments_section(root, skipped)
     if experiments:
         body.append("<h2>Experiments and campaigns</h2>" + experiments)
-    bench = _benchmark_section(root)
+    bench = _benchmark_section(root, skipped)
     if bench:
         body.append("<h2>Benchmark</h2>" + bench)
+    body.append(skipped.section(root))
     if not any(body):
         raise InputError("nothing to report: no run, experiment or benchmark output found", root)
     stamp = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
