@@ -46,7 +46,7 @@ def test_json_output(files: tuple[Path, Path], capsys: pytest.CaptureFixture[str
     assert data["mean"]["y_mm"] == pytest.approx(0.0, abs=1e-9)
     assert data["mean"]["yaw_deg"] == pytest.approx(0.5, abs=1e-9)
     assert data["mean"]["pitch_deg"] == pytest.approx(0.0, abs=1e-9)
-    assert data["ate_rotation_rmse"] == pytest.approx(0.5, abs=1e-9)
+    assert data["ate_rotation_rmse_deg"] == pytest.approx(0.5, abs=1e-9)
 
 
 def test_rebase_first_flag(
@@ -60,11 +60,11 @@ def test_rebase_first_flag(
     )
     gt = write_tum(tmp_path / "gt.tum", random_trajectory)
     assert main(["evaluate", str(est), str(gt), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["ate_translation_rmse"] > 0.1
+    assert json.loads(capsys.readouterr().out)["ate_translation_rmse_mm"] > 100.0
     assert main(["evaluate", str(est), str(gt), "--json", "--rebase-first"]) == 0
     data = json.loads(capsys.readouterr().out)
-    assert data["ate_translation_rmse"] == pytest.approx(0.0, abs=1e-9)
-    assert data["ate_rotation_rmse"] == pytest.approx(0.0, abs=1e-6)
+    assert data["ate_translation_rmse_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert data["ate_rotation_rmse_deg"] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_kitti_ground_truth_is_accepted(
@@ -74,8 +74,8 @@ def test_kitti_ground_truth_is_accepted(
     gt = write_kitti(tmp_path / "gt.kitti", random_trajectory)
     est = write_tum(tmp_path / "est.tum", Trajectory(np.arange(20.0), random_trajectory.poses))
     assert main(["evaluate", str(est), str(gt), "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["ate_translation_rmse"] == pytest.approx(
-        0.0, abs=1e-12
+    assert json.loads(capsys.readouterr().out)["ate_translation_rmse_mm"] == pytest.approx(
+        0.0, abs=1e-9
     )
 
 
@@ -100,3 +100,67 @@ def test_mismatched_timestamps_exit_1(
     gt = write_tum(tmp_path / "gt.tum", random_trajectory)
     assert main(["evaluate", str(est), str(gt)]) == 1
     assert "no ground truth within" in capsys.readouterr().err
+
+
+def test_json_states_its_units_in_every_key(
+    tmp_path: Path, random_trajectory: Trajectory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    shift = se3.make_transform(np.eye(3), [0.002, 0.0, 0.0])  # every position 2 mm off in x
+    est = write_tum(
+        tmp_path / "est.tum",
+        Trajectory(random_trajectory.timestamps, shift @ random_trajectory.poses),
+    )
+    gt = write_tum(tmp_path / "gt.tum", random_trajectory)
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    out, err = capsys.readouterr()
+    data = json.loads(out)
+    assert err == ""
+    assert data["units"] == {"translation": "mm", "rotation": "deg"}
+    assert data["ate_translation_rmse_mm"] == pytest.approx(2.0, abs=1e-9)
+    assert data["mean"]["x_mm"] == pytest.approx(2.0, abs=1e-9)
+    for key in (*data["mean"], *data["std"]):
+        assert key.endswith(("_mm", "_deg"))
+    numbers = [k for k, v in data.items() if isinstance(v, float)]
+    assert numbers and all(k.endswith(("_mm", "_deg")) for k in numbers)
+    assert (data["n"], data["n_estimated"], data["n_ground_truth"]) == (20, 20, 20)
+    assert data["warnings"] == []
+
+
+def test_warns_on_a_shorter_estimate_and_repeated_timestamps(
+    tmp_path: Path, random_trajectory: Trajectory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    gt = write_tum(tmp_path / "gt.tum", random_trajectory)
+    t, T = random_trajectory.timestamps, random_trajectory.poses
+    short = write_tum(tmp_path / "short.tum", Trajectory(t[:15], T[:15]))
+    assert main(["evaluate", str(short), str(gt)]) == 0
+    captured = capsys.readouterr()
+    assert "15 poses" in captured.out
+    assert captured.err.strip() == (
+        f"warning: {short}: 15 poses against 20 in gt.tum: only the 15 estimated ones are scored"
+    )
+    twice = write_tum(tmp_path / "twice.tum", Trajectory(np.r_[t, t[3]], np.r_[T, T[3:4]]))
+    assert main(["evaluate", str(twice), str(gt), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["warnings"] == [
+        "21 poses against 20 in gt.tum: only the 21 estimated ones are scored",
+        "1 estimate(s) share a ground-truth pose with another (repeated timestamps)",
+    ]
+    assert len(captured.err.strip().splitlines()) == 2
+
+
+def test_warns_on_a_model_free_track_compared_without_rebase_first(
+    tmp_path: Path, random_trajectory: Trajectory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A perfect model-free track: frame 0 is the identity, every pose relative to it.
+    est = write_tum(tmp_path / "free.tum", random_trajectory.rebased_first())
+    gt = write_tum(tmp_path / "gt.tum", random_trajectory)
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["ate_translation_rmse_mm"] > 100.0  # the offset, not an error
+    assert len(captured.err.strip().splitlines()) == 1
+    assert captured.err.startswith(f"warning: {est}: the first pose is the identity")
+    assert "--rebase-first" in captured.err
+    assert main(["evaluate", str(est), str(gt), "--json", "--rebase-first"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    assert json.loads(captured.out)["ate_translation_rmse_mm"] == pytest.approx(0.0, abs=1e-6)

@@ -20,15 +20,18 @@ def evaluate(
     ),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON."),
 ) -> None:
-    """Per-axis errors (mean and std of |error|, Li's Table 2) and ATE RMSE (as evo_ape)."""
-    from spacepose.core.metrics import evaluate as evaluate_trajectories
-    from spacepose.tools.trajectory_io import read_trajectory
+    """Per-axis errors (mean and std of |error|, Li's Table 2) and ATE RMSE (as evo_ape).
 
-    table = evaluate_trajectories(
-        read_trajectory(est), read_trajectory(gt), rebase_first=rebase_first
-    )
+    Warns when the two files differ in length, when estimates share a ground-truth pose, and
+    when a model-free track (first pose the identity) is compared without --rebase-first.
+    """
+    from spacepose.tools.evaluation import compare_trajectory_files
+
+    result = compare_trajectory_files(est, gt, rebase_first=rebase_first)
+    table = result.table
     if as_json:
-        console.print_json(json.dumps(table.to_dict()))
+        # Plain print: rich would wrap long lines and break the JSON for a pipe.
+        typer.echo(json.dumps(result.to_dict(), indent=2))
         return
     view = Table(title=f"{est.name} vs {gt.name} ({table.n} poses)")
     view.add_column("error")

@@ -1,0 +1,140 @@
+"""Score a trajectory file against a ground-truth file, saying what the numbers may hide.
+
+:func:`compare_trajectory_files` reads both files (TUM or KITTI), pairs the poses by timestamp,
+computes the error table (:func:`spacepose.core.metrics.evaluate`) and warns, naming the file,
+when the comparison is suspect rather than wrong:
+
+- the files hold different numbers of poses (only the estimated ones are scored);
+- several estimates share one ground-truth pose (repeated timestamps);
+- the estimate starts at the identity, as a model-free track does (frame 0 defines the target
+  frame), while the ground truth does not, and ``rebase_first`` is off: the errors are then
+  dominated by the first pose's offset.
+
+Its JSON form states its units in every key (``_mm``, ``_deg``) and in a ``units`` entry.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from spacepose.core.metrics import TIMESTAMP_TOLERANCE, ErrorTable, associate, evaluate
+from spacepose.errors import InputError, SpaceposeWarning
+from spacepose.tools.trajectory_io import read_trajectory
+
+# A pose counts as the identity (a model-free track's first pose) within this much rotation
+# (rad) and translation (in the file's units): far below any real offset, far above rounding.
+_IDENTITY_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class TrajectoryComparison:
+    """The error table of an estimate against ground truth, and what to be wary of.
+
+    Attributes
+    ----------
+    table
+        Per-axis errors (mm, deg) and ATE RMSE of the paired poses.
+    n_estimated, n_ground_truth
+        Poses in each file.
+    rebase_first
+        Whether both were expressed relative to their first paired pose.
+    warnings
+        One sentence per suspect point (also issued as :class:`SpaceposeWarning`).
+    """
+
+    table: ErrorTable
+    n_estimated: int
+    n_ground_truth: int
+    rebase_first: bool
+    warnings: tuple[str, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready mapping; every length in mm and every angle in degrees, as its key says.
+
+        ``{"units", "n", "n_estimated", "n_ground_truth", "rebase_first", "mean": {"x_mm", ...,
+        "roll_deg"}, "std": {...}, "ate_translation_rmse_mm", "ate_rotation_rmse_deg",
+        "warnings"}``.
+        """
+        rows = self.table.rows()
+        return {
+            "units": {"translation": "mm", "rotation": "deg"},
+            "n": self.table.n,
+            "n_estimated": self.n_estimated,
+            "n_ground_truth": self.n_ground_truth,
+            "rebase_first": self.rebase_first,
+            "mean": {f"{axis}_{unit}": mean for axis, unit, mean, _ in rows},
+            "std": {f"{axis}_{unit}": std for axis, unit, _, std in rows},
+            "ate_translation_rmse_mm": 1e3 * float(self.table.ate_translation_rmse),
+            "ate_rotation_rmse_deg": float(self.table.ate_rotation_rmse),
+            "warnings": list(self.warnings),
+        }
+
+
+def compare_trajectory_files(
+    est_path: str | Path,
+    gt_path: str | Path,
+    rebase_first: bool = False,
+    tolerance: float = TIMESTAMP_TOLERANCE,
+) -> TrajectoryComparison:
+    """Read, pair by timestamp and score ``est_path`` against ``gt_path``.
+
+    Parameters
+    ----------
+    est_path, gt_path
+        Trajectories (TUM or KITTI) of the same pose, e.g. ``T_sensor_target``, metres.
+    rebase_first
+        Express both relative to their first paired pose (model-free tracking, METHODS §0).
+    tolerance
+        Largest time difference of a pair, seconds.
+
+    Raises
+    ------
+    InputError
+        An estimate without a ground-truth pose within ``tolerance``, naming ``est_path``.
+
+    Warns
+    -----
+    SpaceposeWarning
+        Different lengths, repeated pairings, or a model-free estimate compared as it is.
+    """
+    est_path, gt_path = Path(est_path), Path(gt_path)
+    est, gt = read_trajectory(est_path), read_trajectory(gt_path)
+    try:
+        _, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
+        table = evaluate(est, gt, rebase_first=rebase_first, tolerance=tolerance)
+    except InputError as exc:
+        raise InputError(f"against {gt_path.name}: {exc.reason}", est_path) from None
+    notes = []
+    if len(est) != len(gt):
+        notes.append(
+            f"{len(est)} poses against {len(gt)} in {gt_path.name}: only the {len(est)} "
+            "estimated ones are scored"
+        )
+    shared = len(i_gt) - len(np.unique(i_gt))
+    if shared:
+        notes.append(
+            f"{shared} estimate(s) share a ground-truth pose with another (repeated timestamps)"
+        )
+    if (
+        not rebase_first
+        and starts_at_identity(est.poses[0])
+        and not starts_at_identity(gt.poses[i_gt[0]])
+    ):
+        notes.append(
+            "the first pose is the identity (a model-free track: frame 0 defines the target "
+            f"frame) but {gt_path.name}'s is not, so every error includes that offset; "
+            "compare with --rebase-first (rebase_first=True)"
+        )
+    for note in notes:
+        warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
+    return TrajectoryComparison(table, len(est), len(gt), rebase_first, tuple(notes))
+
+
+def starts_at_identity(T_first: np.ndarray) -> bool:
+    """Whether a first pose (4, 4) is the identity, as a model-free estimate's is (METHODS §0)."""
+    return bool(np.allclose(T_first, np.eye(4), rtol=0.0, atol=_IDENTITY_TOLERANCE))
