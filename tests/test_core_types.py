@@ -270,3 +270,74 @@ def test_planes_on_a_cloud_at_1e300_is_one_line_naming_the_file(tmp_path, capsys
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1
     assert err.startswith(f"error: {path}: points reach |coordinate|")
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["planes", "{cloud}", "--catalogue", "{bad}"],
+        ["track", "{frames}", "--out", "{out}/e.tum", "--config", "{bad}"],
+        ["navigate", "{frames}", "--out", "{out}/n.csv", "--scenario", "{bad}"],
+        ["navigate", "{frames}", "--out", "{out}/n.csv", "--config", "{bad}"],
+        ["campaign", "{bad}"],
+    ],
+    ids=["planes-catalogue", "track-config", "navigate-scenario", "navigate-config", "campaign"],
+)
+def test_malformed_yaml_on_the_command_line_is_exactly_one_line(tmp_path, capsys, command):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nvalues: [1, 2\nother: 3\n")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    cloud = frames / "000000.npy"
+    np.save(cloud, np.random.default_rng(0).uniform(-0.1, 0.1, (300, 3)) + np.array([0, 0, 1]))
+    names = {"bad": bad, "frames": frames, "cloud": cloud, "out": tmp_path / "out"}
+    assert main([arg.format(**names) for arg in command]) == 1
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert err.startswith(f"error: {bad}: not valid YAML")
+    assert "line 3:6: expected ',' or ']', but got ':'" in err
+
+
+def test_a_cloud_in_millimetres_gets_one_warning_line_naming_the_file(tmp_path, capsys) -> None:
+    from spacepose.tools.cloud_io import write_cloud
+
+    # A 20 cm square plate at 1 m, sampled every 5 mm, written in millimetres.
+    u, v = np.meshgrid(np.arange(40) * 5.0, np.arange(40) * 5.0)
+    path = write_cloud(tmp_path / "plate_mm.ply", np.c_[u.ravel(), v.ravel(), np.full(1600, 1e3)])
+    assert main(["planes", str(path), "--json"]) == 0
+    err = capsys.readouterr().err
+    assert err.splitlines() == [
+        f"warning: {path}: coordinates look like millimetres (276 m across, median point "
+        "spacing 5.00 m); spacepose works in metres: scale the file by 0.001 "
+        "(read_cloud(..., scale=1e-3))"
+    ]
+
+
+def test_the_same_warning_for_many_files_is_printed_three_times_then_counted(monkeypatch) -> None:
+    import importlib
+    import io
+    import warnings
+
+    from rich.console import Console
+
+    # spacepose.cli.app the module, not the Typer object spacepose.cli re-exports as "app".
+    cli_app = importlib.import_module("spacepose.cli.app")
+    from spacepose.errors import SpaceposeWarning
+
+    screen = io.StringIO()
+    monkeypatch.setattr(cli_app, "err_console", Console(file=screen, width=200))
+    with warnings.catch_warnings(), cli_app._OneLineWarnings() as shown:
+        warnings.simplefilter("always")
+        warnings.showwarning = shown.show
+        for k in range(7):
+            warnings.warn(
+                SpaceposeWarning("coordinates look like mm (a lot)", f"f{k}.ply"), stacklevel=1
+            )
+        warnings.warn(SpaceposeWarning("another problem", "g.ply"), stacklevel=1)
+    assert screen.getvalue().splitlines() == [
+        "warning: f0.ply: coordinates look like mm (a lot)",
+        "warning: f1.ply: coordinates look like mm (a lot)",
+        "warning: f2.ply: coordinates look like mm (a lot)",
+        "warning: g.ply: another problem",
+        "warning: 4 more file(s) with the same warning: coordinates look like mm",
+    ]

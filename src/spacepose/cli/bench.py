@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from spacepose.cli.app import app, console
+from spacepose.cli.feedback import working
 
 
 @app.command()
@@ -31,7 +32,7 @@ def bench(
     )
 
     options = bench_config(quick, config)
-    with console.status("benchmarking"):
+    with working("benchmarking"):
         result = run_benchmark(quick, peers, repeats, seed, workers, config=options)
     console.print(stage_table(result))
     console.print(accuracy_table(result))
