@@ -86,3 +86,14 @@ def test_unreadable_files(tmp_path):
     other.write_text(yaml.safe_dump({"seed": 3}))
     with pytest.raises(ConfigError, match="no rectangle catalogue"):
         load_catalogue(other)
+
+
+def test_malformed_yaml_is_one_line_with_line_and_column(tmp_path):
+    path = tmp_path / "cat.yaml"
+    path.write_text("rectangles:\n  - name: top\n    a: [1.8, 2.4\n    b: 2.4\n")
+    with pytest.raises(ConfigError) as info:
+        load_catalogue(path)
+    assert str(info.value) == (
+        f"{path}: not valid YAML: line 4:6: expected ',' or ']', but got ':' "
+        "(while parsing a flow sequence)"
+    )

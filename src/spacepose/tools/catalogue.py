@@ -13,15 +13,14 @@ conflict when both their sides lie within the summed recognition tolerances of e
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from pydantic import ValidationError
 
+from spacepose.core.config import parse_structured
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, side_tolerance
 from spacepose.errors import ConfigError
 
@@ -137,9 +136,4 @@ def load_catalogue(
         text = path.read_text()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the rectangle catalogue: {exc.strerror}") from None
-    try:
-        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
-    except (json.JSONDecodeError, yaml.YAMLError) as exc:
-        kind = "JSON" if path.suffix.lower() == ".json" else "YAML"
-        raise ConfigError(f"{path}: not valid {kind}: {exc}") from None
-    return parse_catalogue(data, config, path)
+    return parse_catalogue(parse_structured(text, path), config, path)
