@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from spacepose.cli.app import app, console, err_console
+from spacepose.cli.feedback import working
 
 
 @app.command()
@@ -33,9 +34,10 @@ def navigate(
     from spacepose.tools.navigation_io import navigate_run
 
     cfg = None if config is None else load_config(NavigationConfig, config)
-    summary = navigate_run(
-        run, out, cfg, scenario=scenario, prior_from_scenario=prior_from_scenario
-    )
+    with working("navigating"):
+        summary = navigate_run(
+            run, out, cfg, scenario=scenario, prior_from_scenario=prior_from_scenario
+        )
     if summary.navigated == 0:
         err_console.print(
             "warning: the filter never started (no rectangle told apart without a prediction; "

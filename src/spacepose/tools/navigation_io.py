@@ -10,7 +10,7 @@ from pathlib import Path
 import yaml
 from numpy.typing import ArrayLike
 
-from spacepose.core.config import dump_config
+from spacepose.core.config import dump_config, parse_problem
 from spacepose.core.navigation import (
     NavigationConfig,
     NavRow,
@@ -114,7 +114,7 @@ def _read_mapping(path: Path) -> dict:
     except OSError as exc:
         raise InputError(f"cannot read: {exc.strerror}", path) from None
     except yaml.YAMLError as exc:
-        raise FileFormatError(f"not valid YAML/JSON: {exc}", path) from None
+        raise FileFormatError(f"not valid YAML/JSON: {parse_problem(exc)}", path) from None
     if not isinstance(data, dict):
         raise FileFormatError("a scenario file must hold a mapping", path)
     return data
