@@ -13,9 +13,15 @@ from spacepose.cli import main
 from spacepose.core.metrics import evaluate
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import ConfigError, FileFormatError, InputError
+from spacepose.errors import ConfigError, InputError
 from spacepose.tools.cloud_io import write_cloud
-from spacepose.tools.frames import HEALTH_COLUMNS, open_frames, read_timestamps, tracker_config
+from spacepose.tools.frames import (
+    HEALTH_COLUMNS,
+    open_frames,
+    read_timestamps,
+    track_folder,
+    tracker_config,
+)
 from spacepose.tools.runs import write_run
 from spacepose.tools.trajectory_io import read_tum
 
@@ -115,15 +121,83 @@ def test_unknown_method_exits_1(frame_dir, tmp_path, capsys):
     assert "method" in _one_line_error(capsys)
 
 
-def test_corrupt_frame_exits_1_naming_the_file(frame_dir, tmp_path, capsys):
+@pytest.mark.parametrize(
+    "content",
+    [
+        b"",  # zero bytes
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 50\n",  # truncated header
+        "truncated body",
+        b"I am a text file that someone saved as .ply\n",
+    ],
+)
+def test_unreadable_frame_is_lost_and_the_others_written(frame_dir, tmp_path, capsys, content):
+    """Frame 2 of 4 cannot be read: it is reported lost with the reason; frames 0, 1, 3 are
+    tracked and every frame has its TUM line and health row."""
     bad = tmp_path / "bad"
     bad.mkdir()
-    for p in sorted(frame_dir.glob("*.ply"))[:2]:
+    for p in sorted(frame_dir.glob("*")):
         (bad / p.name).write_bytes(p.read_bytes())
-    (bad / "f999.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 50\n")
-    code = main(["track", str(bad), "--out", str(tmp_path / "e.tum"), "--no-mls"])
+    if content == "truncated body":
+        content = (bad / "f002.ply").read_bytes()[:-5000]
+    (bad / "f002.ply").write_bytes(content)
+    out = tmp_path / "e.tum"
+    code = main(["track", str(bad), "--out", str(out), "--method", "icp", "--no-mls"])
+    assert code == 0, capsys.readouterr().err
+    assert "3 ok, 0 degraded, 1 lost" in " ".join(capsys.readouterr().out.split())
+    with (tmp_path / "e.health.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["status"] for r in rows] == ["ok", "ok", "lost", "ok"]
+    assert "f002.ply" in rows[2]["reasons"] and "\n" not in rows[2]["reasons"]
+    assert [r["reasons"] for r in (rows[0], rows[1], rows[3])] == ["", "", ""]
+    est = read_tum(out)
+    np.testing.assert_allclose(est.timestamps, 100.0 + 0.5 * np.arange(N_FRAMES))
+
+
+class _NoTracking:
+    """Stands in for the Tracker where tracking must not start."""
+
+    def __init__(self, *args, **kwargs):
+        raise AssertionError("tracking started before the output was checked")
+
+
+def test_out_at_a_folder_fails_before_tracking(frame_dir, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("spacepose.tools.frames.Tracker", _NoTracking)
+    (tmp_path / "est.tum").mkdir()
+    code = main(["track", str(frame_dir), "--out", str(tmp_path / "est.tum")])
     assert code == 1
-    assert "f999.ply" in _one_line_error(capsys)
+    assert "est.tum: output exists and is not a regular file" in _one_line_error(capsys)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "est.health.csv").mkdir()  # a sibling output in the way counts too
+    assert main(["track", str(frame_dir), "--out", str(tmp_path / "run" / "est.tum")]) == 1
+    assert "est.health.csv" in _one_line_error(capsys)
+
+
+def test_out_under_a_regular_file_fails_before_tracking(frame_dir, tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("spacepose.tools.frames.Tracker", _NoTracking)
+    (tmp_path / "notes.txt").write_text("a file, not a folder")
+    out = tmp_path / "notes.txt" / "runs" / "est.tum"
+    assert main(["track", str(frame_dir), "--out", str(out)]) == 1
+    assert "notes.txt: it is a regular file" in _one_line_error(capsys)
+
+
+def test_rows_are_written_as_the_run_goes(frame_dir, tmp_path, monkeypatch):
+    """A run that dies at frame 2 keeps the trajectory and health rows of frames 0 and 1."""
+    from spacepose.core.tracker import Tracker
+
+    real = Tracker.track_frame
+
+    def dies_at_frame_2(self, cloud, timestamp):
+        if timestamp >= 101.0:
+            raise KeyboardInterrupt
+        return real(self, cloud, timestamp)
+
+    monkeypatch.setattr(Tracker, "track_frame", dies_at_frame_2)
+    out = tmp_path / "e.tum"
+    with pytest.raises(KeyboardInterrupt):
+        track_folder(frame_dir, out, tracker_config(method="icp"))
+    np.testing.assert_array_equal(read_tum(out).timestamps, [100.0, 100.5])
+    with (tmp_path / "e.health.csv").open() as fh:
+        assert [r["frame"] for r in csv.DictReader(fh)] == ["0", "1"]
 
 
 def test_timestamps_count_mismatch(frame_dir, tmp_path):
@@ -157,7 +231,8 @@ def test_frame_without_points_is_yielded_empty(tmp_path, lab):
     write_cloud(tmp_path / "0.xyz", lab.frame(0).cloud)
     (tmp_path / "1.xyz").write_text("nan nan nan\n")
     frames = list(open_frames(tmp_path))
-    assert frames[0].cloud is not None and frames[1].cloud is None
+    assert frames[0].cloud is not None and frames[0].error is None
+    assert frames[1].cloud is None and "1.xyz" in frames[1].error
 
 
 def test_not_a_folder(tmp_path):
@@ -166,10 +241,12 @@ def test_not_a_folder(tmp_path):
     (tmp_path / "file.ply").write_text("")
     with pytest.raises(InputError, match="not a folder"):
         open_frames(tmp_path / "file.ply")
+    with pytest.raises(InputError, match="applies to a ROS bag"):
+        open_frames(tmp_path, topic="/points")
     (tmp_path / "file.ply").unlink()
     (tmp_path / "x.ply").write_text("garbage")
-    with pytest.raises(FileFormatError):
-        list(open_frames(tmp_path))
+    (frame,) = open_frames(tmp_path)
+    assert frame.cloud is None and "x.ply" in frame.error
 
 
 def test_tracker_config_overrides(tmp_path):

@@ -13,7 +13,9 @@ from spacepose.cli.app import app, console
 @app.command()
 def track(
     input: Path = typer.Argument(
-        ..., help="A run folder, or a folder of frame files (PLY/PCD/XYZ/NPY, sorted by name)."
+        ...,
+        help="A run folder, a folder of frame files (PLY/PCD/XYZ/NPY, sorted by name) or of "
+        "depth images (PNG/TIFF with intrinsics.yaml, or TUM's depth.txt), or a ROS 1/2 bag.",
     ),
     out: Path = typer.Option(..., "--out", help="Estimated trajectory (TUM)."),
     method: str | None = typer.Option(
@@ -32,6 +34,10 @@ def track(
     ),
     config: Path | None = typer.Option(None, help="Tracker config file (YAML or JSON)."),
     workers: int = typer.Option(-1, help="Threads for neighbour searches (-1: all cores)."),
+    intrinsics: Path | None = typer.Option(
+        None, help="Depth image intrinsics (YAML/JSON: fx, fy, cx, cy, depth_scale, k1..k6, p1, p2)"
+    ),
+    topic: str | None = typer.Option(None, help="Bag topic (PointCloud2 or depth Image)."),
 ) -> None:
     """Track every frame; writes EST.tum, EST.health.csv and EST.config.json.
 
@@ -54,7 +60,16 @@ def track(
         def report(done: int, total: int, status: str) -> None:
             progress.update(task, completed=done, total=total, status=status)
 
-        summary = track_folder(input, out, cfg, model=model, workers=workers, progress=report)
+        summary = track_folder(
+            input,
+            out,
+            cfg,
+            model=model,
+            workers=workers,
+            progress=report,
+            intrinsics=intrinsics,
+            topic=topic,
+        )
     console.print(
         f"{summary['frames']} frames: {summary['ok']} ok, {summary['degraded']} degraded, "
         f"{summary['lost']} lost; {summary['mean_time_ms']:.1f} ms/frame -> {out}",

@@ -1,33 +1,43 @@
-"""Tracking input and output: frames from a run folder or a folder of point cloud files; the
-estimated trajectory, per-frame health table and effective config written beside each other.
+"""Tracking input and output: frames from a run folder, a folder of point cloud files or depth
+images, or a ROS bag; the estimated trajectory, per-frame health table and effective config
+written beside each other, row by row as the run goes.
 
-A run folder (written by ``spacepose simulate``, read by :func:`spacepose.tools.runs.read_run`)
-is recognised by its ``scenario.json``. Any other folder is read as one point cloud file per
-frame (``.ply``, ``.pcd``, ``.xyz``, ``.txt``, ``.csv``, ``.npy``, ``.npz``), sorted by file name,
-with timestamps from ``timestamps.txt`` (one number per line) when present, else the frame index.
+:func:`open_frames` recognises, in this order: a ROS 1 / ROS 2 bag
+(:mod:`spacepose.tools.bag_io`); a run folder (written by ``spacepose simulate``, recognised by
+its ``scenario.json``); a depth image folder (:mod:`spacepose.tools.depth_io`: it holds an
+intrinsics file or TUM RGB-D's ``depth.txt``, or an intrinsics file is given); any other folder
+is read as one point cloud file per frame (``.ply``, ``.pcd``, ``.xyz``, ``.txt``, ``.csv``,
+``.npy``, ``.npz``). Files are sorted by name, with timestamps from ``timestamps.txt`` (one
+number per line) when present, else the frame index.
 
-A frame file that parses but holds no usable point (an empty cloud, only NaN rows) is yielded as
-an empty frame so the tracker can report it as lost; a file that cannot be parsed is an error.
+A frame that cannot be read (missing, zero-byte, truncated or corrupt file, an undecodable bag
+message) or holds no usable point is yielded without a cloud and with the reason, so the
+tracker reports it ``lost`` and the run goes on.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
+import os
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, load_config, validate_config
+from spacepose.core.depth import DepthCamera
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import InputError
+from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.trajectory_io import write_tum
+from spacepose.tools.trajectory_io import tum_lines
 
 HEALTH_COLUMNS: tuple[str, ...] = (
     "frame",
@@ -43,6 +53,7 @@ HEALTH_COLUMNS: tuple[str, ...] = (
     "sig_tx",
     "sig_ty",
     "sig_tz",
+    "reasons",
 )
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
 TIMESTAMPS_FILE = "timestamps.txt"
@@ -59,20 +70,33 @@ class FrameInput:
     timestamp
         Seconds.
     cloud
-        The points in the sensor frame, or ``None`` when the file holds no usable point.
+        The points in the sensor frame, or ``None`` when the frame holds no usable point.
     source
-        The file the frame came from.
+        The file (or bag message) the frame came from.
+    error
+        Why ``cloud`` is None (the read error, naming the source); None when it is not.
     """
 
     index: int
     timestamp: float
     cloud: PointCloud | None
     source: str
+    error: str | None = None
+
+
+class Frames(Protocol):
+    """What :func:`open_frames` returns: a sized, re-iterable sequence of frames."""
+
+    model_path: Path | None
+
+    def __len__(self) -> int: ...
+
+    def __iter__(self) -> Iterator[FrameInput]: ...
 
 
 @dataclass(frozen=True)
 class FrameSequence:
-    """A sized, re-iterable sequence of input frames (files are read lazily, one at a time).
+    """Frames from one file each (files are read lazily, one at a time).
 
     Attributes
     ----------
@@ -82,53 +106,71 @@ class FrameSequence:
         (N,) seconds, one per frame.
     model_path
         The reference model cloud of a run folder (``model.ply``), else ``None``.
+    loader
+        Reads one file into a PointCloud, sensor frame (default: :func:`read_cloud`); any
+        :class:`~spacepose.errors.InputError` it raises makes the frame lost, with the reason.
     """
 
     paths: tuple[Path, ...]
     timestamps: NDArray[np.float64]
     model_path: Path | None = None
+    loader: Callable[[Path], PointCloud] = read_cloud
 
     def __len__(self) -> int:
         return len(self.paths)
 
     def __iter__(self) -> Iterator[FrameInput]:
         for i, (path, t) in enumerate(zip(self.paths, self.timestamps, strict=True)):
-            yield FrameInput(i, float(t), read_frame(path), str(path))
+            cloud, error = None, None
+            try:
+                cloud = self.loader(path)
+            except InputError as exc:  # FileFormatError included: the frame is lost, not the run
+                error = str(exc)
+            yield FrameInput(i, float(t), cloud, str(path), error)
 
 
-def read_frame(path: str | Path) -> PointCloud | None:
-    """Read one frame file; ``None`` for a well-formed file with no finite point.
+def open_frames(
+    path: str | Path, intrinsics: str | Path | None = None, topic: str | None = None
+) -> Frames:
+    """Open a bag, a run folder, a depth image folder or a folder of cloud files (see the
+    module docstring).
 
-    Raises
-    ------
-    FileFormatError
-        The file cannot be parsed (corrupt, truncated, unknown extension, missing).
-    """
-    try:
-        return read_cloud(path)
-    except FileFormatError:
-        raise
-    except InputError:
-        # Parsed but empty / all-NaN: a frame the tracker must report as lost, not a crash.
-        return None
-
-
-def open_frames(path: str | Path) -> FrameSequence:
-    """Open a run folder or a folder of frame files (see the module docstring).
+    Parameters
+    ----------
+    path
+        The input.
+    intrinsics
+        Intrinsics file (YAML/JSON, :class:`spacepose.core.depth.DepthCamera`) for depth images;
+        by default the folder's own ``intrinsics.yaml``/``.yml``/``.json`` (for a bag: its
+        CameraInfo).
+    topic
+        The bag topic to read (bags only).
 
     Raises
     ------
     InputError
-        The path is not a folder, holds no frame file, or ``timestamps.txt`` does not hold one
-        finite number per frame.
+        The path does not exist, is not a folder or bag, holds no frame, a bag topic cannot be
+        chosen, a depth folder has no intrinsics, or ``timestamps.txt`` does not hold one finite
+        number per frame.
+    ConfigError
+        The intrinsics file is invalid.
     """
+    from spacepose.tools.bag_io import is_bag, open_bag  # bag_io builds on this module
+
     root = Path(path)
     if not root.exists():
         raise InputError("does not exist", root)
+    camera = None if intrinsics is None else depth_io.read_intrinsics(intrinsics)
+    if is_bag(root):
+        return open_bag(root, topic, camera)
+    if topic is not None:
+        raise InputError(f"--topic {topic} applies to a ROS bag, and this is not one", root)
     if not root.is_dir():
-        raise InputError("not a folder of frames (or a run folder)", root)
+        raise InputError("not a folder of frames (or a run folder, or a ROS bag)", root)
     if (root / "scenario.json").is_file():
         return _open_run(root)
+    if camera is not None or depth_io.is_depth_folder(root):
+        return _open_depth_folder(root, camera)
     paths = tuple(
         sorted(
             p
@@ -138,12 +180,35 @@ def open_frames(path: str | Path) -> FrameSequence:
     )
     if not paths:
         raise InputError(f"no frame files ({', '.join(CLOUD_SUFFIXES)}) in the folder", root)
+    return FrameSequence(paths, _folder_timestamps(root, len(paths)))
+
+
+def _folder_timestamps(root: Path, n_frames: int) -> NDArray[np.float64]:
+    """``timestamps.txt`` of a folder when present, else the frame indices."""
     stamps_path = root / TIMESTAMPS_FILE
     if stamps_path.is_file():
-        timestamps = read_timestamps(stamps_path, len(paths))
-    else:
-        timestamps = np.arange(len(paths), dtype=np.float64)
-    return FrameSequence(paths, timestamps)
+        return read_timestamps(stamps_path, n_frames)
+    return np.arange(n_frames, dtype=np.float64)
+
+
+def _open_depth_folder(root: Path, camera: DepthCamera | None) -> FrameSequence:
+    """Depth images (sorted, or listed by ``depth.txt``) back-projected with ``camera`` or the
+    folder's intrinsics file."""
+    if camera is None:
+        found = depth_io.find_intrinsics(root)
+        if found is None:
+            raise InputError(
+                f"depth images need intrinsics: put {depth_io.INTRINSICS_FILES[0]} (fx, fy, cx, "
+                "cy, depth_scale) in the folder or give --intrinsics",
+                root,
+            )
+        camera = depth_io.read_intrinsics(found)
+    loader = partial(depth_io.read_depth_cloud, camera=camera)
+    if (root / depth_io.TUM_DEPTH_LIST).is_file():
+        paths, timestamps = depth_io.read_tum_depth_list(root / depth_io.TUM_DEPTH_LIST)
+        return FrameSequence(paths, timestamps, loader=loader)
+    paths = depth_io.depth_files(root)
+    return FrameSequence(paths, _folder_timestamps(root, len(paths)), loader=loader)
 
 
 def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
@@ -220,24 +285,20 @@ def tracker_config(
     return validate_config(TrackerConfig, data, path)
 
 
-def health_rows(results: Sequence[TrackResult]) -> list[dict[str, object]]:
-    """One row per frame with :data:`HEALTH_COLUMNS` (σ in rad and m, RMSE in m, time in ms)."""
-    rows = []
-    for r in results:
-        sig = r.sigma
-        rows.append(
-            {
-                "frame": r.index,
-                "timestamp": repr(r.timestamp),
-                "status": r.status,
-                "fitness": f"{r.fitness:.6g}",
-                "rmse": f"{r.rmse:.6g}",
-                "iterations": r.iterations,
-                "time_ms": f"{r.time_ms.get('total', float('nan')):.3f}",
-                **{c: f"{v:.6g}" for c, v in zip(HEALTH_COLUMNS[7:], sig, strict=True)},
-            }
-        )
-    return rows
+def health_row(result: TrackResult) -> dict[str, object]:
+    """One row of :data:`HEALTH_COLUMNS` (σ in rad and m, RMSE in m, time in ms; the reasons a
+    frame is not ``ok`` joined by ``; ``)."""
+    return {
+        "frame": result.index,
+        "timestamp": repr(result.timestamp),
+        "status": result.status,
+        "fitness": f"{result.fitness:.6g}",
+        "rmse": f"{result.rmse:.6g}",
+        "iterations": result.iterations,
+        "time_ms": f"{result.time_ms.get('total', float('nan')):.3f}",
+        **{c: f"{v:.6g}" for c, v in zip(HEALTH_COLUMNS[7:13], result.sigma, strict=True)},
+        "reasons": "; ".join(result.reasons),
+    }
 
 
 def write_health_csv(path: str | Path, results: Sequence[TrackResult]) -> Path:
@@ -247,7 +308,7 @@ def write_health_csv(path: str | Path, results: Sequence[TrackResult]) -> Path:
     with path.open("w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=HEALTH_COLUMNS)
         writer.writeheader()
-        writer.writerows(health_rows(results))
+        writer.writerows(health_row(r) for r in results)
     return path
 
 
@@ -258,6 +319,30 @@ def output_paths(out: str | Path) -> tuple[Path, Path, Path]:
     return out, Path(f"{stem}.health.csv"), Path(f"{stem}.config.json")
 
 
+def check_output(out: str | Path) -> None:
+    """Refuse an output location that cannot be written, before any work is done.
+
+    Each of the three output files must be a regular file or not exist yet, and the nearest
+    existing folder above them must be a writable folder (not a regular file).
+
+    Raises
+    ------
+    InputError
+        An output is an existing folder, a parent is a regular file, or the folder is not
+        writable.
+    """
+    for path in output_paths(out):
+        if path.exists() and not path.is_file():
+            raise InputError("output exists and is not a regular file (a folder?)", path)
+    parent = Path(out).absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"cannot write under {parent}: it is a regular file", out)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"cannot write under {parent}: permission denied", out)
+
+
 def track_folder(
     input: str | Path,
     out: str | Path,
@@ -265,13 +350,21 @@ def track_folder(
     model: str | Path | None = None,
     workers: int = -1,
     progress: Callable[[int, int, str], None] | None = None,
+    *,
+    intrinsics: str | Path | None = None,
+    topic: str | None = None,
 ) -> dict[str, Any]:
-    """Track every frame of a folder and write the trajectory, health table and config.
+    """Track every frame of an input and write the trajectory, health table and config.
+
+    The output location is checked and the input opened before tracking starts; the
+    trajectory and health rows are written (and flushed) frame by frame, so an interrupted run
+    keeps every frame done. A frame that cannot be read is reported ``lost`` with its reason.
 
     Parameters
     ----------
     input
-        A run folder or a folder of frame files (see :func:`open_frames`).
+        A bag, run folder, depth image folder or folder of frame files (see
+        :func:`open_frames`).
     out
         The TUM trajectory to write (one line per input frame, METHODS §0); ``.health.csv``
         and ``.config.json`` are written beside it with the same stem.
@@ -283,33 +376,42 @@ def track_folder(
         Threads for neighbour searches.
     progress
         Called after each frame with (frames done, total, status).
+    intrinsics, topic
+        Depth image intrinsics file and bag topic (see :func:`open_frames`).
 
     Returns
     -------
     Summary: frames, ok / degraded / lost counts, mean time per frame (ms), output paths.
     """
-    frames = open_frames(input)
+    check_output(out)
+    frames = open_frames(input, intrinsics=intrinsics, topic=topic)
     model_cloud = None if model is None else read_cloud(model)
     tum, health, config_path = output_paths(out)
-    dump_config(config, config_path)
     tracker = Tracker(config, model_cloud, workers)
-    results = []
-    for frame in frames:
-        results.append(tracker.track_frame(frame.cloud, frame.timestamp))
-        if progress is not None:
-            progress(len(results), len(frames), results[-1].status)
-    trajectory = Trajectory(
-        np.array([r.timestamp for r in results]), np.array([r.T_sensor_target for r in results])
-    )
-    write_tum(tum, trajectory)
-    write_health_csv(health, results)
-    statuses = [r.status for r in results]
+    dump_config(config, config_path)  # creates the folder
+    statuses: list[str] = []
+    times: list[float] = []
+    with tum.open("w") as tum_fh, health.open("w", newline="") as health_fh:
+        writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
+        writer.writeheader()
+        for frame in frames:
+            result = tracker.track_frame(frame.cloud, frame.timestamp)
+            if frame.error is not None:  # the read error says more than the tracker's "no points"
+                result = dataclasses.replace(result, reasons=(frame.error,))
+            tum_fh.write(tum_lines(Trajectory([result.timestamp], [result.T_sensor_target])))
+            writer.writerow(health_row(result))
+            tum_fh.flush()
+            health_fh.flush()
+            statuses.append(result.status)
+            times.append(result.time_ms["total"])
+            if progress is not None:
+                progress(len(statuses), len(frames), result.status)
     return {
-        "frames": len(results),
+        "frames": len(statuses),
         "ok": statuses.count("ok"),
         "degraded": statuses.count("degraded"),
         "lost": statuses.count("lost"),
-        "mean_time_ms": float(np.mean([r.time_ms["total"] for r in results])),
+        "mean_time_ms": float(np.mean(times)) if times else float("nan"),
         "trajectory": str(tum),
         "health": str(health),
         "config": str(config_path),

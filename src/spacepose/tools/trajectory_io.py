@@ -110,16 +110,21 @@ def read_tum(path: str | Path) -> Trajectory:
     return _trajectory(path, rows[:, 0], poses, lines)
 
 
-def write_tum(path: str | Path, traj: Trajectory) -> Path:
-    """Write ``traj`` as a TUM file (quaternion with ``qw >= 0``); returns the path."""
-    path = Path(path)
+def tum_lines(traj: Trajectory) -> str:
+    """The TUM lines of ``traj`` (quaternion with ``qw >= 0``), each ending in a newline."""
     quat = Rotation.from_matrix(traj.poses[:, :3, :3]).as_quat()
     # One sign per rotation, so the same poses always produce the same bytes.
     quat[quat[:, 3] < 0] *= -1.0
     table = np.column_stack([traj.timestamps, traj.positions, quat])
-    path.parent.mkdir(parents=True, exist_ok=True)
     # No header line: one line per pose, as evo and the TUM tools expect.
-    np.savetxt(path, table, fmt=_FMT)
+    return "".join(" ".join(_FMT % v for v in row) + "\n" for row in table)
+
+
+def write_tum(path: str | Path, traj: Trajectory) -> Path:
+    """Write ``traj`` as a TUM file (see :func:`tum_lines`); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(tum_lines(traj))
     return path
 
 

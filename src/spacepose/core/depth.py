@@ -1,0 +1,286 @@
+"""Depth images to points: the pinhole camera with OpenCV's distortion model, back-projection.
+
+A depth image holds, per pixel ``(u, v)`` (column, row; pixel centres at integer coordinates),
+the depth ``z`` along the boresight (not the range along the ray) in stored units; ``z = value ·
+depth_scale`` metres. A zero, negative or non-finite value is "no return". The sensor frame is
+z along the boresight, x right, y down, so a pixel's point is ``(x_n·z, y_n·z, z)`` with
+``(x_n, y_n)`` the undistorted normalised image coordinates of the pixel.
+
+Distortion follows OpenCV's rational model (``k1…k6``, ``p1``, ``p2``; plumb-bob is the special
+case ``k4 = k5 = k6 = 0``): an undistorted normalised point ``(x, y)`` is seen at
+
+    x_d = x·c(r²) + 2·p1·x·y + p2·(r² + 2x²),   y_d = y·c(r²) + p1·(r² + 2y²) + 2·p2·x·y,
+    c(r²) = (1 + k1·r² + k2·r⁴ + k3·r⁶) / (1 + k4·r² + k5·r⁴ + k6·r⁶),
+
+and a pixel is ``(fx·x_d + cx, fy·y_d + cy)``. Back-projection inverts this by Newton's method
+per pixel (vectorised over the image); a pixel whose inverse does not converge is no return.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from pydantic import Field
+
+from spacepose.core.cloud import PointCloud, as_points
+from spacepose.core.config import StageConfig
+from spacepose.errors import InputError
+
+# Newton's method on the distortion model: iterations, and the residual (normalised image units,
+# about 1e-6 pixel for a 500-pixel focal length) below which a pixel's inverse counts as found.
+_NEWTON_ITERATIONS = 50
+_NEWTON_TOLERANCE = 1e-12
+_ACCEPT_RESIDUAL = 1e-9
+
+
+class DepthCamera(StageConfig):
+    """Intrinsics of a depth camera (pinhole, OpenCV distortion) and the unit of its values.
+
+    ``depth_scale`` is metres per stored unit: 0.001 for millimetres (ROS ``16UC1``), 1 for
+    float images in metres (ROS ``32FC1``), 0.0002 for TUM RGB-D's 5000 units per metre.
+    ``width`` and ``height``, when given, are checked against every image.
+    """
+
+    fx: float = Field(gt=0, description="Focal length along x (columns), pixels.")
+    fy: float = Field(gt=0, description="Focal length along y (rows), pixels.")
+    cx: float = Field(description="Principal point, column (pixel centres at integers).")
+    cy: float = Field(description="Principal point, row.")
+    depth_scale: float = Field(0.001, gt=0, description="Metres per stored depth unit.")
+    k1: float = 0.0
+    k2: float = 0.0
+    k3: float = 0.0
+    k4: float = 0.0
+    k5: float = 0.0
+    k6: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    width: int | None = Field(None, ge=1, description="Image columns, checked when given.")
+    height: int | None = Field(None, ge=1, description="Image rows, checked when given.")
+
+    @property
+    def distorted(self) -> bool:
+        """Whether any distortion coefficient is non-zero."""
+        return any((self.k1, self.k2, self.k3, self.k4, self.k5, self.k6, self.p1, self.p2))
+
+
+def _radial(camera: DepthCamera, r2: NDArray) -> tuple[NDArray, NDArray]:
+    """The radial factor ``c(r²)`` of the distortion model and its derivative ``dc/d(r²)``."""
+    c = camera
+    num = 1 + r2 * (c.k1 + r2 * (c.k2 + r2 * c.k3))
+    den = 1 + r2 * (c.k4 + r2 * (c.k5 + r2 * c.k6))
+    dnum = c.k1 + r2 * (2 * c.k2 + 3 * c.k3 * r2)
+    dden = c.k4 + r2 * (2 * c.k5 + 3 * c.k6 * r2)
+    return num / den, (dnum * den - num * dden) / (den * den)
+
+
+def distort(camera: DepthCamera, x: ArrayLike, y: ArrayLike) -> tuple[NDArray, NDArray]:
+    """Apply the distortion model to undistorted normalised image coordinates.
+
+    Parameters
+    ----------
+    camera
+        The camera.
+    x, y
+        Undistorted normalised coordinates (any equal shapes), sensor frame ``X/Z``, ``Y/Z``.
+
+    Returns
+    -------
+    x_d, y_d
+        Distorted normalised coordinates, same shape.
+    """
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    p1, p2 = camera.p1, camera.p2
+    r2 = x * x + y * y
+    radial, _ = _radial(camera, r2)
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd
+
+
+def undistort(camera: DepthCamera, xd: ArrayLike, yd: ArrayLike) -> tuple[NDArray, NDArray]:
+    """Invert :func:`distort` by Newton's method (analytic 2×2 Jacobian), element-wise.
+
+    Parameters
+    ----------
+    camera
+        The camera.
+    xd, yd
+        Distorted normalised coordinates (equal shapes).
+
+    Returns
+    -------
+    x, y
+        Undistorted normalised coordinates; NaN where the inverse was not found to 1e-9
+        (normalised units), e.g. beyond the fold of a strong barrel distortion.
+    """
+    xd, yd = np.asarray(xd, dtype=np.float64), np.asarray(yd, dtype=np.float64)
+    p1, p2 = camera.p1, camera.p2
+    x, y = xd.copy(), yd.copy()
+    for _ in range(_NEWTON_ITERATIONS):
+        fx_, fy_ = distort(camera, x, y)
+        radial, dradial = _radial(camera, x * x + y * y)
+        j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+        j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y  # the Jacobian is symmetric
+        j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
+        with np.errstate(divide="ignore", invalid="ignore"):
+            det = j11 * j22 - j12 * j12
+            step_x = (j22 * (fx_ - xd) - j12 * (fy_ - yd)) / det
+            step_y = (j11 * (fy_ - yd) - j12 * (fx_ - xd)) / det
+            x, y = x - step_x, y - step_y
+            largest = np.nanmax(np.abs(step_x) + np.abs(step_y), initial=0.0)
+        if largest <= _NEWTON_TOLERANCE:
+            break
+    xr, yr = distort(camera, x, y)
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.hypot(xr - xd, yr - yd) <= _ACCEPT_RESIDUAL)
+    return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
+
+
+def pixel_rays(camera: DepthCamera, height: int, width: int) -> NDArray[np.float64]:
+    """Undistorted normalised coordinates ``(x_n, y_n)`` of every pixel, (H, W, 2).
+
+    Read-only and cached per camera and image size: every frame of a sequence shares them.
+    NaN where the distortion cannot be inverted.
+    """
+    return _pixel_rays(camera, height, width)
+
+
+@functools.lru_cache(maxsize=8)
+def _pixel_rays(camera: DepthCamera, height: int, width: int) -> NDArray[np.float64]:
+    u = (np.arange(width, dtype=np.float64) - camera.cx) / camera.fx
+    v = (np.arange(height, dtype=np.float64) - camera.cy) / camera.fy
+    xd, yd = np.meshgrid(u, v)
+    rays = np.stack(undistort(camera, xd, yd) if camera.distorted else (xd, yd), axis=-1)
+    rays.setflags(write=False)
+    return rays
+
+
+@dataclass(frozen=True, eq=False)
+class OrganisedCloud:
+    """Points on the pixel grid of a depth image.
+
+    Attributes
+    ----------
+    points
+        (H, W, 3) metres, sensor frame; NaN rows where the pixel has no return.
+    valid
+        (H, W) True where the pixel has a return.
+    """
+
+    points: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+
+    def cloud(self, stride: int = 1, source: str | None = None) -> PointCloud:
+        """The returns as a PointCloud, row-major (row, then column).
+
+        Parameters
+        ----------
+        stride
+            Keep every ``stride``-th row and column (organised downsampling).
+        source
+            Name for error messages.
+
+        Raises
+        ------
+        InputError
+            No pixel has a return.
+        """
+        if stride < 1:
+            raise InputError(f"stride must be >= 1, got {stride}", source)
+        points = self.points[::stride, ::stride]
+        valid = self.valid[::stride, ::stride]
+        if not valid.any():
+            raise InputError("depth image has no return (every pixel zero or invalid)", source)
+        return PointCloud(points[valid], source=source)
+
+
+def backproject(depth: ArrayLike, camera: DepthCamera, source: str | None = None) -> OrganisedCloud:
+    """Back-project a depth image into the sensor frame.
+
+    Parameters
+    ----------
+    depth
+        (H, W) stored depth values (any numeric dtype); metres are ``value · depth_scale``.
+        Zero, negative and non-finite values are no return.
+    camera
+        Intrinsics and depth scale.
+    source
+        Name for error messages.
+
+    Returns
+    -------
+    OrganisedCloud
+        (H, W, 3) points, sensor frame (z boresight, x right, y down).
+
+    Raises
+    ------
+    InputError
+        ``depth`` is not 2-D, or its size differs from the camera's ``width``/``height``.
+    """
+    values = np.asarray(depth)
+    if values.ndim != 2 or not (
+        np.issubdtype(values.dtype, np.integer) or np.issubdtype(values.dtype, np.floating)
+    ):
+        raise InputError(
+            f"a depth image must be one numeric channel, got shape {values.shape} of "
+            f"{values.dtype}",
+            source,
+        )
+    height, width = values.shape
+    if (camera.width or width, camera.height or height) != (width, height):
+        raise InputError(
+            f"image is {width}x{height}, the intrinsics say {camera.width}x{camera.height}", source
+        )
+    z = values.astype(np.float64) * camera.depth_scale
+    rays = pixel_rays(camera, height, width)
+    with np.errstate(invalid="ignore"):
+        valid = (z > 0) & np.isfinite(z) & np.isfinite(rays[..., 0])
+    z = np.where(valid, z, np.nan)
+    points = np.stack([rays[..., 0] * z, rays[..., 1] * z, z], axis=-1)
+    return OrganisedCloud(points, valid)
+
+
+def depth_to_cloud(
+    depth: ArrayLike, camera: DepthCamera, stride: int = 1, source: str | None = None
+) -> PointCloud:
+    """One call: a depth image (H, W) to the PointCloud of its returns, sensor frame.
+
+    See :func:`backproject` and :meth:`OrganisedCloud.cloud`.
+    """
+    return backproject(depth, camera, source).cloud(stride, source)
+
+
+def render_depth(
+    points: ArrayLike, camera: DepthCamera, height: int, width: int
+) -> NDArray[np.float64]:
+    """Z-buffer points into a depth image: the inverse of :func:`backproject`.
+
+    Each point in front of the camera goes to its nearest pixel (distortion applied); where
+    several land on one pixel the nearest depth wins.
+
+    Parameters
+    ----------
+    points
+        (N, 3) metres, sensor frame (z boresight, x right, y down).
+    camera
+        Intrinsics (``depth_scale`` is not used: the image is in metres).
+    height, width
+        Image size, pixels.
+
+    Returns
+    -------
+    (H, W) depth ``z`` in metres, 0 where no point lands.
+    """
+    pts = as_points(points)
+    pts = pts[pts[:, 2] > 0]
+    xd, yd = distort(camera, pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2])
+    u = np.rint(camera.fx * xd + camera.cx)
+    v = np.rint(camera.fy * yd + camera.cy)
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    image = np.full((height, width), np.inf)
+    np.minimum.at(image, (v[inside].astype(np.intp), u[inside].astype(np.intp)), pts[inside, 2])
+    image[np.isinf(image)] = 0.0
+    return image

@@ -1,0 +1,293 @@
+"""ROS 1 and ROS 2 bags as frames, through ``rosbags`` (no ROS installation needed).
+
+A bag is a ``.bag`` file (ROS 1) or a ROS 2 bag folder (``metadata.yaml`` with its ``.db3`` or
+``.mcap`` file; the storage file itself is accepted too). One topic gives the frames:
+
+- ``sensor_msgs/PointCloud2``: the ``x``, ``y``, ``z`` fields, at any offset, of any numeric
+  datatype, either byte order, with row padding; NaN points (``is_dense`` false) are dropped;
+- ``sensor_msgs/Image`` depth (``16UC1``/``mono16`` in millimetres, ``32FC1`` in metres),
+  back-projected with the intrinsics of the bag's ``sensor_msgs/CameraInfo`` (the topic beside
+  the image's, else the bag's only one; its first message) or of an intrinsics file.
+
+A frame's time is its header stamp (seconds), or the bag's record time when the stamp is zero.
+A message that cannot be decoded becomes a frame without a cloud and the reason why.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.depth import DepthCamera, depth_to_cloud
+from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.frames import FrameInput
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+IMAGE = "sensor_msgs/msg/Image"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+BAG_SUFFIXES: tuple[str, ...] = (".bag", ".db3", ".mcap")
+# sensor_msgs/PointField datatypes -> numpy kinds (byte order added per message).
+_POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+# Depth image encodings -> (numpy kind, metres per unit).
+_DEPTH_ENCODINGS = {"16UC1": ("u2", 0.001), "mono16": ("u2", 0.001), "32FC1": ("f4", 1.0)}
+
+
+def is_bag(path: str | Path) -> bool:
+    """Whether ``path`` is a ROS 1 bag file, a ROS 2 bag folder or a ROS 2 storage file."""
+    path = Path(path)
+    if path.is_dir():
+        return (path / "metadata.yaml").is_file()
+    return path.is_file() and path.suffix.lower() in BAG_SUFFIXES
+
+
+def _bag_root(path: Path) -> Path:
+    """What ``AnyReader`` opens: the ``.bag`` file, or the ROS 2 folder of a storage file."""
+    if path.suffix.lower() in (".db3", ".mcap") and (path.parent / "metadata.yaml").is_file():
+        return path.parent
+    return path
+
+
+@contextmanager
+def _open_reader(path: Path) -> Iterator[Any]:
+    """An open ``rosbags`` AnyReader on the bag, closed on exit."""
+    from rosbags.highlevel import AnyReader, AnyReaderError
+
+    try:
+        reader = AnyReader([_bag_root(path)])
+        reader.open()
+    except (AnyReaderError, OSError, ValueError, KeyError) as exc:
+        raise FileFormatError(f"cannot open the bag: {exc}", path) from None
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
+def stamp_seconds(msg: Any, record_time_ns: int) -> float:
+    """The header stamp of ``msg`` in seconds; the record time when the stamp is zero."""
+    stamp = msg.header.stamp
+    if stamp.sec == 0 and stamp.nanosec == 0:
+        return record_time_ns * 1e-9
+    return stamp.sec + stamp.nanosec * 1e-9
+
+
+def pointcloud2_points(msg: Any) -> NDArray[np.float64]:
+    """The (N, 3) ``x, y, z`` of a ``sensor_msgs/PointCloud2`` as float64 (NaN rows kept).
+
+    Raises
+    ------
+    FileFormatError
+        No ``x``/``y``/``z`` field, an unknown datatype, or less data than the header says.
+    """
+    fields = {f.name: f for f in msg.fields}
+    missing = [name for name in "xyz" if name not in fields]
+    if missing:
+        raise FileFormatError(f"PointCloud2 without field(s) {', '.join(missing)}")
+    order = ">" if msg.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for name in "xyz":
+        kind = _POINTFIELD_DTYPES.get(fields[name].datatype)
+        if kind is None:
+            raise FileFormatError(f"PointCloud2 field {name}: unknown datatype")
+        names.append(name)
+        formats.append(order + kind)
+        offsets.append(fields[name].offset)
+    if any(
+        o + np.dtype(f).itemsize > msg.point_step for o, f in zip(offsets, formats, strict=True)
+    ):
+        raise FileFormatError(f"PointCloud2 fields reach past point_step {msg.point_step}")
+    point = np.dtype(
+        {"names": names, "formats": formats, "offsets": offsets, "itemsize": msg.point_step}
+    )
+    rows, width, row_step = msg.height, msg.width, msg.row_step
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if row_step < width * msg.point_step or data.size < rows * row_step:
+        raise FileFormatError(
+            f"PointCloud2 holds {data.size} bytes for {rows}x{width} points of "
+            f"{msg.point_step} bytes (row_step {row_step})"
+        )
+    table = data[: rows * row_step].reshape(rows, row_step)[:, : width * msg.point_step]
+    records = np.ascontiguousarray(table).view(point).reshape(-1)
+    return np.column_stack([records[n].astype(np.float64) for n in names])
+
+
+def image_depth(msg: Any) -> tuple[NDArray, float]:
+    """The (H, W) values of a depth ``sensor_msgs/Image`` and their metres per unit.
+
+    Raises
+    ------
+    FileFormatError
+        An encoding other than ``16UC1``/``mono16``/``32FC1``, or less data than the header says.
+    """
+    if msg.encoding not in _DEPTH_ENCODINGS:
+        raise FileFormatError(
+            f"depth Image encoding {msg.encoding!r} (supported: {', '.join(_DEPTH_ENCODINGS)})"
+        )
+    kind, scale = _DEPTH_ENCODINGS[msg.encoding]
+    dtype = np.dtype((">" if msg.is_bigendian else "<") + kind)
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if msg.step < msg.width * dtype.itemsize or data.size < msg.height * msg.step:
+        raise FileFormatError(
+            f"Image holds {data.size} bytes for {msg.height} rows of step {msg.step}"
+        )
+    rows = data[: msg.height * msg.step].reshape(msg.height, msg.step)
+    values = np.ascontiguousarray(rows[:, : msg.width * dtype.itemsize]).view(dtype)
+    return values, scale
+
+
+def camera_from_info(msg: Any, depth_scale: float) -> DepthCamera:
+    """A :class:`DepthCamera` from a ``sensor_msgs/CameraInfo`` (ROS 1 ``K``/``D`` or ROS 2
+    ``k``/``d``; ``plumb_bob`` or ``rational_polynomial`` distortion).
+
+    Raises
+    ------
+    FileFormatError
+        Another distortion model with non-zero coefficients, or a zero focal length.
+    """
+    K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, dtype=np.float64)
+    D = [float(v) for v in (msg.d if hasattr(msg, "d") else msg.D)]
+    model = msg.distortion_model
+    if any(D) and model not in ("plumb_bob", "rational_polynomial"):
+        raise FileFormatError(f"CameraInfo distortion model {model!r} is not supported")
+    names = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+    if K[0] <= 0 or K[4] <= 0:
+        raise FileFormatError("CameraInfo has no focal length (K is zero)")
+    return DepthCamera(
+        fx=K[0],
+        fy=K[4],
+        cx=K[2],
+        cy=K[5],
+        depth_scale=depth_scale,
+        width=msg.width or None,
+        height=msg.height or None,
+        **dict(zip(names, D, strict=False)),
+    )
+
+
+@dataclass(frozen=True)
+class BagFrames:
+    """The frames of one bag topic (read lazily, in record order).
+
+    Attributes
+    ----------
+    path
+        The bag.
+    topic, msgtype
+        The frame topic and its message type.
+    count
+        Number of messages (frames) on the topic.
+    camera
+        Intrinsics for a depth Image topic (None for PointCloud2).
+    """
+
+    path: Path
+    topic: str
+    msgtype: str
+    count: int
+    camera: DepthCamera | None = None
+    model_path: Path | None = None
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __iter__(self) -> Iterator[FrameInput]:
+        from rosbags.serde import SerdeError
+
+        with _open_reader(self.path) as reader:
+            connections = [c for c in reader.connections if c.topic == self.topic]
+            for index, (conn, time_ns, raw) in enumerate(reader.messages(connections)):
+                source = f"{self.path}:{self.topic}#{index}"
+                cloud, error, timestamp = None, None, time_ns * 1e-9
+                try:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    timestamp = stamp_seconds(msg, time_ns)
+                    cloud = self._cloud(msg, source)
+                except InputError as exc:
+                    error = exc.reason
+                except (SerdeError, ValueError, IndexError, TypeError, struct.error) as exc:
+                    error = f"cannot decode the message: {exc}"
+                yield FrameInput(index, timestamp, cloud, source, error)
+
+    def _cloud(self, msg: Any, source: str) -> PointCloud:
+        if self.msgtype == POINTCLOUD2:
+            return PointCloud(pointcloud2_points(msg), source=source)
+        values, scale = image_depth(msg)
+        camera = self.camera
+        assert camera is not None  # open_bag gives every Image topic a camera
+        if camera.depth_scale != scale:
+            camera = camera.model_copy(update={"depth_scale": scale})
+        return depth_to_cloud(values, camera, source=source)
+
+
+def open_bag(
+    path: str | Path, topic: str | None = None, camera: DepthCamera | None = None
+) -> BagFrames:
+    """Open the frames of a bag: the given topic, or its only PointCloud2 / Image topic.
+
+    Parameters
+    ----------
+    path
+        ROS 1 ``.bag`` file or ROS 2 bag folder.
+    topic
+        The frame topic; needed when the bag has several PointCloud2 / Image topics.
+    camera
+        Intrinsics for a depth Image topic, overriding the bag's CameraInfo (its
+        ``depth_scale`` is replaced by the image encoding's).
+
+    Raises
+    ------
+    InputError
+        The topic is missing or not a frame type, several frame topics and none chosen, no
+        frame topic at all, or an Image topic without CameraInfo or intrinsics. The message
+        lists the bag's frame topics.
+    FileFormatError
+        The bag cannot be opened.
+    """
+    path = Path(path)
+    with _open_reader(path) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        candidates = {t: m for t, m in types.items() if m in (POINTCLOUD2, IMAGE)}
+        listing = ", ".join(f"{t} ({m.rsplit('/', 1)[-1]})" for t, m in sorted(candidates.items()))
+        listing = listing or "none"
+        if topic is None:
+            if len(candidates) != 1:
+                raise InputError(
+                    f"{len(candidates)} PointCloud2/Image topics, choose one with --topic: "
+                    f"{listing}",
+                    path,
+                )
+            topic = next(iter(candidates))
+        elif topic not in candidates:
+            what = "not in the bag" if topic not in types else f"a {types[topic]}"
+            raise InputError(f"topic {topic} is {what}; frame topics: {listing}", path)
+        connections = [c for c in reader.connections if c.topic == topic]
+        count = sum(c.msgcount for c in connections)
+        if candidates[topic] == IMAGE and camera is None:
+            camera = _bag_camera(reader, topic, path)
+    return BagFrames(path, topic, candidates[topic], count, camera)
+
+
+def _bag_camera(reader: Any, image_topic: str, path: Path) -> DepthCamera:
+    """The first CameraInfo beside ``image_topic`` (same namespace), else the bag's only one."""
+    infos = [c for c in reader.connections if c.msgtype == CAMERA_INFO]
+    namespace = image_topic.rsplit("/", 1)[0]
+    beside = [c for c in infos if c.topic.rsplit("/", 1)[0] == namespace]
+    chosen = beside or infos
+    if len({c.topic for c in chosen}) != 1:
+        found = ", ".join(sorted({c.topic for c in infos})) or "none"
+        raise InputError(
+            f"cannot tell the CameraInfo of {image_topic} (CameraInfo topics: {found}); "
+            "give an intrinsics file",
+            path,
+        )
+    for conn, _, raw in reader.messages(chosen):
+        return camera_from_info(reader.deserialize(raw, conn.msgtype), depth_scale=1.0)
+    raise InputError(f"CameraInfo topic {chosen[0].topic} has no message", path)

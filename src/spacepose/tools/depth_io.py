@@ -1,0 +1,184 @@
+"""Depth image files: 16-bit PNG / TIFF depth maps, their intrinsics file, TUM RGB-D's list.
+
+A depth folder holds one image per frame (``.png``, ``.tif``, ``.tiff``; 16-bit integers or
+32-bit floats, one channel, decoded by Pillow) and an intrinsics file (``intrinsics.yaml``,
+``.yml`` or ``.json``: the fields of :class:`spacepose.core.depth.DepthCamera`), or one given
+explicitly. Frames are the images sorted by name, with ``timestamps.txt`` when present, or, in
+TUM RGB-D's layout, the ``timestamp path`` lines of ``depth.txt`` (``#`` comments ignored; the
+paths relative to the folder).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from PIL import Image, UnidentifiedImageError
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import load_config
+from spacepose.core.depth import DepthCamera, depth_to_cloud
+from spacepose.errors import FileFormatError, InputError
+
+DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
+INTRINSICS_FILES: tuple[str, ...] = ("intrinsics.yaml", "intrinsics.yml", "intrinsics.json")
+TUM_DEPTH_LIST = "depth.txt"
+# Pillow modes of one-channel depth maps: 16-bit unsigned (three byte orders), 32-bit int, float.
+_DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
+
+
+def read_depth_image(path: str | Path) -> NDArray:
+    """Decode one depth image: (H, W) stored values (uint16, int32 or float32).
+
+    Raises
+    ------
+    FileFormatError
+        Missing, unreadable, corrupt or truncated file, or an image that is not one channel of
+        16-bit integers or 32-bit floats (an 8-bit or colour image is not a depth map).
+    """
+    path = Path(path)
+    try:
+        with Image.open(path) as image:
+            image.load()
+            mode = image.mode
+            values = np.array(image)
+    except FileNotFoundError:
+        raise FileFormatError("file not found", path) from None
+    except UnidentifiedImageError:
+        raise FileFormatError("not an image Pillow can decode", path) from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise FileFormatError(f"cannot decode the image: {exc}", path) from None
+    if mode not in _DEPTH_MODES or values.ndim != 2:
+        raise FileFormatError(
+            f"a depth map must be one channel of 16-bit integers or 32-bit floats, "
+            f"got Pillow mode {mode!r}",
+            path,
+        )
+    return values
+
+
+def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float = 0.001) -> Path:
+    """Write a depth image (metres, 0 = no return) as 16-bit units of ``depth_scale`` metres
+    (PNG or TIFF by suffix), or as 32-bit float metres for a ``.tif``/``.tiff`` when
+    ``depth_scale`` is 1.
+
+    Raises
+    ------
+    InputError
+        Not 2-D, negative or non-finite depths, a depth beyond 65535 units, or an unknown suffix.
+    """
+    path = Path(path)
+    depth = np.asarray(depth_m, dtype=np.float64)
+    if path.suffix.lower() not in DEPTH_SUFFIXES:
+        raise InputError(f"depth images are {', '.join(DEPTH_SUFFIXES)}", path)
+    if depth.ndim != 2 or not np.all(np.isfinite(depth)) or np.any(depth < 0):
+        raise InputError("a depth image must be 2-D, finite and non-negative (metres)", path)
+    if depth_scale == 1.0 and path.suffix.lower() != ".png":
+        values = depth.astype(np.float32)
+    else:
+        units = np.rint(depth / depth_scale)
+        if units.max(initial=0.0) > np.iinfo(np.uint16).max:
+            raise InputError(
+                f"depth {depth.max():.4g} m exceeds 65535 units of {depth_scale} m", path
+            )
+        values = units.astype(np.uint16)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(values).save(path)
+    return path
+
+
+def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> PointCloud:
+    """One call: a depth image file to the PointCloud of its returns, sensor frame.
+
+    Raises
+    ------
+    FileFormatError
+        The image cannot be decoded (see :func:`read_depth_image`).
+    InputError
+        No pixel has a return, or the size differs from the intrinsics'.
+    """
+    return depth_to_cloud(read_depth_image(path), camera, stride, source=str(path))
+
+
+def read_intrinsics(path: str | Path) -> DepthCamera:
+    """Read an intrinsics file (YAML or JSON; fields of :class:`DepthCamera`).
+
+    Raises
+    ------
+    ConfigError
+        Unreadable file, unknown key or a value out of range.
+    """
+    return load_config(DepthCamera, path)
+
+
+def find_intrinsics(root: str | Path) -> Path | None:
+    """The intrinsics file in a folder (see :data:`INTRINSICS_FILES`), or None."""
+    for name in INTRINSICS_FILES:
+        if (Path(root) / name).is_file():
+            return Path(root) / name
+    return None
+
+
+def is_depth_folder(root: str | Path) -> bool:
+    """Whether a folder is read as depth images: it holds ``depth.txt`` or an intrinsics file."""
+    return (Path(root) / TUM_DEPTH_LIST).is_file() or find_intrinsics(root) is not None
+
+
+def depth_files(root: str | Path) -> tuple[Path, ...]:
+    """The depth images of a folder, sorted by name.
+
+    Raises
+    ------
+    InputError
+        The folder holds no image with a suffix of :data:`DEPTH_SUFFIXES`.
+    """
+    root = Path(root)
+    paths = tuple(
+        sorted(p for p in root.iterdir() if p.is_file() and p.suffix.lower() in DEPTH_SUFFIXES)
+    )
+    if not paths:
+        raise InputError(f"no depth images ({', '.join(DEPTH_SUFFIXES)}) in the folder", root)
+    return paths
+
+
+def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.float64]]:
+    """Read TUM RGB-D's ``depth.txt``: ``timestamp relative/path.png`` per line.
+
+    Returns
+    -------
+    paths, timestamps
+        The image paths (relative to the list's folder) and their (N,) times, seconds.
+
+    Raises
+    ------
+    InputError
+        Unreadable list, a line that is not ``number path``, a non-finite or decreasing time,
+        or no line at all.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read: {exc}", path) from None
+    paths: list[Path] = []
+    stamps: list[float] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        body = line.split("#", 1)[0].strip()
+        if not body:
+            continue
+        parts = body.split(maxsplit=1)
+        try:
+            stamp = float(parts[0])
+        except ValueError:
+            stamp = float("nan")
+        if len(parts) != 2 or not np.isfinite(stamp):
+            raise InputError(f"line {lineno}: expected 'timestamp path', got {body!r}", path)
+        stamps.append(stamp)
+        paths.append(path.parent / parts[1])
+    if not paths:
+        raise InputError("lists no depth image", path)
+    timestamps = np.asarray(stamps, dtype=np.float64)
+    if np.any(np.diff(timestamps) < 0):
+        raise InputError("timestamps decrease", path)
+    return tuple(paths), timestamps

@@ -1,0 +1,281 @@
+"""ROS 1 / ROS 2 bags as frames (tools/bag_io.py), written here with rosbags' own writers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.rosbag1 import Writer as Writer1
+from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import Writer as Writer2
+from rosbags.typesys import Stores, get_typestore
+
+from spacepose.cli import main
+from spacepose.core.depth import DepthCamera, render_depth
+from spacepose.core.sim import scenario_config, simulate
+from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.bag_io import camera_from_info, open_bag, pointcloud2_points
+from spacepose.tools.frames import track_folder, tracker_config
+from spacepose.tools.trajectory_io import read_tum
+
+N_FRAMES = 6
+ROS2 = get_typestore(Stores.ROS2_HUMBLE)
+ROS1 = get_typestore(Stores.ROS1_NOETIC)
+PC2 = "sensor_msgs/msg/PointCloud2"
+IMAGE = "sensor_msgs/msg/Image"
+INFO = "sensor_msgs/msg/CameraInfo"
+
+
+def _stamp(k: int) -> tuple[int, int]:
+    return 1_700_000_000 + k // 4, (k % 4) * 250_000_000
+
+
+def _header(store, k: int):
+    T = store.types
+    sec, nanosec = _stamp(k)
+    extra = {"seq": k} if "seq" in T["std_msgs/msg/Header"].__dataclass_fields__ else {}
+    return T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id="tof", **extra
+    )
+
+
+def _pointcloud2(store, k: int, grid: np.ndarray, datatype: int = 7, bigendian: bool = False):
+    """An organised PointCloud2 (H, W) of x, y, z and intensity, NaN where no return."""
+    T = store.types
+    kind = {7: "f4", 8: "f8"}[datatype]
+    order = ">" if bigendian else "<"
+    size = np.dtype(kind).itemsize
+    record = np.dtype(
+        {
+            "names": ["x", "y", "z", "intensity"],
+            "formats": [order + kind] * 3 + [order + "f4"],
+            "offsets": [0, size, 2 * size, 3 * size],
+            "itemsize": 3 * size + 4 + 4,  # 4 bytes of padding after intensity
+        }
+    )
+    h, w = grid.shape[:2]
+    table = np.zeros(h * w, dtype=record)
+    for i, name in enumerate("xyz"):
+        table[name] = grid.reshape(-1, 3)[:, i]
+    fields = [
+        T["sensor_msgs/msg/PointField"](name=n, offset=o, datatype=d, count=1)
+        for n, o, d in zip("xyz", (0, size, 2 * size), (datatype,) * 3, strict=True)
+    ]
+    fields.append(
+        T["sensor_msgs/msg/PointField"](name="intensity", offset=3 * size, datatype=7, count=1)
+    )
+    return T[PC2](
+        header=_header(store, k), height=h, width=w, fields=fields, is_bigendian=bigendian,
+        point_step=record.itemsize, row_step=record.itemsize * w,
+        data=np.frombuffer(table.tobytes(), dtype=np.uint8), is_dense=False,
+    )  # fmt: skip
+
+
+def _image(store, k: int, millimetres: np.ndarray):
+    h, w = millimetres.shape
+    return store.types[IMAGE](
+        header=_header(store, k), height=h, width=w, encoding="16UC1", is_bigendian=0,
+        step=2 * w, data=np.frombuffer(millimetres.astype("<u2").tobytes(), dtype=np.uint8),
+    )  # fmt: skip
+
+
+def _camera_info(store, camera: DepthCamera, ros1: bool):
+    T = store.types
+    K = np.array([camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1.0])
+    arrays = {"d": np.zeros(5), "k": K, "r": np.eye(3).ravel(), "p": np.zeros(12)}
+    if ros1:
+        arrays = {key.upper(): value for key, value in arrays.items()}
+    return T[INFO](
+        header=_header(store, 0), height=camera.height, width=camera.width,
+        distortion_model="plumb_bob", binning_x=0, binning_y=0,
+        roi=T["sensor_msgs/msg/RegionOfInterest"](
+            x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+        ),
+        **arrays,
+    )  # fmt: skip
+
+
+def _write(path: Path, messages: list[tuple[str, str, object]], ros1: bool = False, mcap=True):
+    """Write (topic, msgtype, message) in order, 0.1 s apart in record time."""
+    store = ROS1 if ros1 else ROS2
+    if ros1:
+        writer = Writer1(path)
+    else:
+        plugin = StoragePlugin.MCAP if mcap else StoragePlugin.SQLITE3
+        writer = Writer2(path, version=9, storage_plugin=plugin)
+    serialize = store.serialize_ros1 if ros1 else store.serialize_cdr
+    with writer:
+        connections: dict[str, object] = {}
+        for i, (topic, msgtype, msg) in enumerate(messages):
+            if topic not in connections:
+                connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
+            writer.write(connections[topic], 10**9 + i * 10**8, serialize(msg, msgtype))
+    return path
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    """Six lab frames as (H, W, 3) float32 point grids and as millimetre depth images, the
+    ROS 2 bag holding both, and each one's equivalent .npy cloud folder."""
+    sim = simulate(scenario_config("lab", frames=N_FRAMES))
+    s = sim.config.sensor
+    camera = DepthCamera(
+        fx=s.focal_px, fy=s.focal_px, cx=0.5 * (s.width - 1), cy=0.5 * (s.height - 1),
+        width=s.width, height=s.height,
+    )  # fmt: skip
+    root = tmp_path_factory.mktemp("bags")
+    messages = [("/tof/depth/camera_info", INFO, _camera_info(ROS2, camera, ros1=False))]
+    grids, depths = [], []
+    for k in range(N_FRAMES):
+        depth_m = render_depth(sim.frame(k).cloud.points, camera, s.height, s.width)
+        millimetres = np.rint(depth_m * 1000).astype(np.uint16)
+        v, u = np.mgrid[0 : s.height, 0 : s.width]
+        z = np.where(depth_m > 0, depth_m, np.nan)
+        grid = np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], -1)
+        grids.append(grid.astype(np.float32))
+        depths.append(millimetres)
+        messages.append(("/tof/points", PC2, _pointcloud2(ROS2, k, grids[-1])))
+        messages.append(("/tof/depth/image_raw", IMAGE, _image(ROS2, k, millimetres)))
+    bag = _write(root / "ros2_bag", messages)
+    equivalents = {"points": root / "points", "image": root / "image"}
+    for folder in equivalents.values():
+        folder.mkdir()
+        (folder / "timestamps.txt").write_text(
+            "".join(f"{s_ + ns * 1e-9!r}\n" for s_, ns in map(_stamp, range(N_FRAMES)))
+        )
+    for k in range(N_FRAMES):
+        points = grids[k].reshape(-1, 3).astype(np.float64)
+        np.save(equivalents["points"] / f"{k:03d}.npy", points[np.isfinite(points[:, 2])])
+        v, u = np.nonzero(depths[k])
+        z = depths[k][v, u] * 0.001
+        xyz = np.column_stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z])
+        np.save(equivalents["image"] / f"{k:03d}.npy", xyz)
+    return {"bag": bag, "camera": camera, "grids": grids, "root": root, **equivalents}
+
+
+@pytest.mark.parametrize(
+    ("topic", "equivalent"), [("/tof/points", "points"), ("/tof/depth/image_raw", "image")]
+)
+def test_ros2_bag_tracks_like_the_cloud_folder(lab, tmp_path, capsys, topic, equivalent):
+    out = tmp_path / "bag.tum"
+    code = main(["track", str(lab["bag"]), "--out", str(out), "--topic", topic])
+    assert code == 0, capsys.readouterr().err
+    ref = track_folder(lab[equivalent], tmp_path / "ref.tum", tracker_config())
+    assert ref["lost"] == 0
+    est, expected = read_tum(out), read_tum(tmp_path / "ref.tum")
+    # Header stamps, carried to the TUM file.
+    stamps = [s + ns * 1e-9 for s, ns in map(_stamp, range(N_FRAMES))]
+    np.testing.assert_array_equal(est.timestamps, stamps)
+    assert np.max(np.abs(est.poses - expected.poses)) < 1e-9
+
+
+def test_topic_must_be_chosen_among_the_frame_topics(lab, tmp_path, capsys):
+    out = str(tmp_path / "x.tum")
+    assert main(["track", str(lab["bag"]), "--out", out]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "2 PointCloud2/Image topics, choose one with --topic" in err
+    assert "/tof/depth/image_raw (Image), /tof/points (PointCloud2)" in err and "\n" not in err
+    with pytest.raises(InputError, match=r"/tof/depth/camera_info is a sensor_msgs/msg/CameraInfo"):
+        open_bag(lab["bag"], topic="/tof/depth/camera_info")
+    with pytest.raises(InputError, match=r"/nope is not in the bag; frame topics: /tof/depth"):
+        open_bag(lab["bag"], topic="/nope")
+    assert not (tmp_path / "x.tum").exists()
+
+
+def test_image_topic_uses_camera_info(lab):
+    frames = open_bag(lab["bag"], topic="/tof/depth/image_raw")
+    assert frames.camera.fx == lab["camera"].fx and frames.camera.cx == lab["camera"].cx
+    assert (frames.camera.width, frames.camera.height) == (640, 480)
+    first = next(iter(frames))
+    z = lab["grids"][0][..., 2]
+    assert len(first.cloud) == int(np.isfinite(z).sum())
+    np.testing.assert_allclose(
+        np.sort(first.cloud.points[:, 2]), np.sort(z[np.isfinite(z)]), atol=5e-4
+    )
+
+
+def test_ros1_bag(lab, tmp_path):
+    grid = lab["grids"][0][::4, ::4]
+    millimetres = np.rint(np.nan_to_num(grid[..., 2]) * 1000).astype(np.uint16)
+    camera = lab["camera"].model_copy(
+        update={"fx": lab["camera"].fx / 4, "fy": lab["camera"].fy / 4, "width": 160, "height": 120}
+        | {"cx": lab["camera"].cx / 4, "cy": lab["camera"].cy / 4}  # pixel 4u of the full grid
+    )
+    bag = _write(
+        tmp_path / "run.bag",
+        [
+            ("/cam/camera_info", INFO, _camera_info(ROS1, camera, ros1=True)),
+            ("/cam/depth", IMAGE, _image(ROS1, 0, millimetres)),
+            ("/cam/points", PC2, _pointcloud2(ROS1, 0, grid, datatype=8)),
+            ("/cam/depth", IMAGE, _image(ROS1, 1, millimetres)),
+        ],
+        ros1=True,
+    )
+    points = list(open_bag(bag, topic="/cam/points"))
+    assert len(points) == 1 and points[0].timestamp == 1_700_000_000.0
+    finite = grid.reshape(-1, 3)[np.isfinite(grid[..., 2]).ravel()]
+    np.testing.assert_array_equal(points[0].cloud.points, finite.astype(np.float64))
+    depth = list(open_bag(bag, topic="/cam/depth"))
+    assert [f.timestamp for f in depth] == [1_700_000_000.0, 1_700_000_000.25]
+    assert depth[0].cloud is not None and len(depth[0].cloud) == len(finite)
+    np.testing.assert_allclose(depth[0].cloud.points, finite, atol=1e-3)
+
+
+def test_pointcloud2_layouts():
+    rng = np.random.default_rng(5)
+    grid = rng.normal(size=(3, 4, 3))
+    grid[1, 2] = np.nan
+    for datatype, bigendian in ((7, True), (8, False), (8, True)):
+        msg = _pointcloud2(ROS2, 0, grid, datatype=datatype, bigendian=bigendian)
+        points = pointcloud2_points(ROS2.deserialize_cdr(ROS2.serialize_cdr(msg, PC2), PC2))
+        expected = grid.reshape(-1, 3).astype("f4" if datatype == 7 else "f8")
+        np.testing.assert_array_equal(points, expected.astype(np.float64))
+    # Row padding: row_step beyond width * point_step.
+    msg = _pointcloud2(ROS2, 0, grid)
+    padded = np.concatenate(
+        [np.frombuffer(msg.data, np.uint8).reshape(3, -1), np.zeros((3, 8), np.uint8)], 1
+    )
+    msg.data, msg.row_step = padded.ravel(), msg.row_step + 8
+    np.testing.assert_array_equal(pointcloud2_points(msg), grid.reshape(-1, 3).astype("f4"))
+    msg.data = msg.data[:-50]
+    with pytest.raises(FileFormatError, match="bytes for 3x4 points"):
+        pointcloud2_points(msg)
+    msg.fields = msg.fields[:2]
+    with pytest.raises(FileFormatError, match="without field"):
+        pointcloud2_points(msg)
+
+
+def test_camera_info_distortion():
+    camera = DepthCamera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    info = _camera_info(ROS2, camera, ros1=False)
+    info.d = np.array([-0.1, 0.02, 0.001, -0.002, 0.003, 0.01, 0.0, 0.001])
+    info.distortion_model = "rational_polynomial"
+    got = camera_from_info(info, depth_scale=0.001)
+    assert (got.k1, got.k2, got.p1, got.p2, got.k3, got.k4, got.k6) == (
+        -0.1, 0.02, 0.001, -0.002, 0.003, 0.01, 0.001
+    )  # fmt: skip
+    info.distortion_model = "equidistant"
+    with pytest.raises(FileFormatError, match="equidistant"):
+        camera_from_info(info, depth_scale=0.001)
+
+
+def test_bad_messages_are_lost_and_the_rest_tracked(lab, tmp_path):
+    """Frame 2 has no z field, frame 3 only NaN points: both lost, with their reasons; the
+    ROS 2 bag is sqlite3 this time."""
+    messages = []
+    for k in range(N_FRAMES):
+        grid = lab["grids"][k]
+        if k == 3:
+            grid = np.full_like(grid[:4, :4], np.nan)
+        msg = _pointcloud2(ROS2, k, grid)
+        if k == 2:
+            msg.fields = msg.fields[:2]
+        messages.append(("/points", PC2, msg))
+    bag = _write(tmp_path / "bad_bag", messages, mcap=False)
+    summary = track_folder(bag, tmp_path / "est.tum", tracker_config())
+    assert (summary["frames"], summary["lost"]) == (N_FRAMES, 2)
+    health = (tmp_path / "est.health.csv").read_text().splitlines()
+    assert "without field(s) z" in health[3] and ",lost," in health[3]
+    assert "no finite point" in health[4] and ",lost," in health[4]
+    assert len(read_tum(tmp_path / "est.tum")) == N_FRAMES

@@ -1,0 +1,102 @@
+"""The depth camera model (core/depth.py): distortion inverse, back-projection, z-buffering."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spacepose.core.depth import (
+    DepthCamera,
+    backproject,
+    depth_to_cloud,
+    distort,
+    pixel_rays,
+    render_depth,
+    undistort,
+)
+from spacepose.errors import InputError
+
+PINHOLE = DepthCamera(fx=500.0, fy=480.0, cx=79.5, cy=59.5, depth_scale=0.001)
+# A wide-angle lens with OpenCV's full rational model and tangential terms (|k| as in real
+# ToF calibrations: a few pixels to tens of pixels at the corners).
+WIDE = PINHOLE.model_copy(
+    update={"k1": -0.28, "k2": 0.09, "k3": -0.012, "k4": 0.05, "k5": 0.01, "k6": 0.002}
+    | {"p1": 1.2e-3, "p2": -8e-4}
+)
+
+
+def test_undistort_inverts_the_forward_model():
+    rng = np.random.default_rng(7)
+    x, y = rng.uniform(-0.25, 0.25, (2, 5000))
+    xd, yd = distort(WIDE, x, y)
+    assert np.max(np.hypot(xd - x, yd - y)) > 1e-3  # the distortion is not negligible
+    xu, yu = undistort(WIDE, xd, yd)
+    np.testing.assert_allclose(xu, x, atol=1e-13)
+    np.testing.assert_allclose(yu, y, atol=1e-13)
+
+
+def test_pixel_rays_project_back_onto_their_pixels():
+    rays = pixel_rays(WIDE, 120, 160)
+    assert np.isfinite(rays).all()
+    xd, yd = distort(WIDE, rays[..., 0], rays[..., 1])
+    v, u = np.mgrid[0:120, 0:160]
+    np.testing.assert_allclose(WIDE.fx * xd + WIDE.cx, u, atol=1e-9)
+    np.testing.assert_allclose(WIDE.fy * yd + WIDE.cy, v, atol=1e-9)
+    assert not rays.flags.writeable
+
+
+def test_pinhole_backprojection_closed_form():
+    depth = np.zeros((120, 160), dtype=np.uint16)
+    depth[10, 20] = 2000  # 2 m
+    depth[100, 150] = 1500
+    organised = backproject(depth, PINHOLE)
+    assert organised.points.shape == (120, 160, 3)
+    assert organised.valid.sum() == 2
+    np.testing.assert_allclose(
+        organised.points[10, 20], [(20 - 79.5) / 500 * 2, (10 - 59.5) / 480 * 2, 2.0], atol=1e-15
+    )
+    cloud = depth_to_cloud(depth, PINHOLE)
+    np.testing.assert_allclose(cloud.points[:, 2], [2.0, 1.5])  # row-major order
+    assert cloud.points[1, 0] > 0 and cloud.points[1, 1] > 0  # bottom right: x right, y down
+
+
+def test_zero_negative_and_nan_depth_are_no_return():
+    depth = np.full((4, 5), 1.25, dtype=np.float32)
+    depth[0, 0], depth[1, 1], depth[2, 2] = 0.0, -1.0, np.nan
+    camera = PINHOLE.model_copy(update={"depth_scale": 1.0})
+    organised = backproject(depth, camera)
+    assert organised.valid.sum() == 17
+    assert np.isnan(organised.points[~organised.valid]).all()
+    assert len(organised.cloud()) == 17
+    with pytest.raises(InputError, match="no return"):
+        depth_to_cloud(np.zeros((4, 5), dtype=np.uint16), PINHOLE, source="empty.png")
+
+
+def test_stride_keeps_every_other_pixel():
+    depth = np.arange(1, 121 * 161 + 1, dtype=np.float64).reshape(121, 161) % 5000 + 100
+    organised = backproject(depth, PINHOLE)
+    strided = organised.cloud(stride=2)
+    np.testing.assert_array_equal(strided.points, organised.points[::2, ::2].reshape(-1, 3))
+    with pytest.raises(InputError, match="stride"):
+        organised.cloud(stride=0)
+
+
+def test_size_and_shape_are_checked():
+    sized = PINHOLE.model_copy(update={"width": 160, "height": 120})
+    with pytest.raises(InputError, match="640x480, the intrinsics say 160x120"):
+        backproject(np.ones((480, 640)), sized, source="big.png")
+    with pytest.raises(InputError, match="one numeric channel"):
+        backproject(np.ones((4, 5, 3)), PINHOLE)
+
+
+def test_render_then_backproject_round_trip_with_distortion():
+    rng = np.random.default_rng(3)
+    # Points on the rays of random pixels, at random depths: rendering must find those pixels.
+    rays = pixel_rays(WIDE, 120, 160)
+    v, u = np.divmod(rng.choice(120 * 160, 300, replace=False), 160)
+    z = rng.uniform(0.5, 3.0, 300)
+    points = np.column_stack([rays[v, u, 0] * z, rays[v, u, 1] * z, z])
+    image = render_depth(np.vstack([points, points * 1.5]), WIDE, 120, 160)  # behind: hidden
+    organised = backproject(image, WIDE.model_copy(update={"depth_scale": 1.0}))
+    np.testing.assert_allclose(organised.points[v, u], points, atol=1e-12)
+    assert organised.valid.sum() == 300

@@ -1,0 +1,132 @@
+"""Depth image folders as tracking input (tools/frames.py with tools/depth_io.py).
+
+A simulated lab run is rendered into 16-bit PNG depth maps (0.1 mm units); the equivalent point
+cloud folder holds, as float64 .npy, the points of the same quantised depths back-projected here
+by the textbook pinhole formula, ``x = (u - cx) / fx · z``, in the same order of operations: the
+quantised depths put points exactly on voxel edges, where a one-ulp difference picks another
+voxel. Both must track to the same poses (to 1e-9; measured 4e-17).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spacepose.cli import main
+from spacepose.core.depth import DepthCamera, render_depth
+from spacepose.core.metrics import evaluate
+from spacepose.core.sim import scenario_config, simulate
+from spacepose.core.trajectory import Trajectory
+from spacepose.errors import InputError
+from spacepose.tools.depth_io import read_depth_image, write_depth_image
+from spacepose.tools.frames import FrameSequence, open_frames, track_folder, tracker_config
+from spacepose.tools.trajectory_io import read_tum
+
+N_FRAMES = 6
+DEPTH_SCALE = 1e-4  # 0.1 mm units: the lab target at 1.1-1.3 m fits 16 bits easily
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate(scenario_config("lab", frames=N_FRAMES))
+
+
+@pytest.fixture(scope="module")
+def camera(sim) -> DepthCamera:
+    """The simulator's pinhole (principal point at the image centre, square pixels)."""
+    s = sim.config.sensor
+    c = (0.5 * (s.width - 1), 0.5 * (s.height - 1))
+    return DepthCamera(
+        fx=s.focal_px, fy=s.focal_px, cx=c[0], cy=c[1], depth_scale=DEPTH_SCALE,
+        width=s.width, height=s.height,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def folders(sim, camera, tmp_path_factory) -> dict[str, Path]:
+    """The PNG depth folder (with intrinsics.yaml) and its equivalent .npy cloud folder."""
+    root = tmp_path_factory.mktemp("depth")
+    depth_dir, cloud_dir = root / "depth", root / "clouds"
+    stamps = "".join(f"{10.0 + 0.25 * k!r}\n" for k in range(N_FRAMES))
+    for k in range(N_FRAMES):
+        image = render_depth(sim.frame(k).cloud.points, camera, camera.height, camera.width)
+        png = write_depth_image(depth_dir / f"{k:04d}.png", image, DEPTH_SCALE)
+        units = read_depth_image(png)
+        v, u = np.nonzero(units)  # row-major, as the simulator's pixels
+        z = units[v, u] * DEPTH_SCALE
+        x = (u - camera.cx) / camera.fx * z
+        y = (v - camera.cy) / camera.fy * z
+        cloud_dir.mkdir(exist_ok=True)
+        np.save(cloud_dir / f"{k:04d}.npy", np.column_stack([x, y, z]))
+    (depth_dir / "intrinsics.yaml").write_text(
+        "".join(f"{k}: {v!r}\n" for k, v in camera.model_dump().items() if v is not None)
+    )
+    for folder in (depth_dir, cloud_dir):
+        (folder / "timestamps.txt").write_text(stamps)
+    return {"depth": depth_dir, "clouds": cloud_dir, "root": root}
+
+
+def test_depth_frames_equal_the_simulated_clouds(sim, folders):
+    frames = open_frames(folders["depth"])
+    assert isinstance(frames, FrameSequence) and len(frames) == N_FRAMES
+    for k, frame in enumerate(frames):
+        truth = sim.frame(k).cloud.points
+        assert frame.error is None and len(frame.cloud) == len(truth)
+        # Same pixels in the same order; depth rounded to 0.1 mm moves a point along its ray.
+        assert np.max(np.linalg.norm(frame.cloud.points - truth, axis=1)) < 0.06e-3
+        np.testing.assert_allclose(frame.timestamp, 10.0 + 0.25 * k)
+
+
+def test_png_depth_run_tracks_like_the_cloud_folder(sim, folders, tmp_path):
+    config = tracker_config()
+    depth = track_folder(folders["depth"], tmp_path / "depth.tum", config)
+    clouds = track_folder(folders["clouds"], tmp_path / "clouds.tum", config)
+    assert depth["frames"] == clouds["frames"] == N_FRAMES and depth["lost"] == 0
+    a, b = read_tum(tmp_path / "depth.tum"), read_tum(tmp_path / "clouds.tum")
+    np.testing.assert_array_equal(a.timestamps, b.timestamps)
+    assert np.max(np.abs(a.poses - b.poses)) < 1e-9
+    # And the poses are right: re-based truth, sub-millimetre.
+    table = evaluate(a, Trajectory(a.timestamps, sim.T_sensor_target), rebase_first=True)
+    assert max(table.to_dict()["mean"][k] for k in ("x_mm", "y_mm", "z_mm")) < 1.0
+
+
+def test_tum_layout_with_intrinsics_option(folders, tmp_path, capsys):
+    """TUM RGB-D's layout: depth.txt lists 'timestamp path'; intrinsics given on the command
+    line (the folder has none)."""
+    tum_dir = tmp_path / "rgbd"
+    (tum_dir / "depth").mkdir(parents=True)
+    lines = ["# timestamp filename"]
+    for k, png in enumerate(sorted(folders["depth"].glob("*.png"))):
+        stamp = f"{1305031102.0 + 0.033 * k:.6f}"
+        (tum_dir / "depth" / f"{stamp}.png").write_bytes(png.read_bytes())
+        lines.append(f"{stamp} depth/{stamp}.png")
+    (tum_dir / "depth.txt").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "tum.tum"
+    args = ["track", str(tum_dir), "--out", str(out), "--no-mls"]
+    assert main(args) == 1
+    assert "give --intrinsics" in capsys.readouterr().err
+    intrinsics = str(folders["depth"] / "intrinsics.yaml")
+    assert main([*args, "--intrinsics", intrinsics]) == 0, capsys.readouterr().err
+    est = read_tum(out)
+    np.testing.assert_allclose(est.timestamps, 1305031102.0 + 0.033 * np.arange(N_FRAMES))
+    track_folder(folders["depth"], tmp_path / "ref.tum", tracker_config(mls=False))
+    assert np.max(np.abs(est.poses - read_tum(tmp_path / "ref.tum").poses)) < 1e-9
+
+
+def test_bad_depth_image_is_lost_with_its_reason(folders, tmp_path):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for p in folders["depth"].glob("*.png"):
+        (bad / p.name).write_bytes(p.read_bytes())
+    (bad / "0002.png").write_bytes((bad / "0002.png").read_bytes()[:5000])  # truncated
+    (bad / "intrinsics.yaml").write_text((folders["depth"] / "intrinsics.yaml").read_text())
+    frames = list(open_frames(bad))
+    assert [f.cloud is None for f in frames] == [k == 2 for k in range(N_FRAMES)]
+    assert "0002.png" in frames[2].error and "cannot decode" in frames[2].error
+
+
+def test_depth_folder_without_intrinsics(folders, tmp_path):
+    with pytest.raises(InputError, match="no depth images"):
+        open_frames(folders["clouds"], intrinsics=folders["depth"] / "intrinsics.yaml")
