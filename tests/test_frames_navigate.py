@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import csv
 import json
 
 import numpy as np
 import pytest
 import yaml
 
-from spacepose.cli import main
 from spacepose.core.depth import DepthCamera, render_depth
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.tools.depth_io import read_depth_image, write_depth_image
+from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.runs import write_run
 
 FRAMES = 6
@@ -25,13 +24,13 @@ def run_dir(tmp_path_factory):
     )
 
 
-def _rows(path):
-    with path.open() as fh:
-        return list(csv.reader(fh))[1:]
+def _prior(run_dir) -> tuple[float, ...]:
+    """The simulator's initial attitude as the coarse prior (picks among symmetric poses)."""
+    return tuple(json.loads((run_dir / "scenario.json").read_text())["initial_q_I_B"])
 
 
-def test_unreadable_frame_does_not_abort_navigation(run_dir, tmp_path, capsys):
-    """Frame 3 is emptied (zero bytes): navigate predicts through it and writes every row."""
+def test_unreadable_frame_does_not_abort_navigation(run_dir, tmp_path):
+    """Frame 3 is emptied (zero bytes): navigation predicts through it and writes every row."""
     bad = tmp_path / "run"
     bad.mkdir()
     for p in run_dir.rglob("*"):
@@ -40,19 +39,18 @@ def test_unreadable_frame_does_not_abort_navigation(run_dir, tmp_path, capsys):
             (bad / p.relative_to(run_dir)).write_bytes(p.read_bytes())
     victim = sorted((bad / "frames").glob("*.ply"))[3]
     victim.write_bytes(b"")
-    ref, out = tmp_path / "ref.csv", tmp_path / "nav.csv"
-    assert main(["navigate", str(run_dir), "--out", str(ref), "--prior-from-scenario"]) == 0
-    code = main(["navigate", str(bad), "--out", str(out), "--prior-from-scenario"])
-    assert code == 0, capsys.readouterr().err
-    rows, ref_rows = _rows(out), _rows(ref)
-    assert len(rows) == FRAMES
-    assert rows[3][-1] == "predict" and ref_rows[3][-1] == "update"
-    assert rows[:3] == ref_rows[:3]  # the frames before the loss are untouched
+    ref = navigate_run(run_dir, tmp_path / "ref.csv", prior_q_I_B=_prior(run_dir))
+    got = navigate_run(bad, tmp_path / "nav.csv", prior_q_I_B=_prior(run_dir))
+    assert len(got.rows) == FRAMES
+    assert [r.n_rect > 0 for r in got.rows] == [k != 3 for k in range(FRAMES)]
+    assert ref.rows[3].n_rect > 0 and got.rows[3].status == "predict"
+    ref_lines, got_lines = ((tmp_path / n).read_text().splitlines() for n in ("ref.csv", "nav.csv"))
+    assert got_lines[:4] == ref_lines[:4]  # header and frames 0-2 untouched by the loss
 
 
 def test_depth_folder_navigates_like_its_cloud_folder(run_dir, tmp_path, capsys):
     """The orbit frames as 16-bit PNG depth maps (mm) navigate exactly as the .npy clouds
-    back-projected here from the same depths."""
+    back-projected here from the same depths; the intrinsics come from --intrinsics."""
     sensor = OrbitConfig(frames=FRAMES).sensor
     camera = DepthCamera(
         fx=sensor.focal_px, fy=sensor.focal_px, cx=0.5 * (sensor.width - 1),
@@ -74,12 +72,11 @@ def test_depth_folder_navigates_like_its_cloud_folder(run_dir, tmp_path, capsys)
     intrinsics = tmp_path / "camera.json"
     intrinsics.write_text(json.dumps(camera.model_dump(exclude_none=True)))
     scenario = json.loads((run_dir / "scenario.json").read_text())
-    keep = ("mean_motion", "R_O_C", "rectangles", "initial_q_I_B")
+    keep = ("mean_motion", "R_O_C", "rectangles")
     (tmp_path / "scenario.yaml").write_text(yaml.safe_dump({k: scenario[k] for k in keep}))
-    common = ["--scenario", str(tmp_path / "scenario.yaml"), "--prior-from-scenario"]
+    common = {"scenario": tmp_path / "scenario.yaml", "prior_q_I_B": _prior(run_dir)}
     ref, out = tmp_path / "ref.csv", tmp_path / "nav.csv"
-    assert main(["navigate", str(cloud_dir), "--out", str(ref), *common]) == 0
-    args = ["navigate", str(depth_dir), "--out", str(out), "--intrinsics", str(intrinsics)]
-    assert main([*args, *common]) == 0, capsys.readouterr().err
+    navigate_run(cloud_dir, ref, **common)
+    got = navigate_run(depth_dir, out, intrinsics=intrinsics, **common)
     assert out.read_text() == ref.read_text()
-    assert {r[-1] for r in _rows(out)[1:]} == {"update"}
+    assert all(r.n_rect > 0 for r in got.rows)
