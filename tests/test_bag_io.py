@@ -279,3 +279,11 @@ def test_bad_messages_are_lost_and_the_rest_tracked(lab, tmp_path):
     assert "without field(s) z" in health[3] and ",lost," in health[3]
     assert "no finite point" in health[4] and ",lost," in health[4]
     assert len(read_tum(tmp_path / "est.tum")) == N_FRAMES
+
+
+@pytest.mark.parametrize("content", [b"", b"not a bag at all\n"])
+def test_unreadable_bag_is_one_line(tmp_path, capsys, content):
+    (tmp_path / "run.bag").write_bytes(content)
+    assert main(["track", str(tmp_path / "run.bag"), "--out", str(tmp_path / "e.tum")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "run.bag: cannot open the bag" in err and "\n" not in err
