@@ -85,3 +85,23 @@ def test_simulate_errors_are_one_line(tmp_path, capsys) -> None:
     assert main(["simulate", "lab", "--out", out, "--noise-scale", "-1"]) == 1
     assert "noise_scale" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_simulate_motion_range_and_grid_options(tmp_path, capsys) -> None:
+    out = tmp_path / "g"
+    args = ["simulate", "lab", "--out", str(out), "--frames", "3", "--grid", "--range", "3"]
+    assert main([*args, "--motion", "tumbling-5", "--background", "--sensor", "tof-paper"]) == 0
+    cfg = read_run(out).scenario["config"]
+    assert (cfg["motion"], cfg["tumble_deg"], cfg["range_m"]) == ("tumbling", 5.0, 3.0)
+    assert cfg["wall_distance_m"] == 5.0 and cfg["target_size_m"] == 2.225
+    assert cfg["sensor"]["amplitude_exponent"] == 0.5 and cfg["background"] is True
+    plain = tmp_path / "p"
+    args = ["simulate", "lab", "--out", str(plain), "--frames", "2", "--motion", "accelerating"]
+    assert main([*args, "--range", "1.5", "--target-size", "0.5"]) == 0
+    cfg = read_run(plain).scenario["config"]
+    assert (cfg["motion"], cfg["range_m"], cfg["target_size_m"]) == ("accelerating", 1.5, 0.5)
+    assert cfg["wall_distance_m"] == 2.0  # without --grid only the named fields change
+    assert main(["simulate", "orbit", "--out", str(out), "--grid"]) == 1
+    assert "--grid builds lab scenes only" in capsys.readouterr().err
+    assert main(["simulate", "lab", "--out", str(out), "--motion", "wobble"]) == 1
+    assert "unknown motion 'wobble'" in capsys.readouterr().err

@@ -17,27 +17,69 @@ def simulate(
     frames: int | None = typer.Option(None, help="Number of frames (default: 58 lab, 600 orbit)."),
     seed: int = typer.Option(0, help="Seed of every random draw."),
     sensor: str | None = typer.Option(
-        None, help="tof, flash-lidar or gaussian (default: tof for lab, flash-lidar for orbit)."
+        None,
+        help="tof, tof-clean, tof-paper, flash-lidar, flash-lidar-clean, flash-lidar-edges or "
+        "gaussian (default: tof for lab, flash-lidar for orbit).",
     ),
     noise_scale: float | None = typer.Option(None, help="Noise multiplier; 0 = noise-free."),
     model: Path | None = typer.Option(None, help="Mesh file (OBJ/STL/PLY/GLB) as the target."),
     model_scale: float = typer.Option(1.0, help="Scale applied to --model coordinates."),
     background: bool = typer.Option(False, help="lab: add a wall and the turntable."),
+    motion: str | None = typer.Option(
+        None, help="lab: constant (default), accelerating or tumbling-D (D degrees a frame)."
+    ),
+    range_m: float | None = typer.Option(
+        None, "--range", help="lab: target distance, m (default 1.2)."
+    ),
+    target_size: float | None = typer.Option(
+        None, help="lab: scale the target to this largest extent, m."
+    ),
+    grid: bool = typer.Option(
+        False,
+        help="lab: build the scene as the robustness grid does: scaled to --range (target, "
+        "slide, turntable), the wall at 5/3 of the range, the sensor chosen by range.",
+    ),
 ) -> None:
     """Simulate the lab or orbit scenario and write frames, ground truth, model and scenario."""
     from spacepose.core.sim import scenario_config
     from spacepose.core.sim import simulate as build
+    from spacepose.core.sim.grid import grid_scenario, motion_fields
+    from spacepose.errors import ConfigError
     from spacepose.tools.runs import write_run
 
-    fields: dict[str, object] = {"seed": seed}
-    if frames is not None:
-        fields["frames"] = frames
-    if model is not None:
-        fields["model"] = str(model)
-        fields["model_scale"] = model_scale
-    if background:
-        fields["background"] = True
-    config = scenario_config(scenario, sensor=sensor, noise_scale=noise_scale, **fields)
+    if grid and scenario != "lab":
+        raise ConfigError(f"--grid builds lab scenes only, not {scenario!r}")
+    if grid:
+        given = {
+            "target": None if model is None else str(model),
+            "range_m": range_m,
+            "noise_scale": noise_scale,
+            "motion": motion,
+            "frames": frames,
+            "sensor": sensor,
+            "target_size_m": target_size,
+        }
+        config = grid_scenario(
+            seed=seed,
+            clutter="wall-table" if background else "none",
+            **{name: value for name, value in given.items() if value is not None},
+        )
+    else:
+        fields: dict[str, object] = {"seed": seed}
+        if frames is not None:
+            fields["frames"] = frames
+        if model is not None:
+            fields["model"] = str(model)
+            fields["model_scale"] = model_scale
+        if background:
+            fields["background"] = True
+        if motion is not None:
+            fields |= motion_fields(motion)
+        if range_m is not None:
+            fields["range_m"] = range_m
+        if target_size is not None:
+            fields["target_size_m"] = target_size
+        config = scenario_config(scenario, sensor=sensor, noise_scale=noise_scale, **fields)
     sim = build(config)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn())
     with Progress(*columns, TimeElapsedColumn(), console=console, transient=True) as bar:

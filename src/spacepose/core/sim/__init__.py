@@ -1,5 +1,6 @@
 """The simulator (METHODS §3): targets, range sensors and the lab and orbit scenarios."""
 
+from spacepose.core.sim.grid import grid_scenario
 from spacepose.core.sim.scenarios import (
     TRUTH_COLUMNS,
     Frame,
@@ -32,6 +33,7 @@ __all__ = [
     "SensorConfig",
     "Simulation",
     "Target",
+    "grid_scenario",
     "lab_target",
     "load_mesh",
     "mean_motion",

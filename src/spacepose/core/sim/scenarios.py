@@ -8,7 +8,10 @@ Lab (Li et al.): the sensor is fixed and level (sensor −y is up). The target s
 carried by a slide; the table frame has the sensor's axes and its origin on the turntable axis at
 the target-frame origin. Frame k: slide offset ``x_k`` along sensor x and turntable angle ``θ_k``
 about the vertical, both centred on the middle frame so the target stays in view:
-``T_sensor_target(k) = Trans(x_k, 0, range) · Rot(−y, θ_k) · R_table_model``.
+``T_sensor_target(k) = Trans(x_k, 0, range) · Rot(−y, θ_k) · R_table_model``. The motion
+profiles (constant steps, accelerating, tumbling), the target's size and the clutter are in
+:mod:`spacepose.core.sim.lab_scene`; :mod:`spacepose.core.sim.grid` builds a lab config from the
+coordinates of the robustness grid.
 
 Orbit (Yu et al., METHODS §2.4): I coincides with O at t = 0, O turns about −y_O at the mean
 motion n; ρ = target CoM − chaser CoM in O follows the Clohessy–Wiltshire solution; the sensor
@@ -35,6 +38,7 @@ from spacepose.core import dynamics
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig, validate_config
 from spacepose.core.crlb import CramerRaoBound, crlb
+from spacepose.core.sim.lab_scene import MotionProfile, lab_background, lab_poses, sized_target
 from spacepose.core.sim.sensors import SENSOR_PRESETS, SensorConfig, scan, sensor_config
 from spacepose.core.sim.targets import Target, lab_target, load_mesh, orbit_target, sample_surface
 from spacepose.core.trajectory import Trajectory
@@ -74,6 +78,19 @@ class LabConfig(_ScenarioConfig):
     )
     background: bool = Field(False, description="Add a wall and the turntable to the scene.")
     wall_distance_m: float = Field(2.0, gt=0, description="Wall distance along the boresight.")
+    motion: MotionProfile = Field(
+        "constant", description="constant, accelerating or tumbling (see lab_scene)."
+    )
+    tumble_deg: float = Field(
+        5.0, ge=0, le=90, description="tumbling: rotation angle of every frame step, deg."
+    )
+    tumble_cone_deg: float = Field(
+        30.0, ge=0, lt=90, description="tumbling: spin axis to angular momentum angle, deg."
+    )
+    target_size_m: float | None = Field(
+        None, gt=0, description="Scale the target to this largest extent, m (None: as built)."
+    )
+    target_albedo: float = Field(1.0, gt=0, le=1, description="Target reflectance.")
 
 
 class OrbitConfig(_ScenarioConfig):
@@ -176,6 +193,8 @@ class Simulation:
         Orbit only: (N, 20) table with the columns :data:`TRUTH_COLUMNS`.
     extras
         Scenario facts derived from the config (mean motion, R_O_C, ...), JSON-ready.
+    albedo
+        Reflectance of the target and of each background part, in that order (empty: all 1).
     """
 
     name: str
@@ -186,6 +205,7 @@ class Simulation:
     background: tuple[tuple[trimesh.Trimesh, NDArray[np.float64]], ...] = ()
     truth: NDArray[np.float64] | None = None
     extras: dict[str, Any] | None = None
+    albedo: tuple[float, ...] = ()
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -213,7 +233,8 @@ class Simulation:
             process=False,
         )
         rng = np.random.default_rng([self.config.seed, k])
-        s = scan(scene, self.sensor, rng)
+        albedo = np.repeat(self.albedo, [len(m.faces) for m in meshes]) if self.albedo else None
+        s = scan(scene, self.sensor, rng, albedo)
         return Frame(
             timestamp=float(self.timestamps[k]),
             cloud=PointCloud(s.points, sigma=s.sigma, source=f"{self.name} frame {k}"),
@@ -257,52 +278,15 @@ def _target(config: LabConfig | OrbitConfig, procedural: Target) -> Target:
     return load_mesh(Path(config.model), scale=config.model_scale)
 
 
-def lab_poses(config: LabConfig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """True poses of the lab run: ``T_sensor_table`` and ``T_sensor_target``, each (N, 4, 4)."""
-    k = np.arange(config.frames) - 0.5 * (config.frames - 1)
-    # Model +z (dish) towards the sensor, wings along sensor x, then the tilt about the wings.
-    R_table_model = Rotation.from_euler("yx", [180.0, config.tilt_deg], degrees=True)
-    up = np.array([0.0, -1.0, 0.0])
-    yaw = np.radians(config.yaw_center_deg + k * config.step_deg)
-    R_sensor_target = Rotation.from_rotvec(yaw[:, None] * up) * R_table_model
-    T_sensor_table = np.tile(np.eye(4), (config.frames, 1, 1))
-    T_sensor_table[:, 0, 3] = k * config.step_m
-    T_sensor_table[:, 2, 3] = config.range_m
-    T_sensor_target = T_sensor_table.copy()
-    T_sensor_target[:, :3, :3] = R_sensor_target.as_matrix()
-    return T_sensor_table, T_sensor_target
-
-
-def _lab_background(
-    config: LabConfig, target: Target, T_sensor_table: NDArray[np.float64]
-) -> tuple[tuple[trimesh.Trimesh, NDArray[np.float64]], ...]:
-    """A wall fixed in the sensor frame, and a turntable (post, disc, plinth) on the slide."""
-    wall = trimesh.creation.box(
-        bounds=[(-3.0, -2.0, config.wall_distance_m), (3.0, 2.0, config.wall_distance_m + 0.05)]
-    )
-    # Turning about the vertical keeps heights, so the lowest target point is the same in
-    # every frame; the disc sits 5 cm below it (y is down).
-    R_table_model = Rotation.from_euler("yx", [180.0, config.tilt_deg], degrees=True)
-    low = float((target.mesh.vertices @ R_table_model.as_matrix().T)[:, 1].max()) + 0.05
-    disc_t = 0.02
-    post = trimesh.creation.cylinder(0.01, segment=[(0.0, 0.0, 0.0), (0.0, low, 0.0)])
-    disc = trimesh.creation.cylinder(
-        0.25, segment=[(0.0, low, 0.0), (0.0, low + disc_t, 0.0)], sections=64
-    )
-    plinth = trimesh.creation.box(
-        bounds=[(-0.2, low + disc_t, -0.2), (0.2, low + disc_t + 1.0, 0.2)]
-    )
-    table = trimesh.util.concatenate([post, disc, plinth])
-    fixed = np.tile(np.eye(4), (config.frames, 1, 1))
-    return ((wall, fixed), (table, T_sensor_table))
-
-
 def simulate_lab(config: LabConfig | None = None) -> Simulation:
     """The lab run (METHODS §3): 58 ToF frames of the mock-up on the slide and turntable."""
     config = config or LabConfig()
     target = _target(config, lab_target())
+    target = sized_target(target, config.target_size_m, align=config.model is not None)
     T_sensor_table, T_sensor_target = lab_poses(config)
-    background = _lab_background(config, target, T_sensor_table) if config.background else ()
+    background, albedo = (), (config.target_albedo,)
+    if config.background:
+        background, albedo = lab_background(config, target, T_sensor_table)
     return Simulation(
         name="lab",
         config=config,
@@ -310,6 +294,7 @@ def simulate_lab(config: LabConfig | None = None) -> Simulation:
         timestamps=np.arange(config.frames) / config.rate_hz,
         T_sensor_target=T_sensor_target,
         background=background,
+        albedo=albedo,
     )
 
 

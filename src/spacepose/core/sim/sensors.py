@@ -5,6 +5,17 @@ sensor frame (embree through trimesh, first hit per ray). The hit range is then 
 float64 from the hit triangle's plane, because embree works in float32 and a noise-free point
 must lie on the surface to ~1e-12 m, not ~1e-7 m. Noise and artefacts are drawn from a generator
 the caller seeds, always over every pixel, so a frame depends only on its seed.
+
+Noise profiles. ``tof-clean`` and ``flash-lidar-clean`` are range noise growing with range,
+dropouts and (ToF) flying pixels between two returns. ``tof-paper`` is a camera like the one of
+Li et al.: its raw lab frame has about as few consistent neighbouring normals as theirs (about
+20 % within 20°, :mod:`spacepose.core.cloud_quality`). On top of the clean model it has
+amplitude-dependent noise (a return's amplitude is ``albedo·|cos θ|``; σ grows as its inverse
+square root, as for shot noise, and returns weaker than ``min_amplitude`` are lost), multipath
+excess near concave creases, flying pixels at silhouettes against empty space and a small
+systematic range bias (:mod:`spacepose.core.sim.artefacts`). ``flash-lidar-edges`` adds flying
+pixels at the silhouettes to the flash LiDAR. ``tof`` and ``flash-lidar`` name the profile each
+scenario uses by default (:data:`DEFAULT_PROFILES`).
 """
 
 from __future__ import annotations
@@ -17,12 +28,12 @@ from typing import Literal
 import numpy as np
 import trimesh
 from numpy.typing import NDArray
-from pydantic import Field
-from scipy import ndimage
+from pydantic import Field, model_validator
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from spacepose.core.config import StageConfig, validate_config
 from spacepose.core.crlb import range_sigma_along_normal
+from spacepose.core.sim.artefacts import concave_creases, flying_pixels, multipath_excess
 from spacepose.errors import ConfigError
 
 SensorModel = Literal["tof", "flash-lidar", "gaussian"]
@@ -33,9 +44,11 @@ _BARYCENTRIC_TOL = 1e-12
 class SensorConfig(StageConfig):
     """A pinhole range sensor; the defaults are the ``tof`` camera of METHODS §3.
 
-    Noise: ``σ(r) = noise_scale · (sigma_const + sigma_quad · (r / 1 m)²)`` metres, along the ray
-    for ``tof`` and ``flash-lidar``, on each of x, y, z for ``gaussian``. ``noise_scale = 0``
-    gives noise-free frames without dropouts or flying pixels.
+    Noise: ``σ(r, a) = noise_scale · (sigma_const + sigma_quad · (r / 1 m)²) · a^−γ`` metres,
+    along the ray for ``tof`` and ``flash-lidar``, on each of x, y, z for ``gaussian``; ``a =
+    max(albedo·|cos θ|, min_amplitude)`` is the return's relative amplitude and ``γ =
+    amplitude_exponent``. ``noise_scale = 0`` gives noise-free frames without dropouts, flying
+    pixels, biases or lost weak returns; the biases do not scale with ``noise_scale``.
     """
 
     model: SensorModel = "tof"
@@ -52,6 +65,26 @@ class SensorConfig(StageConfig):
         0.5, ge=0, le=1, description="Chance an edge pixel mixes the two depths."
     )
     noise_scale: float = Field(1.0, ge=0, description="Multiplier of σ; 0 = noise-free.")
+    amplitude_exponent: float = Field(
+        0.0, ge=0, description="γ: σ grows as amplitude^−γ (0.5 for shot noise; 0 = off)."
+    )
+    min_amplitude: float = Field(
+        0.0, ge=0, le=1, description="Weakest return kept (albedo·|cos θ|); also σ's floor."
+    )
+    range_bias: float = Field(0.0, description="Systematic range offset of every return, m.")
+    multipath_bias: float = Field(0.0, ge=0, description="Range excess at a concave crease, m.")
+    multipath_length: float = Field(
+        0.01, gt=0, description="Decay length of the multipath excess away from the crease, m."
+    )
+    flying_tail: float = Field(
+        0.0, ge=0, description="Largest range excess of a flying pixel at a bare silhouette, m."
+    )
+
+    @model_validator(mode="after")
+    def _amplitude_floor(self) -> SensorConfig:
+        if self.amplitude_exponent > 0 and self.min_amplitude == 0:
+            raise ValueError("amplitude_exponent > 0 needs min_amplitude > 0 (σ would be infinite)")
+        return self
 
     @property
     def fov_deg(self) -> tuple[float, float]:
@@ -65,28 +98,58 @@ def _focal_for_fov(pixels: int, fov_deg: float) -> float:
     return 0.5 * pixels / math.tan(math.radians(0.5 * fov_deg))
 
 
-SENSOR_PRESETS: dict[str, SensorConfig] = {
-    "tof": SensorConfig(),
-    "flash-lidar": SensorConfig(
-        model="flash-lidar",
-        width=160,
-        height=160,
-        focal_px=_focal_for_fov(160, 30.0),
-        min_range=0.5,
-        max_range=200.0,
-        sigma_const=0.01,
-        sigma_quad=0.0,
-        dropout=0.0,
-        flying_probability=0.0,
+_TOF_CLEAN = SensorConfig()
+_FLASH_CLEAN = SensorConfig(
+    model="flash-lidar",
+    width=160,
+    height=160,
+    focal_px=_focal_for_fov(160, 30.0),
+    min_range=0.5,
+    max_range=200.0,
+    sigma_const=0.01,
+    sigma_quad=0.0,
+    dropout=0.0,
+    flying_probability=0.0,
+)
+# The profile each sensor kind means by default; switching the lab to the paper-like camera is
+# changing "tof-clean" to "tof-paper" here.
+DEFAULT_PROFILES = {"tof": "tof-clean", "flash-lidar": "flash-lidar-clean"}
+_PROFILES: dict[str, SensorConfig] = {
+    "tof-clean": _TOF_CLEAN,
+    # Li et al.'s camera: σ = 4.1 mm / sqrt(a) at 1.2 m (set so that the raw lab frame's
+    # normal consistency is near the paper's), multipath at inner corners, silhouette tails.
+    "tof-paper": _TOF_CLEAN.model_copy(
+        update={
+            "sigma_const": 1.2e-3,
+            "sigma_quad": 2.0e-3,
+            "amplitude_exponent": 0.5,
+            "min_amplitude": 0.05,
+            "range_bias": 1.0e-3,
+            "multipath_bias": 5.0e-3,
+            "multipath_length": 0.015,
+            "flying_tail": 0.10,
+        }
+    ),
+    "flash-lidar-clean": _FLASH_CLEAN,
+    # A partly covered pixel at the silhouette returns a weak echo placed up to 0.4 m farther.
+    "flash-lidar-edges": _FLASH_CLEAN.model_copy(
+        update={"flying_probability": 0.5, "flying_tail": 0.4}
     ),
     "gaussian": SensorConfig(
         model="gaussian", sigma_const=1e-3, sigma_quad=0.0, dropout=0.0, flying_probability=0.0
     ),
 }
+SENSOR_PRESETS: dict[str, SensorConfig] = {
+    **{kind: _PROFILES[profile] for kind, profile in DEFAULT_PROFILES.items()},
+    **_PROFILES,
+}
 
 
 def sensor_config(name: str, **overrides: object) -> SensorConfig:
-    """The preset ``name`` (``tof``, ``flash-lidar``, ``gaussian``) with fields overridden.
+    """The preset ``name`` with fields overridden.
+
+    Presets: ``tof-clean``, ``tof-paper``, ``flash-lidar-clean``, ``flash-lidar-edges``,
+    ``gaussian``; ``tof`` and ``flash-lidar`` are the profiles of :data:`DEFAULT_PROFILES`.
 
     Raises
     ------
@@ -99,9 +162,21 @@ def sensor_config(name: str, **overrides: object) -> SensorConfig:
     return validate_config(SensorConfig, data, source=f"sensor {name}")
 
 
-def sigma_at(config: SensorConfig, ranges: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Noise σ (m) at the given ranges (m), noise_scale included."""
-    return config.noise_scale * (config.sigma_const + config.sigma_quad * np.square(ranges))
+def sigma_at(
+    config: SensorConfig,
+    ranges: NDArray[np.float64],
+    amplitude: NDArray[np.float64] | None = None,
+) -> NDArray[np.float64]:
+    """Noise σ (m) at the given ranges (m), noise_scale included.
+
+    ``amplitude`` (same shape, ``albedo·|cos θ|``) enters only when ``amplitude_exponent > 0``;
+    it is floored at ``min_amplitude``.
+    """
+    sigma = config.noise_scale * (config.sigma_const + config.sigma_quad * np.square(ranges))
+    if config.amplitude_exponent > 0 and amplitude is not None:
+        a = np.maximum(amplitude, config.min_amplitude)
+        sigma = sigma * a ** (-config.amplitude_exponent)
+    return sigma
 
 
 def pixel_directions(config: SensorConfig) -> NDArray[np.float64]:
@@ -142,8 +217,8 @@ def _ray_triangle(
         qvec = np.cross(tvec, e1)
         v = np.einsum("...i,...i->...", d, qvec) * inv
         t = np.einsum("...i,...i->...", e2, qvec) * inv
-    tol = _BARYCENTRIC_TOL
-    inside = (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (t > 0) & np.isfinite(t)
+        tol = _BARYCENTRIC_TOL
+        inside = (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (t > 0) & np.isfinite(t)
     return t, inside
 
 
@@ -213,6 +288,10 @@ class Scan:
         (N,) True for flying pixels (a mix of two depths: not on any surface).
     pixel
         (N,) row-major pixel index of each point.
+    bias
+        (N,) systematic range offset of each point (``range_bias`` plus the multipath excess;
+        0 on flying pixels' multipath), m; the measured range is true (or mixed) range + bias +
+        noise.
     """
 
     points: NDArray[np.float64]
@@ -222,21 +301,35 @@ class Scan:
     sigma_normal: NDArray[np.float64]
     flying: NDArray[np.bool_]
     pixel: NDArray[np.int64]
+    bias: NDArray[np.float64]
 
 
 def scan(
-    mesh_sensor: trimesh.Trimesh, config: SensorConfig, rng: np.random.Generator | None
+    mesh_sensor: trimesh.Trimesh,
+    config: SensorConfig,
+    rng: np.random.Generator | None,
+    albedo: NDArray[np.float64] | None = None,
 ) -> Scan:
     """Simulate one frame of ``config`` looking at ``mesh_sensor`` (sensor frame).
 
-    Steps: first hit per pixel; returns outside ``[min_range, max_range]`` are lost; flying
-    pixels where the 3×3 window of ranges spans more than ``flying_jump`` (with probability
-    ``flying_probability`` the range becomes a uniform mix of the window's nearest and farthest
-    depths; only returns count, so a pixel next to empty space, as in orbit, does not fly); range
-    (or xyz) noise, σ evaluated at the true range; dropouts. Missed and dropped rays are left
-    out, so the output is not organised; ``Scan.pixel`` says where each point came from.
+    Steps: first hit per pixel; returns outside ``[min_range, max_range]`` and, for a noisy
+    sensor, returns weaker than ``min_amplitude`` are lost; flying pixels at depth edges and
+    silhouettes (:func:`~spacepose.core.sim.artefacts.flying_pixels`; only returns count as
+    depths, so a pixel next to empty space flies only when ``flying_tail > 0``); the systematic
+    range bias and the multipath excess near concave creases; range (or xyz) noise, σ evaluated
+    at the true range and amplitude; dropouts. Missed and dropped rays are left out, so the
+    output is not organised; ``Scan.pixel`` says where each point came from.
 
-    ``rng`` (seeded by the caller) may be None only for a noise-free sensor.
+    Parameters
+    ----------
+    mesh_sensor
+        The scene, sensor frame.
+    config
+        The sensor.
+    rng
+        Seeded generator; may be None only for a noise-free sensor.
+    albedo
+        (F,) reflectance of each face of ``mesh_sensor`` in (0, 1]; None = 1 everywhere.
     """
     if rng is None and config.noise_scale > 0:
         raise ConfigError("a noisy sensor needs a seeded random generator")
@@ -244,28 +337,50 @@ def scan(
     face, true_range, normals = cast_rays(mesh_sensor, directions)
     hit = np.isfinite(true_range) & (true_range >= config.min_range)
     hit &= true_range <= config.max_range
+    amplitude = np.abs(np.einsum("ij,ij->i", normals, directions))
+    if albedo is not None:
+        amplitude *= np.asarray(albedo, dtype=np.float64)[face]
+    noisy = config.noise_scale > 0
+    if noisy and config.min_amplitude > 0:
+        hit &= amplitude >= config.min_amplitude
+    returned = np.where(hit, true_range, np.inf)
     idx = np.flatnonzero(hit)
     r = true_range[idx]
     flying = np.zeros(len(idx), dtype=bool)
-    noisy = config.noise_scale > 0
+    shape = (config.height, config.width)
     # Draws only for the pixels that need them, in a fixed order: flying, dropout, noise.
     if noisy and config.flying_probability > 0:
-        img = np.full(len(true_range), np.inf)
-        img[idx] = r
-        near = ndimage.minimum_filter(img.reshape(config.height, config.width), 3).ravel()[idx]
-        img[idx] = -r  # the maximum of the ranges is minus the minimum of their negatives
-        far = -ndimage.minimum_filter(img.reshape(config.height, config.width), 3).ravel()[idx]
-        edge = np.flatnonzero(far - near > config.flying_jump)
-        u_fly, w_fly = rng.random((2, len(edge)))
-        fly = edge[u_fly < config.flying_probability]
-        w = w_fly[u_fly < config.flying_probability]
-        flying[fly] = True
-        r = r.copy()
-        r[fly] = w * near[fly] + (1.0 - w) * far[fly]
+        mixed = flying_pixels(
+            returned,
+            idx,
+            shape,
+            config.flying_jump,
+            config.flying_tail,
+            config.flying_probability,
+            rng,
+        )
+        r, flying = mixed.ranges, mixed.flying
+    bias = np.zeros(len(idx))
+    if noisy:
+        bias += config.range_bias
+        if config.multipath_bias > 0:
+            surface = directions * np.where(hit, true_range, np.nan)[:, None]
+            crease = concave_creases(
+                surface,
+                np.where(hit[:, None], normals, np.nan),
+                np.where(hit, face, -1),
+                shape,
+                config.focal_px,
+            )
+            excess = multipath_excess(
+                surface[idx], surface[crease], config.multipath_bias, config.multipath_length
+            )
+            bias += np.where(flying, 0.0, excess)
+    r = r + bias
     keep = rng.random(len(idx)) >= config.dropout if noisy else np.ones(len(idx), dtype=bool)
-    idx, r, flying = idx[keep], r[keep], flying[keep]
+    idx, r, flying, bias = idx[keep], r[keep], flying[keep], bias[keep]
     d, n = directions[idx], normals[idx]
-    sigma = sigma_at(config, true_range[idx])
+    sigma = sigma_at(config, true_range[idx], amplitude[idx])
     if config.model == "gaussian":
         points = d * r[:, None]
         if noisy:
@@ -275,5 +390,5 @@ def scan(
         if noisy:
             r = r + sigma * rng.standard_normal(len(idx))
         points = d * r[:, None]
-        sigma_normal = range_sigma_along_normal(sigma, d, n)
-    return Scan(points, n, face[idx], sigma, sigma_normal, flying, idx)
+        sigma_normal = range_sigma_along_normal(sigma, d, n) if len(idx) else np.zeros(0)
+    return Scan(points, n, face[idx], sigma, sigma_normal, flying, idx, bias)
