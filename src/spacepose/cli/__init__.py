@@ -10,6 +10,7 @@ from spacepose.cli import (  # noqa: F401  (importing a module registers its com
     experiment,
     navigate,
     planes,
+    register,
     report,
     simulate,
     track,

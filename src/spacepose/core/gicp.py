@@ -17,7 +17,6 @@ from pydantic import Field
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, check_rows
-from spacepose.core.config import StageConfig
 from spacepose.core.grid import numba_threads
 from spacepose.core.icp import (
     CorrespondenceSearch,
@@ -29,6 +28,7 @@ from spacepose.core.icp import (
 from spacepose.core.neighbors import SearchIndex, knn
 from spacepose.core.normals import neighbourhood_normals
 from spacepose.core.registration import RegistrationResult
+from spacepose.core.robust import RobustConfig, robust_weights
 from spacepose.errors import InputError, RegistrationError
 
 # Levenberg-Marquardt damping schedule (the values small_gicp uses).
@@ -42,7 +42,7 @@ _LM_MAX_TRIALS = 10
 _MIN_VARIANCE_FACTOR = 1e-12
 
 
-class GICPConfig(StageConfig):
+class GICPConfig(RobustConfig):
     """Parameters of :func:`gicp`.
 
     Attributes
@@ -63,6 +63,10 @@ class GICPConfig(StageConfig):
     lm
         Levenberg-Marquardt (a damped step is accepted only if it lowers the cost on the current
         correspondences) instead of plain Gauss-Newton.
+    robust_kernel, robust_scale
+        IRLS kernel on the Mahalanobis distances ``√(dᵀWd)`` and its σ (Mahalanobis units;
+        None: adaptive), see :mod:`spacepose.core.robust`; the weights multiply each ``W``.
+        ``"none"`` is plain least squares.
     """
 
     k_covariance: int = Field(20, ge=3)
@@ -125,9 +129,8 @@ def gicp_linearize(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
     """Normal equations of the GICP cost at the current transform.
 
-    Compiled, one pass per correspondence: ``W = (C_q + R C_p Rᵀ)⁻¹`` from the adjugate, then
-    ``JᵀWJ``, ``JᵀWd`` and ``dᵀWd`` with ``J = [−skew(p) I]``, summed in fixed chunks (the same
-    bits on any thread count). The numpy form took ~5 ms of each 18 000-point iteration.
+    :func:`gicp_weight_matrices` then :func:`gicp_system`: ``W = (C_q + R C_p Rᵀ)⁻¹``, then
+    ``JᵀWJ``, ``JᵀWd`` and ``dᵀWd`` with ``J = [−skew(p) I]``.
 
     Parameters
     ----------
@@ -151,6 +154,36 @@ def gicp_linearize(
     Raises
     ------
     InputError
+        As :func:`gicp_weight_matrices`.
+    """
+    W, _ = gicp_weight_matrices(
+        points, target_points, R, source_covariances, target_covariances, workers
+    )
+    H, g, cost = gicp_system(points, target_points, W, workers)
+    return H, g, W, cost
+
+
+def gicp_weight_matrices(
+    points: NDArray[np.float64],
+    target_points: NDArray[np.float64],
+    R: NDArray[np.float64],
+    source_covariances: NDArray[np.float64],
+    target_covariances: NDArray[np.float64],
+    workers: int = 1,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """GICP's per-correspondence weights ``W = (C_q + R C_p Rᵀ)⁻¹`` and Mahalanobis residuals.
+
+    Compiled, one pass per correspondence, the inverse from the adjugate (the numpy form took
+    ~5 ms of each 18 000-point iteration). Arguments as :func:`gicp_linearize`.
+
+    Returns
+    -------
+    W, m2
+        (M, 3, 3) weights and (M,) squared Mahalanobis distances ``dᵀWd``, ``d = p − q``.
+
+    Raises
+    ------
+    InputError
         When some ``C_q + R C_p Rᵀ`` is singular or not positive definite (e.g. zero
         covariances), or the arrays do not share their row count and shapes (the kernel
         indexes them unchecked).
@@ -167,43 +200,64 @@ def gicp_linearize(
         raise InputError(f"gicp_linearize needs a (3, 3) rotation, got {np.shape(R)}")
     m = len(points)
     W = np.empty((m, 3, 3))
-    partial = np.zeros((max(1, -(-m // _CHUNK)), 28))
+    m2 = np.empty(m)
     with numba_threads(workers):
-        singular = _linearize_kernel(
+        singular = _weights_kernel(
             np.ascontiguousarray(points, dtype=np.float64),
             np.ascontiguousarray(target_points, dtype=np.float64),
             np.ascontiguousarray(R, dtype=np.float64),
             np.ascontiguousarray(source_covariances, dtype=np.float64),
             np.ascontiguousarray(target_covariances, dtype=np.float64),
             W,
-            partial,
+            m2,
         )
     if singular:
         raise InputError(
             "GICP needs positive definite covariances: C_target + R C_source Rᵀ is singular "
             f"or indefinite for {singular} correspondences (use compute_covariances)"
         )
+    return W, m2
+
+
+def gicp_system(
+    points: NDArray[np.float64],
+    target_points: NDArray[np.float64],
+    W: NDArray[np.float64],
+    workers: int = 1,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """``Σ JᵀWJ``, ``Σ JᵀWd`` and ``Σ dᵀWd`` over (M, 3) points, targets and (M, 3, 3) W.
+
+    Compiled, rows summed in fixed chunks (the same bits on any thread count). A robust kernel
+    passes ``wᵢ Wᵢ``: its IRLS weights folded into the matrices.
+
+    Returns
+    -------
+    H, g, cost
+        (6, 6), (6,) and the scalar cost; twist order (omega, v), left perturbation.
+    """
+    check_rows("gicp_system", points, target_points, W, shapes=((3,), (3,), (3, 3)))
+    partial = np.zeros((max(1, -(-len(points) // _CHUNK)), 28))
+    with numba_threads(workers):
+        _system_kernel(
+            np.ascontiguousarray(points, dtype=np.float64),
+            np.ascontiguousarray(target_points, dtype=np.float64),
+            np.ascontiguousarray(W, dtype=np.float64),
+            partial,
+        )
     total = partial.sum(axis=0)
     H, g = system_from_sums(total)
-    return H, g, W, float(total[27])
+    return H, g, float(total[27])
 
 
 @numba.njit(cache=True, parallel=True)
-def _linearize_kernel(points, target_points, R, Cs, Ct, W, partial):
-    """Fill ``W`` and, per chunk of rows, the upper triangle of Σ JᵀWJ (21), Σ JᵀWd (6) and
-    Σ dᵀWd; return how many rows had no positive definite ``C_q + R C_p Rᵀ``."""
+def _weights_kernel(points, target_points, R, Cs, Ct, W, m2):
+    """Fill ``W`` and ``m2 = dᵀWd`` row by row; return how many rows had no positive definite
+    ``C_q + R C_p Rᵀ`` (their W and m2 are 0)."""
     m = len(points)
     singular = 0
-    for c in numba.prange(len(partial)):
-        acc = partial[c]
+    for c in numba.prange(max(1, -(-m // _CHUNK))):
         RC = np.empty((3, 3))
         C = np.empty((3, 3))
-        J = np.zeros((3, 6))
-        WJ = np.empty((3, 6))
-        Wd = np.empty(3)
-        d = np.empty(3)
-        for a in range(3):
-            J[a, 3 + a] = 1.0
         for i in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
             for a in range(3):
                 for b in range(3):
@@ -220,6 +274,7 @@ def _linearize_kernel(points, target_points, R, Cs, Ct, W, partial):
             if not (det > 0 and c00 > 0 and c00 * c11 - c01 * c01 > 0):
                 singular += 1
                 W[i] = 0.0
+                m2[i] = 0.0
                 continue
             inv = 1.0 / det
             W[i, 0, 0], W[i, 0, 1], W[i, 0, 2] = a00 * inv, a01 * inv, a02 * inv
@@ -227,6 +282,27 @@ def _linearize_kernel(points, target_points, R, Cs, Ct, W, partial):
             W[i, 1, 2] = (c01 * c02 - c00 * c12) * inv
             W[i, 2, 2] = (c00 * c11 - c01 * c01) * inv
             W[i, 1, 0], W[i, 2, 0], W[i, 2, 1] = W[i, 0, 1], W[i, 0, 2], W[i, 1, 2]
+            m2[i] = 0.0
+            for a in range(3):
+                da = points[i, a] - target_points[i, a]
+                for b in range(3):
+                    m2[i] += da * W[i, a, b] * (points[i, b] - target_points[i, b])
+    return singular
+
+
+@numba.njit(cache=True, parallel=True)
+def _system_kernel(points, target_points, W, partial):
+    """Per chunk of rows: the upper triangle of Σ JᵀWJ (21), Σ JᵀWd (6) and Σ dᵀWd."""
+    m = len(points)
+    for c in numba.prange(len(partial)):
+        acc = partial[c]
+        J = np.zeros((3, 6))
+        WJ = np.empty((3, 6))
+        Wd = np.empty(3)
+        d = np.empty(3)
+        for a in range(3):
+            J[a, 3 + a] = 1.0
+        for i in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
             px, py, pz = points[i, 0], points[i, 1], points[i, 2]
             # J = [−skew(p) I]: the derivative of exp(δ) p at δ = 0.
             J[0, 1], J[0, 2] = pz, -py
@@ -246,7 +322,6 @@ def _linearize_kernel(points, target_points, R, Cs, Ct, W, partial):
             for a in range(6):
                 acc[21 + a] += J[0, a] * Wd[0] + J[1, a] * Wd[1] + J[2, a] * Wd[2]
             acc[27] += d[0] * Wd[0] + d[1] * Wd[1] + d[2] * Wd[2]
-    return singular
 
 
 def mahalanobis_sum(d: NDArray[np.float64], W: NDArray[np.float64]) -> float:
@@ -293,7 +368,9 @@ def gicp(
         normal only (the tangential terms are ε times weaker). The information is therefore
         noise-weighted: ``result.covariance(sigma=1.0)`` is the covariance of
         ``T_target_source``. It treats the estimated covariances as exact, so it is somewhat
-        optimistic when the clouds are sparse and noisy.
+        optimistic when the clouds are sparse and noisy. With a robust kernel every sum is
+        weighted (``W ← w W``) and M becomes ``Σ w``: the weighted least-squares covariance with
+        the final weights held fixed, i.e. that of the inliers the kernel kept.
 
     Raises
     ------
@@ -329,11 +406,21 @@ def gicp(
             )
         return s, t, moved[s], float(np.sqrt(d2.mean()))
 
+    robust = config.robust_kernel != "none"
+
     def linearize(
         T_cur: NDArray[np.float64], s: NDArray[np.intp], t: NDArray[np.intp], p: NDArray
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
-        """Normal equations at T_cur; p are the matched source points already moved by it."""
-        return gicp_linearize(p, tgt.points[t], T_cur[:3, :3], Cs[s], Ct[t], workers)
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float]:
+        """Normal equations at T_cur (p: the matched source points already moved by it), with
+        the robust weights folded into W, and Σ w (the correspondence count without them)."""
+        q = tgt.points[t]
+        W, m2 = gicp_weight_matrices(p, q, T_cur[:3, :3], Cs[s], Ct[t], workers)
+        total = float(len(s))
+        if robust:
+            w = robust_weights(np.sqrt(m2), config.robust_kernel, config.robust_scale)
+            W *= w.weights[:, None, None]
+            total = w.total
+        return *gicp_system(p, q, W, workers), W, total
 
     lam = _LM_INIT_LAMBDA
     converged = False
@@ -341,7 +428,7 @@ def gicp(
     while iterations < config.max_iterations:
         iterations += 1
         s, t, p, _ = correspond(T)
-        H, g, W, cost = linearize(T, s, t, p)
+        H, g, cost, W, _ = linearize(T, s, t, p)
         if config.lm:
             src_s, tgt_t = src.points[s], tgt.points[t]
             # Damped steps on fixed correspondences and weights until one lowers the cost.
@@ -366,8 +453,8 @@ def gicp(
             break
 
     s, t, p, rmse = correspond(T)
-    H, _, _, cost = linearize(T, s, t, p)
-    dof = max(len(s) - 6, 1)
+    H, _, cost, _, total = linearize(T, s, t, p)
+    dof = max(total - 6.0, 1.0)
     return RegistrationResult(
         T_target_source=T,
         fitness=len(s) / len(src),

@@ -24,11 +24,11 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, check_rows
-from spacepose.core.config import StageConfig
 from spacepose.core.grid import VoxelIndex, nearest_point, numba_threads
 from spacepose.core.neighbors import SearchIndex, hybrid
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.registration import RegistrationResult, kabsch
+from spacepose.core.robust import RobustConfig, RobustWeights, robust_weights
 from spacepose.errors import DegenerateGeometryError, InputError, RegistrationError
 
 # Smallest/largest eigenvalue ratio of a Gauss-Newton system below which a direction is
@@ -40,7 +40,7 @@ _THREADED_QUERY_MIN = 2048
 _SYSTEM_CHUNK = 512
 
 
-class ICPConfig(StageConfig):
+class ICPConfig(RobustConfig):
     """Parameters of :func:`icp`.
 
     Attributes
@@ -57,6 +57,10 @@ class ICPConfig(StageConfig):
         Gauss-Newton step on SE(3) per iteration).
     normals
         Neighbourhood of the target normals point-to-plane estimates when the target has none.
+    robust_kernel, robust_scale
+        IRLS kernel on the residuals (point-to-plane: the signed normal distance;
+        point-to-point: the Euclidean distance) and its σ (m; None: adaptive), see
+        :mod:`spacepose.core.robust`. ``"none"`` is plain least squares.
     """
 
     max_correspondence_distance: float = Field(0.05, gt=0)
@@ -214,10 +218,15 @@ def point_to_point_jacobians(points: NDArray[np.float64]) -> NDArray[np.float64]
     return J
 
 
-def point_to_point_information(points: NDArray[np.float64]) -> NDArray[np.float64]:
-    """6×6 ``Σ JᵀJ`` of point-to-point residuals at the matched source points (target frame)."""
+def point_to_point_information(
+    points: NDArray[np.float64], weights: NDArray[np.float64] | None = None
+) -> NDArray[np.float64]:
+    """6×6 ``Σ w JᵀJ`` of point-to-point residuals at the matched source points (M, 3) (target
+    frame), with optional (M,) IRLS weights (None: all 1)."""
     J = point_to_point_jacobians(points)
-    return np.einsum("nai,naj->ij", J, J)
+    if weights is None:
+        return np.einsum("nai,naj->ij", J, J)
+    return np.einsum("n,nai,naj->ij", weights, J, J)
 
 
 def point_to_plane_system(
@@ -225,8 +234,9 @@ def point_to_plane_system(
     target_points: NDArray[np.float64],
     normals: NDArray[np.float64],
     workers: int = 1,
+    weights: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
-    """Gauss-Newton system of the residuals ``r = n·(p − q)``: ``H = Σ h hᵀ``, ``g = Σ h r``.
+    """Gauss-Newton system of the residuals ``r = n·(p − q)``: ``H = Σ w h hᵀ``, ``g = Σ w h r``.
 
     ``h = (p × n, n)`` is the derivative of ``n·(exp(δ) p − q)`` at δ = 0 (twist (omega, v),
     left perturbation). Compiled: the numpy form (rows, products, BLAS) cost about 0.4 ms per
@@ -241,18 +251,23 @@ def point_to_plane_system(
     workers
         Threads (-1: all cores); rows are summed in fixed chunks, so the result does not
         depend on it.
+    weights
+        (M,) IRLS weights w (a robust kernel's); None: all 1 (the same bits as weights of 1).
 
     Returns
     -------
     H, g, sse
-        (6, 6) information ``Σ h hᵀ`` (1/m²), (6,) gradient ``Σ h r`` and ``Σ r²`` (m²).
+        (6, 6) information ``Σ w h hᵀ`` (1/m²), (6,) gradient ``Σ w h r`` and ``Σ w r²`` (m²).
 
     Raises
     ------
     InputError
-        The three arrays are not (M, 3) alike (the kernel indexes them unchecked).
+        The arrays do not line up (the kernel indexes them unchecked).
     """
-    check_rows("point_to_plane_system", points, target_points, normals)
+    w = np.ones(len(points)) if weights is None else np.ascontiguousarray(weights, np.float64)
+    check_rows(
+        "point_to_plane_system", points, target_points, normals, w, shapes=((3,),) * 3 + ((),)
+    )
     chunks = max(1, -(-len(points) // _SYSTEM_CHUNK))
     partial = np.zeros((chunks, 28))
     with numba_threads(workers):
@@ -260,6 +275,7 @@ def point_to_plane_system(
             np.ascontiguousarray(points, dtype=np.float64),
             np.ascontiguousarray(target_points, dtype=np.float64),
             np.ascontiguousarray(normals, dtype=np.float64),
+            w,
             partial,
         )
     total = partial.sum(axis=0)
@@ -272,19 +288,20 @@ _UPPER = np.triu_indices(6)
 
 
 @numba.njit(cache=True, parallel=True)
-def _plane_system_kernel(points, target_points, normals, partial):
+def _plane_system_kernel(points, target_points, normals, weights, partial):
     """Per chunk of rows: :func:`_accumulate_plane` of each (28 sums)."""
     m = len(points)
     for c in numba.prange(len(partial)):
         h = np.empty(6)
         for i in range(c * _SYSTEM_CHUNK, min(m, (c + 1) * _SYSTEM_CHUNK)):
-            _accumulate_plane(partial[c], points[i], target_points[i], normals[i], h)
+            _accumulate_plane(partial[c], points[i], target_points[i], normals[i], weights[i], h)
 
 
 @numba.njit(cache=True, inline="always")
-def _accumulate_plane(acc, p, q, n, h):
-    """Add one residual ``r = n·(p − q)`` with row ``h = (p × n, n)`` to ``acc``: the upper
-    triangle of h hᵀ (21), h r (6), r² (1). ``h`` (6,) is scratch."""
+def _accumulate_plane(acc, p, q, n, w, h):
+    """Add one residual ``r = n·(p − q)`` with row ``h = (p × n, n)`` and weight ``w`` to
+    ``acc``: the upper triangle of w h hᵀ (21), w h r (6), w r² (1). ``h`` (6,) is scratch.
+    (``w · x`` is ``x`` to the bit for w = 1.)"""
     h[0] = p[1] * n[2] - p[2] * n[1]
     h[1] = p[2] * n[0] - p[0] * n[2]
     h[2] = p[0] * n[1] - p[1] * n[0]
@@ -292,20 +309,26 @@ def _accumulate_plane(acc, p, q, n, h):
     r = n[0] * (p[0] - q[0]) + n[1] * (p[1] - q[1]) + n[2] * (p[2] - q[2])
     pos = 0
     for a in range(6):
+        wa = w * h[a]
         for b in range(a, 6):
-            acc[pos] += h[a] * h[b]
+            acc[pos] += wa * h[b]
             pos += 1
     for a in range(6):
-        acc[21 + a] += h[a] * r
-    acc[27] += r * r
+        acc[21 + a] += w * h[a] * r
+    acc[27] += w * r * r
 
 
 @numba.njit(cache=True, parallel=True)
-def _plane_matches_kernel(grid, rings, targets, normals, src, R, t, gate, hint, nearest, partial):
+def _plane_matches_kernel(
+    grid, rings, targets, normals, src, R, t, gate, hint, nearest, moved, partial
+):
     """Point-to-plane ICP's work at one transform, per chunk of source points: move each point
-    (``R p + t``), find its nearest target within the gate (warm-started at ``hint``), and
-    accumulate :func:`_accumulate_plane` (28 sums), the match count and Σ d² (2 more)."""
+    (``R p + t``), find its nearest target within the gate (warm-started at ``hint``), count the
+    match and Σ d² (sums 28, 29) and either accumulate :func:`_accumulate_plane` (sums 0..27)
+    or, when ``moved`` has a row per point, store the moved point there instead (a robust
+    kernel weighs the rows once the residuals' scale is known)."""
     m = len(src)
+    accumulate = len(moved) != m
     for c in numba.prange(len(partial)):
         acc = partial[c]
         q = np.empty(3)
@@ -318,7 +341,10 @@ def _plane_matches_kernel(grid, rings, targets, normals, src, R, t, gate, hint, 
             if j >= 0:
                 acc[28] += 1.0
                 acc[29] += d2
-                _accumulate_plane(acc, q, targets[j], normals[j], h)
+                if accumulate:
+                    _accumulate_plane(acc, q, targets[j], normals[j], 1.0, h)
+                else:
+                    moved[i] = q
 
 
 def system_from_sums(total: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
@@ -422,9 +448,9 @@ def icp_correspondences(
     tree = target_index(tgt, target_tree)
     gate = config.max_correspondence_distance
     if plane and isinstance(tree, VoxelIndex):
-        evaluate = _FusedPlaneMatcher(tree, tgt.normals, src.points, gate, workers)
+        evaluate = _FusedPlaneMatcher(tree, tgt.normals, src.points, gate, config, workers)
     else:
-        evaluate = _Matcher(tree, tgt, src.points, gate, plane, workers)
+        evaluate = _Matcher(tree, tgt, src.points, gate, plane, config, workers)
 
     matches = evaluate(T)
     converged = False
@@ -434,7 +460,7 @@ def icp_correspondences(
         if plane:
             update = se3.exp(solve_normal_equations(*matches.system[:2]))
         else:
-            update = kabsch(matches.points, tgt.points[matches.tgt_idx])
+            update = kabsch(matches.points, tgt.points[matches.tgt_idx], matches.weight_values)
         T = update @ T
         previous, matches = matches, evaluate(T)
         if (
@@ -447,7 +473,7 @@ def icp_correspondences(
     if plane:
         information = matches.system[0]
     else:
-        information = point_to_point_information(matches.points)
+        information = point_to_point_information(matches.points, matches.weight_values)
     result = RegistrationResult(
         T_target_source=T,
         fitness=matches.fitness,
@@ -456,6 +482,7 @@ def icp_correspondences(
         converged=converged,
         information=information,
         n_correspondences=len(matches.tgt_idx),
+        residual_sigma=matches.residual_sigma,
     )
     return result, matches
 
@@ -469,12 +496,19 @@ class Correspondences:
     src_idx, tgt_idx
         (M,) matched source points and their nearest target points.
     fitness, rmse
-        Share of source points matched; RMSE (m) of the match distances.
+        Share of source points matched; RMSE (m) of the match distances (unweighted).
     points
-        (M, 3) matched source points in the target frame (point-to-point only).
+        (M, 3) matched source points in the target frame (point-to-point and robust paths).
     system
         Point-to-plane only: ``(H, g, sse)`` of :func:`point_to_plane_system` at the matches
-        (information, gradient, Σ r²).
+        (information, gradient, Σ r²), weighted by ``weights`` when a robust kernel is on.
+    weights
+        The robust kernel's IRLS weights of the matches and their σ; None without a kernel.
+    residual_sigma
+        With a robust kernel, the residual σ (m) that turns the weighted information into a
+        covariance: point-to-plane ``√(Σ w r² / (Σ w − 6))``, point-to-point the weighted RMSE
+        ``√(Σ w d² / Σ w)`` (each the unweighted formula with counts replaced by ``Σ w``);
+        None without a kernel.
     """
 
     src_idx: NDArray[np.intp]
@@ -483,6 +517,13 @@ class Correspondences:
     rmse: float
     points: NDArray[np.float64] | None = None
     system: tuple[NDArray[np.float64], NDArray[np.float64], float] | None = None
+    weights: RobustWeights | None = None
+    residual_sigma: float | None = None
+
+    @property
+    def weight_values(self) -> NDArray[np.float64] | None:
+        """(M,) IRLS weights, or None without a robust kernel."""
+        return None if self.weights is None else self.weights.weights
 
 
 def _checked(n_matched: int, n_source: int, gate: float) -> None:
@@ -491,6 +532,34 @@ def _checked(n_matched: int, n_source: int, gate: float) -> None:
             f"ICP found {n_matched} correspondences within {gate} m (of {n_source} source "
             "points); the initial guess is too far off or the gate too small"
         )
+
+
+def _robust_matches(
+    config: RobustConfig,
+    s: NDArray[np.intp],
+    t: NDArray[np.intp],
+    fitness: float,
+    rmse: float,
+    points: NDArray[np.float64],
+    target_points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    workers: int,
+) -> Correspondences:
+    """:class:`Correspondences` of the matches ``s → t`` weighted by ``config``'s kernel.
+
+    ``points`` (M, 3) are the moved source points, ``target_points`` (M, 3) their targets and
+    ``normals`` the targets' normals (point-to-plane) or None (point-to-point)."""
+    diff = points - target_points
+    if normals is None:
+        d2 = np.einsum("ni,ni->n", diff, diff)
+        w = robust_weights(np.sqrt(d2), config.robust_kernel, config.robust_scale)
+        sigma = np.sqrt(float(w.weights @ d2) / w.total)
+        return Correspondences(s, t, fitness, rmse, points, None, w, sigma)
+    r = np.einsum("ni,ni->n", diff, normals)
+    w = robust_weights(r, config.robust_kernel, config.robust_scale)
+    system = point_to_plane_system(points, target_points, normals, workers, w.weights)
+    sigma = np.sqrt(system[2] / max(w.total - 6.0, 1.0))
+    return Correspondences(s, t, fitness, rmse, points, system, w, sigma)
 
 
 class _Matcher:
@@ -503,27 +572,35 @@ class _Matcher:
         source_points: NDArray[np.float64],
         gate: float,
         plane: bool,
+        config: RobustConfig,
         workers: int,
     ) -> None:
         self.search = CorrespondenceSearch(tree, gate, workers)
         self.target, self.source_points, self.gate, self.plane = target, source_points, gate, plane
+        self.config, self.workers = config, workers
 
     def __call__(self, T: NDArray[np.float64]) -> Correspondences:
         moved = se3.transform_points(T, self.source_points)
         s, t, d2 = self.search(moved)
         _checked(len(s), len(moved), self.gate)
         p = moved[s]
+        fitness, rmse = len(s) / len(moved), float(np.sqrt(d2.mean()))
+        normals = self.target.normals[t] if self.plane else None
+        if self.config.robust_kernel != "none":
+            q = self.target.points[t]
+            return _robust_matches(self.config, s, t, fitness, rmse, p, q, normals, self.workers)
         system = None
         if self.plane:
-            system = point_to_plane_system(p, self.target.points[t], self.target.normals[t])
-        return Correspondences(s, t, len(s) / len(moved), float(np.sqrt(d2.mean())), p, system)
+            system = point_to_plane_system(p, self.target.points[t], normals)
+        return Correspondences(s, t, fitness, rmse, p, system)
 
 
 class _FusedPlaneMatcher:
     """Point-to-plane correspondences and normal equations at a transform in one compiled pass
     over a :class:`VoxelIndex` (no moved copy of the cloud, no gathered rows): about half the
     time of the generic path per iteration on a lab frame. Each point's search starts at its
-    previous match."""
+    previous match. With a robust kernel the pass stores the moved points instead, and the
+    weighted sums follow once the residuals' scale is known."""
 
     def __init__(
         self,
@@ -531,9 +608,10 @@ class _FusedPlaneMatcher:
         normals: NDArray[np.float64],
         source_points: NDArray[np.float64],
         gate: float,
+        config: RobustConfig,
         workers: int,
     ) -> None:
-        self.index, self.gate, self.workers = index, float(gate), workers
+        self.index, self.gate, self.config, self.workers = index, float(gate), config, workers
         self.rings = index.rings(gate)
         self.normals = np.ascontiguousarray(normals, dtype=np.float64)
         self.source_points = np.ascontiguousarray(source_points, dtype=np.float64)
@@ -541,8 +619,10 @@ class _FusedPlaneMatcher:
 
     def __call__(self, T: NDArray[np.float64]) -> Correspondences:
         n = len(self.source_points)
+        robust = self.config.robust_kernel != "none"
         partial = np.zeros((max(1, -(-n // _SYSTEM_CHUNK)), 30))
         nearest = np.empty(n, dtype=np.int64)
+        moved = np.empty((n if robust else 0, 3))
         with numba_threads(self.workers):
             _plane_matches_kernel(
                 self.index.kernel_grid,
@@ -555,6 +635,7 @@ class _FusedPlaneMatcher:
                 self.gate,
                 self.nearest,
                 nearest,
+                moved,
                 partial,
             )
         self.nearest = nearest
@@ -562,6 +643,12 @@ class _FusedPlaneMatcher:
         count = int(total[28])
         _checked(count, n, self.gate)
         s = np.flatnonzero(nearest >= 0)
+        t = nearest[s]
         rmse = float(np.sqrt(total[29] / count))
+        if robust:
+            q, normals = self.index.data[t], self.normals[t]
+            return _robust_matches(
+                self.config, s, t, count / n, rmse, moved[s], q, normals, self.workers
+            )
         H, g = system_from_sums(total)
-        return Correspondences(s, nearest[s], count / n, rmse, system=(H, g, float(total[27])))
+        return Correspondences(s, t, count / n, rmse, system=(H, g, float(total[27])))

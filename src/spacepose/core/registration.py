@@ -32,6 +32,10 @@ class RegistrationResult:
         weighted by their noise, otherwise of 1/m² (scale by 1/σ² for a covariance).
     n_correspondences
         Number of inlier correspondences behind ``fitness`` and ``information``.
+    residual_sigma
+        Residual standard deviation (m) the registration estimated for its (unweighted-unit)
+        ``information``, e.g. the weighted σ of a robust kernel's inliers; None: the inlier
+        RMSE stands in for it (see :meth:`covariance`).
     """
 
     T_target_source: NDArray[np.float64]
@@ -41,6 +45,7 @@ class RegistrationResult:
     converged: bool
     information: NDArray[np.float64] = field(default_factory=lambda: np.zeros((6, 6)))
     n_correspondences: int = 0
+    residual_sigma: float | None = None
 
     def covariance(self, sigma: float | None = None) -> NDArray[np.float64]:
         """6×6 covariance ``σ² · information⁻¹`` (pseudo-inverse where unconstrained).
@@ -48,10 +53,12 @@ class RegistrationResult:
         Parameters
         ----------
         sigma
-            Residual standard deviation (m) when ``information`` is unweighted; defaults to the
-            inlier RMSE. Pass 1.0 when the information is already noise-weighted.
+            Residual standard deviation (m) when ``information`` is unweighted; defaults to
+            ``residual_sigma`` when set, else the inlier RMSE. Pass 1.0 when the information is
+            already noise-weighted.
         """
-        s = self.inlier_rmse if sigma is None else sigma
+        s = sigma if sigma is not None else self.residual_sigma
+        s = self.inlier_rmse if s is None else s
         return s**2 * np.linalg.pinv(self.information, hermitian=True)
 
     @property
