@@ -141,6 +141,16 @@ def test_clean_flash_lidar_has_no_flying_pixels_at_silhouettes() -> None:
     assert len(s.points) > 1000 and not s.flying.any()
 
 
+def test_an_oblique_surface_is_no_depth_edge_for_a_coarse_sensor() -> None:
+    # At 25 m a flash-LiDAR pixel is 8 cm wide: a wall at 60° steps ~30 cm across a 3×3 window,
+    # more than the 5 cm jump, less than the 12 pixel footprints of flying_jump_pixels.
+    scene = _plane(25.0, 60.0, half=200.0)
+    edges = sensor_config("flash-lidar-edges", **{**QUIET, "flying_probability": 0.5})
+    assert not scan(scene, edges, np.random.default_rng(6)).flying.any()
+    absolute = edges.model_copy(update={"flying_jump_pixels": 0.0})
+    assert scan(scene, absolute, np.random.default_rng(6)).flying.mean() > 0.3
+
+
 # --------------------------------------------------------------------------------------------
 # Multipath
 

@@ -61,7 +61,7 @@ def flying_pixels(
     true_range: NDArray[np.float64],
     idx: NDArray[np.int64],
     shape: tuple[int, int],
-    jump: float,
+    jump: float | NDArray[np.float64],
     tail: float,
     probability: float,
     rng: np.random.Generator,
@@ -77,7 +77,8 @@ def flying_pixels(
     shape
         ``(H, W)`` of the image.
     jump
-        Depth span of a 3×3 window of returns that marks a depth edge, m.
+        Depth span of a 3×3 window of returns that marks a depth edge, m: one number, or (N,)
+        one per return.
     tail
         Largest range excess of a pixel next to a pixel without return, m; 0 = such a pixel does
         not fly.

@@ -61,6 +61,12 @@ class SensorConfig(StageConfig):
     sigma_quad: float = Field(0.5e-3, ge=0, description="Quadratic term of σ(r) at 1 m, m.")
     dropout: float = Field(0.01, ge=0, le=1, description="Share of hit pixels lost.")
     flying_jump: float = Field(0.05, gt=0, description="Depth jump in a 3×3 window, m.")
+    flying_jump_pixels: float = Field(
+        0.0,
+        ge=0,
+        description="Depth jump in pixel footprints (r / focal_px), if larger than flying_jump; "
+        "an oblique surface of a coarse sensor is not an edge.",
+    )
     flying_probability: float = Field(
         0.5, ge=0, le=1, description="Chance an edge pixel mixes the two depths."
     )
@@ -117,7 +123,8 @@ DEFAULT_PROFILES = {"tof": "tof-clean", "flash-lidar": "flash-lidar-clean"}
 _PROFILES: dict[str, SensorConfig] = {
     "tof-clean": _TOF_CLEAN,
     # Li et al.'s camera: σ = 4.1 mm / sqrt(a) at 1.2 m (set so that the raw lab frame's
-    # normal consistency is near the paper's), multipath at inner corners, silhouette tails.
+    # normal consistency is near the paper's), multipath at inner corners, silhouette tails;
+    # a depth edge is a jump of 5 cm or 12 pixel footprints, whichever is larger.
     "tof-paper": _TOF_CLEAN.model_copy(
         update={
             "sigma_const": 1.2e-3,
@@ -128,12 +135,13 @@ _PROFILES: dict[str, SensorConfig] = {
             "multipath_bias": 5.0e-3,
             "multipath_length": 0.015,
             "flying_tail": 0.10,
+            "flying_jump_pixels": 12.0,
         }
     ),
     "flash-lidar-clean": _FLASH_CLEAN,
     # A partly covered pixel at the silhouette returns a weak echo placed up to 0.4 m farther.
     "flash-lidar-edges": _FLASH_CLEAN.model_copy(
-        update={"flying_probability": 0.5, "flying_tail": 0.4}
+        update={"flying_probability": 0.5, "flying_tail": 0.4, "flying_jump_pixels": 12.0}
     ),
     "gaussian": SensorConfig(
         model="gaussian", sigma_const=1e-3, sigma_quad=0.0, dropout=0.0, flying_probability=0.0
@@ -354,7 +362,7 @@ def scan(
             returned,
             idx,
             shape,
-            config.flying_jump,
+            np.maximum(config.flying_jump, config.flying_jump_pixels / config.focal_px * r),
             config.flying_tail,
             config.flying_probability,
             rng,
