@@ -263,7 +263,7 @@ def test_robust_kernel_rejects_gross_outliers(shape: Target, dense_target) -> No
     # 40 % of the source on a ghost surface 3 cm (15σ) off along x, inside the 5 cm gate: plain
     # GICP is pulled along x by tens of σ of its own covariance, Geman-McClure on the
     # Mahalanobis distances lands within a few. Measured over trials 0-2: plain 11.2-11.9 mm
-    # (33-35σ in tx), robust 0.19-0.35 mm (at most 2.6σ on any axis).
+    # (33-35σ in tx), robust 0.19-0.35 mm (at most 2.9σ on any axis).
     tgt, tcov, tree = dense_target
     cfg = GICPConfig(max_correspondence_distance=0.05, max_iterations=50)
     for trial in range(3):

@@ -12,6 +12,7 @@ from spacepose.core.robust import (
     MAD_TO_SIGMA,
     TUNING,
     adaptive_scale,
+    kernel_slopes,
     kernel_weights,
     robust_weights,
 )
@@ -24,6 +25,13 @@ def test_weights_closed_form() -> None:
     np.testing.assert_allclose(kernel_weights(u, "cauchy"), [1, 0.8, 0.5, 0.2, 1 / 17])
     np.testing.assert_allclose(kernel_weights(u, "geman_mcclure"), [1, 0.64, 0.25, 0.04, 1 / 289])
     np.testing.assert_array_equal(kernel_weights(u, "none"), 1.0)
+    # ψ' = d(u w(u))/du against central differences (away from Huber's corner at |u| = 1).
+    v, h = np.array([0.0, 0.3, 0.7, 1.6, -2.5]), 1e-6
+    for kernel in ("none", "huber", "cauchy", "geman_mcclure"):
+        numeric = (
+            (v + h) * kernel_weights(v + h, kernel) - (v - h) * kernel_weights(v - h, kernel)
+        ) / (2 * h)
+        np.testing.assert_allclose(kernel_slopes(v, kernel), numeric, atol=1e-8)
 
 
 @pytest.mark.parametrize("kernel", ["huber", "cauchy", "geman_mcclure"])
@@ -57,6 +65,28 @@ def test_adaptive_scale_is_sigma_and_ignores_outliers() -> None:
     assert w.scale == pytest.approx(MAD_TO_SIGMA * stats.norm.ppf(11 / 12) * 0.004, rel=0.01)
     assert w.weights[120_000:].max() < 0.01 and np.median(w.weights[:120_000]) > 0.95
     assert w.total == pytest.approx(w.weights.sum())
+
+
+@pytest.mark.parametrize("kernel", ["cauchy", "geman_mcclure"])
+def test_variance_is_the_m_estimator_variance(kernel: str) -> None:
+    # Unit weights: Σ r² / (M − 6).
+    rng = np.random.default_rng(5)
+    r = rng.normal(0, 0.002, 400_000)
+    plain = robust_weights(r, "none")
+    assert plain.variance(r) == pytest.approx(r @ r / (len(r) - 6), rel=1e-12)
+    # Gaussian residuals: s² (Σ w JᵀJ)⁻¹ must be Huber's E[ψ²]/E[ψ']² σ² (Σ JᵀJ)⁻¹ (= σ²/0.95
+    # at the tuning constants), so s² = E[w] E[ψ²]/E[ψ']² σ², by quadrature.
+    c = TUNING[kernel]
+    w = robust_weights(r, kernel)
+
+    def mean(f):
+        return integrate.quad(lambda x: f(np.array([x / c]))[0] * stats.norm.pdf(x), -30, 30)[0]
+
+    ew = mean(lambda u: kernel_weights(u, kernel))
+    epsi2 = mean(lambda u: (c * u * kernel_weights(u, kernel)) ** 2)
+    eslope = mean(lambda u: kernel_slopes(u, kernel))
+    assert epsi2 / eslope**2 == pytest.approx(1 / 0.95, rel=1e-3)
+    assert w.variance(r) == pytest.approx(ew * epsi2 / eslope**2 * 0.002**2, rel=0.01)
 
 
 def test_fixed_scale_and_exact_fit() -> None:

@@ -369,8 +369,8 @@ def gicp(
         noise-weighted: ``result.covariance(sigma=1.0)`` is the covariance of
         ``T_target_source``. It treats the estimated covariances as exact, so it is somewhat
         optimistic when the clouds are sparse and noisy. With a robust kernel every sum is
-        weighted (``W ← w W``) and M becomes ``Σ w``: the weighted least-squares covariance with
-        the final weights held fixed, i.e. that of the inliers the kernel kept.
+        weighted (``W ← w W``) and ``s²`` is Huber's M-estimator variance factor of the
+        Mahalanobis distances (:meth:`~spacepose.core.robust.RobustWeights.variance`).
 
     Raises
     ------
@@ -412,15 +412,16 @@ def gicp(
         T_cur: NDArray[np.float64], s: NDArray[np.intp], t: NDArray[np.intp], p: NDArray
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float]:
         """Normal equations at T_cur (p: the matched source points already moved by it), with
-        the robust weights folded into W, and Σ w (the correspondence count without them)."""
+        the robust weights folded into W, and the a-posteriori variance factor."""
         q = tgt.points[t]
         W, m2 = gicp_weight_matrices(p, q, T_cur[:3, :3], Cs[s], Ct[t], workers)
-        total = float(len(s))
+        w = None
         if robust:
             w = robust_weights(np.sqrt(m2), config.robust_kernel, config.robust_scale)
             W *= w.weights[:, None, None]
-            total = w.total
-        return *gicp_system(p, q, W, workers), W, total
+        H, g, cost = gicp_system(p, q, W, workers)
+        variance = cost / max(len(s) - 6, 1) if w is None else w.variance(np.sqrt(m2))
+        return H, g, cost, W, variance
 
     lam = _LM_INIT_LAMBDA
     converged = False
@@ -453,14 +454,13 @@ def gicp(
             break
 
     s, t, p, rmse = correspond(T)
-    H, _, cost, _, total = linearize(T, s, t, p)
-    dof = max(total - 6.0, 1.0)
+    H, _, _, _, variance = linearize(T, s, t, p)
     return RegistrationResult(
         T_target_source=T,
         fitness=len(s) / len(src),
         inlier_rmse=rmse,
         iterations=iterations,
         converged=converged,
-        information=H / max(cost / dof, _MIN_VARIANCE_FACTOR),
+        information=H / max(variance, _MIN_VARIANCE_FACTOR),
         n_correspondences=len(s),
     )

@@ -505,10 +505,11 @@ class Correspondences:
     weights
         The robust kernel's IRLS weights of the matches and their σ; None without a kernel.
     residual_sigma
-        With a robust kernel, the residual σ (m) that turns the weighted information into a
-        covariance: point-to-plane ``√(Σ w r² / (Σ w − 6))``, point-to-point the weighted RMSE
-        ``√(Σ w d² / Σ w)`` (each the unweighted formula with counts replaced by ``Σ w``);
-        None without a kernel.
+        With a robust kernel, the σ (m) that turns the weighted information into a covariance:
+        :meth:`~spacepose.core.robust.RobustWeights.variance` of the point-to-plane distances
+        (6 parameters; ``√(Σ r² / (M − 6))`` for unit weights), or of the point-to-point
+        distances with no parameter count (the inlier RMSE for unit weights, as the unweighted
+        result uses); None without a kernel.
     """
 
     src_idx: NDArray[np.intp]
@@ -552,14 +553,13 @@ def _robust_matches(
     diff = points - target_points
     if normals is None:
         d2 = np.einsum("ni,ni->n", diff, diff)
-        w = robust_weights(np.sqrt(d2), config.robust_kernel, config.robust_scale)
-        sigma = np.sqrt(float(w.weights @ d2) / w.total)
-        return Correspondences(s, t, fitness, rmse, points, None, w, sigma)
+        d = np.sqrt(d2)
+        w = robust_weights(d, config.robust_kernel, config.robust_scale)
+        return Correspondences(s, t, fitness, rmse, points, None, w, np.sqrt(w.variance(d, 0)))
     r = np.einsum("ni,ni->n", diff, normals)
     w = robust_weights(r, config.robust_kernel, config.robust_scale)
     system = point_to_plane_system(points, target_points, normals, workers, w.weights)
-    sigma = np.sqrt(system[2] / max(w.total - 6.0, 1.0))
-    return Correspondences(s, t, fitness, rmse, points, system, w, sigma)
+    return Correspondences(s, t, fitness, rmse, points, system, w, np.sqrt(w.variance(r)))
 
 
 class _Matcher:

@@ -69,18 +69,48 @@ class RobustWeights:
     Attributes
     ----------
     weights
-        (M,) weights in (0, 1].
+        (M,) weights ``w(r/c)`` in (0, 1].
     scale
         σ (units of the residuals) the kernel width ``c = TUNING[kernel] · σ`` was taken from.
+    slopes
+        (M,) ``ψ'`` at each residual (``d(r w(r/c))/dr``; negative where a redescending kernel
+        falls off).
     """
 
     weights: NDArray[np.float64]
     scale: float
+    slopes: NDArray[np.float64]
 
     @property
     def total(self) -> float:
         """``Σ w``: the effective number of residuals behind a weighted sum."""
         return float(self.weights.sum())
+
+    def variance(self, residuals: ArrayLike, n_params: int = 6) -> float:
+        """Variance factor that turns the weighted information ``Σ w JᵀJ`` into a covariance.
+
+        Huber's asymptotic covariance of an M-estimator, ``Σ ψ² / (M − p) / (Σ ψ' / M)² ·
+        (Σ JᵀJ)⁻¹``, expressed on the weighted information (``Σ JᵀJ ≈ (M / Σ w) Σ w JᵀJ``):
+        ``s² = Σ ψ² · Σ w · M / ((M − p) (Σ ψ')²)`` with ``ψ = w r``. With unit weights it is
+        ``Σ r² / (M − p)``. Holding the final weights fixed instead (``Σ w r² / (Σ w − p)``)
+        understates it by 14 % in variance for Gaussian residuals (Geman–McClure or Cauchy at
+        95 % efficiency), because the down-weighted tails carry the noise too.
+
+        Parameters
+        ----------
+        residuals
+            (M,) the residuals these weights belong to.
+        n_params
+            Parameters estimated from them (6 for a pose).
+        """
+        r = np.asarray(residuals, dtype=np.float64)
+        m = len(r)
+        psi = self.weights * r
+        slope = float(self.slopes.sum())
+        if slope <= 0:
+            # Most residuals beyond the kernel's fall-off: no sandwich; fixed weights instead.
+            slope = self.total
+        return float(psi @ psi) * self.total * m / (max(m - n_params, 1) * slope**2)
 
 
 def adaptive_scale(residuals: ArrayLike) -> float:
@@ -99,6 +129,18 @@ def kernel_weights(u: NDArray[np.float64], kernel: RobustKernelName) -> NDArray[
     if kernel == "cauchy":
         return 1.0 / (1.0 + a * a)
     return 1.0 / (1.0 + a * a) ** 2
+
+
+def kernel_slopes(u: NDArray[np.float64], kernel: RobustKernelName) -> NDArray[np.float64]:
+    """``ψ'(u) = d(u w(u))/du`` of ``kernel`` at residuals ``u`` (M,) in units of c."""
+    a2 = np.asarray(u, dtype=np.float64) ** 2
+    if kernel == "none":
+        return np.ones(len(a2))
+    if kernel == "huber":
+        return (a2 <= 1.0).astype(np.float64)
+    if kernel == "cauchy":
+        return (1.0 - a2) / (1.0 + a2) ** 2
+    return (1.0 - 3.0 * a2) / (1.0 + a2) ** 3
 
 
 def robust_weights(
@@ -123,10 +165,9 @@ def robust_weights(
     """
     r = np.asarray(residuals, dtype=np.float64)
     sigma = adaptive_scale(r) if scale is None else float(scale)
-    if kernel == "none":
-        return RobustWeights(np.ones(len(r)), sigma)
     floor = _MIN_RELATIVE_SCALE * float(np.abs(r).max()) if len(r) else 0.0
-    if sigma <= floor:
-        # Nearly every residual is zero (an exact fit): there is nothing to down-weight.
-        return RobustWeights(np.ones(len(r)), sigma)
-    return RobustWeights(kernel_weights(r / (TUNING[kernel] * sigma), kernel), sigma)
+    if kernel == "none" or sigma <= floor:
+        # No kernel, or nearly every residual zero (an exact fit): nothing to down-weight.
+        return RobustWeights(np.ones(len(r)), sigma, np.ones(len(r)))
+    u = r / (TUNING[kernel] * sigma)
+    return RobustWeights(kernel_weights(u, kernel), sigma, kernel_slopes(u, kernel))
