@@ -7,13 +7,19 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from spacepose.core.ekf import N_FIXED
-from spacepose.core.sim.scenarios import OrbitConfig
+from spacepose.core.ekf import N_FIXED, k_from_params
+from spacepose.core.navigation import NavigationConfig
+from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.tools.experiments import available
 from spacepose.tools.experiments.yu_nav import (
+    PAPER,
     PRIOR_ERROR_DEG,
+    PRIOR_SOURCE,
     attitude_prior,
+    markdown_table,
     navigate_with_truth,
+    navigation_config,
+    over_seeds,
     score,
     write_figures,
 )
@@ -31,6 +37,8 @@ def test_score_on_known_errors() -> None:
     errors = np.zeros((N, N_FIXED))
     errors[:, 0] = 0.002  # 2 mm along x everywhere
     errors[5:, 6] = np.deg2rad(0.05) * np.array([1, -1, 1, -1, 1])
+    errors[5:, 14] = 0.001  # 1 mm of CoM offset along x in the second half
+    errors[5:, 12] = 0.01  # k_x estimated 0.01 low
     lo, hi = chi2.ppf([0.025, 0.975], N_FIXED)
     nees = np.array([lo - 1, hi + 1] + [N_FIXED] * 8, dtype=float)
     truth = np.zeros((N, 20))
@@ -54,6 +62,11 @@ def test_score_on_known_errors() -> None:
     np.testing.assert_allclose(table["attitude_rms_deg"], [0.05, 0.0, 0.0])
     np.testing.assert_allclose(table["inertia_error_pct"], [2.0, 0.0, 0.0], atol=1e-9)
     np.testing.assert_allclose(table["com_error_mm"], [1.0, 0.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(table["com_rms_mm"], [1.0, 0.0, 0.0])
+    k_est = k_from_params([1 / 6 - 0.01, -0.4])
+    expected = 100 * np.abs(k_est - [1 / 6, -0.4, 0.25]) / np.array([1 / 6, 0.4, 0.25])
+    np.testing.assert_allclose(table["inertia_rms_pct"], expected, rtol=1e-9)
+    assert table["inertia_rms_pct"][0] == pytest.approx(6.0)
     assert table["nees_inside_95_all"] == pytest.approx(0.8)
     assert table["nees_inside_95_second_half"] == 1.0
     assert table["coarse_frames_unfixed_over_90deg"] == 5
@@ -82,3 +95,27 @@ def test_short_orbit_run_end_to_end(tmp_path) -> None:
     assert table["coarse_frames_unfixed_over_90deg"] >= 3
     names = write_figures(result, tmp_path)
     assert all((tmp_path / n).stat().st_size > 1000 for n in names)
+
+
+def test_process_noise_comes_from_the_scenario() -> None:
+    sim = simulate_orbit(OrbitConfig(frames=30))
+    measured = sim.extras["process_noise"]["sigma_accel"]
+    config = navigation_config(sim.scenario(), NavigationConfig())
+    assert config.ekf.sigma_accel == measured != NavigationConfig().ekf.sigma_accel
+    assert config.ekf.sigma_angular_accel == NavigationConfig().ekf.sigma_angular_accel
+    assert navigation_config({}, NavigationConfig()) == NavigationConfig()
+
+
+def test_over_seeds_summarises_mean_and_std_beside_the_paper() -> None:
+    assert PRIOR_SOURCE in ("perturbed-truth", "none")
+    run = over_seeds({"eccentricity": 0.05}, [0, 1], frames=12)
+    tables = run["per_seed"]
+    assert [t["seed"] for t in tables] == [0, 1]
+    assert tables[0]["process_noise"]["sigma_accel"] > 0
+    for key in ("position_rms_mm", "nees_inside_95_all"):
+        values = np.array([t[key] for t in tables])
+        np.testing.assert_allclose(run["summary"][key]["mean"], values.mean(axis=0))
+        np.testing.assert_allclose(run["summary"][key]["std"], values.std(axis=0, ddof=1))
+    text = markdown_table({"eccentric": run})
+    assert "| position_rms_mm |" in text and "1.4 / 3.2 / 1.4" in text
+    assert len(text.splitlines()) == 2 + len(run["summary"]) and PAPER["inertia_rms_pct"] is None

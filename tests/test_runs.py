@@ -86,7 +86,10 @@ def test_orbit_run_has_truth_csv(tmp_path, orbit_sim) -> None:
     assert np.array_equal(run.truth, orbit_sim.truth)  # %.17g round-trips float64 exactly
     s = run.scenario
     assert s["mean_motion"] == pytest.approx(1.1068e-3, rel=1e-4)
-    assert np.allclose(s["R_O_C"], [[0, 0, 1], [1, 0, 0], [0, 1, 0]])
+    assert np.allclose(s["R_O_C_true"], [[0, 0, 1], [1, 0, 0], [0, 1, 0]])
+    # The filter's R_O_C carries the simulated star-tracker error (0.01° 1σ per axis).
+    assert np.allclose(s["R_O_C"], s["R_O_C_true"], atol=np.radians(0.1))
+    assert s["R_O_C"] != s["R_O_C_true"]
     assert s["inertia"] == [1200.0, 1000.0, 800.0] and s["com_offset"] == [0.02, -0.03, 0.05]
     assert len(run.rectangles) == 8
 

@@ -14,15 +14,17 @@ profiles (constant steps, accelerating, tumbling), the target's size and the clu
 coordinates of the robustness grid.
 
 Orbit (Yu et al., METHODS §2.4): I coincides with O at t = 0, O turns about −y_O at the mean
-motion n; ρ = target CoM − chaser CoM in O follows the Clohessy–Wiltshire solution; the sensor
-frame C is the chaser frame with a constant ``R_O_C`` whose boresight points at the initial ρ;
-the target tumbles torque-free. A model point x' (in B') sits at ``x_B = x' − Δ``, so
-``T_C_B' = [R_C_O R_O_B,  R_C_O (ρ − R_O_B Δ)]``.
+motion n; ρ = target CoM − chaser CoM in O comes from both spacecraft propagated in inertial
+two-body + J2 dynamics (optionally eccentric, optionally drag) and the target's torque-free
+attitude from its own integrator (:mod:`spacepose.core.sim.orbit_truth`), not from the filter's
+model; the sensor frame C is the chaser frame with a constant ``R_O_C`` whose boresight points
+at the initial ρ. A model point x' (in B') sits at ``x_B = x' − Δ``, so
+``T_C_B' = [R_C_O R_O_B,  R_C_O (ρ − R_O_B Δ)]``. The scenario hands the filter ``R_O_C`` and
+the catalogue with seeded knowledge errors (``R_O_C_true`` and ``rectangles_true`` are exact).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,13 +41,22 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig, validate_config
 from spacepose.core.crlb import CramerRaoBound, crlb
 from spacepose.core.sim.lab_scene import MotionProfile, lab_background, lab_poses, sized_target
+from spacepose.core.sim.orbit_truth import (
+    EARTH_RADIUS,
+    ForceModel,
+    keplerian_state,
+    mean_motion,
+    misaligned,
+    perturbed_catalogue,
+    relative_truth,
+    torque_free_attitude,
+)
+from spacepose.core.sim.process_noise import model_defect
 from spacepose.core.sim.sensors import SENSOR_PRESETS, SensorConfig, scan, sensor_config
 from spacepose.core.sim.targets import Target, lab_target, load_mesh, orbit_target, sample_surface
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import ConfigError
 
-EARTH_MU = 3.986004418e14  # m³/s², WGS-84
-EARTH_RADIUS = 6378137.0  # m, WGS-84 equatorial
 TRUTH_COLUMNS = (
     "t,rho_x,rho_y,rho_z,v_x,v_y,v_z,qx,qy,qz,qw,w_x,w_y,w_z,k_x,k_y,k_z,com_x,com_y,com_z"
 ).split(",")
@@ -98,7 +109,23 @@ class OrbitConfig(_ScenarioConfig):
 
     frames: int = Field(600, ge=1, description="Number of frames.")
     sensor: SensorConfig = Field(default_factory=lambda: SENSOR_PRESETS["flash-lidar"])
-    altitude_m: float = Field(500e3, gt=0, description="Circular orbit altitude, m.")
+    altitude_m: float = Field(
+        500e3, gt=0, description="Chaser's perigee altitude (the circle's for e = 0), m."
+    )
+    eccentricity: float = Field(0.0, ge=0, lt=0.5, description="Chaser's orbit eccentricity.")
+    inclination_deg: float = Field(51.6, ge=0, le=180, description="Orbit inclination, deg.")
+    true_anomaly_deg: float = Field(0.0, description="Chaser's true anomaly at t = 0, deg.")
+    j2: bool = Field(True, description="Include the Earth's J2 term in the truth.")
+    drag_density: float = Field(0.0, ge=0, description="Air density for drag, kg/m³ (0: none).")
+    ballistic_m2_kg: tuple[float, float] = Field(
+        (0.01, 0.02), description="C_D A / m of the chaser and the target, m²/kg (drag only)."
+    )
+    chaser_attitude_sigma_deg: float = Field(
+        0.01, ge=0, description="1σ per axis of the chaser attitude R_O_C the filter is given."
+    )
+    catalogue_sigma_m: float = Field(
+        0.002, ge=0, description="1σ of the catalogue centres and sides the filter is given, m."
+    )
     standoff_m: float = Field(25.0, gt=0, description="Chaser distance behind the target, m.")
     velocity_perturbation: float = Field(
         0.002,
@@ -115,7 +142,6 @@ class OrbitConfig(_ScenarioConfig):
     attitude_zyx_deg: tuple[float, float, float] = Field(
         (30.0, -20.0, 45.0), description="Initial R_I_B as intrinsic ZYX Euler angles, deg."
     )
-    attitude_substeps: int = Field(20, ge=1, description="RK4 substeps per frame interval.")
 
 
 @dataclass(frozen=True, eq=False)
@@ -298,39 +324,37 @@ def simulate_lab(config: LabConfig | None = None) -> Simulation:
     )
 
 
-def mean_motion(altitude_m: float) -> float:
-    """Mean motion n (rad/s) of a circular Earth orbit at the given altitude."""
-    return math.sqrt(EARTH_MU / (EARTH_RADIUS + altitude_m) ** 3)
+def orbit_mean_motion(config: OrbitConfig) -> float:
+    """The filter's mean motion n (rad/s): that of the chaser's initial osculating orbit."""
+    a = (EARTH_RADIUS + config.altitude_m) / (1.0 - config.eccentricity)
+    return mean_motion(a - EARTH_RADIUS)
 
 
 def orbit_truth(config: OrbitConfig) -> NDArray[np.float64]:
     """True states of the orbit run: (N, 20) rows with the columns :data:`TRUTH_COLUMNS`.
 
-    ρ, ρ̇ from the closed-form CW solution from ``(standoff, 0, 0)`` plus a seeded velocity
-    perturbation of magnitude ``velocity_perturbation``; q = R_I_B and ω in B from torque-free
-    RK4 propagation; k and Δ constant.
+    The chaser flies the configured orbit (perigee altitude, e, inclination, true anomaly at
+    t = 0; ascending node and perigee on the ECI x axis); the target starts ``standoff_m``
+    ahead in the chaser's LVLH, keeping station to first order, plus a seeded velocity
+    perturbation of magnitude ``velocity_perturbation``. Both are propagated in two-body + J2
+    (+ drag) dynamics and ρ, ρ̇ expressed in the filter's O; q = R_I_B and ω in B from an
+    independent torque-free integration; k and Δ constant
+    (:mod:`spacepose.core.sim.orbit_truth`).
     """
-    n = mean_motion(config.altitude_m)
     rng = np.random.default_rng([config.seed, 2**31])  # a stream apart from the frames' streams
     direction = rng.standard_normal(3)
     v0 = config.velocity_perturbation * direction / np.linalg.norm(direction)
-    state0 = np.concatenate([[config.standoff_m, 0.0, 0.0], v0])
+    a = (EARTH_RADIUS + config.altitude_m) / (1.0 - config.eccentricity)
+    incl, nu = np.radians([config.inclination_deg, config.true_anomaly_deg])
+    r_c, v_c = keplerian_state(a, config.eccentricity, incl, 0.0, 0.0, nu)
+    force = ForceModel(config.j2, config.drag_density, *config.ballistic_m2_kg)
     t = np.arange(config.frames) / config.rate_hz
-    states = np.stack([dynamics.cw_closed_form(state0, n, ti) for ti in t])
-    q = Rotation.from_euler("ZYX", config.attitude_zyx_deg, degrees=True).as_quat()
-    w = np.radians(config.rate_deg_s)
-    quats, rates = [q], [w]
-    for _ in range(1, config.frames):
-        q, w = dynamics.propagate_attitude(
-            q, w, config.inertia, 1.0 / config.rate_hz, config.attitude_substeps
-        )
-        quats.append(q)
-        rates.append(w)
+    rel = relative_truth(r_c, v_c, [config.standoff_m, 0.0, 0.0], v0, t, force)
+    R_I_B0 = Rotation.from_euler("ZYX", config.attitude_zyx_deg, degrees=True).as_matrix()
+    q, w = torque_free_attitude(R_I_B0, np.radians(config.rate_deg_s), config.inertia, t)
     k = dynamics.inertia_ratios(config.inertia)
     ones = np.ones((config.frames, 1))
-    return np.hstack(
-        [t[:, None], states, np.array(quats), np.array(rates), ones * k, ones * config.com_offset]
-    )
+    return np.hstack([t[:, None], rel.rho_O, rel.v_O, q, w, ones * k, ones * config.com_offset])
 
 
 def orbit_poses(truth: NDArray[np.float64], R_O_C: NDArray[np.float64], n: float) -> NDArray:
@@ -346,20 +370,39 @@ def orbit_poses(truth: NDArray[np.float64], R_O_C: NDArray[np.float64], n: float
 
 
 def simulate_orbit(config: OrbitConfig | None = None) -> Simulation:
-    """The orbit run (METHODS §3): flash-LiDAR frames of the tumbling satellite from 25 m."""
+    """The orbit run (METHODS §3): flash-LiDAR frames of the tumbling satellite from 25 m.
+
+    ``extras`` hold what the filter is given (``mean_motion``, ``R_O_C`` and ``rectangles``
+    with their knowledge errors, ``process_noise`` measured by
+    :func:`~spacepose.core.sim.process_noise.model_defect`) beside the exact ``R_O_C_true`` and
+    ``rectangles_true``.
+    """
     config = config or OrbitConfig()
-    n = mean_motion(config.altitude_m)
+    n = orbit_mean_motion(config)
     truth = orbit_truth(config)
+    target = _target(config, orbit_target())
+    R_O_C_known = misaligned(
+        R_O_C_AHEAD,
+        np.radians(config.chaser_attitude_sigma_deg),
+        np.random.default_rng([config.seed, 2**31 + 1]),
+    )
+    known = perturbed_catalogue(
+        target.rectangles, config.catalogue_sigma_m, np.random.default_rng([config.seed, 2**31 + 2])
+    )
     return Simulation(
         name="orbit",
         config=config,
-        target=_target(config, orbit_target()),
+        target=target,
         timestamps=truth[:, 0].copy(),
         T_sensor_target=orbit_poses(truth, R_O_C_AHEAD, n),
         truth=truth,
         extras={
             "mean_motion": n,
-            "R_O_C": R_O_C_AHEAD.tolist(),
+            "R_O_C": R_O_C_known.tolist(),
+            "R_O_C_true": R_O_C_AHEAD.tolist(),
+            "rectangles": [r.to_dict() for r in known],
+            "rectangles_true": [r.to_dict() for r in target.rectangles],
+            "process_noise": None if len(truth) < 2 else model_defect(truth, n).to_dict(),
             "inertia": list(config.inertia),
             "inertia_ratios": truth[0, 14:17].tolist(),
             "rate_rad_s": np.radians(config.rate_deg_s).tolist(),
