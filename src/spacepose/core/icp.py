@@ -544,7 +544,6 @@ def _robust_matches(
     points: NDArray[np.float64],
     target_points: NDArray[np.float64],
     normals: NDArray[np.float64] | None,
-    workers: int,
 ) -> Correspondences:
     """:class:`Correspondences` of the matches ``s → t`` weighted by ``config``'s kernel.
 
@@ -552,13 +551,13 @@ def _robust_matches(
     ``normals`` the targets' normals (point-to-plane) or None (point-to-point)."""
     diff = points - target_points
     if normals is None:
-        d2 = np.einsum("ni,ni->n", diff, diff)
-        d = np.sqrt(d2)
+        d = np.sqrt(np.einsum("ni,ni->n", diff, diff))
         w = robust_weights(d, config.robust_kernel, config.robust_scale)
         return Correspondences(s, t, fitness, rmse, points, None, w, np.sqrt(w.variance(d, 0)))
     r = np.einsum("ni,ni->n", diff, normals)
     w = robust_weights(r, config.robust_kernel, config.robust_scale)
-    system = point_to_plane_system(points, target_points, normals, workers, w.weights)
+    # One thread: the gathered rows are summed (0.1 ms for 6000) before a second thread wakes.
+    system = point_to_plane_system(points, target_points, normals, 1, w.weights)
     return Correspondences(s, t, fitness, rmse, points, system, w, np.sqrt(w.variance(r)))
 
 
@@ -588,7 +587,7 @@ class _Matcher:
         normals = self.target.normals[t] if self.plane else None
         if self.config.robust_kernel != "none":
             q = self.target.points[t]
-            return _robust_matches(self.config, s, t, fitness, rmse, p, q, normals, self.workers)
+            return _robust_matches(self.config, s, t, fitness, rmse, p, q, normals)
         system = None
         if self.plane:
             system = point_to_plane_system(p, self.target.points[t], normals)
@@ -647,8 +646,6 @@ class _FusedPlaneMatcher:
         rmse = float(np.sqrt(total[29] / count))
         if robust:
             q, normals = self.index.data[t], self.normals[t]
-            return _robust_matches(
-                self.config, s, t, count / n, rmse, moved[s], q, normals, self.workers
-            )
+            return _robust_matches(self.config, s, t, count / n, rmse, moved[s], q, normals)
         H, g = system_from_sums(total)
         return Correspondences(s, t, count / n, rmse, system=(H, g, float(total[27])))

@@ -181,7 +181,8 @@ def cloud_scale(points: ArrayLike, seed: int = 0) -> CloudScale:
         raise InputError(f"a cloud needs at least 2 points for its spacing, got {len(pts)}")
     rng = np.random.default_rng(seed)
     sample = pts[rng.choice(len(pts), min(len(pts), _SPACING_SAMPLES), replace=False)]
-    d, _ = cKDTree(pts).query(sample, k=2)
+    # An unbalanced tree builds in about half the time; it is queried only 2000 times.
+    d, _ = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(sample, k=2)
     radius = np.percentile(np.linalg.norm(pts - np.median(pts, axis=0), axis=1), 90)
     return CloudScale(float(np.median(d[:, 1])), float(radius))
 
