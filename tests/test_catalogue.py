@@ -10,7 +10,7 @@ import yaml
 
 from spacepose.core.rectangles import RectangleConfig
 from spacepose.errors import ConfigError
-from spacepose.tools.catalogue import load_catalogue, parse_catalogue
+from spacepose.tools.catalogue import load_catalogue, parse_catalogue, size_classes
 
 EYE = np.eye(3).tolist()
 FLIP_Z = np.diag([1.0, -1.0, -1.0]).tolist()  # same face turned over: normal −z
@@ -41,7 +41,29 @@ def test_simulator_orbit_catalogue_is_accepted():
     targets = pytest.importorskip("spacepose.core.sim.targets")
     rects = [r.to_dict() for r in targets.orbit_target().rectangles]
     names = [e.name for e in parse_catalogue(rects)]
-    assert len(names) == 8 and "wing_front" in names
+    assert len(names) == 10 and "wing_front" in names and "antenna_front" in names
+
+
+def test_equal_faces_are_legal_and_listed_as_size_classes():
+    targets = pytest.importorskip("spacepose.core.sim.targets")
+    # The lab mock-up's two wings: equal size, parallel normals, 0.39 m apart (refused before).
+    lab = parse_catalogue([r.to_dict() for r in targets.lab_target().rectangles])
+    assert len(lab) == 10
+    assert size_classes(lab) == [
+        ["bus+x", "bus-x"],  # 0.16 x 0.16
+        ["bus+y", "bus-y", "bus+z", "bus-z"],  # 0.16 x 0.20
+        ["wing_right_front", "wing_right_back", "wing_left_front", "wing_left_back"],
+    ]
+    orbit = parse_catalogue([r.to_dict() for r in targets.orbit_target().rectangles])
+    assert size_classes(orbit) == [
+        ["bus+x", "bus-x"],
+        ["bus+y", "bus-y"],
+        ["bus+z", "bus-z"],
+        ["wing_front", "wing_back"],
+        ["antenna_front", "antenna_back"],
+    ]
+    # Different sizes: one class each.
+    assert size_classes(parse_catalogue(GOOD[2:])) == [["wing"]]
 
 
 @pytest.mark.parametrize(
@@ -53,7 +75,7 @@ def test_simulator_orbit_catalogue_is_accepted():
         ([_e("neg", -1.0, 2.0)], r"'neg'.*greater than 0"),
         ([{"name": "half", "a": 1.0}], r"'half'.*center.*Field required"),
         ([_e("x", 1.0, 2.0), _e("x", 3.0, 4.0)], "duplicate rectangle names: x"),
-        # 1.00 x 2.00 and 1.03 x 2.05 with parallel normals: within tolerance of each other.
+        # 1.00 x 2.00 and 1.03 x 2.05 with parallel normals, same centre: one face twice.
         ([_e("p", 1.0, 2.0), _e("q", 1.03, 2.05)], r"'p'.*'q'.*cannot be told apart"),
         ([], "empty"),
     ],

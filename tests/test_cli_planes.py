@@ -10,7 +10,7 @@ import yaml
 
 from spacepose.cli import main
 
-KEYS = {"centroid", "normal", "eigenvalues", "a", "b", "n_inliers", "rectangle"}
+KEYS = {"centroid", "normal", "eigenvalues", "a", "b", "n_inliers", "rectangle", "candidates"}
 
 
 @pytest.fixture
@@ -54,6 +54,7 @@ def test_json_output_has_exactly_the_keys_and_true_values(scene, capsys):
         assert row["n_inliers"] == 2400
     by_name = {row["rectangle"]: row for row in rows}
     assert set(by_name) == {"front", "side"}
+    assert [row["candidates"] for row in rows] == [[row["rectangle"]] for row in rows]
     front, side = by_name["front"], by_name["side"]
     np.testing.assert_allclose(front["centroid"], [0, 0, 2.0], atol=1e-12)
     np.testing.assert_allclose(front["normal"], [0, 0, -1.0], atol=1e-9)  # towards the sensor
@@ -66,6 +67,25 @@ def test_json_output_has_exactly_the_keys_and_true_values(scene, capsys):
     assert front["a"] == pytest.approx(0.4, rel=1e-3) and front["b"] == pytest.approx(0.6, rel=1e-3)
     np.testing.assert_allclose(side["centroid"], [1.0, 0.0, 2.65], atol=1e-12)
     np.testing.assert_allclose(side["normal"], [-1.0, 0, 0], atol=1e-9)
+
+
+def test_faces_of_equal_size_are_reported_ambiguous(scene, tmp_path, capsys):
+    # A legal catalogue with two 0.4 x 0.6 faces (a panel's two sides): the sides name "side"
+    # but leave the 0.4 x 0.6 plane between "front" and "back".
+    path, catalogue = scene
+    entries = yaml.safe_load(catalogue.read_text())["rectangles"]
+    back = dict(entries[0], name="back", R_model_plane=np.diag([1.0, -1.0, -1.0]).tolist())
+    twins = tmp_path / "twins.yaml"
+    twins.write_text(yaml.safe_dump({"rectangles": [*entries, back]}))
+    assert main(["planes", str(path), "--catalogue", str(twins), "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    by_centroid = {round(row["centroid"][2], 2): row for row in rows}
+    assert by_centroid[2.0]["rectangle"] is None
+    assert by_centroid[2.0]["candidates"] == ["front", "back"]
+    assert by_centroid[2.65]["rectangle"] == "side" and by_centroid[2.65]["candidates"] == ["side"]
+    assert main(["planes", str(path), "--catalogue", str(twins)]) == 0
+    out = capsys.readouterr().out  # the table wraps the cell: check its words
+    assert "ambiguous:" in out and "back" in out and "side" in out
 
 
 def test_fill_check_with_the_camera_focal_length(scene, capsys):

@@ -91,7 +91,7 @@ def test_orbit_run_has_truth_csv(tmp_path, orbit_sim) -> None:
     assert np.allclose(s["R_O_C"], s["R_O_C_true"], atol=np.radians(0.1))
     assert s["R_O_C"] != s["R_O_C_true"]
     assert s["inertia"] == [1200.0, 1000.0, 800.0] and s["com_offset"] == [0.02, -0.03, 0.05]
-    assert len(run.rectangles) == 8
+    assert len(run.rectangles) == 10  # the default orbit target: bus, wing and antenna panel
 
 
 @pytest.mark.parametrize(

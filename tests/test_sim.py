@@ -24,6 +24,7 @@ from spacepose.core.sim import (
     sensor_config,
     simulate_lab,
     simulate_orbit,
+    symmetric_orbit_target,
 )
 from spacepose.core.sim.sensors import scan, sigma_at
 from spacepose.errors import ConfigError, FileFormatError, InputError
@@ -41,7 +42,7 @@ def _wall(distance: float) -> trimesh.Trimesh:
 # Targets
 
 
-@pytest.mark.parametrize("make", [lab_target, orbit_target])
+@pytest.mark.parametrize("make", [lab_target, orbit_target, symmetric_orbit_target])
 def test_rectangle_corners_are_mesh_vertices_and_normals_point_out(make) -> None:
     target = make()
     vertices = cKDTree(target.mesh.vertices)
@@ -60,16 +61,25 @@ def test_rectangle_corners_are_mesh_vertices_and_normals_point_out(make) -> None
         assert any(behind) and not any(front), rect.name
 
 
-def test_orbit_catalogue_sizes_are_distinct_and_match_the_spec() -> None:
-    rects = orbit_target().rectangles
+@pytest.mark.parametrize("make", [orbit_target, symmetric_orbit_target])
+def test_orbit_catalogue_sizes_are_distinct_and_match_the_spec(make) -> None:
+    rects = make().rectangles
     sizes = {r.name: (round(r.a, 9), round(r.b, 9)) for r in rects}
     assert sizes["bus+z"] == sizes["bus-z"] == (1.8, 2.4)
     assert sizes["bus+y"] == sizes["bus-y"] == (1.4, 2.4)
     assert sizes["bus+x"] == sizes["bus-x"] == (1.4, 1.8)
     assert sizes["wing_front"] == sizes["wing_back"] == (2.0, 6.0)
-    assert len(set(sizes.values())) == 4 and len(rects) == 8
     front = next(r for r in rects if r.name == "wing_front")
     assert np.allclose(front.R_model_plane[:, 2], (0, 0, 1))
+    if make is symmetric_orbit_target:
+        assert len(set(sizes.values())) == 4 and len(rects) == 8
+        return
+    # The default target adds the antenna panel's two faces, a fifth size.
+    assert sizes["antenna_front"] == sizes["antenna_back"] == (0.8, 1.2)
+    assert len(set(sizes.values())) == 5 and len(rects) == 10
+    panel = next(r for r in rects if r.name == "antenna_front")
+    np.testing.assert_allclose(panel.center, (0.02, -1.9, 0.5), atol=1e-12)
+    np.testing.assert_allclose(panel.R_model_plane[:, 2], (1, 0, 0))
 
 
 def test_lab_target_is_not_symmetric() -> None:

@@ -13,7 +13,9 @@ from spacepose.cli.feedback import working
 @app.command()
 def navigate(
     run: Path = typer.Argument(
-        ..., help="Run folder from 'spacepose simulate orbit', or a folder of frame files."
+        ...,
+        help="Run folder from 'spacepose simulate orbit', a folder of frame files or depth "
+        "images, or a ROS 1/2 bag.",
     ),
     out: Path = typer.Option(..., "--out", help="NAV.csv: one row of state, 1-σ and status."),
     config: Path | None = typer.Option(
@@ -22,11 +24,20 @@ def navigate(
     scenario: Path | None = typer.Option(
         None, help="YAML/JSON with mean_motion, R_O_C and rectangles (needed for a frame folder)."
     ),
-    prior_from_scenario: bool = typer.Option(
-        False,
-        help="Take the coarse attitude prior from scenario.json (initial_q_I_B: the simulator's "
-        "true initial attitude) to resolve equal-size faces and the target's symmetry at start.",
+    prior: str | None = typer.Option(
+        None,
+        help="Coarse attitude prior 'qx,qy,qz,qw' (q_I_B at t = 0) that picks among the "
+        "target's symmetric poses at start. Without it the navigator starts lost in space.",
     ),
+    debug_prior_from_truth: bool = typer.Option(
+        False,
+        help="DEBUGGING ONLY: take the prior from the simulator's TRUE initial attitude "
+        "(scenario.json initial_q_I_B). No real run has it.",
+    ),
+    intrinsics: Path | None = typer.Option(
+        None, help="Depth image intrinsics (YAML/JSON: fx, fy, cx, cy, depth_scale, k1..k6, p1, p2)"
+    ),
+    topic: str | None = typer.Option(None, help="Bag topic (PointCloud2 or depth Image)."),
 ) -> None:
     """Estimate ρ, ρ̇, attitude, rate, inertia ratios and CoM offset for every frame of RUN."""
     from spacepose.core.config import load_config
@@ -36,14 +47,35 @@ def navigate(
     cfg = None if config is None else load_config(NavigationConfig, config)
     with working("navigating"):
         summary = navigate_run(
-            run, out, cfg, scenario=scenario, prior_from_scenario=prior_from_scenario
+            run,
+            out,
+            cfg,
+            scenario=scenario,
+            prior_q_I_B=None if prior is None else _quaternion(prior),
+            debug_prior_from_truth=debug_prior_from_truth,
+            intrinsics=intrinsics,
+            topic=topic,
         )
-    if summary.navigated == 0:
+    if summary.ambiguous:
         err_console.print(
-            "warning: the filter never started (no rectangle told apart without a prediction; "
-            "try --prior-from-scenario or prior_q_I_B in the config)"
+            f"{summary.ambiguous} frames ambiguous (several candidate poses), candidates -> "
+            f"{summary.candidates_csv}",
+            markup=False,
         )
     console.print(
         f"{summary.frames} frames ({summary.navigated} navigated) -> {summary.nav_csv}; "
         f"config -> {summary.config_json}"
     )
+
+
+def _quaternion(text: str) -> tuple[float, ...]:
+    """``qx,qy,qz,qw`` as four floats; ConfigError otherwise."""
+    from spacepose.errors import ConfigError
+
+    try:
+        q = tuple(float(v) for v in text.replace(" ", ",").split(",") if v)
+    except ValueError:
+        q = ()
+    if len(q) != 4:
+        raise ConfigError(f"--prior must be four numbers qx,qy,qz,qw, got {text!r}")
+    return q

@@ -30,10 +30,15 @@ def planes(
     seed: int = typer.Option(0, help="Seed of the RANSAC sampling."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON list instead of a table."),
 ) -> None:
-    """List the planes of FILE with centroid, normal, eigenvalues, sides and recognised name."""
+    """List the planes of FILE with centroid, normal, eigenvalues, sides and recognised name.
+
+    With a catalogue a rectangle is named when its sides match one entry only; when they match
+    several (faces of equal size) it is left unnamed and ``candidates`` lists them all.
+    """
     from spacepose.core.config import validate_config
     from spacepose.core.planes import PlaneConfig
-    from spacepose.core.rectangles import RectangleConfig, find_rectangles
+    from spacepose.core.rectangle_search import find_rectangles
+    from spacepose.core.rectangles import RectangleConfig, candidates
     from spacepose.tools.catalogue import load_catalogue
     from spacepose.tools.cloud_io import read_cloud
 
@@ -62,6 +67,7 @@ def planes(
             "b": f.measurement.b,
             "n_inliers": f.plane.n_inliers,
             "rectangle": f.name,
+            "candidates": [e.name for e in candidates(f.measurement, entries, rect_config)],
         }
         for f in found
     ]
@@ -79,6 +85,11 @@ def planes(
             " ".join(f"{v:.3f}" for v in row["centroid"]),
             " ".join(f"{v:.3f}" for v in row["normal"]),
             f"{row['a']:.3f} x {row['b']:.3f}",
-            row["rectangle"] or "-",
+            row["rectangle"] or _unnamed(row["candidates"]),
         )
     console.print(table)
+
+
+def _unnamed(names: list[str]) -> str:
+    """What the table says of a rectangle its sides do not name."""
+    return "ambiguous: " + " | ".join(names) if len(names) > 1 else "-"

@@ -7,6 +7,11 @@ the one whose difference quaternion with a prediction has scalar part nearest ±
 the 180° turn about the normal open; two or more rectangles in one frame settle it, because only
 one choice makes them agree on the target's attitude.
 
+Lost in space (no prediction at all): :func:`attitude_hypotheses` lists every pose the
+rectangles of a frame allow, each rectangle taken as each catalogue face of its size with both
+sign choices that show the face to the sensor; :mod:`spacepose.core.lost_in_space` scores them
+against the target model.
+
 Frames: ``sensor`` (the points' frame), ``plane`` (x short side, y long side, z normal) and
 ``model`` (the target's nominal body frame B' in which the catalogue is written).
 """
@@ -14,6 +19,7 @@ Frames: ``sensor`` (the points' frame), ``plane`` (x short side, y long side, z 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -148,3 +154,120 @@ def consistent_rectangles(
     R_sensor_model = Rotation.from_matrix(R_models).mean(weights=weights).as_matrix()
     offsets = np.stack([m.centroid - R_sensor_model @ e.centre for m, e in pairs])
     return se3.make_transform(R_sensor_model, weights @ offsets / weights.sum())
+
+
+@dataclass(frozen=True, eq=False)
+class PoseHypothesis:
+    """One target pose the rectangles of a frame allow, and which face each rectangle is in it.
+
+    Attributes
+    ----------
+    T_sensor_model
+        (4, 4) target pose, model frame B' into the sensor frame.
+    assignment
+        ``(index, name)`` per rectangle the pose explains: the rectangle's index in the list
+        given to :func:`attitude_hypotheses` and the catalogue face it is under this pose.
+    """
+
+    T_sensor_model: NDArray[np.float64]
+    assignment: tuple[tuple[int, str], ...]
+
+
+def explained_rectangles(
+    T_sensor_model: NDArray[np.float64],
+    rectangles: Sequence[tuple[RectangleMeasurement, Sequence[CatalogueEntry]]],
+    min_normal_cosine: float = 0.5,
+) -> list[tuple[int, CatalogueEntry]]:
+    """Which rectangles a pose explains, and as which catalogue face.
+
+    A rectangle is explained by the candidate face whose outward normal, turned by the pose,
+    lies within ``arccos(min_normal_cosine)`` of the measured normal and whose centre falls
+    nearest the measured centroid, within half the face's long side (a length set by the face
+    itself, so it scales with the target).
+
+    Parameters
+    ----------
+    T_sensor_model
+        (4, 4) candidate pose.
+    rectangles
+        Measurements (sensor frame) with the catalogue faces their sides allow.
+    min_normal_cosine
+        Smallest cosine between the predicted outward normal and the measured normal.
+
+    Returns
+    -------
+    ``(index, entry)`` for every explained rectangle, in input order.
+    """
+    R, t = T_sensor_model[:3, :3], T_sensor_model[:3, 3]
+    out = []
+    for i, (m, entries) in enumerate(rectangles):
+        best, best_d = None, np.inf
+        for e in entries:
+            if float((R @ e.rotation[:, 2]) @ m.normal) < min_normal_cosine:
+                continue
+            d = float(np.linalg.norm(R @ e.centre + t - m.centroid))
+            if d <= 0.5 * e.b and d < best_d:
+                best, best_d = e, d
+        if best is not None:
+            out.append((i, best))
+    return out
+
+
+def attitude_hypotheses(
+    rectangles: Sequence[tuple[RectangleMeasurement, Sequence[CatalogueEntry]]],
+    same_pose_deg: float = 5.0,
+) -> list[PoseHypothesis]:
+    """Every target pose the rectangles of one frame allow, with no prediction (lost in space).
+
+    Each rectangle, as each catalogue face of its size, gives two poses: the plane frame's
+    four sign choices less the two that would show the face from behind. Every other rectangle
+    then joins the pose as the face it best fits (:func:`explained_rectangles`) and the pose is
+    re-estimated from all of them (:func:`consistent_rectangles` with the anchor's attitude as
+    the prediction). Poses whose attitudes lie within ``same_pose_deg`` and whose origins lie
+    within half the smallest side of the catalogue faces involved are one hypothesis.
+
+    Parameters
+    ----------
+    rectangles
+        Whole rectangles of one frame (sensor frame) with the faces their sides allow
+        (:func:`spacepose.core.rectangles.candidates`); rectangles without any are ignored.
+    same_pose_deg
+        Attitude difference (deg) below which two poses are merged.
+
+    Returns
+    -------
+    The distinct hypotheses, those explaining the most points first.
+    """
+    usable = [(m, list(c)) for m, c in rectangles if len(c)]
+    index = [i for i, (_, c) in enumerate(rectangles) if len(c)]
+    scored: list[tuple[int, PoseHypothesis]] = []
+    for m, entries in usable:
+        for e in entries:
+            # The measured normal faces the sensor, and so must the face's outward normal: of
+            # the four sign choices only the two that keep the normal remain.
+            for flip in _NORMAL_KEEPING_FLIPS:
+                T0 = _pose(m.R_sensor_plane @ flip, m, e)
+                found = explained_rectangles(T0, usable)
+                pairs = [(usable[i][0], entry) for i, entry in found] or [(m, e)]
+                T = consistent_rectangles(pairs, T0[:3, :3]) if found else T0
+                names = tuple((index[i], entry.name) for i, entry in found)
+                support = sum(usable[i][0].n_points for i, _ in found)
+                scored.append((support, PoseHypothesis(T, names)))
+    scored.sort(key=lambda item: -item[0])
+    kept: list[PoseHypothesis] = []
+    for _, h in scored:
+        if not any(_same_pose(h, k, same_pose_deg, usable) for k in kept):
+            kept.append(h)
+    return kept
+
+
+def _same_pose(
+    h: PoseHypothesis,
+    k: PoseHypothesis,
+    same_pose_deg: float,
+    usable: Sequence[tuple[RectangleMeasurement, Sequence[CatalogueEntry]]],
+) -> bool:
+    angle = Rotation.from_matrix(h.T_sensor_model[:3, :3] @ k.T_sensor_model[:3, :3].T).magnitude()
+    smallest = min(e.a for _, entries in usable for e in entries)
+    offset = np.linalg.norm(h.T_sensor_model[:3, 3] - k.T_sensor_model[:3, 3])
+    return bool(np.rad2deg(angle) < same_pose_deg and offset < 0.5 * smallest)

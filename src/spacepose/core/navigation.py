@@ -1,42 +1,79 @@
 """Relative navigation from rectangles (Yu et al. 2019, METHODS §2.1–2.4): the whole pipeline.
 
-Per frame: planes → rectangles recognised against the catalogue → coarse pose of each rectangle
-with the 4-fold fix against the filter's predicted attitude → EKF predict and update (attitude
-and centroid of every recognised rectangle). The filter starts at the first frame where a
-rectangle is recognised: the coarse pose gives q and ρ; ω and the inertia ratios come from the
+Per frame: planes → rectangles measured and matched by size to the catalogue → coarse pose of
+each rectangle with the 4-fold fix against the filter's predicted pose → EKF predict and update
+(attitude and centroid of every recognised rectangle). ω and the inertia ratios start from the
 configured priors (Yu et al. do the same: ρ̇ = 0, ω a prior with an initial error).
 
-Before the filter has a prediction, faces of equal size (the opposite faces of a box, the two
-faces of a panel) cannot be told apart, and a shape symmetric under a 180° turn (a box with a
-wing on its axis) has two poses that explain every frame equally. A coarse attitude prior
-``prior_q_I_B`` resolves both at initialisation; without it only rectangles of unique size
-start the filter (NavigationConfig.prior_q_I_B).
+Start. Faces of equal size (the opposite faces of a box, the two faces of a panel) cannot be
+told apart by their sides, and a symmetric target has several poses that explain every frame.
+With a coarse attitude prior (``prior_q_I_B``) the first frame with a rectangle starts one
+filter, as Yu et al. do. Without one (lost in space) every pose the frame's rectangles allow
+(:func:`spacepose.core.attitude_fix.attitude_hypotheses`) is refined and scored on the target
+model (:mod:`spacepose.core.lost_in_space`); those within ``start_margin`` of the best each
+start a candidate filter. Each frame the candidates are scored again at their own estimates and
+a candidate is dropped once its median shortfall from the best exceeds ``ambiguity_margin``
+over ``decide_frames`` frames. While two or more remain the rows say ``ambiguous``, give no
+state and list the candidates: a truly symmetric target stays so, never confidently wrong.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import Field
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import dynamics
-from spacepose.core.attitude_fix import coarse_target_pose, consistent_rectangles
+from spacepose.core.attitude_fix import (
+    attitude_hypotheses,
+    coarse_target_pose,
+    consistent_rectangles,
+    explained_rectangles,
+)
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import StageConfig
-from spacepose.core.ekf import EKFConfig, NavState, RelativeNavEKF
-from spacepose.core.planes import PlaneConfig
+from spacepose.core.ekf import NavState, RelativeNavEKF
+from spacepose.core.lost_in_space import (
+    FrameEvidence,
+    ModelSurface,
+    equally_good,
+    explained_share,
+    refine_on_model,
+)
+from spacepose.core.nav_config import NavigationConfig
+from spacepose.core.nav_measurements import (
+    area_weighted_centroid,
+    attitude_covariance,
+    centroid_covariance,
+    incidence_cosine,
+)
+from spacepose.core.rectangle_search import measure_planes
 from spacepose.core.rectangles import (
     CatalogueEntry,
     RectangleConfig,
     RectangleMeasurement,
-    find_rectangles,
+    candidates,
+    recognise,
 )
 from spacepose.errors import InputError
+
+__all__ = [
+    "NAV_COLUMNS",
+    "Candidate",
+    "NavRow",
+    "NavigationConfig",
+    "RelativeNavigator",
+    "area_weighted_centroid",
+    "attitude_covariance",
+    "centroid_covariance",
+    "incidence_cosine",
+    "nav_table",
+    "navigate",
+    "scenario_geometry",
+]
 
 STATE_COLUMNS = (
     "t,rho_x,rho_y,rho_z,v_x,v_y,v_z,qx,qy,qz,qw,w_x,w_y,w_z,k_x,k_y,k_z,com_x,com_y,com_z"
@@ -45,98 +82,24 @@ SIGMA_COLUMNS = [
     f"sig_{name}_{axis}" for name in ("rho", "v", "att", "w", "k", "com") for axis in "xyz"
 ]
 NAV_COLUMNS = [*STATE_COLUMNS, *SIGMA_COLUMNS, "n_rect", "status"]
+# Rectangles of a frame: each measurement with the catalogue faces its sides allow.
+Rects = list[tuple[RectangleMeasurement, list[CatalogueEntry]]]
 
 
-class NavigationConfig(StageConfig):
-    """Settings of :class:`RelativeNavigator` (defaults: the flash LiDAR of the orbit run)."""
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """One candidate filter's estimate while the target's pose is ambiguous.
 
-    plane: PlaneConfig = Field(
-        default_factory=lambda: PlaneConfig(distance_threshold=0.03),
-        description="RANSAC plane extraction; thickness about 3σ of the range noise. Its "
-        "range_threshold, when unset, is 3 rectangle.sigma (see ray_share_out).",
-    )
-    rectangle: RectangleConfig = Field(
-        default_factory=lambda: RectangleConfig(sigma=0.01),
-        description="Recognition; sigma is the range noise removed from the eigenvalues.",
-    )
-    ekf: EKFConfig = Field(
-        default_factory=lambda: EKFConfig(
-            sigma_accel=3e-8,
-            sigma_angular_accel=3e-8,
-            sigma_centroid=0.01,
-            init_sigma_position=0.1,
-            init_sigma_velocity=0.01,
-            init_sigma_attitude_deg=3.0,
-            init_sigma_rate_deg_s=3.0,
-            init_sigma_inertia=0.3,
-            init_sigma_com=0.1,
-            sigma_feature=0.005,
-        ),
-        description="Filter noise model; sigma_attitude_deg is unused (see the scales below); "
-        "sigma_centroid is the in-plane σ of a centroid (where the 8 cm pixels cut the outline: "
-        "7-11 mm per axis on the orbit run; along the normal see centroid_covariance); the "
-        "process noise is small because the simulated target feels no unmodelled force.",
-    )
-    tilt_scale: float = Field(
-        1.0,
-        gt=0,
-        description="Scale of the normal-direction σ ≈ σ_r |cos θ| √12 / (side √N) of a "
-        "rectangle seen at incidence θ.",
-    )
-    min_tilt_cosine: float = Field(
-        0.25,
-        gt=0,
-        le=1,
-        description="Floor of the incidence cosine in the normal-direction σ (1 ignores the "
-        "incidence). Near grazing the outline's pixels and the in-plane part of the range "
-        "noise, not the normal part, limit the normal: without a floor the filter trusts such "
-        "faces too much (orbit run, seed 1: NEES far above its bound).",
-    )
-    spin_scale: float = Field(
-        0.25,
-        gt=0,
-        description="Scale of the in-plane σ ≈ a b / (√N (b² − a²)) of a rectangle (the "
-        "eigenvector angle of N random points; the sensor's regular grid does better: a "
-        "quarter of it on the orbit run).",
-    )
-    min_attitude_sigma_deg: float = Field(
-        0.01, gt=0, description="Floor of every attitude measurement σ, deg."
-    )
-    min_centroid_sigma: float = Field(
-        1e-4, gt=0, description="Floor of the centroid σ along the face normal, m."
-    )
-    init_rate_deg_s: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0), description="Prior of ω in B, deg/s."
-    )
-    init_k: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0), description="Prior of the inertia ratios (0: a sphere)."
-    )
-    prior_q_I_B: tuple[float, float, float, float] | None = Field(
-        None,
-        description="Coarse attitude prior (qx, qy, qz, qw) at t = 0, used only before the "
-        "filter starts, to tell equal-size faces and symmetric poses apart.",
-    )
-    ray_share_out: bool = Field(
-        True,
-        description="Share the planes' points out again along the rays (PlaneConfig."
-        "range_threshold, 3 rectangle.sigma when unset). Without it the face found first "
-        "keeps a strip of each neighbour's points along their shared edge, and the centroids "
-        "move about 5 mm away from the sensor on the orbit run.",
-    )
-    area_weighted_centroid: bool = Field(
-        True,
-        description="Weight each point by the area its pixel covers (∝ range³ on a plane): a "
-        "range image samples a tilted face more densely where it is nearer, which pulls the "
-        "plain mean towards the sensor (about 2 cm at 25 m on the orbit run).",
-    )
+    Attributes
+    ----------
+    state
+        The candidate filter's estimate after the frame.
+    explained
+        Share of the frame its pose explains (:func:`lost_in_space.explained_share`), in [0, 1].
+    """
 
-    def plane_config(self) -> PlaneConfig:
-        """The plane extraction settings the navigator uses (with the ray share-out)."""
-        if not self.ray_share_out:
-            return self.plane.model_copy(update={"range_threshold": None})
-        if self.plane.range_threshold is not None or self.rectangle.sigma <= 0:
-            return self.plane
-        return self.plane.model_copy(update={"range_threshold": 3.0 * self.rectangle.sigma})
+    state: NavState
+    explained: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,19 +109,22 @@ class NavRow:
     Attributes
     ----------
     state
-        The estimate after the frame's updates; None before initialisation.
+        The estimate after the frame's updates; None before initialisation and while ambiguous.
     sigmas
-        1-σ per block (``rho, v, att, omega, k, com``), None before initialisation.
+        1-σ per block (``rho, v, att, omega, k, com``), None when ``state`` is.
     n_rect
-        Rectangles recognised and used in this frame.
+        Rectangles recognised and used in this frame (by the best candidate while ambiguous).
     status
-        ``waiting`` (no filter yet), ``init`` (filter started here), ``update`` (at least one
-        measurement used) or ``predict`` (nothing usable: prediction only).
+        ``waiting`` (no filter yet), ``ambiguous`` (several candidate filters explain the data
+        equally well: no state, see ``candidates``), ``init`` (first frame with a state),
+        ``update`` (at least one measurement used) or ``predict`` (prediction only).
     coarse_T_sensor_model
         Coarse pose of the frame from its rectangles after the 4-fold fix (4, 4), or None.
     raw_T_sensor_model
         Coarse pose from the largest rectangle's raw eigenvector frame (no 4-fold fix), or None;
         kept for the ablation of the fix.
+    candidates
+        The candidate filters' estimates when ``status`` is ``ambiguous``, best first.
     """
 
     t: float
@@ -168,6 +134,7 @@ class NavRow:
     status: str
     coarse_T_sensor_model: NDArray[np.float64] | None = None
     raw_T_sensor_model: NDArray[np.float64] | None = None
+    candidates: tuple[Candidate, ...] = ()
 
     def values(self) -> list[float | int | str]:
         """The row in the order of :data:`NAV_COLUMNS` (NaN before initialisation)."""
@@ -206,69 +173,13 @@ def scenario_geometry(
     return n, R
 
 
-def incidence_cosine(measurement: RectangleMeasurement) -> float:
-    """``|cos θ|`` (-) of the angle between the face normal and the ray to its centroid.
+@dataclass(eq=False)
+class _Track:
+    """A candidate filter and the shortfalls of its explained share from the best, per frame."""
 
-    Range noise σ_r along the ray moves a point by ``σ_r |cos θ|`` along the face normal.
-    """
-    c = measurement.centroid
-    return abs(float(measurement.normal @ c)) / max(float(np.linalg.norm(c)), 1e-300)
-
-
-def attitude_covariance(
-    measurement: RectangleMeasurement, entry: CatalogueEntry, config: NavigationConfig
-) -> NDArray[np.float64]:
-    """Covariance (3, 3, rad², body frame) of the attitude measured from one rectangle.
-
-    The normal is fixed by the out-of-plane noise over the whole face (σ ≈ σ_n √12 / (side √N)
-    about each in-plane axis, with ``σ_n = σ_r |cos θ|`` the range noise along the normal of a
-    face seen at incidence θ, the cosine floored at ``min_tilt_cosine``); the turn about the
-    normal only by the difference of the in-plane eigenvalues, ``σ² ≈ a² b² / (N (b² − a²)²)``
-    — far weaker for a near-square face.
-    """
-    n = max(measurement.n_points, 1)
-    a, b = entry.a, entry.b
-    cos = max(incidence_cosine(measurement), config.min_tilt_cosine)
-    sigma_n = max(config.rectangle.sigma * cos, 1e-6)
-    tilt = config.tilt_scale * sigma_n * np.sqrt(12.0 / n) / np.array([b, a])
-    spin = config.spin_scale * a * b / (np.sqrt(n) * (b**2 - a**2))
-    floor = np.deg2rad(config.min_attitude_sigma_deg)
-    sig = np.maximum(np.array([tilt[0], tilt[1], spin]), floor)
-    R_B_plane = entry.rotation  # B' and B are parallel
-    return R_B_plane @ np.diag(sig**2) @ R_B_plane.T
-
-
-def centroid_covariance(
-    measurement: RectangleMeasurement, config: NavigationConfig
-) -> NDArray[np.float64]:
-    """Covariance (3, 3, m², sensor frame) of one rectangle's measured centroid.
-
-    Along the face normal the centroid is as good as the mean of N range errors projected on
-    it, ``σ_r |cos θ| / √N`` (sub-millimetre); in the plane it is limited by where the pixel
-    grid cuts the outline, ``ekf.sigma_centroid`` (the pixels are 8 cm wide at 25 m).
-    """
-    n_hat = measurement.normal
-    along = (
-        config.rectangle.sigma
-        * incidence_cosine(measurement)
-        / np.sqrt(max(measurement.n_points, 1))
-    )
-    along = max(along, config.min_centroid_sigma)
-    in_plane = config.ekf.sigma_centroid
-    N = np.outer(n_hat, n_hat)
-    return in_plane**2 * (np.eye(3) - N) + along**2 * N
-
-
-def area_weighted_centroid(points: ArrayLike) -> NDArray[np.float64]:
-    """Centroid (3,) of a plane's points from a range image, each weighted by its pixel's area.
-
-    A pixel of solid angle Ω at range r on a plane at distance h from the sensor covers
-    ``Ω r² / cos(incidence) = Ω r³ / h``, so weights ``∝ |p|³`` turn the image-uniform samples
-    into surface-uniform ones, whose mean is the face's centre (METHODS §2.2 assumes the latter).
-    """
-    p = np.asarray(points, dtype=np.float64)
-    w = np.linalg.norm(p, axis=1) ** 3
-    return w @ p / w.sum()
+    ekf: RelativeNavEKF
+    deficits: list[float] = field(default_factory=list)
+    explained: float = float("nan")
 
 
 class RelativeNavigator:
@@ -284,6 +195,11 @@ class RelativeNavigator:
         (3, 3) constant sensor (chaser) attitude in O.
     config
         Pipeline settings (``config.prior_q_I_B``: the optional coarse attitude prior).
+    model
+        Optional surface samples of the target with outward normals, model frame B' (a run's
+        ``model.ply``): the lost-in-space start scores its hypotheses on them. Without it the
+        hypotheses are scored by the rectangles they explain, which cannot see the parts that
+        break a symmetry, so more starts stay ambiguous.
     """
 
     def __init__(
@@ -292,6 +208,7 @@ class RelativeNavigator:
         mean_motion: float,
         R_O_C: ArrayLike,
         config: NavigationConfig | None = None,
+        model: PointCloud | None = None,
     ) -> None:
         if len(catalogue) == 0:
             raise InputError("the rectangle catalogue is empty: nothing to navigate on")
@@ -299,7 +216,14 @@ class RelativeNavigator:
         self.config = config or NavigationConfig()
         self.n = float(mean_motion)
         self.R_O_C = np.asarray(R_O_C, dtype=np.float64)
-        self.ekf: RelativeNavEKF | None = None
+        self.model = None if model is None else ModelSurface.from_cloud(model)
+        self.tracks: list[_Track] = []
+        self._confident = False
+
+    @property
+    def ekf(self) -> RelativeNavEKF | None:
+        """The filter once one candidate remains; None before the start and while ambiguous."""
+        return self.tracks[0].ekf if len(self.tracks) == 1 else None
 
     def predicted_R_sensor_model(self, t: float) -> NDArray[np.float64] | None:
         """Predicted target attitude in the sensor frame: the filter's, else the prior's."""
@@ -315,54 +239,119 @@ class RelativeNavigator:
 
         A frame without data (``cloud`` None) is a prediction-only step, never dropped.
         """
-        if self.ekf is not None:
-            self.ekf.predict(t)
-        R_pred = self.predicted_R_sensor_model(t)
-        rects = [] if cloud is None else self.recognise(cloud, R_pred)
-        coarse = raw = None
-        if rects:
-            coarse = consistent_rectangles(rects, R_pred)
-            m0, e0 = max(rects, key=lambda p: p[0].n_points)
-            raw = coarse_target_pose(m0, e0, None)
-        if self.ekf is None:
-            if coarse is None:
+        for track in self.tracks:
+            track.ekf.predict(t)
+        rects = [] if cloud is None else self.rectangles(cloud)
+        if not self.tracks:
+            self.tracks = [_Track(self._start_filter(t, T)) for T in self._start(t, cloud, rects)]
+            if not self.tracks:
                 return NavRow(t, None, None, 0, "waiting")
-            self.ekf = self._start_filter(t, coarse)
-            status = "init"
-        else:
-            status = "predict"
-        used = self._update(rects)
-        if status == "predict" and used:
+        used = [self._update(track.ekf, self._assign(track.ekf, rects)) for track in self.tracks]
+        if len(self.tracks) > 1 and cloud is not None:
+            used = self._prune(cloud, rects, used)
+        lead = self.tracks[0].ekf
+        recognised = self._assign(lead, rects)
+        coarse = raw = None
+        if recognised:
+            coarse = consistent_rectangles(recognised, lead.predict_pose()[:3, :3])
+            m0, e0 = max(recognised, key=lambda p: p[0].n_points)
+            raw = coarse_target_pose(m0, e0, None)
+        if len(self.tracks) > 1:
+            candidates = tuple(Candidate(tr.ekf.state(), tr.explained) for tr in self.tracks)
+            return NavRow(t, None, None, used[0], "ambiguous", coarse, raw, candidates)
+        status = "predict" if self._confident else "init"
+        if self._confident and used[0]:
             status = "update"
-        return NavRow(t, self.ekf.state(), self.ekf.sigmas(), used, status, coarse, raw)
+        self._confident = True
+        return NavRow(t, lead.state(), lead.sigmas(), used[0], status, coarse, raw)
 
     def run(self, frames: Iterable[tuple[float, PointCloud | None]]) -> list[NavRow]:
         """:meth:`step` over ``(t, cloud)`` pairs in time order; one row per frame."""
         return [self.step(t, cloud) for t, cloud in frames]
 
+    def rectangles(self, cloud: PointCloud) -> Rects:
+        """Whole rectangles of a frame (sensor frame) with the catalogue faces of their size.
+
+        The centroid is the area-weighted one when ``config.area_weighted_centroid`` is set.
+        """
+        out = []
+        for found in measure_planes(cloud, self.config.plane_config(), self.config.rectangle):
+            entries = candidates(
+                found.measurement, list(self.catalogue.values()), self.config.rectangle
+            )
+            if not entries:
+                continue
+            m = found.measurement
+            if self.config.area_weighted_centroid:
+                m = replace(m, centroid=area_weighted_centroid(cloud.points[found.support]))
+            out.append((m, entries))
+        return out
+
     def recognise(
         self, cloud: PointCloud, R_pred: NDArray[np.float64] | None
     ) -> list[tuple[RectangleMeasurement, CatalogueEntry]]:
-        """Planes of the frame recognised as catalogue rectangles (each name at most once)."""
-        found = find_rectangles(
-            cloud,
-            list(self.catalogue.values()),
-            self.config.plane_config(),
-            self.config.rectangle,
-            R_pred,
-        )
-        seen: dict[str, RectangleMeasurement] = {}
-        for f in found:
-            # Two planes matched to one face: keep the larger (the other is a fragment).
-            if f.name is None or (
-                f.name in seen and f.measurement.n_points <= seen[f.name].n_points
-            ):
+        """Rectangles of the frame named with a predicted attitude only (each name at most once).
+
+        Faces of equal size are told apart by the predicted outward normal
+        (:func:`spacepose.core.rectangles.recognise`); without a prediction they are left out.
+        """
+        named = []
+        for m, entries in self.rectangles(cloud):
+            name = recognise(m, entries, self.config.rectangle, R_pred)
+            if name is not None:
+                named.append((m, self.catalogue[name]))
+        return _one_per_face(named)
+
+    def _assign(
+        self, ekf: RelativeNavEKF, rects: Rects
+    ) -> list[tuple[RectangleMeasurement, CatalogueEntry]]:
+        """The rectangles a filter's predicted pose explains, as catalogue faces (one per face)."""
+        found = explained_rectangles(ekf.predict_pose(), rects)
+        return _one_per_face([(rects[i][0], e) for i, e in found])
+
+    def _start(self, t: float, cloud: PointCloud | None, rects: Rects) -> list[NDArray[np.float64]]:
+        """Start poses ``T_sensor_model`` (4, 4): one from the prior, or the equally good
+        lost-in-space hypotheses (none when the frame has no usable rectangle)."""
+        R_prior = self.predicted_R_sensor_model(t)
+        if R_prior is not None:
+            config = self.config.rectangle
+            named = [(m, e) for m, entries in rects
+                     if (e := _named(m, entries, config, R_prior)) is not None]  # fmt: skip
+            return [consistent_rectangles(_one_per_face(named), R_prior)] if named else []
+        hypotheses = attitude_hypotheses(rects, self.config.lost_in_space.same_pose_deg)
+        if not hypotheses or cloud is None:
+            return []
+        c = self.config.lost_in_space
+        frame = FrameEvidence.build(cloud.points, rects, self.config.rectangle.sigma)
+        poses = [h.T_sensor_model for h in hypotheses]
+        if self.model is not None:
+            poses = [refine_on_model(T, frame, self.model, c) for T in poses]
+        scores = [explained_share(T, frame, self.model, c) for T in poses]
+        keep = equally_good(scores, c.start_margin)[: c.max_candidates]
+        return [poses[i] for i in keep]
+
+    def _prune(self, cloud: PointCloud, rects: Rects, used: list[int]) -> list[int]:
+        """Score every candidate at its estimate, drop those the data have decided against and
+        those that became the same pose as a better one; the candidates left, best first."""
+        c = self.config.lost_in_space
+        frame = FrameEvidence.build(cloud.points, rects, self.config.rectangle.sigma)
+        poses = [track.ekf.predict_pose() for track in self.tracks]
+        if self.model is not None:
+            poses = [refine_on_model(T, frame, self.model, c) for T in poses]
+        scores = np.array([explained_share(T, frame, self.model, c) for T in poses])
+        for track, score in zip(self.tracks, scores, strict=True):
+            track.deficits.append(float(scores.max() - score))
+            track.explained = float(score)
+        keep: list[int] = []
+        for i in np.argsort(-scores, kind="stable"):
+            d = self.tracks[i].deficits
+            if len(d) >= c.decide_frames and np.median(d[-c.decide_frames :]) > c.ambiguity_margin:
                 continue
-            m = f.measurement
-            if self.config.area_weighted_centroid:
-                m = replace(m, centroid=area_weighted_centroid(cloud.points[f.plane.inliers]))
-            seen[f.name] = m
-        return [(m, self.catalogue[name]) for name, m in seen.items()]
+            if any(_same_pose(poses[i], poses[j], c.same_pose_deg) for j in keep):
+                continue
+            keep.append(int(i))
+        self.tracks = [self.tracks[i] for i in keep]
+        return [used[i] for i in keep]
 
     def _start_filter(self, t: float, T_sensor_model: NDArray[np.float64]) -> RelativeNavEKF:
         """Filter initialised from a coarse pose (Δ = 0, so ρ is the B' origin) and priors."""
@@ -380,10 +369,10 @@ class RelativeNavigator:
         )
         return RelativeNavEKF(self.n, self.R_O_C, initial, c.ekf)
 
-    def _update(self, rects: list[tuple[RectangleMeasurement, CatalogueEntry]]) -> int:
+    def _update(
+        self, ekf: RelativeNavEKF, rects: list[tuple[RectangleMeasurement, CatalogueEntry]]
+    ) -> int:
         """Attitude then centroid updates of every rectangle; the number of rectangles used."""
-        assert self.ekf is not None
-        ekf = self.ekf
         used = 0
         # Largest faces first: they constrain the attitude best before the others are gated.
         for m, e in sorted(rects, key=lambda p: -p[0].n_points):
@@ -399,6 +388,35 @@ class RelativeNavigator:
         return used
 
 
+def _named(
+    m: RectangleMeasurement,
+    entries: list[CatalogueEntry],
+    config: RectangleConfig,
+    R_pred: NDArray[np.float64],
+) -> CatalogueEntry | None:
+    """The entry a predicted attitude names among a rectangle's candidates, or None."""
+    name = recognise(m, entries, config, R_pred)
+    return next((e for e in entries if e.name == name), None)
+
+
+def _one_per_face(
+    pairs: list[tuple[RectangleMeasurement, CatalogueEntry]],
+) -> list[tuple[RectangleMeasurement, CatalogueEntry]]:
+    """Two planes matched to one face: keep the larger (the other is a fragment)."""
+    best: dict[str, tuple[RectangleMeasurement, CatalogueEntry]] = {}
+    for m, e in pairs:
+        if e.name not in best or m.n_points > best[e.name][0].n_points:
+            best[e.name] = (m, e)
+    return list(best.values())
+
+
+def _same_pose(T: NDArray[np.float64], U: NDArray[np.float64], same_pose_deg: float) -> bool:
+    """Whether two poses' attitudes lie within ``same_pose_deg`` (their positions then agree
+    to the filters' accuracy: every candidate fits the same points)."""
+    angle = Rotation.from_matrix(T[:3, :3] @ U[:3, :3].T).magnitude()
+    return bool(np.rad2deg(angle) < same_pose_deg)
+
+
 def nav_table(rows: Sequence[NavRow]) -> tuple[list[str], list[list[float | int | str]]]:
     """Column names (:data:`NAV_COLUMNS`) and one list of values per row."""
     return list(NAV_COLUMNS), [row.values() for row in rows]
@@ -410,6 +428,7 @@ def navigate(
     mean_motion: float,
     R_O_C: ArrayLike,
     config: NavigationConfig | None = None,
+    model: PointCloud | None = None,
 ) -> list[NavRow]:
     """One call: run :class:`RelativeNavigator` over ``(t, cloud)`` frames, one row per frame."""
-    return RelativeNavigator(catalogue, mean_motion, R_O_C, config).run(frames)
+    return RelativeNavigator(catalogue, mean_motion, R_O_C, config, model).run(frames)

@@ -220,6 +220,55 @@ def largest_component(points: ArrayLike, radius: float) -> NDArray[np.intp]:
     return np.flatnonzero(labels == np.argmax(np.bincount(labels)))
 
 
+def dense_support(
+    points: ArrayLike, normal: ArrayLike, k: int = 8, spread: float = 2.0
+) -> NDArray[np.intp]:
+    """Indices (sorted) of the dense connected region of a plane's points: the face itself.
+
+    A RANSAC slab keeps every stray point that falls inside it, and those far from the face pull
+    its distribution matrix (Y1's uniform outliers moved the sides by a centimetre). On the face
+    the points lie at the sampling's spacing; strays inside the slab lie far sparser. In the
+    plane's own coordinates each point's distance to its k-th neighbour measures the local
+    spacing; the points whose spacing is at most ``spread`` times the median one are dense, and
+    of them the largest group connected by steps of ``spread`` median spacings is kept. Every
+    length comes from the points themselves. ``spread`` 2 keeps a face's edges (neighbours in a
+    half disc: √2 times the spacing) and, on average, its corners (a quarter disc: twice), and
+    drops strays more than about one spacing outside the edge. Measured on Y1-style clouds
+    (10 × 18 cm, 1,250 points, 1,250 outliers in a box), with the ``random`` edge estimate of
+    :func:`spacepose.core.rectangles.measure_rectangle`: sides 0.51 ± 0.43 and −0.20 ± 0.63 mm
+    off and the centre 0.37 ± 0.20 mm off over 10 seeds (the whole slab: 8.4 and 10.6 mm,
+    1.7 mm). Over 30 seeds, a ``spread`` of 2.5 keeps more strays along the long edges (short
+    side up to 3.6 mm off) and 1.5 trims the face (long side 1.1 mm short on average).
+
+    Parameters
+    ----------
+    points
+        (K, 3) points of one plane (any frame, m), K > k.
+    normal
+        (3,) the plane's unit normal.
+    k
+        Neighbour rank of the spacing.
+    spread
+        Largest spacing of a dense point, in median spacings.
+
+    Returns
+    -------
+    Indices into ``points``; all of them when there are k or fewer.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) <= k:
+        return np.arange(len(pts))
+    n = np.asarray(normal, dtype=np.float64)
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u)
+    uv = pts @ np.column_stack([u, np.cross(n, u)])
+    spacing = cKDTree(uv).query(uv, k=k + 1)[0][:, k]
+    step = spread * float(np.median(spacing))
+    dense = np.flatnonzero(spacing <= step)
+    return dense[largest_component(np.column_stack([uv[dense], np.zeros(len(dense))]), step)]
+
+
 def _refit(points: NDArray[np.float64], inliers: NDArray[np.intp], config: PlaneConfig) -> Plane:
     """PCA refit of a hypothesis' inliers, the refitted plane's inliers, their largest group."""
     normal, offset = fit_plane(points[inliers])

@@ -20,10 +20,14 @@ reject such planes before the size match:
   inside the outline lowers it;
 * the two sides must differ by more than the side tolerance, since for a square the
   distribution matrix leaves the in-plane axes (hence the attitude) undetermined;
-* the sides must match a catalogue entry (a rectangle cut straight is a smaller rectangle; the
-  catalogue's entries are kept apart by more than the tolerance, see
-  :func:`spacepose.tools.catalogue.load_catalogue`, except faces of equal size whose outward
-  normals differ by more than 90°, which a predicted attitude tells apart).
+* the sides must match a catalogue entry (a rectangle cut straight is a smaller rectangle).
+  Faces of equal size (a box's opposite faces, a panel's two sides, two equal wings) all match:
+  :func:`candidates` lists them, and a predicted pose (or the lost-in-space start of
+  :mod:`spacepose.core.navigation`) tells which one it is.
+
+Before any of this a plane keeps only its dense connected region
+(:func:`spacepose.core.rectangle_search.measure_planes`): the stray points a RANSAC slab collects
+around the face would otherwise pull the distribution matrix.
 
 All vectors are in the frame of the points (the sensor frame), in metres.
 """
@@ -38,28 +42,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
-from spacepose.core.planes import (
-    Plane,
-    PlaneConfig,
-    as_points,
-    distribution,
-    extract_planes,
-    is_collinear,
-)
+from spacepose.core.planes import distribution, is_collinear
 from spacepose.errors import DegenerateGeometryError
 
 __all__ = [
     "UNIFORM_KURTOSIS",
     "CatalogueEntry",
-    "FoundPlane",
     "RectangleConfig",
     "RectangleMeasurement",
     "candidates",
     "distribution",
     "fill_ratio",
-    "find_rectangles",
     "measure_rectangle",
     "recognise",
     "rejection_reason",
@@ -70,6 +64,8 @@ __all__ = [
 UNIFORM_KURTOSIS = 1.8
 # Tail share cut on each side by the quantile extent (robust to stray points and noise).
 _EXTENT_QUANTILE = 0.02
+# Tail share of the edge estimate of independent uniform samples (sides and centre, "random").
+_EDGE_QUANTILE = 0.005
 
 
 class CatalogueEntry(BaseModel):
@@ -140,7 +136,11 @@ class RectangleConfig(StageConfig):
         moments scatter little, so the shape checks use the tolerances below as they are.
         ``"random"``: independent uniform points, whose moment ratios, extents and centroid
         scatter by about ``2.4/√N``, ``0.5 s/√N`` and ``0.29 s/√N`` (side s); 3 of these are
-        added to the tolerances so that whole rectangles are not rejected by chance.
+        added to the tolerances so that whole rectangles are not rejected by chance. The sides
+        and the centre are then measured from the edges (:func:`measure_rectangle`).
+    support
+        Measure only the plane's dense connected region
+        (:func:`spacepose.core.planes.dense_support`), not every point of the RANSAC slab.
     kurtosis_tolerance
         Largest allowed ``|E[u⁴]/E[u²]² − 1.8|`` along either side (noise-corrected); a disc or
         an ellipse gives 2.0; hidden corners and bands move it by 0.1 and more (1.64 to 2.74
@@ -174,6 +174,7 @@ class RectangleConfig(StageConfig):
     min_fill: float = Field(0.95, gt=0)
     min_points: int = Field(50, ge=3)
     max_thickness: float = Field(0.01, gt=0)
+    support: bool = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -183,13 +184,15 @@ class RectangleMeasurement:
     Attributes
     ----------
     centroid
-        (3,) mean of the points.
+        (3,) centre of the rectangle: the mean of the points (``"grid"``), or the middle of its
+        edges (``"random"``).
     normal
         (3,) unit normal, the third column of ``R_sensor_plane``.
     eigenvalues
         (3,) eigenvalues of the distribution matrix, ascending (m²), noise included.
     a, b
-        Noise-corrected short and long sides (m), ``a <= b`` (0 when the variance is below σ²).
+        Short and long sides (m), ``a <= b``: noise-corrected from the eigenvalues (``"grid"``,
+        0 when the variance is below σ²), or from the edges (``"random"``).
     kurtosis
         (2,) noise-corrected ``E[u⁴]/E[u²]²`` along the short and the long side (1.8 when uniform).
     extent
@@ -205,6 +208,9 @@ class RectangleMeasurement:
         Number of points measured.
     sigma
         The noise σ (m) assumed in the correction.
+    moment_sides
+        (2,) the sides from the eigenvalues, whatever the sampling (the shape checks compare
+        them with ``extent``).
     """
 
     centroid: NDArray[np.float64]
@@ -218,9 +224,12 @@ class RectangleMeasurement:
     R_sensor_plane: NDArray[np.float64]
     n_points: int
     sigma: float
+    moment_sides: NDArray[np.float64]
 
 
-def measure_rectangle(points: ArrayLike, sigma: float = 0.0) -> RectangleMeasurement:
+def measure_rectangle(
+    points: ArrayLike, sigma: float = 0.0, sampling: Literal["grid", "random"] = "grid"
+) -> RectangleMeasurement:
     """Centroid, sides, moment ratios and plane frame of the points of one plane.
 
     Parameters
@@ -229,6 +238,14 @@ def measure_rectangle(points: ArrayLike, sigma: float = 0.0) -> RectangleMeasure
         (N, 3) points of one plane, sensor frame (m), N >= 3.
     sigma
         Isotropic noise standard deviation (m) to remove from the eigenvalues.
+    sampling
+        ``"grid"``: sides from the eigenvalues and the centre from the mean (exact on a regular
+        grid). ``"random"``: N independent uniform points, whose mean and variance scatter by
+        ``s/√(12N)`` and the side from the variance by ``s √(0.2/N)`` (1.5 mm and 2.3 mm for Y1's
+        18 cm side and N = 1250);
+        their edges are far sharper, so the sides and the centre come from the 0.5 % and 99.5 %
+        quantiles along each in-plane axis, ``side = (hi − lo) / 0.99`` (scatter about
+        ``s √(2·0.005/N)``). In-plane noise widens those edges: keep σ well below the spacing.
 
     Raises
     ------
@@ -261,8 +278,14 @@ def measure_rectangle(points: ArrayLike, sigma: float = 0.0) -> RectangleMeasure
         kurtosis = np.where(m2c > 0, m4c / m2c**2, np.nan)
     lo, hi = np.quantile(uv, [_EXTENT_QUANTILE, 1.0 - _EXTENT_QUANTILE], axis=0)
     extent = (hi - lo) / (1.0 - 2.0 * _EXTENT_QUANTILE)
+    moment_sides = np.array([a, b])
+    centre = centroid
+    if sampling == "random":
+        lo_e, hi_e = np.quantile(uv, [_EDGE_QUANTILE, 1.0 - _EDGE_QUANTILE], axis=0)
+        a, b = (hi_e - lo_e) / (1.0 - 2.0 * _EDGE_QUANTILE)
+        centre = centroid + R[:, :2] @ (0.5 * (lo_e + hi_e))
     return RectangleMeasurement(
-        centroid=centroid,
+        centroid=centre,
         normal=normal,
         eigenvalues=eigenvalues,
         a=float(a),
@@ -273,6 +296,7 @@ def measure_rectangle(points: ArrayLike, sigma: float = 0.0) -> RectangleMeasure
         R_sensor_plane=R,
         n_points=len(pts),
         sigma=float(sigma),
+        moment_sides=moment_sides,
     )
 
 
@@ -315,12 +339,12 @@ def _shape_problem(m: RectangleMeasurement, config: RectangleConfig) -> str | No
     ):
         k = ", ".join(f"{v:.3f}" for v in m.kurtosis)
         return f"fourth-moment ratios ({k}) are not those of a uniform rectangle (1.8)"
-    sides = np.array([m.a, m.b])
+    sides = m.moment_sides
     allowed = (config.extent_tolerance + 0.5 * scatter) * sides + 3.0 * m.sigma
     if np.any(np.abs(m.extent - sides) > allowed):
         return (
             f"extents ({m.extent[0]:.4g}, {m.extent[1]:.4g}) m disagree with the sides "
-            f"({m.a:.4g}, {m.b:.4g}) m: not a whole rectangle (occluded?)"
+            f"({sides[0]:.4g}, {sides[1]:.4g}) m: not a whole rectangle (occluded?)"
         )
     if config.focal_px is not None and fill_ratio(m, config.focal_px) < config.min_fill:
         return (
@@ -424,56 +448,3 @@ def recognise(
     """
     entry = _decide(measurement, catalogue, config, predicted_R_sensor_model)[0]
     return None if entry is None else entry.name
-
-
-@dataclass(frozen=True, eq=False)
-class FoundPlane:
-    """One extracted plane, its measurement and, if recognised, its catalogue entry's name.
-
-    Attributes
-    ----------
-    plane
-        From :func:`spacepose.core.planes.extract_planes`; inliers index the input cloud.
-    measurement
-        :func:`measure_rectangle` of the plane's inliers.
-    name
-        The recognised catalogue rectangle, or None.
-    """
-
-    plane: Plane
-    measurement: RectangleMeasurement
-    name: str | None
-
-
-def find_rectangles(
-    cloud_or_points: PointCloud | ArrayLike,
-    catalogue: Sequence[CatalogueEntry] = (),
-    plane_config: PlaneConfig = PlaneConfig(),
-    config: RectangleConfig = RectangleConfig(),
-    predicted_R_sensor_model: ArrayLike | None = None,
-) -> list[FoundPlane]:
-    """Extract planes, measure each as a rectangle and recognise it against the catalogue.
-
-    Parameters
-    ----------
-    cloud_or_points
-        (N, 3) points or a PointCloud in the sensor frame (m).
-    catalogue
-        Known rectangles; with none, every ``name`` is None.
-    plane_config, config
-        RANSAC and recognition settings (``config.sigma`` is the noise removed).
-    predicted_R_sensor_model
-        Optional (3, 3) predicted attitude, to tell faces of equal size apart.
-
-    Returns
-    -------
-    One :class:`FoundPlane` per extracted plane, in extraction order.
-    """
-    pts = as_points(cloud_or_points)
-    found = []
-    for plane in extract_planes(pts, plane_config):
-        m = measure_rectangle(pts[plane.inliers], config.sigma)
-        found.append(
-            FoundPlane(plane, m, recognise(m, catalogue, config, predicted_R_sensor_model))
-        )
-    return found

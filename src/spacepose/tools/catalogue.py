@@ -5,10 +5,12 @@ user file); a scenario file with ``target.rectangles`` (what ``spacepose simulat
 top-level ``rectangles``. Each entry is ``{name, center, R_model_plane, a, b}`` in the model
 frame B', metres (see :class:`spacepose.core.rectangles.CatalogueEntry`).
 
-A catalogue is only useful if every rectangle can be told apart from the others. Two entries
-conflict when both their sides lie within the summed recognition tolerances of each other
-(a measurement of one could match the other) and their outward normals are less than 90° apart
-(so a predicted attitude cannot separate them either, as it does for the opposite faces of a box).
+Faces of equal size are legal: a box's opposite faces, a panel's two sides, a mock-up's two
+equal wings. Their sides alone do not name them (:func:`size_classes` lists which entries share
+a size); a predicted pose, or the lost-in-space start, does. What is refused is the same face
+listed twice: two entries whose sides lie within the summed recognition tolerances of each
+other, whose outward normals are less than 90° apart and whose centres lie within the summed
+tolerances of their long sides, so that no pose could ever tell them apart.
 """
 
 from __future__ import annotations
@@ -18,13 +20,22 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import ValidationError
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from spacepose.core.config import parse_structured
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, side_tolerance
 from spacepose.errors import ConfigError
 
-__all__ = ["CatalogueEntry", "check_distinguishable", "load_catalogue", "parse_catalogue"]
+__all__ = [
+    "CatalogueEntry",
+    "check_distinguishable",
+    "load_catalogue",
+    "parse_catalogue",
+    "size_classes",
+]
 
 
 def _entries_of(data: Any, source: str) -> list:
@@ -53,7 +64,7 @@ def parse_catalogue(
     ConfigError
         Naming ``source`` and the entry: a malformed entry (missing field, ``a > b``, a rotation
         that is not orthonormal with det +1), duplicate names, an empty catalogue, or two entries
-        that cannot be told apart (:func:`check_distinguishable`).
+        that are the same face (:func:`check_distinguishable`).
     """
     source = str(source)
     raw = _entries_of(data, source)
@@ -80,37 +91,66 @@ def parse_catalogue(
     return entries
 
 
-def check_distinguishable(
-    entries: Sequence[CatalogueEntry],
-    config: RectangleConfig = RectangleConfig(),
-    source: str | Path = "catalogue",
-) -> None:
-    """Raise ConfigError naming the first pair of entries that recognition cannot tell apart.
-
-    Entries i and j conflict when ``|a_i − a_j| <= tol(a_i) + tol(a_j)`` and the same holds for
-    b (tol from :func:`spacepose.core.rectangles.side_tolerance`), and their outward normals
-    are less than 90° apart.
-    """
-    if len(entries) < 2:
-        return
+def _same_size(
+    entries: Sequence[CatalogueEntry], config: RectangleConfig
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """(n, n) whether two entries' sides both lie within the summed tolerances; tol(b) (n,)."""
     a = np.array([e.a for e in entries])
     b = np.array([e.b for e in entries])
-    normals = np.stack([e.rotation[:, 2] for e in entries])
     tol_a = np.array([side_tolerance(v, config) for v in a])
     tol_b = np.array([side_tolerance(v, config) for v in b])
     close = (np.abs(a[:, None] - a[None]) <= tol_a[:, None] + tol_a[None]) & (
         np.abs(b[:, None] - b[None]) <= tol_b[:, None] + tol_b[None]
     )
+    return close, tol_b
+
+
+def size_classes(
+    entries: Sequence[CatalogueEntry], config: RectangleConfig = RectangleConfig()
+) -> list[list[str]]:
+    """Names of the entries whose sides a measurement cannot tell apart, one list per class.
+
+    Classes are the connected groups of entries of the same size (sides within the summed
+    tolerances, :func:`spacepose.core.rectangles.side_tolerance`), in catalogue order; an entry
+    alone in its class is named by its sides.
+    """
+    if len(entries) == 0:
+        return []
+    close, _ = _same_size(entries, config)
+    _, labels = connected_components(csr_matrix(close), directed=False)
+    order = list(dict.fromkeys(labels.tolist()))
+    return [[e.name for e, lab in zip(entries, labels, strict=True) if lab == k] for k in order]
+
+
+def check_distinguishable(
+    entries: Sequence[CatalogueEntry],
+    config: RectangleConfig = RectangleConfig(),
+    source: str | Path = "catalogue",
+) -> None:
+    """Raise ConfigError naming the first pair of entries that are the same face listed twice.
+
+    Entries i and j are the same face when ``|a_i − a_j| <= tol(a_i) + tol(a_j)`` and the same
+    holds for b (tol from :func:`spacepose.core.rectangles.side_tolerance`), their outward
+    normals are less than 90° apart and their centres lie within ``tol(b_i) + tol(b_j)``.
+    Equal faces elsewhere on the target (opposite faces, two equal wings) are legal.
+    """
+    if len(entries) < 2:
+        return
+    close, tol_b = _same_size(entries, config)
+    normals = np.stack([e.rotation[:, 2] for e in entries])
+    centres = np.stack([e.centre for e in entries])
     # A small margin so that exactly perpendicular faces (a box's sides) count as separable.
     close &= normals @ normals.T > 1e-6
+    apart = np.linalg.norm(centres[:, None] - centres[None], axis=2)
+    close &= apart <= tol_b[:, None] + tol_b[None]
     i, j = np.nonzero(np.triu(close, k=1))
     if len(i):
         ei, ej = entries[int(i[0])], entries[int(j[0])]
         raise ConfigError(
             f"{source}: rectangles {ei.name!r} ({ei.a:g} x {ei.b:g} m) and {ej.name!r} "
-            f"({ej.a:g} x {ej.b:g} m) cannot be told apart: sizes within the tolerance "
-            f"(abs {config.side_tolerance_abs:g} m + rel {config.side_tolerance_rel:g}) and "
-            "normals less than 90 degrees apart"
+            f"({ej.a:g} x {ej.b:g} m) cannot be told apart: the same face twice (sizes and "
+            f"centres within the tolerance, abs {config.side_tolerance_abs:g} m + rel "
+            f"{config.side_tolerance_rel:g}, normals less than 90 degrees apart)"
         )
 
 
@@ -124,7 +164,7 @@ def load_catalogue(
     path
         ``.json`` is read as JSON, anything else as YAML.
     config
-        Recognition tolerances the entries must be distinguishable at.
+        Recognition tolerances (two entries within them at the same place are one face twice).
 
     Raises
     ------

@@ -1,4 +1,10 @@
-"""Relative navigation of a run folder: read the run, navigate, write NAV.csv and its config."""
+"""Relative navigation of a run folder: read the run, navigate, write NAV.csv and its config.
+
+While the target's pose is ambiguous (a symmetric target, or a view that hides what breaks the
+symmetry) NAV.csv has no state, and ``NAV.candidates.csv`` lists every candidate filter's
+estimate per frame. A run in which no frame is navigated writes both files and then fails with
+one line saying why.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +16,7 @@ from pathlib import Path
 import yaml
 from numpy.typing import ArrayLike
 
+from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, parse_problem
 from spacepose.core.navigation import (
     NavigationConfig,
@@ -20,6 +27,7 @@ from spacepose.core.navigation import (
 )
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.catalogue import parse_catalogue
+from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.frames import open_frames
 from spacepose.tools.runs import SCENARIO, read_run
 
@@ -33,6 +41,8 @@ class NavigationSummary:
     frames: int
     navigated: int
     rows: tuple[NavRow, ...]
+    ambiguous: int = 0
+    candidates_csv: Path | None = None
 
 
 def write_nav_csv(path: str | Path, rows: Sequence[NavRow]) -> Path:
@@ -49,6 +59,23 @@ def write_nav_csv(path: str | Path, rows: Sequence[NavRow]) -> Path:
     return path
 
 
+CANDIDATE_COLUMNS = "t,candidate,explained,rho_x,rho_y,rho_z,qx,qy,qz,qw".split(",")
+
+
+def write_candidates_csv(path: str | Path, rows: Sequence[NavRow]) -> Path:
+    """Write the candidates of every ``ambiguous`` row, one line each, best first
+    (columns :data:`CANDIDATE_COLUMNS`: ρ in m and q_I_B scalar-last, as in NAV.csv)."""
+    path = Path(path)
+    with path.open("w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(CANDIDATE_COLUMNS)
+        for row in rows:
+            for i, c in enumerate(row.candidates):
+                values = [c.explained, *c.state.rho, *c.state.q_I_B]
+                writer.writerow([f"{row.t:.17g}", i, *(f"{v:.17g}" for v in values)])
+    return path
+
+
 def navigate_run(
     input_dir: str | Path,
     out: str | Path,
@@ -56,7 +83,9 @@ def navigate_run(
     *,
     scenario: str | Path | None = None,
     prior_q_I_B: ArrayLike | None = None,
-    prior_from_scenario: bool = False,
+    debug_prior_from_truth: bool = False,
+    intrinsics: str | Path | None = None,
+    topic: str | None = None,
 ) -> NavigationSummary:
     """Navigate every frame of an orbit run; writes ``out`` and ``out``'s ``.config.json``.
 
@@ -73,14 +102,25 @@ def navigate_run(
         Navigation config; defaults in code.
     scenario
         YAML or JSON file with ``mean_motion`` (rad/s), ``R_O_C`` (3×3) and ``rectangles`` (the
-        catalogue), optionally ``initial_q_I_B``; overrides a run folder's scenario.json.
+        catalogue), optionally ``model`` (a cloud file of the target's surface samples with
+        normals, relative to the scenario file) and ``initial_q_I_B``; overrides a run
+        folder's scenario.json. A run folder's ``model.ply`` is the model otherwise.
     prior_q_I_B
-        Coarse attitude prior (x, y, z, w) that picks among the target's symmetric poses at start.
-    prior_from_scenario
-        Take the prior from the scenario's ``initial_q_I_B`` (the simulator's true start attitude).
+        Optional coarse attitude prior (x, y, z, w) that picks among the target's symmetric
+        poses at start; without it the navigator starts lost in space.
+    debug_prior_from_truth
+        DEBUGGING ONLY: take the prior from the scenario's ``initial_q_I_B``, the simulator's
+        true start attitude, which no real run has.
+    intrinsics, topic
+        Depth image intrinsics file and bag topic (see :func:`spacepose.tools.frames.open_frames`).
+
+    Raises
+    ------
+    InputError
+        Besides bad input: no frame was navigated (after NAV.csv is written), saying why.
     """
     cfg = config or NavigationConfig()
-    frames = open_frames(input_dir)
+    frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
     if scenario is not None:
         source = str(scenario)
         description = _read_mapping(Path(scenario))
@@ -93,18 +133,58 @@ def navigate_run(
         )
     n, R_O_C = scenario_geometry(description, source)
     catalogue = parse_catalogue(description, cfg.rectangle, source)
-    if prior_from_scenario:
+    model = _model(input_dir, scenario, description)
+    if cfg.lost_in_space.fov_deg is None and "sensor_fov_deg" in description:
+        fov = tuple(float(v) for v in description["sensor_fov_deg"])
+        cfg = cfg.model_copy(update={"lost_in_space": cfg.lost_in_space.model_copy(
+            update={"fov_deg": fov})})  # fmt: skip
+    if debug_prior_from_truth:
         if "initial_q_I_B" not in description:
             raise InputError("missing key 'initial_q_I_B' for the attitude prior", source)
         prior_q_I_B = description["initial_q_I_B"]
     if prior_q_I_B is not None:
         prior = tuple(float(v) for v in prior_q_I_B)
         cfg = NavigationConfig.model_validate(cfg.model_dump() | {"prior_q_I_B": prior})
-    rows = navigate(((f.timestamp, f.cloud) for f in frames), catalogue, n, R_O_C, cfg)
+    rows = navigate(((f.timestamp, f.cloud) for f in frames), catalogue, n, R_O_C, cfg, model)
     nav_csv = write_nav_csv(out, rows)
     config_json = dump_config(cfg, Path(out).with_suffix(".config.json"))
-    navigated = sum(r.status != "waiting" for r in rows)
-    return NavigationSummary(nav_csv, config_json, len(rows), navigated, tuple(rows))
+    navigated = sum(r.state is not None for r in rows)
+    ambiguous = sum(r.status == "ambiguous" for r in rows)
+    candidates_csv = None
+    if ambiguous:
+        candidates_csv = write_candidates_csv(Path(out).with_suffix(".candidates.csv"), rows)
+    if navigated == 0:
+        raise InputError(_why_nothing(rows, candidates_csv, model is not None), input_dir)
+    return NavigationSummary(
+        nav_csv, config_json, len(rows), navigated, tuple(rows), ambiguous, candidates_csv
+    )
+
+
+def _why_nothing(rows: Sequence[NavRow], candidates_csv: Path | None, has_model: bool) -> str:
+    """One line: why no frame of the run was navigated."""
+    if candidates_csv is not None:
+        most = max(len(r.candidates) for r in rows)
+        extra = "" if has_model else "; a target model (model.ply) might tell them apart"
+        return (
+            f"no frame navigated: the target's pose stayed ambiguous in all {len(rows)} frames "
+            f"(up to {most} candidates explain the data equally well: a symmetric target?), "
+            f"candidates in {candidates_csv}{extra}"
+        )
+    return (
+        f"no frame navigated: none of the {len(rows)} frames shows a whole rectangle of the "
+        "catalogue (check the catalogue's sizes and the plane settings)"
+    )
+
+
+def _model(
+    input_dir: str | Path, scenario: str | Path | None, description: dict
+) -> PointCloud | None:
+    """The target's surface samples: the scenario's ``model`` file, else a run's model.ply."""
+    if scenario is not None and "model" in description:
+        return read_cloud(Path(scenario).parent / str(description["model"]))
+    if (Path(input_dir) / SCENARIO).is_file() and (Path(input_dir) / "model.ply").is_file():
+        return read_run(input_dir).model
+    return None
 
 
 def _read_mapping(path: Path) -> dict:

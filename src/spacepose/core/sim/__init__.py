@@ -21,6 +21,7 @@ from spacepose.core.sim.targets import (
     load_mesh,
     orbit_target,
     sample_surface,
+    symmetric_orbit_target,
 )
 
 __all__ = [
@@ -44,4 +45,5 @@ __all__ = [
     "simulate",
     "simulate_lab",
     "simulate_orbit",
+    "symmetric_orbit_target",
 ]

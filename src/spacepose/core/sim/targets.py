@@ -79,7 +79,7 @@ class Target:
     Attributes
     ----------
     name
-        ``"lab"``, ``"orbit"`` or the mesh file's name.
+        ``"lab"``, ``"orbit"``, ``"orbit-symmetric"`` or the mesh file's name.
     mesh
         The whole surface, one triangle mesh, model frame, metres.
     rectangles
@@ -187,33 +187,75 @@ def lab_target() -> Target:
     return _assemble("lab", parts, _rename_wing_faces(rects))
 
 
-def orbit_target() -> Target:
-    """The orbit satellite of Yu et al. (METHODS §3); model frame = B' (nominal body frame).
+def symmetric_orbit_target() -> Target:
+    """The first orbit satellite: a box bus with one wing on its y axis; model frame = B'.
 
     Bus 2.4 × 1.8 × 1.4 m (x × y × z) centred at the B' origin (the nominal centre of mass), axes
     along the principal axes; one 6.0 × 2.0 m wing (4 cm thick) on a 0.5 m boom from the +y face,
-    its long side along y and its faces normal to ±z. Bus face sizes (2.4×1.8, 2.4×1.4, 1.8×1.4)
-    and the wing all differ, so each rectangle is identified by its sides alone.
+    its long side along y and its faces normal to ±z. Kept as a test case of a symmetric target:
+    a 180° turn about y maps the whole shape onto itself, and every rectangle has a twin of equal
+    size (the opposite bus face, the wing's other face), so no range image can tell those two
+    attitudes apart.
     """
     bus = (2.4, 1.8, 1.4)
-    wing = (2.0, 6.0, 0.04)
-    boom = 0.5
     parts = [_box(bus, (0.0, 0.0, 0.0))]
     rects = box_rectangles("bus", bus, np.eye(4))
+    _add_wing(parts, rects, bus)
+    return _assemble("orbit-symmetric", parts, _rename_wing_faces(rects))
+
+
+def orbit_target() -> Target:
+    """The default orbit satellite (METHODS §3), asymmetric as real ones are; model frame = B'.
+
+    The bus and wing of :func:`symmetric_orbit_target` (bus 2.4 × 1.8 × 1.4 m, one 6.0 × 2.0 m
+    wing on a 0.5 m boom from +y, faces normal to ±z), plus:
+
+    * an antenna panel 0.8 × 1.2 m (4 cm thick) on a 0.6 m mast from the −y face, its faces
+      normal to ±x, its long side along z and its centre 0.5 m above the bus mid-plane;
+    * an instrument: a 0.25 m cube at the end of a 0.8 m boom (4 cm radius) leaving the bus edge
+      between +x and −y at z = −0.3 m, diagonally outwards.
+
+    No rotation maps the shape onto itself, but rectangles of equal size remain: the opposite bus
+    faces (2.4 × 1.8, 2.4 × 1.4, 1.8 × 1.4 m), the wing's two faces (2.0 × 6.0 m) and the
+    panel's two faces (0.8 × 1.2 m). A rectangle's sides name its size class only; which face of
+    the class it is, and the pose, follow from the other visible faces and parts
+    (:mod:`spacepose.core.lost_in_space`).
+    """
+    bus = (2.4, 1.8, 1.4)
+    parts = [_box(bus, (0.0, 0.0, 0.0))]
+    rects = box_rectangles("bus", bus, np.eye(4))
+    _add_wing(parts, rects, bus)
+    panel, mast = (0.04, 0.8, 1.2), 0.6
+    root = -bus[1] / 2
+    parts.append(_cylinder(0.04, (0.0, root, 0.5), (0.0, root - mast, 0.5)))
+    centre = np.array([0.0, root - mast - panel[1] / 2, 0.5])
+    parts.append(_box(panel, centre))
+    rects += box_rectangles("antenna", panel, se3.make_transform(np.eye(3), centre), ("+x", "-x"))
+    # The boom leaves from the bus edge (+x, −y), so that no face has a hole in its middle.
+    root = np.array([bus[0] / 2, -bus[1] / 2, -0.3])
+    out = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
+    tip = root + 0.8 * out
+    parts.append(_cylinder(0.04, root, tip))
+    parts.append(_box((0.25, 0.25, 0.25), tip + 0.125 * out))
+    return _assemble("orbit", parts, _rename_wing_faces(rects))
+
+
+def _add_wing(parts: list[trimesh.Trimesh], rects: list[Rectangle], bus: tuple) -> None:
+    """The 6.0 × 2.0 m wing on its 0.5 m boom from the bus's +y face (both wing faces listed)."""
+    wing, boom = (2.0, 6.0, 0.04), 0.5
     root = bus[1] / 2
     parts.append(_cylinder(0.05, (0.0, root, 0.0), (0.0, root + boom, 0.0)))
     centre = np.array([0.0, root + boom + wing[1] / 2, 0.0])
     parts.append(_box(wing, centre))
     rects += box_rectangles("wing", wing, se3.make_transform(np.eye(3), centre), ("+z", "-z"))
-    return _assemble("orbit", parts, _rename_wing_faces(rects))
 
 
 def _rename_wing_faces(rects: list[Rectangle]) -> list[Rectangle]:
-    """Wing faces read better as ``..._front`` (+z) and ``..._back`` (−z)."""
-    names = {"+z": "_front", "-z": "_back"}
+    """Wing and panel faces read better as ``..._front`` (+z, +x) and ``..._back`` (−z, −x)."""
+    names = {"+z": "_front", "-z": "_back", "+x": "_front", "-x": "_back"}
     return [
         Rectangle(r.name[:-2] + names[r.name[-2:]], r.center, r.R_model_plane, r.a, r.b)
-        if r.name.startswith("wing")
+        if r.name.startswith(("wing", "antenna"))
         else r
         for r in rects
     ]

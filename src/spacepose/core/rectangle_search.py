@@ -1,0 +1,145 @@
+"""Rectangles of a whole cloud: planes → each plane's own support → measurement → recognition.
+
+RANSAC (:func:`spacepose.core.planes.extract_planes`) finds the planes; each keeps only its
+dense connected region (:func:`spacepose.core.planes.dense_support`), since the stray points a
+slab collects around a face pull its distribution matrix; the support is measured as a
+rectangle (:func:`spacepose.core.rectangles.measure_rectangle`) and recognised against the
+catalogue (:func:`spacepose.core.rectangles.recognise`). All vectors are in the frame of the
+points (the sensor frame), in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.planes import (
+    Plane,
+    PlaneConfig,
+    as_points,
+    dense_support,
+    distribution,
+    extract_planes,
+    is_collinear,
+)
+from spacepose.core.rectangles import (
+    CatalogueEntry,
+    RectangleConfig,
+    RectangleMeasurement,
+    measure_rectangle,
+    recognise,
+)
+
+__all__ = ["FoundPlane", "MeasuredPlane", "find_rectangles", "measure_planes"]
+
+
+@dataclass(frozen=True, eq=False)
+class MeasuredPlane:
+    """One extracted plane and the measurement of its rectangle.
+
+    Attributes
+    ----------
+    plane
+        From :func:`spacepose.core.planes.extract_planes`; inliers index the input cloud.
+    support
+        Indices (into the input cloud) of the points measured: the plane's dense connected
+        region when ``RectangleConfig.support`` is set, else all its inliers.
+    measurement
+        :func:`measure_rectangle` of the support.
+    """
+
+    plane: Plane
+    support: NDArray[np.intp]
+    measurement: RectangleMeasurement
+
+
+def measure_planes(
+    cloud_or_points: PointCloud | ArrayLike,
+    plane_config: PlaneConfig = PlaneConfig(),
+    config: RectangleConfig = RectangleConfig(),
+) -> list[MeasuredPlane]:
+    """Extract the planes of a cloud and measure each one's support as a rectangle.
+
+    Parameters
+    ----------
+    cloud_or_points
+        (N, 3) points or a PointCloud in the sensor frame (m).
+    plane_config, config
+        RANSAC settings; the noise σ, sampling and support of the measurement.
+
+    Returns
+    -------
+    One :class:`MeasuredPlane` per extracted plane, in extraction order.
+    """
+    pts = as_points(cloud_or_points)
+    out = []
+    for plane in extract_planes(pts, plane_config):
+        support = plane.inliers
+        if config.support:
+            dense = plane.inliers[dense_support(pts[plane.inliers], plane.normal)]
+            if len(dense) >= 3 and not is_collinear(distribution(pts[dense])[1]):
+                support = dense
+        m = measure_rectangle(pts[support], config.sigma, config.sampling)
+        out.append(MeasuredPlane(plane, support, m))
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class FoundPlane:
+    """One extracted plane, its measurement and, if recognised, its catalogue entry's name.
+
+    Attributes
+    ----------
+    plane
+        From :func:`spacepose.core.planes.extract_planes`; inliers index the input cloud.
+    measurement
+        :func:`measure_rectangle` of the plane's support.
+    name
+        The recognised catalogue rectangle, or None.
+    support
+        Indices (into the input cloud) of the points measured (see :class:`MeasuredPlane`).
+    """
+
+    plane: Plane
+    measurement: RectangleMeasurement
+    name: str | None
+    support: NDArray[np.intp]
+
+
+def find_rectangles(
+    cloud_or_points: PointCloud | ArrayLike,
+    catalogue: Sequence[CatalogueEntry] = (),
+    plane_config: PlaneConfig = PlaneConfig(),
+    config: RectangleConfig = RectangleConfig(),
+    predicted_R_sensor_model: ArrayLike | None = None,
+) -> list[FoundPlane]:
+    """Extract planes, measure each as a rectangle and recognise it against the catalogue.
+
+    Parameters
+    ----------
+    cloud_or_points
+        (N, 3) points or a PointCloud in the sensor frame (m).
+    catalogue
+        Known rectangles; with none, every ``name`` is None.
+    plane_config, config
+        RANSAC and recognition settings (``config.sigma`` is the noise removed).
+    predicted_R_sensor_model
+        Optional (3, 3) predicted attitude, to tell faces of equal size apart.
+
+    Returns
+    -------
+    One :class:`FoundPlane` per extracted plane, in extraction order.
+    """
+    return [
+        FoundPlane(
+            f.plane,
+            f.measurement,
+            recognise(f.measurement, catalogue, config, predicted_R_sensor_model),
+            f.support,
+        )
+        for f in measure_planes(cloud_or_points, plane_config, config)
+    ]
