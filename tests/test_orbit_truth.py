@@ -64,6 +64,23 @@ def test_two_body_conserves_energy_and_angular_momentum_of_both_spacecraft() -> 
     assert np.linalg.norm(y[-1, :3] - r0) / np.linalg.norm(r0) < 1e-9
 
 
+def test_drag_takes_the_energy_the_closed_form_says() -> None:
+    """dE/dt = a_drag · v = −½ ρ B |v|³ per spacecraft; twice the ballistic coefficient, twice."""
+    rho_air, b_chaser, b_target = 1e-11, 0.01, 0.02
+    force = ForceModel(j2=False, drag_density=rho_air, ballistic_chaser=b_chaser,
+                       ballistic_target=b_target)  # fmt: skip
+    r0, v0 = keplerian_state(A_LEO, 0.0, np.radians(51.6), 0.0, 0.0, 0.0)
+    t = np.array([0.0, 600.0])
+    y = propagate_pair(r0, v0, [25.0, 0.0, 0.0], np.zeros(3), t, force)
+    speed = np.linalg.norm(v0)
+    for r, v, b in ((y[:, :3], y[:, 3:6], b_chaser),
+                    (y[:, :3] + y[:, 6:9], y[:, 3:6] + y[:, 9:12], b_target)):  # fmt: skip
+        energy = 0.5 * np.sum(v**2, axis=1) - EARTH_MU / np.linalg.norm(r, axis=1)
+        expected = -0.5 * rho_air * b * speed**3 * t[1]
+        assert (energy[1] - energy[0]) / expected == pytest.approx(1.0, abs=1e-3)
+    assert ForceModel().drag_density == 0.0  # off by default
+
+
 def test_j2_nodal_regression_matches_the_secular_rate() -> None:
     a, e, i = A_LEO, 0.001, np.radians(51.6)
     r0, v0 = keplerian_state(a, e, i, 0.0, 0.0, 0.0)
@@ -121,6 +138,8 @@ def test_relative_state_is_in_the_filters_frames() -> None:
     np.testing.assert_allclose(rel.rho_O[40], R_O_I @ rel.R_eci_I.T @ rel.eci[40, 6:9], atol=1e-12)
     v_fd = (rel.rho_O[2:] - rel.rho_O[:-2]) / 1.0
     np.testing.assert_allclose(v_fd, rel.v_O[1:-1], atol=1e-8)
+    with pytest.raises(InputError, match="t = 0"):
+        _circular_truth(25.0, t + 1.0, ForceModel())
 
 
 def test_near_circular_relative_motion_agrees_with_cw_to_second_order() -> None:

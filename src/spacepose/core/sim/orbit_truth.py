@@ -35,7 +35,7 @@ seeded errors (:func:`misaligned`, :func:`perturbed_catalogue`); the truth uses 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,7 +81,17 @@ def mean_motion(altitude_m: float) -> float:
 def acceleration(
     r: NDArray[np.float64], v: NDArray[np.float64], ballistic: float, force: ForceModel
 ) -> NDArray[np.float64]:
-    """Acceleration (3,) in ECI, m/s², at position r (3,, m) and velocity v (3,, m/s)."""
+    """Acceleration (3,) in ECI, m/s², of a spacecraft under ``force``.
+
+    Parameters
+    ----------
+    r, v
+        (3,) ECI position (m) and velocity (m/s).
+    ballistic
+        The spacecraft's ``C_D A / m``, m²/kg (used only with drag).
+    force
+        Which forces act.
+    """
     rn2 = float(r @ r)
     rn = math.sqrt(rn2)
     a = -EARTH_MU / (rn2 * rn) * r
@@ -97,7 +107,15 @@ def acceleration(
 def keplerian_state(
     a: float, e: float, inclination: float, raan: float, arg_perigee: float, true_anomaly: float
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """ECI position (3,, m) and velocity (3,, m/s) from Keplerian elements (angles in rad)."""
+    """ECI position (3,, m) and velocity (3,, m/s) from Keplerian elements.
+
+    Parameters
+    ----------
+    a, e
+        Semi-major axis (m) and eccentricity (0 <= e < 1).
+    inclination, raan, arg_perigee, true_anomaly
+        Angles, rad (ECI: z the Earth's pole, x the node reference).
+    """
     if not (a > 0 and 0 <= e < 1):
         raise InputError(f"orbit needs a > 0 and 0 <= e < 1, got a={a}, e={e}")
     p = a * (1.0 - e**2)
@@ -125,7 +143,18 @@ def propagate_pair(
     t: ArrayLike,
     force: ForceModel | None = None,
 ) -> NDArray[np.float64]:
-    """Chaser and target in ECI at times ``t`` (N,), s from the initial state.
+    """Chaser and target in ECI at times ``t`` (N,), s, the initial state being at ``t[0]``.
+
+    Parameters
+    ----------
+    r_chaser, v_chaser
+        (3,) the chaser's ECI position (m) and velocity (m/s) at ``t[0]``.
+    dr, dv
+        (3,) the target's offset from the chaser, ECI, m and m/s, at ``t[0]``.
+    t
+        (N,) increasing output times, s.
+    force
+        Forces on both spacecraft.
 
     Returns
     -------
@@ -146,7 +175,13 @@ def propagate_pair(
     return _integrate(f, y0, t, RTOL * scale)
 
 
-def _integrate(f, y0: NDArray[np.float64], t: NDArray[np.float64], atol) -> NDArray[np.float64]:
+def _integrate(
+    f: Callable[[float, NDArray[np.float64]], NDArray[np.float64]],
+    y0: NDArray[np.float64],
+    t: NDArray[np.float64],
+    atol: float | NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """DOP853 from ``y0`` at ``t[0]``, states (N, len(y0)) at ``t``."""
     if t.ndim != 1 or len(t) == 0 or np.any(np.diff(t) <= 0):
         raise InputError("truth times must be a non-empty increasing 1-D array")
     if t[-1] == t[0]:
@@ -193,9 +228,18 @@ def relative_truth(
 ) -> RelativeTruth:
     """Propagate chaser and target and express ρ, ρ̇ in the filter's O frame.
 
-    The target starts at ``rho0_O`` (3,, m) in the chaser's LVLH, with the velocity ``v0_O``
-    (3,, m/s) relative to that frame turning at the chaser's true orbital rate ``|r × v| / r²``
-    (so ``v0_O = 0`` keeps station to first order, on an eccentric orbit too).
+    Parameters
+    ----------
+    r_chaser, v_chaser
+        (3,) the chaser's ECI position (m) and velocity (m/s) at t = 0.
+    rho0_O, v0_O
+        (3,) the target's position (m) in the chaser's LVLH at t = 0 (= O = I then), and its
+        velocity (m/s) relative to that frame turning at the chaser's true orbital rate
+        ``|r × v| / r²`` (so ``v0_O = 0`` keeps station to first order).
+    t
+        (N,) increasing times, s, from ``t[0] = 0`` (the epoch where I and O coincide).
+    force
+        Forces on both spacecraft (default two-body + J2).
     """
     r_c, v_c = np.asarray(r_chaser, dtype=np.float64), np.asarray(v_chaser, dtype=np.float64)
     rho0, v0 = np.asarray(rho0_O, dtype=np.float64), np.asarray(v0_O, dtype=np.float64)
@@ -204,6 +248,8 @@ def relative_truth(
     dr = R_eci_I @ rho0
     dv = R_eci_I @ (v0 + np.cross([0.0, -rate, 0.0], rho0))
     t = np.asarray(t, dtype=np.float64)
+    if t.ndim != 1 or len(t) == 0 or t[0] != 0.0:
+        raise InputError("relative_truth needs times starting at the epoch t = 0")
     eci = propagate_pair(r_c, v_c, dr, dv, t, force)
     a = 1.0 / (2.0 / np.linalg.norm(r_c) - float(v_c @ v_c) / EARTH_MU)
     n = math.sqrt(EARTH_MU / a**3)
@@ -217,10 +263,20 @@ def relative_truth(
 def torque_free_attitude(
     R_I_B0: ArrayLike, omega_B0: ArrayLike, inertia_diag: ArrayLike, t: ArrayLike
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Torque-free rotation of a rigid body at times ``t`` (N,), s from the initial state.
+    """Torque-free rotation of a rigid body at times ``t`` (N,), s, the initial state at ``t[0]``.
 
-    Integrates ``Ṙ_I_B = R_I_B [ω]×`` and ``I ω̇ = −ω × (I ω)`` with the principal moments
-    ``inertia_diag`` (3,), by DOP853.
+    Integrates ``Ṙ_I_B = R_I_B [ω]×`` and ``I ω̇ = −ω × (I ω)`` by DOP853.
+
+    Parameters
+    ----------
+    R_I_B0
+        (3, 3) initial attitude, body B -> inertial I.
+    omega_B0
+        (3,) initial rate in B, rad/s.
+    inertia_diag
+        (3,) principal moments (any common scale), B's axes.
+    t
+        (N,) increasing times, s.
 
     Returns
     -------

@@ -97,7 +97,8 @@ def navigate_with_truth(
     filter starts), ``sigmas`` (N, 17) the filter's 1-σ of the same components, ``nees`` (N,),
     ``coarse_att_deg`` and ``raw_att_deg`` (N,) coarse attitude errors with and without the
     4-fold fix (NaN without a rectangle), ``coarse_pos_mm`` (N, 3), ``status`` (N,),
-    ``n_rect`` (N,), ``ekf`` the final filter and ``truth`` (N, 20).
+    ``n_rect`` (N,), ``ekf`` the final filter, ``truth`` (N, 20) and ``process_noise`` (the
+    scenario's measured one, or None).
     """
     sim = simulate_orbit(config)
     scenario = sim.scenario()
