@@ -88,13 +88,18 @@ def test_short_orbit_run_end_to_end(tmp_path) -> None:
     assert "yu-y4" in available()
     result = navigate_with_truth(OrbitConfig(frames=20), seed=0)
     table = score(result)
-    assert table["frames_navigated"] == 20
-    # After 10 s of filtering the attitude is far better than the coarse ~1°.
-    assert max(table["attitude_rms_deg"]) < 0.3
+    # No prior: the lost-in-space start keeps two candidates for the first 4 frames (measured).
+    assert PRIOR_SOURCE == "none" and table["frames_ambiguous"] <= 5
+    assert table["frames_navigated"] + table["frames_ambiguous"] == 20
+    # Over the second half the filter's attitude beats the frames' own coarse attitude.
+    assert max(table["attitude_rms_deg"]) < table["coarse_attitude_fixed_median_deg"]
     assert table["coarse_attitude_fixed_max_deg"] < 30.0
     assert table["coarse_frames_unfixed_over_90deg"] >= 3
     names = write_figures(result, tmp_path)
     assert all((tmp_path / n).stat().st_size > 1000 for n in names)
+    # The debugging switch: a prior from the perturbed truth starts at the first frame.
+    debug = score(navigate_with_truth(OrbitConfig(frames=6), seed=0, prior="perturbed-truth"))
+    assert debug["frames_navigated"] == 6 and debug["frames_ambiguous"] == 0
 
 
 def test_process_noise_comes_from_the_scenario() -> None:
@@ -103,11 +108,11 @@ def test_process_noise_comes_from_the_scenario() -> None:
     config = navigation_config(sim.scenario(), NavigationConfig())
     assert config.ekf.sigma_accel == measured != NavigationConfig().ekf.sigma_accel
     assert config.ekf.sigma_angular_accel == NavigationConfig().ekf.sigma_angular_accel
+    assert config.lost_in_space.fov_deg == tuple(sim.scenario()["sensor_fov_deg"])
     assert navigation_config({}, NavigationConfig()) == NavigationConfig()
 
 
 def test_over_seeds_summarises_mean_and_std_beside_the_paper() -> None:
-    assert PRIOR_SOURCE in ("perturbed-truth", "none")
     run = over_seeds({"eccentricity": 0.05}, [0, 1], frames=12)
     tables = run["per_seed"]
     assert [t["seed"] for t in tables] == [0, 1]

@@ -17,8 +17,9 @@ the filter's own model (the measured defect is ~1e-17 rad/s², integration error
 mean ± std beside the paper's figures.
 
 Start of the filter: :data:`PRIOR_SOURCE` says where the coarse attitude prior comes from.
-``"perturbed-truth"`` is the true initial attitude turned by a seeded random 15° (a debugging
-aid: it uses the truth); ``"none"`` starts from the rectangles alone.
+``"none"`` (the default) starts from the rectangles and the target model alone (the
+navigator's lost-in-space start); ``"perturbed-truth"``, the true initial attitude turned by a
+seeded random 15°, is a debugging aid only: it uses the truth.
 """
 
 from __future__ import annotations
@@ -40,9 +41,9 @@ from spacepose.tools.experiments import ExperimentOptions, register
 from spacepose.tools.plots import error_with_envelope, figure_png
 
 PriorSource = Literal["perturbed-truth", "none"]
-# The one switch for the navigator's start: flip to "none" once the start from rectangles alone
-# handles the default target.
-PRIOR_SOURCE: PriorSource = "perturbed-truth"
+# The one switch for the navigator's start: "none", the lost-in-space start from the first
+# frames' rectangles and the target model; "perturbed-truth" is kept for debugging.
+PRIOR_SOURCE: PriorSource = "none"
 PRIOR_ERROR_DEG = 15.0
 # Y4 targets (METHODS §2.5 and the brief), second half of the run.
 TARGETS = {
@@ -72,12 +73,16 @@ def attitude_prior(q_I_B: NDArray[np.float64], seed: int) -> tuple[float, ...]:
 
 
 def navigation_config(scenario: dict[str, Any], base: NavigationConfig) -> NavigationConfig:
-    """``base`` with the translational process noise the scenario measured, if it has one."""
+    """``base`` with what the scenario tells: its measured translational process noise and,
+    when ``base`` leaves it unset, the sensor's field of view for the lost-in-space start."""
+    update: dict[str, Any] = {}
     noise = scenario.get("process_noise")
-    if not noise:
-        return base
-    ekf = base.ekf.model_copy(update={"sigma_accel": float(noise["sigma_accel"])})
-    return base.model_copy(update={"ekf": ekf})
+    if noise:
+        update["ekf"] = base.ekf.model_copy(update={"sigma_accel": float(noise["sigma_accel"])})
+    if base.lost_in_space.fov_deg is None and "sensor_fov_deg" in scenario:
+        fov = tuple(float(v) for v in scenario["sensor_fov_deg"])
+        update["lost_in_space"] = base.lost_in_space.model_copy(update={"fov_deg": fov})
+    return base.model_copy(update=update)
 
 
 def navigate_with_truth(
@@ -106,7 +111,8 @@ def navigate_with_truth(
     base = nav_config or navigation_config(scenario, NavigationConfig())
     q_prior = attitude_prior(sim.truth[0, 7:11], seed) if prior == "perturbed-truth" else None
     nav_config = NavigationConfig.model_validate(base.model_dump() | {"prior_q_I_B": q_prior})
-    nav = RelativeNavigator(parse_catalogue(scenario, nav_config.rectangle), n, R_O_C, nav_config)
+    catalogue = parse_catalogue(scenario, nav_config.rectangle)
+    nav = RelativeNavigator(catalogue, n, R_O_C, nav_config, sim.model_cloud())
     N = len(sim)
     out: dict[str, Any] = {
         "t": sim.timestamps.copy(),
@@ -179,6 +185,7 @@ def score(result: dict[str, Any]) -> dict[str, Any]:
         "frames": N,
         "frames_navigated": int(np.sum(finite)),
         "frames_with_rectangles": int(np.sum(result["n_rect"] > 0)),
+        "frames_ambiguous": sum(s == "ambiguous" for s in result.get("status", [])),
         "position_rms_mm": rms(slice(0, 3), 1e3),
         "position_mean_mm": (1e3 * np.nanmean(late[:, 0:3], axis=0)).tolist(),
         "velocity_rms_mm_s": rms(slice(3, 6), 1e3),
