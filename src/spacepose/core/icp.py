@@ -424,7 +424,9 @@ def icp_correspondences(
     result
         ``T_target_source``, fitness and inlier RMSE of the final correspondences, and the
         information ``Σ JᵀJ`` (1/m², twist (omega, v), left perturbation): point-to-point with
-        ``J = [−skew(p) I]``, point-to-plane with rows ``h = (p × n, n)``.
+        ``J = [−skew(p) I]``, point-to-plane with rows ``h = (p × n, n)``. With a robust kernel
+        the information is ``Σ w JᵀJ`` at the final weights and ``residual_sigma`` the σ that
+        makes ``result.covariance()`` the M-estimator's covariance.
     correspondences
         :class:`Correspondences` at the returned transform (what :func:`find_correspondences`
         would return there, and for point-to-plane the normal equations), so that a caller
