@@ -12,7 +12,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from spacepose.core.cloud import as_points
+from spacepose.core.cloud import PointCloud, as_points
 from spacepose.errors import InputError
 
 # Largest key: three cell indices pack into one int64.
@@ -220,3 +220,16 @@ def _group(keys, bits, cell, unique, table):
                 break
             s = (s + 1) & mask
     return count
+
+
+def voxel_downsample(cloud: PointCloud, voxel_size: float) -> PointCloud:
+    """Centroid of the points in each occupied voxel (edge ``voxel_size`` m), sorted by voxel.
+
+    σ (if present) is averaged too; normals are dropped (recompute them on the sparse cloud).
+    """
+    centroids, cell = voxel_cells(cloud.points, voxel_size)
+    sigma = None
+    if cloud.sigma is not None:
+        counts = np.bincount(cell, minlength=len(centroids))
+        sigma = np.bincount(cell, weights=cloud.sigma, minlength=len(centroids)) / counts
+    return PointCloud(centroids, None, sigma, source=cloud.source)

@@ -69,6 +69,7 @@ from spacepose.core.sim import (
     simulate_lab,
     simulate_orbit,
 )
+from spacepose.core.tracker_config import StageLengths
 from spacepose.errors import ConfigError, InputError
 
 PEERS: tuple[str, ...] = ("open3d", "small_gicp")
@@ -295,7 +296,7 @@ def relative_truth(target: Frame, source: Frame) -> NDArray[np.float64]:
 
 def prepare_data(config: BenchConfig, seed: int, workers: int) -> BenchData:
     """Render the frames and compute the normals and features the stages take as inputs."""
-    from spacepose.core.tracker import voxel_downsample
+    from spacepose.core.voxel import voxel_downsample
 
     frames = render_frames(config.frame_scale, 3, seed)
     clouds = tuple(estimate_normals(f.cloud, config.normals, workers=workers) for f in frames[:2])
@@ -594,10 +595,9 @@ def _mls_trials(data: BenchData, workers: int) -> dict[str, Trial]:
 
 def _jicp_trials(data: BenchData, workers: int) -> dict[str, Trial]:
     from spacepose.core.jicp import JointICP
-    from spacepose.core.tracker import TrackerConfig
 
-    config = TrackerConfig().jicp
     f0, f1, f2 = (f.cloud for f in data.frames)
+    config = _tracker_lengths(f0).jicp
 
     def setup() -> Callable[[], Any]:
         joint = JointICP(config, workers)
@@ -613,6 +613,7 @@ def _tracking_trials(data: BenchData, workers: int, peers: _Peers) -> dict[str, 
 
     f0, f1 = data.frames[:2]
     config = TrackerConfig()
+    lengths = _tracker_lengths(f0.cloud)
 
     def setup() -> Callable[[], Any]:
         tracker = Tracker(config, None, workers)
@@ -625,15 +626,25 @@ def _tracking_trials(data: BenchData, workers: int, peers: _Peers) -> dict[str, 
 
         def setup_open3d() -> Callable[[], Any]:
             # Frame 0 as the keyframe, prepared as the tracker prepares its keyframes.
-            keyframe = o3d.cloud(f0.cloud, normals=False).voxel_down_sample(config.voxel_size)
+            keyframe = o3d.cloud(f0.cloud, normals=False).voxel_down_sample(lengths.voxel)
             keyframe.estimate_normals(o3d.o3d.geometry.KDTreeSearchParamKNN(config.normals.k))
             keyframe.orient_normals_towards_camera_location(np.zeros(3))
             return lambda: o3d.tracking_step(
-                f1.cloud, keyframe, config.voxel_size, config.normals.k, config.jicp.icp
+                f1.cloud, keyframe, lengths.voxel, config.normals.k, lengths.jicp.icp
             )
 
         trials["open3d"] = setup_open3d
     return trials
+
+
+def _tracker_lengths(first: PointCloud) -> StageLengths:
+    """The default tracker's lengths for a first frame (what a fresh tracker derives)."""
+    from spacepose.core.scale import derive_scale
+    from spacepose.core.tracker_config import TrackerConfig, stage_lengths
+
+    config = TrackerConfig()
+    scale = derive_scale(first.points, config.points_per_frame, config.voxel_size)
+    return stage_lengths(config, scale.voxel, scale.radius)
 
 
 def _ekf_trials(seed: int) -> dict[str, Trial]:
@@ -694,7 +705,9 @@ def _tracking_shares(timing: Timing) -> dict:
     sums = {s: float(sum(r.get(s, 0.0) for r in reports)) for s in TRACKER_STAGES}
     total = sums["total"]
     return {
-        "tracker": TrackerConfig().model_dump(include={"method", "use_mls", "voxel_size"}),
+        "tracker": TrackerConfig().model_dump(
+            include={"method", "use_mls", "points_per_frame", "voxel_size"}
+        ),
         "status": timing.last.status,
         "median_ms": medians,
         "share": {s: v / total for s, v in sums.items() if s != "total" and total > 0},

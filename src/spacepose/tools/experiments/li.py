@@ -150,8 +150,12 @@ def coarse_noise_experiment(out_dir: Path, options: ExperimentOptions) -> dict[s
         sim = simulate_lab(LabConfig(frames=58, seed=options.seed, sensor=sensor))
         frames = [sim.frame(int(k)) for k in poses]
         for variant in ("raw", "mpp-MLS"):
-            mls = MLSConfig(voxel_size=0.006, h=max(0.006, 2.0 * sigma))
-            cfg = TrackerConfig(use_mls=variant == "mpp-MLS", mls=mls)
+            # The paper's fixed 6 mm voxel, and h in voxels.
+            cfg = TrackerConfig(
+                use_mls=variant == "mpp-MLS",
+                voxel_size=0.006,
+                mls_h=max(0.006, 2.0 * sigma) / 0.006,
+            )
             tracker = Tracker(cfg, model, options.workers)
             t_err, r_err, failures = [], [], 0
             for frame in frames:

@@ -7,7 +7,8 @@ each axis) the lab model cloud moved by the pose is the SOURCE and a simulated T
 same raw points (the model's sampled normals are not passed on) and run the tracker's coarse
 settings (:class:`~spacepose.core.tracker.TrackerConfig`):
 
-1. voxel downsampling to ``voxel_size`` (the ICP clouds) and from those to ``coarse_voxel_size``;
+1. voxel downsampling to the voxel the frame's spacing gives (the ICP clouds) and from those to
+   the coarse voxel (:func:`coarse_lengths`);
 2. normals of the sparse clouds (``coarse_normals``): the frame's turned towards the sensor, the
    model's away from its centroid (FPFH is sign-sensitive, and a sensor sees outward normals);
 3. FPFH (``fpfh``) and feature RANSAC of the model onto the frame (``ransac``: gate,
@@ -65,8 +66,10 @@ from spacepose.core.fpfh import compute_fpfh
 from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.ransac import RansacConfig, feature_ransac
+from spacepose.core.scale import derive_scale
 from spacepose.core.sim import scenario_config, simulate
-from spacepose.core.tracker import TrackerConfig, voxel_downsample
+from spacepose.core.tracker_config import StageLengths, TrackerConfig, stage_lengths
+from spacepose.core.voxel import voxel_downsample
 from spacepose.errors import ConfigError, RegistrationError
 from spacepose.tools import plots
 from spacepose.tools.bench import thread_count
@@ -85,9 +88,9 @@ class GlobalExperimentConfig(StageConfig):
     max_translation
         Each translation component of the random pose is uniform in ±this (m).
     coarse
-        The tracker config whose ``voxel_size``, ``coarse_voxel_size``, ``normals``,
-        ``coarse_normals``, ``fpfh`` and ``ransac`` both pipelines use: the tracker's defaults
-        but for a larger RANSAC budget (see the module docstring).
+        The tracker config whose lengths (:func:`coarse_lengths`: voxel and coarse voxel from
+        the frame's spacing, normals, FPFH and RANSAC radii from them) both pipelines use: the
+        tracker's defaults but for a larger RANSAC budget (see the module docstring).
     icp
         The final ICP. Its 10 mm gate takes in the RANSAC result (errors of a few mm and up to
         about 12°); the tracker's 5 mm gate is for frame-to-frame motion after a prediction.
@@ -100,7 +103,6 @@ class GlobalExperimentConfig(StageConfig):
     max_translation: float = Field(0.3, ge=0)
     coarse: TrackerConfig = TrackerConfig(
         ransac=RansacConfig(
-            max_correspondence_distance=0.018,
             mutual_filter=False,
             max_iterations=1_000_000,
             confidence=0.99999,
@@ -187,15 +189,13 @@ def ours_global(
     The estimated ``T_target_source``; None when RANSAC finds no consensus or ICP no
     correspondences.
     """
-    cfg = config.coarse
     tic = time.perf_counter()
-    fine_s = voxel_downsample(PointCloud(source.points), cfg.voxel_size)
-    fine_t = voxel_downsample(PointCloud(target.points), cfg.voxel_size)
-    sparse_s = _outward(
-        voxel_downsample(fine_s, cfg.coarse_voxel_size), cfg.coarse_normals, workers
-    )
+    cfg = coarse_lengths(config, target)
+    fine_s = voxel_downsample(PointCloud(source.points), cfg.voxel)
+    fine_t = voxel_downsample(PointCloud(target.points), cfg.voxel)
+    sparse_s = _outward(voxel_downsample(fine_s, cfg.coarse_voxel), cfg.coarse_normals, workers)
     sparse_t = estimate_normals(
-        voxel_downsample(fine_t, cfg.coarse_voxel_size), cfg.coarse_normals, workers=workers
+        voxel_downsample(fine_t, cfg.coarse_voxel), cfg.coarse_normals, workers=workers
     )
     fs = compute_fpfh(sparse_s, cfg.fpfh, workers)
     ft = compute_fpfh(sparse_t, cfg.fpfh, workers)
@@ -203,12 +203,19 @@ def ours_global(
         coarse = feature_ransac(sparse_s, sparse_t, fs, ft, cfg.ransac, workers).T_target_source
     except RegistrationError:
         return Outcome(None, None, time.perf_counter() - tic)
-    fine_s = _outward(fine_s, cfg.normals, workers)
+    fine_s = _outward(fine_s, config.coarse.normals, workers)
     try:
         res = icp(fine_t, fine_s, se3.invert(coarse), config.icp, workers)
     except RegistrationError:
         return Outcome(None, coarse, time.perf_counter() - tic)
     return Outcome(se3.invert(res.T_target_source), coarse, time.perf_counter() - tic)
+
+
+def coarse_lengths(config: GlobalExperimentConfig, frame: PointCloud) -> StageLengths:
+    """The tracker's lengths for the frame's scale (voxel from its spacing, as the tracker)."""
+    cfg = config.coarse
+    scale = derive_scale(frame.points, cfg.points_per_frame, cfg.voxel_size)
+    return stage_lengths(cfg, scale.voxel, scale.radius)
 
 
 def _search(o3d: ModuleType, config: NormalsConfig) -> Any:
@@ -230,15 +237,15 @@ def open3d_global(
     Open3D's RANSAC is seeded with ``config.coarse.ransac.seed``; its threads are the caller's
     business (``o3d.utility.set_max_threads``).
     """
-    cfg = config.coarse
     reg = o3d.pipelines.registration
     tic = time.perf_counter()
+    cfg = coarse_lengths(config, target)
     clouds = []
     for cloud in (source, target):
         # Open3D wants writeable arrays; PointCloud's are read-only.
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(cloud.points)))
-        fine = pcd.voxel_down_sample(cfg.voxel_size)
-        clouds.append((fine, fine.voxel_down_sample(cfg.coarse_voxel_size)))
+        fine = pcd.voxel_down_sample(cfg.voxel)
+        clouds.append((fine, fine.voxel_down_sample(cfg.coarse_voxel)))
     (fine_s, sparse_s), (fine_t, sparse_t) = clouds
     for sparse in (sparse_s, sparse_t):
         sparse.estimate_normals(_search(o3d, cfg.coarse_normals))
@@ -265,7 +272,7 @@ def open3d_global(
         ],
         reg.RANSACConvergenceCriteria(rc.max_iterations, rc.confidence),
     )
-    fine_s.estimate_normals(_search(o3d, cfg.normals))
+    fine_s.estimate_normals(_search(o3d, config.coarse.normals))
     _o3d_outward(o3d, fine_s)
     ic = config.icp
     fine = reg.registration_icp(
@@ -457,8 +464,9 @@ def global_registration_experiment(out_dir: Path, options: ExperimentOptions) ->
             "coarse": config.coarse.model_dump(
                 mode="json",
                 include={
+                    "points_per_frame",
                     "voxel_size",
-                    "coarse_voxel_size",
+                    "coarse_voxel",
                     "normals",
                     "coarse_normals",
                     "fpfh",

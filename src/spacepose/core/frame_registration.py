@@ -1,0 +1,313 @@
+"""Fine registration of a tracked frame onto its references (docs/methods.md §1.6, §5.5).
+
+:class:`FrameRegistrar` registers a prepared frame onto one reference (ICP or GICP, with the
+covariance from the point-to-plane residuals and the σ floor) or onto a window of keyframes
+solved as a pose graph (the keyframe J-ICP). When the motion model has been wrong by more than
+the fine gate, a first point-to-plane pass with a gate of three model-error σ brings the frame
+within reach of the fine gate (KISS-ICP's adaptive threshold, in two stages).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.core import se3
+from spacepose.core.gicp import gicp
+from spacepose.core.icp import (
+    Correspondences,
+    find_correspondences,
+    icp,
+    icp_correspondences,
+    point_to_plane_system,
+)
+from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, moved_covariance
+from spacepose.core.motion import rigid
+from spacepose.core.normals import estimate_normals
+from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
+from spacepose.core.registration import RegistrationResult
+from spacepose.core.tracker_config import StageLengths
+from spacepose.errors import RegistrationError, SpaceposeError
+
+# Largest pose-graph update (rad, m) at which J-ICP stops iterating. Its Gauss-Newton shrinks the
+# update about 1000× per iteration on the lab run: after a 1e-6 step the poses are within ~1e-9
+# of the optimum, and the default 1e-12 cost two more iterations (~1 ms per frame).
+POSE_GRAPH_TOLERANCE = 1e-6
+# The wide first pass runs only when it is this much wider than the fine gate.
+_WIDE_PASS_RATIO = 1.5
+
+
+def plane_covariance(
+    T_target_source: NDArray[np.float64],
+    source_points: NDArray[np.float64],
+    target: PreparedCloud,
+    max_distance: float,
+    workers: int = -1,
+    correspondences: Correspondences | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Covariance of a registration from its point-to-plane residuals at the solution.
+
+    ``σ² (Σ h hᵀ)⁻¹`` with ``h = (p × n, n)`` over the final correspondences (target normals)
+    and ``σ²`` the variance of the normal distances: the same noise model whichever method
+    produced ``T_target_source``, so ICP, GICP and J-ICP report comparable uncertainties.
+
+    ``correspondences`` are the matches at ``T_target_source`` when the registration already
+    has them (:func:`~spacepose.core.icp.icp_correspondences`; its point-to-plane sums are used
+    as they are); otherwise they are searched within ``max_distance``.
+
+    Returns
+    -------
+    covariance
+        (6, 6) covariance of ``T_target_source``, left perturbation in the target frame.
+    step
+        (6,) the Gauss-Newton point-to-plane step from ``T_target_source`` (same frame): about
+        zero at the surface optimum, large when a registration stopped elsewhere.
+
+    Raises
+    ------
+    RegistrationError
+        Fewer than 7 correspondences within ``max_distance``.
+    """
+    if correspondences is not None and correspondences.system is not None:
+        n_matches = len(correspondences.src_idx)
+        H, g, sse = correspondences.system
+    else:
+        moved = se3.transform_points(T_target_source, source_points)
+        if correspondences is None:
+            s, t, _ = find_correspondences(target.tree, moved, max_distance, workers)
+        else:
+            s, t = correspondences.src_idx, correspondences.tgt_idx
+        n_matches = len(s)
+        H, g, sse = point_to_plane_system(moved[s], target.cloud.points[t], target.cloud.normals[t])
+    if n_matches < 7:
+        raise RegistrationError(f"{n_matches} correspondences are too few for a covariance")
+    sigma2 = sse / (n_matches - 6)
+    H_inv = np.linalg.pinv(H, hermitian=True)
+    return sigma2 * H_inv, -H_inv @ g
+
+
+class FrameRegistrar:
+    """Registers prepared frames onto keyframes or a model, with covariances.
+
+    Parameters
+    ----------
+    method
+        ``"icp"``, ``"gicp"`` or ``"jicp"`` (see
+        :class:`~spacepose.core.tracker_config.TrackerConfig`).
+    lengths
+        The stage configs with their derived lengths.
+    covariance_scale
+        Factor on every registration covariance.
+    workers
+        Threads of the searches.
+    """
+
+    def __init__(
+        self, method: str, lengths: StageLengths, covariance_scale: float, workers: int
+    ) -> None:
+        self.method = method
+        self.lengths = lengths
+        self.covariance_scale = covariance_scale
+        self.workers = workers
+
+    @property
+    def pairwise(self) -> str:
+        """The pairwise registration: ``"icp"`` or ``"gicp"``."""
+        return self.lengths.jicp.registration if self.method == "jicp" else self.method
+
+    def as_target(self, prepared: PreparedCloud) -> PreparedCloud:
+        """The prepared cloud with normals, estimated the first time it is a registration
+        target (a keyframe): most frames never are, and sources need none."""
+        if not prepared.cloud.has_normals:
+            prepared.cloud = estimate_normals(
+                prepared.cloud, self.lengths.normals, workers=self.workers, tree=prepared.tree
+            )
+        return prepared
+
+    def approach(
+        self,
+        prepared: PreparedCloud,
+        ref: Keyframe,
+        T_init_sensor_target: NDArray[np.float64],
+        wide_gate: float,
+    ) -> NDArray[np.float64]:
+        """First pass with a gate ``wide_gate`` (m) when that is well above the fine gate.
+
+        Returns the improved initial ``T_sensor_target`` (the input when no pass is needed).
+        """
+        cfg = self.lengths.icp
+        if wide_gate <= _WIDE_PASS_RATIO * cfg.max_correspondence_distance:
+            return T_init_sensor_target
+        tgt = self.as_target(ref.prepared)
+        init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
+        wide = cfg.model_copy(update={"max_correspondence_distance": wide_gate})
+        try:
+            res = icp(
+                prepared.cloud,
+                tgt.cloud,
+                init_T_ref_k,
+                wide,
+                workers=self.workers,
+                target_tree=tgt.tree,
+            )
+        except SpaceposeError:
+            return T_init_sensor_target
+        return rigid(se3.invert(res.T_target_source) @ ref.T_ref_target)
+
+    def register(
+        self,
+        prepared: PreparedCloud,
+        ref: Keyframe,
+        T_init_sensor_target: NDArray[np.float64],
+    ) -> tuple[RegistrationResult, NDArray[np.float64], NDArray[np.float64]]:
+        """Register the frame (source) onto a reference.
+
+        Returns the result, the covariance of ``T_ref_k`` and the point-to-plane step from it
+        (both left perturbations in the reference frame; see :func:`plane_covariance`).
+        """
+        L = self.lengths
+        kind = self.pairwise
+        icp_cfg = L.jicp.icp if self.method == "jicp" else L.icp
+        gicp_cfg = L.jicp.gicp if self.method == "jicp" else L.gicp
+        init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
+        tgt = self.as_target(ref.prepared)
+        if kind == "gicp":
+            res = gicp(
+                prepared.cloud,
+                tgt.cloud,
+                init_T_ref_k,
+                gicp_cfg,
+                workers=self.workers,
+                source_covariances=prepared.covariances,
+                target_covariances=tgt.covariances,
+                target_tree=tgt.tree,
+            )
+            matches = None
+        else:
+            # ICP hands back its final correspondences (and point-to-plane sums): the covariance
+            # need not search or sum again.
+            res, matches = icp_correspondences(
+                prepared.cloud,
+                tgt.cloud,
+                init_T_ref_k,
+                icp_cfg,
+                workers=self.workers,
+                target_tree=tgt.tree,
+            )
+        cov, step = plane_covariance(
+            res.T_target_source, prepared.cloud.points, tgt, L.gate, self.workers, matches
+        )
+        return res, self.covariance_scale * cov + self._floor(prepared, res), step
+
+    def single(
+        self, prepared: PreparedCloud, ref: Keyframe, T_init: NDArray[np.float64]
+    ) -> FineEstimate:
+        """One registration onto ``ref`` (ICP, GICP, or any method against a model)."""
+        res, cov_ref_k, step = self.register(prepared, ref, T_init)
+        T_k_ref = se3.invert(res.T_target_source)
+        Ad = se3.adjoint(T_k_ref)
+        own = Ad @ cov_ref_k @ Ad.T
+        cov = Ad @ (cov_ref_k + ref.covariance) @ Ad.T
+        T = rigid(T_k_ref @ ref.T_ref_target)
+        bias = self._drift(prepared, res, ref)
+        cov = cov + drift_covariance(prepared.centroid, bias)
+        return FineEstimate(T, cov, own, res, ref, step, bias=bias)
+
+    def joint(
+        self,
+        prepared: PreparedCloud,
+        window: list[Keyframe],
+        T_init: NDArray[np.float64],
+        equal_weights: bool,
+    ) -> FineEstimate:
+        """Keyframe J-ICP: register the frame to each keyframe of the window, solve the graph.
+
+        Nodes are the window's keyframes (the oldest fixed) and the new frame; edges are the
+        stored keyframe-to-keyframe registrations and the new frame's registrations to every
+        keyframe, each weighted by its information (or equally).
+        """
+        node = {kf.index: n for n, kf in enumerate(window)}
+        k = len(window)
+        graph_edges: list[PoseGraphEdge] = []
+        new_edges = []
+        for kf in window:
+            for ref_index, T_j_i, info in kf.edges:
+                if ref_index in node:
+                    graph_edges.append(PoseGraphEdge(node[kf.index], node[ref_index], T_j_i, info))
+        # The latest keyframe must register (its failure fails the frame); an older one out of
+        # reach is no reason to.
+        latest = self.register(prepared, window[-1], T_init)
+        pairs = [(window[-1], latest)]
+        # The latest registration is a better start for the older pairs than the prediction.
+        T_start = se3.invert(latest[0].T_target_source) @ window[-1].T_ref_target
+        poses = [kf.T_ref_target for kf in window] + [T_start]
+        for kf in window[:-1]:
+            try:
+                pairs.append((kf, self.register(prepared, kf, T_start)))
+            except SpaceposeError:
+                continue
+        for kf, (res, cov, _) in pairs:
+            info = np.eye(6) if equal_weights else np.linalg.pinv(cov, hermitian=True)
+            graph_edges.append(PoseGraphEdge(k, node[kf.index], res.T_target_source, info))
+            new_edges.append((kf.index, res.T_target_source, info))
+        # Gauge: the oldest keyframe keeps its pose; its covariance is added to the result.
+        graph = optimize_pose_graph(
+            np.array(poses), graph_edges, fixed=(0,), tolerance=POSE_GRAPH_TOLERANCE
+        )
+        oldest = window[0]
+        T_k0 = rigid(graph.poses[k])
+        cov = graph.covariances[k] + moved_covariance(oldest, T_k0)
+        res, cov_ref_k, step = latest
+        Ad_own = se3.adjoint(se3.invert(res.T_target_source))
+        own = Ad_own @ cov_ref_k @ Ad_own.T
+        bias = self._drift(prepared, res, window[-1])
+        cov = cov + drift_covariance(prepared.centroid, bias)
+        # Node n < k is window[n]; the oldest (n = 0) is fixed.
+        updated = tuple(
+            (
+                window[n],
+                rigid(graph.poses[n]),
+                graph.covariances[n] + moved_covariance(oldest, graph.poses[n]),
+            )
+            for n in range(1, k)
+        )
+        return FineEstimate(
+            T_k0, cov, own, res, window[-1], step, tuple(new_edges), updated, bias
+        )
+
+    def _drift(
+        self, prepared: PreparedCloud, res: RegistrationResult, ref: Keyframe
+    ) -> tuple[float, float]:
+        """1-σ (rad, m at the centroid) of the drift a keyframe chain has built up to the frame.
+
+        A registration between two views is biased in proportion to the motion between them
+        (sampling and normals differ), and the bias keeps its sign along a chain of keyframes,
+        so it adds up linearly: the reference's drift plus ``floor_motion`` times the rotation
+        angle and the centroid's displacement from the reference. A model has none.
+        """
+        if ref.index < 0:
+            return 0.0, 0.0
+        kappa = self.lengths.floor_motion
+        c_ref = se3.transform_points(res.T_target_source, prepared.centroid[None])[0]
+        angle = float(np.linalg.norm(se3.log(res.T_target_source)[:3]))
+        shift = float(np.linalg.norm(c_ref - prepared.centroid))
+        return ref.drift[0] + kappa * angle, ref.drift[1] + kappa * shift
+
+    def _floor(self, prepared: PreparedCloud, res: RegistrationResult) -> NDArray[np.float64]:
+        """The voxel floor (see TrackerConfig) about the centroid, in the reference frame."""
+        L = self.lengths
+        c_ref = se3.transform_points(res.T_target_source, prepared.centroid[None])[0]
+        return drift_covariance(c_ref, (L.floor_rotation, L.floor_translation))
+
+
+def drift_covariance(
+    point: NDArray[np.float64], sigma: tuple[float, float]
+) -> NDArray[np.float64]:
+    """(6, 6) covariance of an isotropic ``sigma`` = (rad, m) twist about ``point`` (3,),
+    expressed about the origin of the same frame."""
+    s_r, s_t = sigma
+    cov_c = np.diag([s_r**2] * 3 + [s_t**2] * 3)
+    # A twist about the point c is (ω, v + skew(c) ω) about the origin.
+    M = np.eye(6)
+    M[3:, :3] = se3.skew(point)
+    return M @ cov_c @ M.T

@@ -1,0 +1,137 @@
+"""The tracker's motion model (docs/methods.md §5.2): constant velocity, and how wrong it has been.
+
+The prediction of frame k is the last accepted pose moved on by the last inter-frame motion,
+scaled to the elapsed time. What the model cannot foresee (acceleration, a hand-held jerk, a
+tumble about a changing axis) shows as the *model error*: the disagreement between each
+prediction and the pose the registration then accepted. Its RMS over recent frames, as in
+KISS-ICP's adaptive threshold, sizes the first registration stage's gate and widens the health
+check's prediction bounds, so that motion that is not constant is input, not a fault.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import se3
+
+# Recent model errors kept: enough for a stable RMS, few enough to follow a change of motion.
+_ERROR_WINDOW = 20
+
+
+def predict_pose(
+    history: list[tuple[float, NDArray[np.float64]]], timestamp: float
+) -> NDArray[np.float64] | None:
+    """Constant-velocity prediction of ``T_sensor_target`` at ``timestamp``.
+
+    Parameters
+    ----------
+    history
+        Up to the last two accepted ``(timestamp, T_sensor_target)``, oldest first.
+
+    Returns
+    -------
+    The last pose moved on by the last inter-frame motion ``T_b T_a⁻¹`` scaled to the elapsed
+    time (on the Lie algebra); the last pose itself with one entry; None with none.
+    """
+    if not history:
+        return None
+    t_b, T_b = history[-1]
+    if len(history) < 2:
+        return T_b.copy()
+    t_a, T_a = history[-2]
+    dt = t_b - t_a
+    # Equal or missing timestamps: assume one frame period per frame.
+    scale = (timestamp - t_b) / dt if dt > 0 else 1.0
+    return rigid(se3.exp(scale * se3.log(T_b @ se3.invert(T_a))) @ T_b)
+
+
+def rigid(T: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``T`` with its rotation block projected back onto SO(3).
+
+    Long chains of products (keyframe poses, predictions, registrations started from them) let
+    rounding errors grow; without this the rotation drifts measurably off orthonormal.
+    """
+    return se3.make_transform(Rotation.from_matrix(T[:3, :3]), T[:3, 3])
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The motion model's guess for one frame.
+
+    Attributes
+    ----------
+    T_sensor_target
+        (4, 4) predicted pose.
+    covariance
+        (6, 6) its covariance (left perturbation, twist (ω, v), about the origin).
+    velocity_known
+        False when it is only the last pose (one pose in the history).
+    """
+
+    T_sensor_target: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    velocity_known: bool
+
+
+@dataclass
+class MotionModel:
+    """Accepted poses and the model's recent errors.
+
+    Attributes
+    ----------
+    history
+        The last two accepted ``(timestamp, T_sensor_target, covariance)``.
+    errors
+        Recent model errors: (centroid displacement m, rotation rad) per accepted frame.
+    """
+
+    history: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = field(
+        default_factory=list
+    )
+    errors: list[tuple[float, float]] = field(default_factory=list)
+
+    def predict(
+        self, timestamp: float, frames_missed: int, fallback_error: tuple[float, float]
+    ) -> Prediction | None:
+        """The prediction at ``timestamp``, or None before the first accepted pose.
+
+        Its covariance is the last pose's plus the model error (or ``fallback_error`` while
+        none is measured) per axis, growing with the frames since the last accepted pose.
+        """
+        T = predict_pose([(t, T) for t, T, _ in self.history[-2:]], timestamp)
+        if T is None:
+            return None
+        e_t, e_r = self.model_error() or fallback_error
+        q = np.array([e_r] * 3 + [e_t] * 3) / np.sqrt(3.0)
+        cov = self.history[-1][2] + (1 + frames_missed) ** 2 * np.diag(q**2)
+        return Prediction(T, cov, len(self.history) >= 2)
+
+    def model_error(self) -> tuple[float, float] | None:
+        """RMS (displacement m, rotation rad) of the recent prediction errors, None if none."""
+        if not self.errors:
+            return None
+        e = np.asarray(self.errors)
+        return float(np.sqrt((e[:, 0] ** 2).mean())), float(np.sqrt((e[:, 1] ** 2).mean()))
+
+    def accept(
+        self,
+        timestamp: float,
+        T_sensor_target: NDArray[np.float64],
+        covariance: NDArray[np.float64],
+        error: tuple[float, float] | None,
+        restart: bool,
+    ) -> None:
+        """Record an accepted pose.
+
+        ``error`` is its disagreement with a constant-velocity prediction (displacement m,
+        rotation rad; None when there was no velocity to predict with); ``restart`` drops the
+        old velocity (after a re-initialisation it is meaningless).
+        """
+        kept = [] if restart else self.history[-1:]
+        self.history = [*kept, (timestamp, T_sensor_target, covariance)]
+        if error is not None:
+            self.errors = [*self.errors[-(_ERROR_WINDOW - 1) :], error]

@@ -1,0 +1,76 @@
+"""What the tracker reports: a :class:`TrackResult` per frame, a :class:`TrackingOutput` per run."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.core.health import Status
+from spacepose.core.trajectory import Trajectory
+
+# Timed parts of a step; "other" is the health checks and state bookkeeping, so that the first
+# four add up to "total".
+STAGES: tuple[str, ...] = ("preprocess", "coarse", "fine", "other", "total")
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """What the tracker reports for one frame.
+
+    Attributes
+    ----------
+    index
+        Frame number (0-based, counting every frame given, lost ones included).
+    timestamp
+        Seconds.
+    T_sensor_target
+        (4, 4) pose; model-free: ``T_k0``. For a lost frame, the motion model's prediction.
+    covariance
+        (6, 6) covariance of ``T_sensor_target``, twist (omega, v), left perturbation in the
+        sensor frame; model-free it includes the keyframe chain.
+    status
+        ``ok``, ``degraded`` or ``lost``.
+    reasons
+        Why the frame is not ``ok`` (empty when it is).
+    fitness, rmse, iterations, condition_number
+        Of the fine registration (NaN / 0 when there was none).
+    time_ms
+        Wall time per stage (see ``STAGES``).
+    reference_index
+        Frame index of the keyframe the frame was registered to (-1: the model or none).
+    coarse
+        Whether coarse registration ran for this frame.
+    keyframe
+        Whether the frame became a keyframe.
+    """
+
+    index: int
+    timestamp: float
+    T_sensor_target: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    status: Status
+    reasons: tuple[str, ...] = ()
+    fitness: float = float("nan")
+    rmse: float = float("nan")
+    iterations: int = 0
+    condition_number: float = float("nan")
+    time_ms: dict[str, float] = field(default_factory=dict)
+    reference_index: int = -1
+    coarse: bool = False
+    keyframe: bool = False
+
+    @property
+    def sigma(self) -> NDArray[np.float64]:
+        """(6,) 1-σ of (rx, ry, rz) in rad and (tx, ty, tz) in m."""
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+
+
+@dataclass(frozen=True)
+class TrackingOutput:
+    """A tracked sequence: the trajectory (one pose per frame) and the per-frame results."""
+
+    trajectory: Trajectory
+    results: list[TrackResult]

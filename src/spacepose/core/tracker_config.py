@@ -1,0 +1,247 @@
+"""The tracker's configuration: a few meaningful knobs, every length a multiple of the data's scale.
+
+Lengths are never metres here. They are multiples of the voxel edge ``v`` derived from the first
+frame (:mod:`spacepose.core.scale`) or of the target's RMS radius ``R``; a rotation bound given
+"in voxels" is the rotation that moves a point at the radius by that many voxels (``f·v/R`` rad).
+The factors reproduce the lab run's former metre values at 1.2 m (v ≈ 6 mm, R ≈ 0.25 m), which a
+grid over range, target, noise and motion then checked (README, robustness table). The lengths
+inside the nested stage configs (ICP and GICP gates, normal and FPFH radii, RANSAC gate, MLS
+support) are replaced by the derived ones when the tracker runs; ``EST.config.json`` records the
+derived values under ``scale``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+from pydantic import Field, PositiveFloat, PositiveInt
+
+from spacepose.core.background import BackgroundConfig
+from spacepose.core.config import StageConfig
+from spacepose.core.fpfh import FPFHConfig
+from spacepose.core.gicp import GICPConfig
+from spacepose.core.icp import ICPConfig
+from spacepose.core.jicp import JICPConfig
+from spacepose.core.mls import MLSConfig
+from spacepose.core.normals import NormalsConfig
+from spacepose.core.ransac import RansacConfig
+
+
+class KeyframeConfig(StageConfig):
+    """When a model-free tracker promotes the current frame to a keyframe.
+
+    Attributes
+    ----------
+    min_fitness
+        Promote when the fitness against the current keyframe falls below this (overlap drops).
+    max_translation
+        Promote when the target centroid moved more than this many radii since the keyframe.
+    max_rotation_deg
+        Promote when the target turned more than this (degrees) since the keyframe.
+    stale_fitness
+        A degraded frame (one whose own registration passed the lost bounds) is promoted too
+        when its fitness against the keyframe falls below this: otherwise a run that degrades
+        keeps a keyframe it can no longer see and every later frame is lost.
+    """
+
+    min_fitness: float = Field(0.85, ge=0, le=1)
+    max_translation: PositiveFloat = 0.16
+    max_rotation_deg: PositiveFloat = 4.0
+    stale_fitness: float = Field(0.7, ge=0, le=1)
+
+
+class HealthConfig(StageConfig):
+    """Bounds of the per-frame health check, in voxels ``v`` unless named otherwise.
+
+    A frame breaking any ``lost`` bound is lost (its pose is not used); one breaking only ``ok``
+    bounds is degraded (used and flagged). Rotation bounds are displacements at the radius.
+
+    Attributes
+    ----------
+    min_points
+        Fewer points than this after preprocessing: lost.
+    ok_fitness, lost_fitness
+        Share of frame points with a reference point within the correspondence gate.
+    ok_rmse, lost_rmse
+        Inlier RMSE of the fine registration (voxels).
+    ok_condition, lost_condition
+        Condition number of the registration information at the cloud centroid with the
+        rotation block scaled by the radius (unit-free).
+    ok_sigma_translation, ok_sigma_rotation
+        Largest 1-σ of the frame's own registration (voxels; rotation at the radius).
+    ok_prediction_translation, ok_prediction_rotation
+        Largest disagreement with the motion model's prediction (voxels), widened to
+        ``model_error_sigmas`` times the model's observed error when that is larger (motion
+        that is not constant velocity is input, not a fault); ``lost_prediction_factor`` times
+        the bound is lost.
+    ok_step_translation, ok_step_rotation
+        Largest point-to-plane Gauss-Newton step from the registered pose (voxels): a
+        registration that stopped off the surface optimum is not ok.
+    max_motion
+        Largest motion (radii; rotation: radians) of the target between two frames while its
+        velocity is unknown (a single pose in the history).
+    model_error_sigmas
+        See the prediction bounds.
+    max_reference_factor
+        Model-free: a frame further from its keyframe than this many times the keyframe
+        promotion thresholds is at best degraded.
+    """
+
+    min_points: int = Field(100, ge=3)
+    ok_fitness: float = Field(0.6, ge=0, le=1)
+    lost_fitness: float = Field(0.3, ge=0, le=1)
+    ok_rmse: PositiveFloat = 0.67
+    lost_rmse: PositiveFloat = 1.0
+    ok_condition: PositiveFloat = 1e5
+    lost_condition: PositiveFloat = 1e8
+    ok_sigma_translation: PositiveFloat = 0.167
+    ok_sigma_rotation: PositiveFloat = 0.073
+    ok_prediction_translation: PositiveFloat = 1.67
+    ok_prediction_rotation: PositiveFloat = 1.09
+    lost_prediction_factor: float = Field(4.0, ge=1)
+    ok_step_translation: PositiveFloat = 0.083
+    ok_step_rotation: PositiveFloat = 0.073
+    max_motion: PositiveFloat = 0.5
+    model_error_sigmas: PositiveFloat = 3.0
+    max_reference_factor: float = Field(2.0, ge=1)
+
+
+class TrackerConfig(StageConfig):
+    """Every parameter of the tracker; no length in metres unless the user sets ``voxel_size``.
+
+    Attributes
+    ----------
+    method
+        Fine registration: ``"icp"`` (point-to-plane ICP against the last keyframe), ``"gicp"``
+        or ``"jicp"`` (the frame registered to the last ``jicp.window − 1`` keyframes and the
+        window solved as a pose graph).
+    points_per_frame
+        Points a frame keeps after downsampling: the voxel edge follows from it and the first
+        frame's spacing (:func:`spacepose.core.scale.voxel_for`). 3,000 gives 6 mm on the lab
+        run at 1.2 m.
+    voxel_size
+        Voxel edge (m) to use instead of the derived one.
+    gate
+        Correspondence gate of the fine registration (voxels). After the motion model's
+        prediction the misalignment is well below a voxel; a wider gate lets silhouette points
+        pair with the wrong surface (1.7 v doubled the lab run's yaw error).
+    coarse_voxel
+        Voxel of the sparse cloud behind FPFH + RANSAC (voxels); its normals use a radius of
+        2, FPFH 5 and RANSAC's gate 1.5 of these.
+    use_background_removal
+        Remove walls, floor and turntable around the target first (``background``).
+    use_mls
+        mpp-MLS (denoise + downsample + normals) instead of voxel downsampling + PCA normals;
+        its voxel is ``v`` and its kernel width ``mls_h`` voxels.
+    mls_h
+        mpp-MLS kernel width (voxels).
+    covariance_scale
+        Factor on every registration covariance from the information matrix (1: as computed).
+    floor_translation, floor_rotation
+        1-σ added to every registration, isotropically about the target centroid (voxels;
+        rotation at the radius): the systematic error the information matrix cannot see
+        (two different voxel samplings of one surface, normals near edges).
+    floor_motion
+        1-σ added to each reported pose per unit of motion between the frame and its
+        reference (rotation angle, centroid displacement): the bias that grows with the motion
+        (on the lab run a keyframe chain drifted about 0.015° per 4° keyframe, in one
+        direction, 3.6 of its noise-only σ). It enters the reported covariance only, not the
+        weights of the pose graph (there it made the lab run's y error 2-3× worse).
+    """
+
+    method: Literal["icp", "gicp", "jicp"] = "jicp"
+    points_per_frame: PositiveInt = 3000
+    voxel_size: PositiveFloat | None = None
+    gate: PositiveFloat = 0.83
+    coarse_voxel: PositiveFloat = 2.0
+    use_background_removal: bool = False
+    use_mls: bool = False
+    mls_h: PositiveFloat = 1.67
+    covariance_scale: PositiveFloat = 1.0
+    floor_translation: float = Field(0.0083, ge=0)
+    floor_rotation: float = Field(0.00145, ge=0)
+    floor_motion: float = Field(0.01, ge=0)
+    background: BackgroundConfig = BackgroundConfig(range_max=1.8)
+    mls: MLSConfig = MLSConfig()
+    normals: NormalsConfig = NormalsConfig(k=15)
+    coarse_normals: NormalsConfig = NormalsConfig(k=30)
+    fpfh: FPFHConfig = FPFHConfig(max_nn=100)
+    ransac: RansacConfig = RansacConfig(mutual_filter=False)
+    icp: ICPConfig = ICPConfig(method="point_to_plane")
+    gicp: GICPConfig = GICPConfig()
+    jicp: JICPConfig = JICPConfig(
+        window=4, icp=ICPConfig(method="point_to_plane", max_iterations=10)
+    )
+    keyframe: KeyframeConfig = KeyframeConfig()
+    health: HealthConfig = HealthConfig()
+
+
+
+@dataclass(frozen=True)
+class StageLengths:
+    """The tracker's stage configs with their lengths in metres, for one scale.
+
+    Attributes
+    ----------
+    voxel, gate, coarse_voxel
+        Voxel edge, fine correspondence gate and coarse voxel edge (m).
+    floor_translation, floor_rotation, floor_motion
+        σ floor (m, rad, fraction of the motion) of every registration.
+    icp, gicp, jicp, normals, coarse_normals, fpfh, ransac, mls
+        The stage configs with every length set.
+    """
+
+    voxel: float
+    gate: float
+    coarse_voxel: float
+    floor_translation: float
+    floor_rotation: float
+    floor_motion: float
+    icp: ICPConfig
+    gicp: GICPConfig
+    jicp: JICPConfig
+    normals: NormalsConfig
+    coarse_normals: NormalsConfig
+    fpfh: FPFHConfig
+    ransac: RansacConfig
+    mls: MLSConfig
+
+    def to_dict(self) -> dict[str, float]:
+        """The derived lengths (m, rad) for a run's effective config."""
+        return {
+            "voxel_m": self.voxel,
+            "gate_m": self.gate,
+            "coarse_voxel_m": self.coarse_voxel,
+            "floor_translation_m": self.floor_translation,
+            "floor_rotation_rad": self.floor_rotation,
+        }
+
+
+def stage_lengths(config: TrackerConfig, voxel: float, radius: float) -> StageLengths:
+    """Every length of the tracker for a voxel edge ``voxel`` and target radius ``radius`` (m)."""
+    gate = config.gate * voxel
+    coarse = config.coarse_voxel * voxel
+
+    def gated(stage: ICPConfig | GICPConfig) -> ICPConfig | GICPConfig:
+        return stage.model_copy(update={"max_correspondence_distance": gate})
+
+    jicp = config.jicp.model_copy(
+        update={"icp": gated(config.jicp.icp), "gicp": gated(config.jicp.gicp)}
+    )
+    return StageLengths(
+        voxel=voxel,
+        gate=gate,
+        coarse_voxel=coarse,
+        floor_translation=config.floor_translation * voxel,
+        floor_rotation=config.floor_rotation * voxel / radius,
+        floor_motion=config.floor_motion,
+        icp=gated(config.icp),
+        gicp=gated(config.gicp),
+        jicp=jicp,
+        normals=config.normals,
+        coarse_normals=config.coarse_normals.model_copy(update={"radius": 2.0 * coarse}),
+        fpfh=config.fpfh.model_copy(update={"radius": 5.0 * coarse}),
+        ransac=config.ransac.model_copy(update={"max_correspondence_distance": 1.5 * coarse}),
+        mls=config.mls.model_copy(update={"voxel_size": voxel, "h": config.mls_h * voxel}),
+    )

@@ -1,0 +1,42 @@
+"""The tracker's motion model (core/motion.py): constant velocity and its observed error."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spacepose.core import se3
+from spacepose.core.motion import MotionModel
+
+
+def test_model_error_is_the_rms_of_the_recent_errors_and_drops_old_ones():
+    m = MotionModel()
+    assert m.model_error() is None
+    for e in [(0.003, 0.01), (0.004, 0.02)]:
+        m.accept(0.0, np.eye(4), np.zeros((6, 6)), e, restart=False)
+    assert m.model_error() == pytest.approx((np.sqrt(12.5e-6), np.sqrt(2.5e-4)))
+    for _ in range(30):
+        m.accept(0.0, np.eye(4), np.zeros((6, 6)), (0.001, 0.0), restart=False)
+    assert m.model_error() == pytest.approx((0.001, 0.0))  # the window forgot the first two
+
+
+def test_prediction_and_its_covariance():
+    m = MotionModel()
+    assert m.predict(1.0, 0, (0.01, 0.1)) is None
+    D = se3.exp([0.0, 0.02, 0.0, 0.01, 0.0, 0.0])
+    m.accept(0.0, np.eye(4), np.zeros((6, 6)), None, restart=True)
+    first = m.predict(1.0, 0, (0.01, 0.1))
+    assert not first.velocity_known
+    np.testing.assert_allclose(first.T_sensor_target, np.eye(4))
+    # Without a measured error the fallback (0.01 m, 0.1 rad) spreads over three axes.
+    np.testing.assert_allclose(np.diag(first.covariance), [0.1**2 / 3] * 3 + [0.01**2 / 3] * 3)
+    m.accept(1.0, D, np.zeros((6, 6)), None, restart=False)
+    p = m.predict(2.0, 0, (0.01, 0.1))
+    assert p.velocity_known
+    np.testing.assert_allclose(p.T_sensor_target, D @ D, atol=1e-12)
+    # Two frames missed: the step's uncertainty is counted three times over (in σ).
+    late = m.predict(2.0, 2, (0.01, 0.1))
+    np.testing.assert_allclose(late.covariance, 9 * p.covariance, rtol=1e-12)
+    # A restart forgets the velocity.
+    m.accept(3.0, D, np.zeros((6, 6)), None, restart=True)
+    assert not m.predict(4.0, 0, (0.01, 0.1)).velocity_known

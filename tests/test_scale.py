@@ -1,0 +1,53 @@
+"""Lengths from the data (core/scale.py) against closed forms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spacepose.core.scale import derive_scale, point_spacing, rms_radius, voxel_for
+from spacepose.errors import InputError
+
+
+def _grid(n: int, step: float) -> np.ndarray:
+    """A flat n × n square grid of pitch ``step`` in the z = 1 plane."""
+    u, v = np.meshgrid(np.arange(n) * step, np.arange(n) * step)
+    return np.c_[u.ravel(), v.ravel(), np.ones(n * n)]
+
+
+def test_spacing_of_a_square_grid_is_its_pitch():
+    assert point_spacing(_grid(40, 0.003)) == pytest.approx(0.003, rel=1e-9)
+    # Sampled (2,000 of 10,000 query points): still every nearest neighbour is one pitch away.
+    assert point_spacing(_grid(100, 0.05)) == pytest.approx(0.05, rel=1e-9)
+
+
+def test_spacing_ignores_duplicates_when_most_points_are_doubled():
+    pts = _grid(20, 0.01)
+    assert point_spacing(np.r_[pts, pts]) == pytest.approx(0.01, rel=1e-9)
+    with pytest.raises(InputError, match="same place"):
+        point_spacing(np.zeros((10, 3)))
+    with pytest.raises(InputError, match="at least two"):
+        point_spacing(np.zeros((1, 3)))
+
+
+def test_voxel_keeps_about_the_requested_points():
+    # A 0.3 m square sampled every 1 mm (90,000 points): for 2,500 points the voxel is
+    # sqrt(0.09 / 2500) = 6 mm, and a 6 mm grid on the plane has 50 × 50 cells.
+    pts = _grid(300, 0.001)
+    v = voxel_for(point_spacing(pts), len(pts), 2500)
+    assert v == pytest.approx(0.006, rel=1e-9)
+    scale = derive_scale(pts, 2500)
+    assert scale.voxel == pytest.approx(0.006, rel=1e-9)
+    # The radius is that of the cell centroids: a uniform square of side a has RMS radius a/√6.
+    assert scale.radius == pytest.approx(0.3 / np.sqrt(6), rel=0.02)
+    # Never finer than the sampling itself.
+    assert voxel_for(0.01, 100, 10_000) == 0.01
+
+
+def test_scale_is_proportional_to_the_data():
+    pts = _grid(120, 0.002) + np.random.default_rng(0).normal(0, 2e-4, (14400, 3))
+    a, b = derive_scale(pts, 3000), derive_scale(10.0 * pts, 3000)
+    assert b.spacing == pytest.approx(10 * a.spacing, rel=1e-9)
+    assert b.voxel == pytest.approx(10 * a.voxel, rel=1e-9)
+    assert b.radius == pytest.approx(10 * a.radius, rel=1e-6)
+    assert rms_radius(pts) == pytest.approx(np.sqrt(((pts - pts.mean(0)) ** 2).sum(1).mean()))
