@@ -85,7 +85,19 @@ class LostInSpaceConfig(StageConfig):
         "(median 0.001); the y-turned twin of the default target 0.009-0.16 (median 0.024).",
     )
     decide_frames: int = Field(
-        5, ge=1, description="Frames of scores a candidate is judged on (see ambiguity_margin)."
+        5,
+        ge=1,
+        description="Frames of scores a candidate is judged on: it is dropped when it "
+        "was behind the best in each of them, by a median shortfall above ambiguity_margin.",
+    )
+    min_explained: float = Field(
+        0.98,
+        gt=0,
+        le=1,
+        description="A frame counts towards a decision only if its best "
+        "candidate explains at least this share: in poorer frames (part of the target out of "
+        "view, a refinement that slid) the twins of the symmetric orbit target fell up to 0.04 "
+        "behind each other for several frames.",
     )
     max_candidates: int = Field(4, ge=1, description="Largest number of candidate filters.")
     refine_iterations: int = Field(

@@ -12,9 +12,11 @@ filter, as Yu et al. do. Without one (lost in space) every pose the frame's rect
 (:func:`spacepose.core.attitude_fix.attitude_hypotheses`) is refined and scored on the target
 model (:mod:`spacepose.core.lost_in_space`); those within ``start_margin`` of the best each
 start a candidate filter. Each frame the candidates are scored again at their own estimates and
-a candidate is dropped once its median shortfall from the best exceeds ``ambiguity_margin``
-over ``decide_frames`` frames. While two or more remain the rows say ``ambiguous``, give no
-state and list the candidates: a truly symmetric target stays so, never confidently wrong.
+a candidate is dropped once it has been behind the best in each of ``decide_frames`` frames, by
+a median shortfall above ``ambiguity_margin`` (frames whose best score is below
+``min_explained`` do not count: they cannot tell candidates apart). While two or more remain
+the rows say ``ambiguous``, give no state and list the candidates: a truly symmetric target
+stays so, never confidently wrong.
 """
 
 from __future__ import annotations
@@ -339,13 +341,16 @@ class RelativeNavigator:
         if self.model is not None:
             poses = [refine_on_model(T, frame, self.model, c) for T in poses]
         scores = np.array([explained_share(T, frame, self.model, c) for T in poses])
+        counted = scores.max() >= c.min_explained
         for track, score in zip(self.tracks, scores, strict=True):
-            track.deficits.append(float(scores.max() - score))
+            if counted:
+                track.deficits.append(float(scores.max() - score))
             track.explained = float(score)
         keep: list[int] = []
         for i in np.argsort(-scores, kind="stable"):
-            d = self.tracks[i].deficits
-            if len(d) >= c.decide_frames and np.median(d[-c.decide_frames :]) > c.ambiguity_margin:
+            d = np.array(self.tracks[i].deficits[-c.decide_frames :])
+            # Behind the best in every one of the last frames, and by more than the margin.
+            if len(d) == c.decide_frames and np.all(d > 0) and np.median(d) > c.ambiguity_margin:
                 continue
             if any(_same_pose(poses[i], poses[j], c.same_pose_deg) for j in keep):
                 continue
