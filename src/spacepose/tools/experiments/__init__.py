@@ -16,7 +16,7 @@ from typing import Any
 from spacepose.errors import ConfigError
 
 # Modules that register experiments when imported.
-_MODULES: tuple[str, ...] = ("yu_geometry", "yu_nav", "li", "li_global")
+_MODULES: tuple[str, ...] = ("yu_geometry", "yu_nav", "li", "li_global", "robustness")
 
 
 @dataclass(frozen=True)
@@ -31,11 +31,22 @@ class ExperimentOptions:
         Smaller sizes and fewer repetitions, for tests and smoke runs.
     workers
         Threads for neighbour searches (-1: all cores).
+    seeds
+        li-l1 and li-l3: number of seeds, from ``seed`` on (None: the experiment's default).
+    cells, frames, frames_csv, jobs
+        ``robustness`` only (the others ignore them): the grid cells to run (selection string
+        or config file, None: the whole grid), frames per run (None: the experiment's
+        default), whether to write every frame's scores, and the processes running cells.
     """
 
     seed: int = 0
     quick: bool = False
     workers: int = -1
+    seeds: int | None = None
+    cells: str | None = None
+    frames: int | None = None
+    frames_csv: bool = False
+    jobs: int = 1
 
 
 Experiment = Callable[[Path, ExperimentOptions], dict[str, Any]]

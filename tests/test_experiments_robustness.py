@@ -1,0 +1,172 @@
+"""The robustness grid experiment (tools/experiments/robustness.py and robustness_scores.py): the
+quick subset end to end, the scores against closed-form errors, the cell selection."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from spacepose.cli import main
+from spacepose.core import se3
+from spacepose.core.track_result import TrackResult
+from spacepose.errors import ConfigError
+from spacepose.tools.experiments import ExperimentOptions, available, run_experiment
+from spacepose.tools.experiments.robustness import (
+    Cell,
+    failed_criteria,
+    markdown_table,
+    select_cells,
+)
+from spacepose.tools.experiments.robustness_scores import (
+    FrameTruth,
+    chain_bound,
+    reason_kind,
+    score_frame,
+)
+
+METRICS = (
+    "tracked_share",
+    "err_t_mm",
+    "err_r_deg",
+    "crlb_t_mm",
+    "crlb_r_deg",
+    "error_over_crlb",
+    "error_over_chain",
+    "coverage_3sigma",
+    "false_ok",
+    "ms_per_frame",
+)
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, object]:
+    out = tmp_path_factory.mktemp("robustness")
+    options = ExperimentOptions(quick=True, frames=5, workers=2, frames_csv=True)
+    return run_experiment("robustness", out, options), out
+
+
+def test_quick_subset_writes_every_metric_of_every_cell(quick) -> None:
+    table, out = quick
+    assert "robustness" in available()
+    for name in ("robustness.json", "robustness.md", "robustness.png", "robustness_frames.csv"):
+        assert (out / name).is_file()
+    rows = table["table"]
+    # The default cell and one variant per axis: targets, 25 m, noise x3, tumbling, clutter.
+    assert len(rows) == 7 and all(len(r["seeds"]) == 1 and not r["errors"] for r in rows)
+    assert {r["target"] for r in rows} == {"lab", "hubble", "panels"}
+    for row in rows:
+        for metric in METRICS:
+            assert metric in row and math.isfinite(row[metric]), (row, metric)
+        assert row["ok"] + row["degraded"] + row["lost"] == 4  # frames 1..4
+    saved = json.loads((out / "robustness.json").read_text())
+    assert [r.keys() for r in saved["table"]] == [r.keys() for r in rows]
+    assert (out / "robustness.md").read_text().count("\n") == 2 + len(rows)
+    with (out / "robustness_frames.csv").open() as fh:
+        frames = list(csv.DictReader(fh))
+    assert len(frames) == 7 * 5
+
+
+def test_default_lab_cell_is_tracked_without_false_ok(quick) -> None:
+    table, _ = quick
+    (lab,) = [
+        r
+        for r in table["table"]
+        if (r["target"], r["range"], r["noise"], r["motion"], r["clutter"])
+        == ("lab", 1.2, 1.0, "constant", "none")
+    ]
+    assert lab["tracked_share"] == 1.0 and lab["false_ok"] == 0 and lab["lost"] == 0
+    # Measured 0.13 mm and 0.07° on 4 frames; the bounds are 0.02-0.05 mm and 0.013-0.017°.
+    assert lab["err_t_mm"] < 1.0 and lab["err_r_deg"] < 0.3
+    assert 0.01 < lab["crlb_t_mm"] < 0.2 and 0.005 < lab["crlb_r_deg"] < 0.05
+
+
+def _result(
+    T: np.ndarray, sigma: np.ndarray, status: str = "ok", index: int = 0, **kw
+) -> TrackResult:
+    return TrackResult(index, float(index), T, np.diag(sigma**2), status, **kw)
+
+
+def test_scores_of_a_known_error() -> None:
+    rng = np.random.default_rng(7)
+    T_true = se3.exp([0.1, -0.2, 0.05, 0.02, -0.01, 0.03])
+    pts = rng.normal(size=(500, 3)) * 0.2 + [0.0, 0.0, 1.2]
+    delta = np.array([1e-3, 0.0, 0.0, 0.0, 2e-3, 0.0])  # 1 mrad about x, 2 mm along y
+    sigma = np.full(6, 1e-3)
+    truth = FrameTruth(T_true, pts, np.diag(np.full(6, 1e-8)))
+    row = score_frame(_result(se3.exp(delta) @ T_true, sigma), truth, np.zeros((6, 6)), 1.2)
+    c = pts.mean(axis=0)
+    expected = se3.transform_points(se3.exp(delta), c[None])[0] - c
+    assert row["err_t_mm"] == pytest.approx(1e3 * np.linalg.norm(expected), rel=1e-9)
+    assert row["err_r_deg"] == pytest.approx(np.degrees(1e-3), rel=1e-9)
+    assert row["d_rx"] == pytest.approx(np.degrees(1e-3)) and row["d_ty"] == pytest.approx(2.0)
+    assert row["nsigma_max"] == pytest.approx(2.0)
+    assert row["within_3sigma"] and not row["false_ok"] and row["tracked"]
+    # sqrt(trace) of the bound: 1e-4 rad per axis; at c the translation adds |ω × c| terms.
+    assert row["crlb_r_deg"] == pytest.approx(np.degrees(np.sqrt(3e-8)), rel=1e-9)
+    lever = 2.0 * c @ c  # trace([c]x [c]xᵀ) = 2|c|²
+    assert row["crlb_t_mm"] == pytest.approx(1e3 * np.sqrt(1e-8 * (3.0 + lever)), rel=1e-9)
+    # 6 σ off: a false ok; the same as degraded is neither covered nor a false ok.
+    far = score_frame(_result(se3.exp(3 * delta) @ T_true, sigma), truth, np.zeros((6, 6)), 1.2)
+    assert far["nsigma_max"] == pytest.approx(6.0) and far["false_ok"]
+    degraded = _result(se3.exp(3 * delta) @ T_true, sigma, "degraded")
+    row = score_frame(degraded, truth, np.zeros((6, 6)), 1.2)
+    assert not row["false_ok"] and not row["within_3sigma"] and row["tracked"]
+    # Off by more than 1 % of the range: not tracked, whatever the status.
+    off = _result(se3.exp([0, 0, 0, 0.02, 0, 0]) @ T_true, sigma)
+    assert not score_frame(off, truth, np.zeros((6, 6)), 1.2)["tracked"]
+
+
+def test_chain_bound_composes_along_the_keyframes() -> None:
+    poses = [np.eye(4), se3.exp([0, 0.1, 0, 0.05, 0, 0]), se3.exp([0, 0.2, 0, 0.1, 0, 0])]
+    bounds = [np.diag(np.full(6, v)) for v in (1.0, 2.0, 3.0)]
+    truths = [FrameTruth(T, np.zeros((1, 3)), B) for T, B in zip(poses, bounds, strict=True)]
+    results = [
+        _result(poses[0], np.zeros(6), index=0, reference_index=0, keyframe=True),
+        _result(poses[1], np.zeros(6), index=1, reference_index=0, keyframe=True),
+        _result(poses[2], np.zeros(6), index=2, reference_index=1),
+    ]
+    chain = chain_bound(results, truths)
+    assert np.all(chain[0] == 0) and np.allclose(chain[1], bounds[1])
+    Ad = se3.adjoint(poses[2] @ se3.invert(poses[1]))
+    assert np.allclose(chain[2], bounds[2] + Ad @ bounds[1] @ Ad.T, rtol=1e-12)
+    # A frame registered straight onto frame 0 carries only its own bound.
+    direct = [*results[:2], _result(poses[2], np.zeros(6), index=2, reference_index=0)]
+    assert np.allclose(chain_bound(direct, truths)[2], bounds[2])
+
+
+def test_cell_selection() -> None:
+    runs, frames = select_cells(None, quick=False, frames=None)
+    assert len(runs) == 3 * 5 * 2 * 5 * 2 * 5 and frames == 30
+    runs, _ = select_cells("target=lab,range=1.2+25", quick=False, frames=12)
+    assert len(runs) == 2 * 2 * 5 * 2 * 5 and {r.range for r in runs} == {1.2, 25.0}
+    runs, frames = select_cells("range=6,motion=tumbling-10", quick=True, frames=None, seed=3)
+    assert runs == [Cell(range=6.0, motion="tumbling-10", seed=3)] and frames == 8
+    runs, frames = select_cells(None, quick=True, frames=4)
+    assert len(runs) == 7 and runs[0] == Cell() and frames == 4
+    with pytest.raises(ConfigError, match="AXIS=VALUE"):
+        select_cells("speed=3", quick=False, frames=None)
+    with pytest.raises(ConfigError, match="range"):
+        select_cells("range=far", quick=False, frames=None)
+
+
+def test_criteria_and_table_rows() -> None:
+    row = {"target": "lab", "range": 1.2, "noise": 1.0, "motion": "constant", "clutter": "none"}
+    row |= {"seeds": [0, 1], "errors": [], "tracked_share": 0.97, "tracked_share_std": 0.01}
+    row |= {"error_over_crlb": 2.0, "false_ok": 0, "coverage_3sigma": float("nan")}
+    assert failed_criteria(row) == ["tracked_share", "coverage_3sigma"]
+    row["fails"] = failed_criteria(row)
+    line = markdown_table([row]).splitlines()[2]
+    assert "97.0 ± 1.0" in line and "tracked_share, coverage_3sigma" in line
+    assert reason_kind("keyframe 50 mm / 3.0 deg away") == "keyframe # mm / # deg away"
+
+
+def test_cli_runs_one_cell_with_its_frames(tmp_path) -> None:
+    args = ["experiment", "robustness", "--quick", "--cells", "range=25", "--frames", "3"]
+    assert main([*args, "--frames-csv", "--out", str(tmp_path)]) == 0
+    table = json.loads((tmp_path / "robustness" / "robustness.json").read_text())
+    assert [r["range"] for r in table["table"]] == [25.0]
+    assert [f["frame"] for f in table["frames"]] == [0, 1, 2]
