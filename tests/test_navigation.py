@@ -187,7 +187,7 @@ def test_the_symmetric_target_stays_ambiguous() -> None:
     )
     nav, rows, att, cand = _lost_in_space(sim, LOST_FRAMES)
     # The two attitudes a half turn about y apart explain every frame alike (measured: shares
-    # 0.990-1.000, within 0.004 of each other): both are kept, no state is given. The true
+    # 0.99-1.00, within 0.003 of each other): both are kept, no state is given. The true
     # one's filter converges as without the twin (2.1° at frame 1, 0.03-0.08° from frame 6).
     assert {r.status for r in rows} == {"ambiguous"}
     assert np.all(np.isnan(att)) and nav.ekf is None
@@ -197,15 +197,17 @@ def test_the_symmetric_target_stays_ambiguous() -> None:
 
 
 def test_the_symmetric_target_stays_ambiguous_through_poor_frames() -> None:
-    # Seed 1, frames 16-24: both candidates explain only 0.86-0.98 of each frame and the true
-    # one falls up to 0.04 behind its twin for several frames running; judged on those frames
-    # the twin was once kept alone (a confident wrong state). They do not count now.
+    # Seed 1, frames 16-24: the target turns its faces edge-on. When the score expected no
+    # points on surfaces seen at grazing incidence and the z-buffer hid the far part of tilted
+    # faces, both candidates explained only 0.86-0.98 there and the true one fell up to 0.04
+    # behind its twin for several frames running: the twin was once kept alone (a confident
+    # wrong state). Measured now: shares 0.971-1.000, the twins within 0.006 of each other.
     sim = dataclasses.replace(
         simulate_orbit(OrbitConfig(frames=25, seed=1)), target=symmetric_orbit_target()
     )
     nav, rows, att, cand = _lost_in_space(sim, 25)
     assert {r.status for r in rows} == {"ambiguous"} and nav.ekf is None and np.all(np.isnan(att))
-    assert min(max(c.explained for c in r.candidates) for r in rows[16:]) < 0.95
+    assert all(abs(r.candidates[0].explained - r.candidates[1].explained) < 0.01 for r in rows)
     assert all(len(pair) == 2 and pair[0] < 3.0 and pair[1] > 179.0 for pair in cand)
 
 
