@@ -2,34 +2,43 @@
 
 The definition follows Open3D's ``compute_fpfh_feature`` number for number (bin edges, the swap
 rule, the 1/d² weighting, the per-sub-histogram scaling to 100), so the two can be compared
-directly. Everything is computed on flat arrays of (point, neighbour) pairs, one block of points
-at a time: the histograms with ``np.bincount`` and the weighted neighbour sum as one sparse
-matrix product.
+directly. The radius search, the pair features and both histogram passes are compiled (numba)
+kernels over the cells of a :class:`~spacepose.core.grid.VoxelIndex`:
+
+* cells are about a third of the radius wide; the points of one cell share one candidate list,
+  the points of the cells around it that can lie within the radius, copied once;
+* a point's neighbours are the candidates strictly within the radius, in that fixed visiting
+  order; past ``max_nn`` (the point included) the ``max_nn`` nearest are kept, ties by index, as
+  a KD-tree's hybrid search returns them, and the point itself is dropped as Open3D drops it;
+* the simplified histograms (SPFH) of a block of cells are taken as its neighbours are found,
+  whose squared distances are kept (12 bytes per pair) for the weighted neighbour sum (FPFH).
+
+Every row is summed in its own fixed order and blocks and chunks are fixed, so the result is the
+same on any thread count.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
-from scipy import sparse
-from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
-from spacepose.core.neighbors import hybrid
+from spacepose.core.grid import VoxelIndex, numba_threads
+from spacepose.core.voxel import find_cell
 from spacepose.errors import InputError
 
 N_BINS = 11
 N_FEATURES = 3 * N_BINS
-# compute_fpfh: (point, neighbour) pairs per block of points (the bound on the pair memory); pairs
-# per chunk of the feature arithmetic (about 400 kB per array: fastest of 4k..64k measured);
-# points probed for the neighbour counts; share of probes over max_nn above which the radius
-# search is not used.
-_PAIRS_PER_BLOCK = 262144
-_PAIRS_PER_CHUNK = 16384
-_PROBE_POINTS = 64
-_RADIUS_SEARCH_MAX_CAPPED = 0.2
+# Cells per radius: the candidate block of a cell then spans (2·3 + 1) cells of r/3, 2.3 r, about
+# 1.7× the pairs inside the radius on a surface (cells of r/2: 2.5 r; of r: 3 r).
+_CELLS_PER_RADIUS = 3
+# Points per block of the search and SPFH pass: bounds the (block, max_nn) pair buffers.
+_BLOCK_POINTS = 8192
+# Rows per unit of parallel work in the weighted-sum pass.
+_CHUNK_ROWS = 64
 
 
 class FPFHConfig(StageConfig):
@@ -58,7 +67,8 @@ def pair_features(
     Parameters
     ----------
     p1, n1, p2, n2
-        (P, 3) positions and unit normals of the two points of each pair.
+        (P, 3) positions and unit normals of the two points of each pair (broadcast: one
+        point against P others takes (1, 3) arrays).
 
     Returns
     -------
@@ -70,59 +80,21 @@ def pair_features(
     neighbour set), the swap, hence the sign of f3, is decided by the last bit of the dot
     products; they are summed in Eigen's order so that the choice matches Open3D's.
     """
-    d = p2 - p1
-    length = np.sqrt(_dot(d, d))
-    safe = np.where(length > 0, length, 1.0)
-    a1 = _dot(n1, d) / safe
-    a2 = _dot(n2, d) / safe
-    # Open3D compares arccos|a1| > arccos|a2|; arccos is decreasing, and comparing |a1| < |a2|
-    # directly is what its build does in effect: pairs whose normals are equal to the last bit
-    # (same neighbour set) then resolve the same way, while a libm arccos can map two
-    # neighbouring doubles to one value and flip the sign of f3.
-    swap = np.abs(a1) < np.abs(a2)
-    ns = np.where(swap[:, None], n2, n1)
-    nt = np.where(swap[:, None], n1, n2)
-    d = np.where(swap[:, None], -d, d)
-    f3 = np.where(swap, -a2, a1)
-    v = _cross(d, ns)
-    v_norm = np.sqrt(_dot(v, v))
-    v = v / np.where(v_norm > 0, v_norm, 1.0)[:, None]
-    w = _cross(ns, v)
-    f2 = _dot(v, nt)
-    f1 = np.arctan2(_dot(w, nt), _dot(ns, nt))
-    out = np.column_stack([f1, f2, f3])
-    out[(length == 0) | (v_norm == 0)] = 0.0
-    return out
-
-
-def _dot(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Row-wise dot product summed left to right, the order Eigen uses for 3-vectors.
-
-    The swap rule compares two nearly equal angles for pairs with near-identical normals; summing
-    in the same order as Open3D keeps those ties resolving the same way.
-    """
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
-
-
-def _cross(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Row-wise cross product (P, 3), with np.cross's arithmetic but without its axis handling."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    arrays = [
+        np.ascontiguousarray(a, dtype=np.float64).reshape(-1, 3)
+        for a in np.broadcast_arrays(p1, n1, p2, n2)
+    ]
+    out = np.empty((len(arrays[0]), 3))
+    _pair_features_kernel(*arrays, out)
     return out
 
 
 def feature_bins(features: NDArray[np.float64]) -> NDArray[np.intp]:
     """Histogram bins (P, 3) of pair features in 0..10: f1 over [−π, π], f2 and f3 over [−1, 1]."""
-    scaled = np.column_stack(
-        [
-            N_BINS * (features[:, 0] + np.pi) / (2.0 * np.pi),
-            N_BINS * (features[:, 1] + 1.0) * 0.5,
-            N_BINS * (features[:, 2] + 1.0) * 0.5,
-        ]
-    )
-    return np.clip(np.floor(scaled), 0, N_BINS - 1).astype(np.intp)
+    f = np.ascontiguousarray(features, dtype=np.float64).reshape(-1, 3)
+    out = np.empty(f.shape, dtype=np.intp)
+    _bins_kernel(f, out)
+    return out
 
 
 def compute_fpfh(
@@ -140,7 +112,7 @@ def compute_fpfh(
     config
         Hybrid neighbourhood (radius, max_nn).
     workers
-        Threads for the neighbour search.
+        Threads (-1: all cores); the result does not depend on it.
 
     Returns
     -------
@@ -149,127 +121,282 @@ def compute_fpfh(
 
     Notes
     -----
-    The points are processed in blocks, sized from the neighbour counts of a few probe points,
-    so that the memory is bounded by the (N, 33) histograms, the sparse 1/d² weight matrix
-    (12 bytes per pair) and one block's pairs, whatever the cloud size. When few points have
-    more than ``max_nn − 1`` neighbours in the radius, a block's neighbours come from one
-    dual-tree radius search (about three times faster than a k-nearest search with a bound)
-    and only those few are searched again for their ``max_nn`` nearest, as Open3D keeps them;
-    otherwise every point gets the k-nearest search.
+    Memory: the (N, 33) histograms, 12 bytes per (point, neighbour) pair and one block's
+    (block, max_nn) pair buffers, whatever the cloud size.
     """
     cloud = as_cloud(cloud, "cloud")
     if not cloud.has_normals:
         raise InputError(
             "FPFH needs a cloud with normals (run estimate_normals first)", cloud.source
         )
-    pts, nrm = cloud.points, cloud.normals
-    n = len(pts)
-    tree = cKDTree(pts)
-    probe = np.unique(np.linspace(0, n - 1, min(n, _PROBE_POINTS)).astype(np.intp))
-    in_radius = tree.query_ball_point(pts[probe], config.radius, return_length=True)
-    # Points over the cap need a k-nearest search on top of the radius search: past a share of
-    # them (measured break-even near 30 %), the k-nearest search alone is cheaper.
-    radius_search = np.mean(in_radius > config.max_nn) <= _RADIUS_SEARCH_MAX_CAPPED
-    per_row = float(np.mean(in_radius if radius_search else np.minimum(in_radius, config.max_nn)))
-    # Big blocks: every search call has a fixed cost (threads, a tree for the radius search).
-    block_rows = int(np.clip(_PAIRS_PER_BLOCK / max(per_row, 1.0), 16, 4096))
+    index = VoxelIndex(cloud.points, cell_size=config.radius / _CELLS_PER_RADIUS)
+    grid = index.kernel_grid
+    order, starts = grid[1], grid[2]
+    # Normals in the index's (cell-sorted) order, as its points are.
+    normals = np.ascontiguousarray(cloud.normals[order])
+    reach = int(np.ceil(config.radius / index.cell_size))
+    offsets = _block_offsets(reach, config.radius / index.cell_size)
+    n, n_cells, max_nn = index.n, len(starts) - 1, config.max_nn
     spfh = np.empty((n, N_FEATURES))
-    # Rows of the sparse weight matrix, built block by block in row order (CSR directly).
-    index_dtype = np.int32 if n * config.max_nn < 2**31 else np.int64
-    row_counts, columns, weights = np.zeros(n, dtype=index_dtype), [], []
-    for start in range(0, n, block_rows):
-        block = np.arange(start, min(start + block_rows, n))
-        i, j, d2 = _block_pairs(tree, block, config, radius_search, workers)
-        spfh[block] = _spfh(pts, nrm, i, j, len(block), start)
-        # Neighbours' SPFH weighted by 1/d²; coincident neighbours carry no weight (as Open3D).
-        keep = d2 > 0
-        row_counts[block] = np.bincount(i[keep] - start, minlength=len(block))
-        columns.append(j[keep].astype(index_dtype))
-        weights.append(1.0 / d2[keep])
-    indptr = np.concatenate([np.zeros(1, index_dtype), np.cumsum(row_counts, dtype=index_dtype)])
-    W = sparse.csr_matrix((np.concatenate(weights), np.concatenate(columns), indptr), (n, n))
-    weighted = np.asarray(W @ spfh).reshape(n, 3, N_BINS)
-    total = weighted.sum(axis=2, keepdims=True)
-    scale = np.divide(100.0, total, out=np.zeros_like(total), where=total != 0)
-    return (weighted * scale).reshape(n, N_FEATURES) + spfh
-
-
-def _block_pairs(
-    tree: cKDTree, block: NDArray[np.intp], config: FPFHConfig, radius_search: bool, workers: int
-) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
-    """(point, neighbour) pairs of a block of points, self excluded, as Open3D's hybrid search.
-
-    Returns the point indices i (ascending), neighbour indices j and squared distances of the
-    pairs.
-    """
-    pts = tree.data
-    if not radius_search:
-        idx, dist = hybrid(tree, pts[block], config.radius, config.max_nn, workers=workers)
-        i, j, dist = _neighbour_pairs(block, idx, dist, config.max_nn)
-        return i, j, dist**2
-    found = cKDTree(pts[block]).sparse_distance_matrix(tree, config.radius, output_type="ndarray")
-    i, j, dist = found["i"] + block[0], found["j"], found["v"]
-    # Strictly inside the radius as the k-nearest search with a bound; self excluded.
-    keep = (dist < config.radius) & (i != j)
-    i, j, dist = i[keep], j[keep], dist[keep]
-    over = np.bincount(i - block[0], minlength=len(block)) > config.max_nn - 1
-    if np.any(over):
-        keep = ~over[i - block[0]]
-        capped = block[over]
-        idx, cdist = hybrid(tree, pts[capped], config.radius, config.max_nn, workers=workers)
-        ci, cj, cd = _neighbour_pairs(capped, idx, cdist, config.max_nn)
-        i, j = np.concatenate([i[keep], ci]), np.concatenate([j[keep], cj])
-        dist = np.concatenate([dist[keep], cd])
-    # Row order (a radix sort of the 16-bit block rows): the later gathers and histogram sums
-    # then walk memory in order.
-    order = np.argsort((i - block[0]).astype(np.int16), kind="stable")
-    return i[order], j[order], dist[order] ** 2
-
-
-def _neighbour_pairs(
-    rows: NDArray[np.intp], idx: NDArray[np.intp], dist: NDArray[np.float64], max_nn: int
-) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
-    """(point, neighbour) pairs of hybrid-search results (max_nn nearest, self included).
-
-    Returns the point indices i, neighbour indices j and distances of the pairs.
-    """
-    own = np.broadcast_to(rows[:, None], idx.shape)
-    # Exclude each point itself by index (a duplicate point may take the first column).
-    pair = (idx >= 0) & (idx != own)
-    # If duplicates pushed the point itself out of its max_nn results, Open3D still drops the
-    # first result; drop it too so that at most max_nn - 1 neighbours remain.
-    extra = pair.sum(axis=1) > max_nn - 1
-    pair[extra, 0] = False
-    return own[pair], idx[pair], dist[pair]
-
-
-def _spfh(
-    pts: NDArray[np.float64],
-    nrm: NDArray[np.float64],
-    i: NDArray[np.intp],
-    j: NDArray[np.intp],
-    n_rows: int,
-    first: int,
-) -> NDArray[np.float64]:
-    """Simplified point feature histograms (n_rows, 33) of points ``first .. first + n_rows``.
-
-    Each sub-histogram of a point with neighbours sums to 100 (Open3D's scaling).
-    """
-    local = i - first
-    incr = 100.0 / np.bincount(local, minlength=n_rows)[local]  # per pair: 100 / its row's count
-    out = np.zeros((n_rows, N_FEATURES))
-    # Chunks of pairs keep the temporaries in cache; the pairs are in row order, so a chunk
-    # covers the rows local[c] .. local[end - 1] only.
-    for c in range(0, len(i), _PAIRS_PER_CHUNK):
-        chunk = slice(c, c + _PAIRS_PER_CHUNK)
-        a, b, rows = i[chunk], j[chunk], local[chunk]
-        bins = feature_bins(pair_features(pts[a], nrm[a], pts[b], nrm[b]))
-        r0, r1 = rows[0], rows[-1] + 1
-        flat = ((rows - r0)[:, None] * N_FEATURES + bins + np.arange(3) * N_BINS).ravel()
-        counts = np.bincount(
-            flat,
-            weights=np.repeat(incr[chunk], 3),
-            minlength=(r1 - r0) * N_FEATURES,
+    counts = np.zeros(n + 1, dtype=np.int64)
+    neighbours, distances = [], []
+    with numba_threads(workers):
+        first = 0
+        while first < n_cells:
+            # Whole cells, at least one, up to _BLOCK_POINTS points.
+            last = max(
+                int(np.searchsorted(starts, starts[first] + _BLOCK_POINTS, "right")) - 1, first + 1
+            )
+            rows = int(starts[last] - starts[first])
+            nbr = np.empty((rows, max_nn), dtype=np.int32)
+            d2 = np.empty((rows, max_nn))
+            _search_spfh(
+                grid,
+                normals,
+                offsets,
+                config.radius,
+                first,
+                last,
+                nbr,
+                d2,
+                counts[1 + starts[first] :],
+                spfh,
+            )
+            taken = np.arange(max_nn) < counts[1 + starts[first] : 1 + starts[last], None]
+            neighbours.append(nbr[taken])
+            distances.append(d2[taken])
+            first = last
+        indptr = np.cumsum(counts)
+        out = np.empty((n, N_FEATURES))
+        _weighted_sum(
+            spfh, indptr, np.concatenate(neighbours), np.concatenate(distances), order, out
         )
-        out[r0:r1] += counts.reshape(r1 - r0, N_FEATURES)
     return out
+
+
+def _block_offsets(reach: int, radius_cells: float) -> NDArray[np.int64]:
+    """(M, 3) cell offsets within ``reach`` cells whose cell can hold a point strictly within
+    ``radius_cells`` (the radius in cell edges) of a point of the centre cell, nearest first."""
+    side = 2 * reach + 1
+    offsets = np.array(list(np.ndindex(side, side, side)), dtype=np.int64) - reach
+    gap2 = (np.maximum(np.abs(offsets) - 1, 0) ** 2).sum(axis=1)
+    offsets = offsets[gap2 < radius_cells**2]
+    return offsets[np.argsort(np.abs(offsets).sum(axis=1), kind="stable")]
+
+
+@numba.njit(cache=True)
+def _pair_feature(p1x, p1y, p1z, n1x, n1y, n1z, p2x, p2y, p2z, n2x, n2y, n2z):
+    """``(f1, f2, f3)`` of one pair (:func:`pair_features`) from its twelve coordinates, with
+    numpy's arithmetic step for step (dot products left to right, as Eigen sums them).
+    Scalars, not row views: a view per pair costs more than the arithmetic."""
+    d0, d1, d2 = p2x - p1x, p2y - p1y, p2z - p1z
+    length = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    safe = length if length > 0 else 1.0
+    a1 = (n1x * d0 + n1y * d1 + n1z * d2) / safe
+    a2 = (n2x * d0 + n2y * d1 + n2z * d2) / safe
+    # Open3D compares arccos|a1| > arccos|a2|; arccos is decreasing, and comparing |a1| < |a2|
+    # directly is what its build does in effect: pairs whose normals are equal to the last bit
+    # (same neighbour set) then resolve the same way, while a libm arccos can map two
+    # neighbouring doubles to one value and flip the sign of f3.
+    if abs(a1) < abs(a2):
+        s0, s1, s2, t0, t1, t2 = n2x, n2y, n2z, n1x, n1y, n1z
+        d0, d1, d2 = -d0, -d1, -d2
+        f3 = -a2
+    else:
+        s0, s1, s2, t0, t1, t2 = n1x, n1y, n1z, n2x, n2y, n2z
+        f3 = a1
+    v0 = d1 * s2 - d2 * s1
+    v1 = d2 * s0 - d0 * s2
+    v2 = d0 * s1 - d1 * s0
+    v_norm = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    if length == 0 or v_norm == 0:
+        return 0.0, 0.0, 0.0
+    v0, v1, v2 = v0 / v_norm, v1 / v_norm, v2 / v_norm
+    w0 = s1 * v2 - s2 * v1
+    w1 = s2 * v0 - s0 * v2
+    w2 = s0 * v1 - s1 * v0
+    f2 = v0 * t0 + v1 * t1 + v2 * t2
+    f1 = np.arctan2(w0 * t0 + w1 * t1 + w2 * t2, s0 * t0 + s1 * t1 + s2 * t2)
+    return f1, f2, f3
+
+
+@numba.njit(cache=True)
+def _bin(scaled):
+    return min(max(int(np.floor(scaled)), 0), N_BINS - 1)
+
+
+@numba.njit(cache=True)
+def _feature_bins(f1, f2, f3):
+    """Bins of one pair's features: f1 over [−π, π], f2 and f3 over [−1, 1]."""
+    return (
+        _bin(N_BINS * (f1 + np.pi) / (2.0 * np.pi)),
+        N_BINS + _bin(N_BINS * (f2 + 1.0) * 0.5),
+        2 * N_BINS + _bin(N_BINS * (f3 + 1.0) * 0.5),
+    )
+
+
+@numba.njit(cache=True)
+def _pair_features_kernel(p1, n1, p2, n2, out):
+    for i in range(len(p1)):
+        out[i, 0], out[i, 1], out[i, 2] = _pair_feature(
+            p1[i, 0],
+            p1[i, 1],
+            p1[i, 2],
+            n1[i, 0],
+            n1[i, 1],
+            n1[i, 2],
+            p2[i, 0],
+            p2[i, 1],
+            p2[i, 2],
+            n2[i, 0],
+            n2[i, 1],
+            n2[i, 2],
+        )
+
+
+@numba.njit(cache=True)
+def _bins_kernel(features, out):
+    for i in range(len(features)):
+        b1, b2, b3 = _feature_bins(features[i, 0], features[i, 1], features[i, 2])
+        out[i, 0], out[i, 1], out[i, 2] = b1, b2 - N_BINS, b3 - 2 * N_BINS
+
+
+@numba.njit(cache=True, parallel=True)
+def _search_spfh(grid, normals, offsets, radius, first, last, nbr, d2, counts, spfh):
+    """Neighbours and SPFH of the points of cells ``first .. last − 1`` (sorted ranks).
+
+    Fills, for the block's rows (rank − the block's first rank), ``nbr`` (rows, max_nn) with the
+    neighbours' sorted ranks, ``d2`` with their squared distances, ``counts`` with how many, and
+    ``spfh`` (rows by sorted rank) with each point's simplified histograms.
+    """
+    points, order, starts, cell_keys, table, bits, _, _, dims, _ = grid
+    r2 = radius * radius
+    base = starts[first]
+    for c in numba.prange(first, last):
+        key = cell_keys[c]
+        cz = key % dims[2]
+        cy = (key // dims[2]) % dims[1]
+        cx = key // (dims[2] * dims[1])
+        total = 0
+        run_first = np.empty(len(offsets), dtype=np.int64)
+        run_last = np.empty(len(offsets), dtype=np.int64)
+        runs = 0
+        for o in range(len(offsets)):
+            x, y, z = cx + offsets[o, 0], cy + offsets[o, 1], cz + offsets[o, 2]
+            if not (0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]):
+                continue
+            rank = find_cell(table, cell_keys, bits, (x * dims[1] + y) * dims[2] + z)
+            if rank >= 0:
+                run_first[runs], run_last[runs] = starts[rank], starts[rank + 1]
+                total += starts[rank + 1] - starts[rank]
+                runs += 1
+        # The candidates copied once per cell, one array per axis: a query's distances to all
+        # of them then run as one vectorised loop.
+        cand = np.empty(total, dtype=np.int64)
+        cand_x, cand_y, cand_z = np.empty(total), np.empty(total), np.empty(total)
+        m = 0
+        for r in range(runs):
+            for j in range(run_first[r], run_last[r]):
+                cand[m] = j
+                cand_x[m], cand_y[m], cand_z[m] = points[j, 0], points[j, 1], points[j, 2]
+                m += 1
+        dd = np.empty(total)
+        found = np.empty(total, dtype=np.int64)
+        hist = np.empty(N_FEATURES)
+        for i in range(starts[c], starts[c + 1]):
+            qx, qy, qz = points[i, 0], points[i, 1], points[i, 2]
+            mx, my, mz = normals[i, 0], normals[i, 1], normals[i, 2]
+            for m in range(total):
+                dd[m] = (cand_x[m] - qx) ** 2 + (cand_y[m] - qy) ** 2 + (cand_z[m] - qz) ** 2
+            inside = 0
+            for m in range(total):
+                if dd[m] < r2:
+                    found[inside] = m
+                    inside += 1
+            row = i - base
+            count = _keep_neighbours(order, cand, dd, found[:inside], i, nbr[row], d2[row])
+            counts[row] = count
+            hist[:] = 0.0
+            if count > 0:
+                incr = 100.0 / count
+                for t in range(count):
+                    j = nbr[row, t]
+                    f1, f2, f3 = _pair_feature(
+                        qx,
+                        qy,
+                        qz,
+                        mx,
+                        my,
+                        mz,
+                        points[j, 0],
+                        points[j, 1],
+                        points[j, 2],
+                        normals[j, 0],
+                        normals[j, 1],
+                        normals[j, 2],
+                    )
+                    b1, b2, b3 = _feature_bins(f1, f2, f3)
+                    hist[b1] += incr
+                    hist[b2] += incr
+                    hist[b3] += incr
+            spfh[i, :] = hist
+
+
+@numba.njit(cache=True)
+def _keep_neighbours(order, cand, dd, found, i, nbr_row, d2_row):
+    """Write the neighbours of sorted rank ``i`` among the candidates ``found`` (positions in
+    ``cand``/``dd``, all within the radius, ``i`` itself among them) into ``nbr_row`` and
+    ``d2_row``, as Open3D's hybrid search and FPFH keep them; return their count.
+
+    Within the cap, every candidate but ``i``, in visiting order. Over it, the ``max_nn``
+    nearest by (distance, original index), nearest first, without ``i``, or without the
+    nearest when duplicates pushed ``i`` out.
+    """
+    max_nn = len(nbr_row)
+    if len(found) <= max_nn:
+        count = 0
+        for m in found:
+            if cand[m] != i:
+                nbr_row[count], d2_row[count] = cand[m], dd[m]
+                count += 1
+        return count
+    # By original index, then stably by distance: ties go to the smaller index.
+    by_index = found[np.argsort(order[cand[found]])]
+    nearest = by_index[np.argsort(dd[by_index], kind="mergesort")[:max_nn]]
+    skip = -1
+    for t in range(max_nn):
+        if cand[nearest[t]] == i:
+            skip = t
+    skip = max(skip, 0)
+    count = 0
+    for t in range(max_nn):
+        if t != skip:
+            nbr_row[count], d2_row[count] = cand[nearest[t]], dd[nearest[t]]
+            count += 1
+    return count
+
+
+@numba.njit(cache=True, parallel=True)
+def _weighted_sum(spfh, indptr, nbr, d2, order, out):
+    """FPFH of every point (sorted rank r, written at row ``order[r]`` of ``out``): its SPFH
+    plus its neighbours' SPFH weighted by 1/d² (coincident neighbours carry no weight, as in
+    Open3D), each sub-histogram of that sum scaled to 100."""
+    n = len(spfh)
+    for chunk in numba.prange((n + _CHUNK_ROWS - 1) // _CHUNK_ROWS):
+        acc = np.empty(N_FEATURES)
+        for r in range(chunk * _CHUNK_ROWS, min(n, (chunk + 1) * _CHUNK_ROWS)):
+            acc[:] = 0.0
+            for p in range(indptr[r], indptr[r + 1]):
+                if d2[p] > 0:
+                    w = 1.0 / d2[p]
+                    j = nbr[p]
+                    for f in range(N_FEATURES):
+                        acc[f] += w * spfh[j, f]
+            row = order[r]
+            for s in range(3):
+                total = 0.0
+                for f in range(s * N_BINS, (s + 1) * N_BINS):
+                    total += acc[f]
+                scale = 100.0 / total if total != 0 else 0.0
+                for f in range(s * N_BINS, (s + 1) * N_BINS):
+                    out[row, f] = acc[f] * scale + spfh[r, f]
