@@ -35,7 +35,14 @@ from spacepose.tools.bench import (
 )
 
 # A frame of 160×120 pixels (about 1.2k points) and small scaling sizes keep the run short.
-TINY = {"frame_scale": 0.25, "scaling_sizes": [500, 1000, 2000], "warmup": 0}
+TINY = {
+    "frame_scale": 0.25,
+    "scaling_sizes": [500, 1000, 2000],
+    "warmup": 0,
+    "full_resolutions": [[160, 120]],
+    "stream_frames": 2,
+}
+RAW = ("raw_160x120",)
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +78,7 @@ def _finite_positive(x: float) -> bool:
 def test_quick_run_has_every_stage_with_positive_times(quick_run: tuple[int, dict, str]) -> None:
     code, result, _ = quick_run
     assert code == 0
-    assert list(result["stages"]) == list(STAGES)
+    assert list(result["stages"]) == [*STAGES, *RAW]
     for name, stage in result["stages"].items():
         assert stage["repeats"] == 2, name
         for key in ("median_ms", "min_ms", "max_ms"):
@@ -81,6 +88,21 @@ def test_quick_run_has_every_stage_with_positive_times(quick_run: tuple[int, dic
         assert stage["n_points"] > (0 if name != "ekf_step" else -1), name
     # 160×120 ToF pixels on the mock-up: about a thousand points.
     assert 500 < result["stages"]["icp"]["n_points"] < 2000
+    # The raw frame is every pixel: the target, the turntable and the wall.
+    assert result["stages"]["raw_160x120"]["n_points"] > 0.95 * 160 * 120
+
+
+def test_quick_run_times_the_raw_frame_row(quick_run: tuple[int, dict, str]) -> None:
+    raw = quick_run[1]["stages"]["raw_160x120"]
+    assert raw["substages"]["status"] in ("ok", "degraded")
+    assert raw["substages"]["median_ms"]["preprocess"] > 0
+    # One untimed first frame per set-up (no warm-up in TINY).
+    assert raw["first_frame"]["repeats"] == 2 and _finite_positive(raw["first_frame"]["median_ms"])
+    stream = quick_run[1]["memory"]["tracker_stream"]
+    assert (stream["width"], stream["height"], stream["frames"]) == (160, 120, 2)
+    assert len(stream["points"]) == len(stream["status"]) == 2
+    assert stream["status"][0] == "ok" and stream["status"][1] in ("ok", "degraded")
+    assert 0 < stream["baseline_mb"] <= stream["peak_mb"]
 
 
 def test_quick_run_reports_the_tracker_substages(quick_run: tuple[int, dict, str]) -> None:
@@ -116,7 +138,7 @@ def test_quick_run_scores_registrations_against_truth(quick_run: tuple[int, dict
 def test_quick_run_memory_scaling_environment(quick_run: tuple[int, dict, str]) -> None:
     result = quick_run[1]
     memory = result["memory"]
-    assert set(memory["tracemalloc_peak_mb"]) == set(STAGES)
+    assert set(memory["tracemalloc_peak_mb"]) == {*STAGES, *RAW}
     assert memory["pipeline_peak_mb"] == max(memory["tracemalloc_peak_mb"].values())
     assert memory["pipeline_peak_mb"] > 0 and memory["max_rss_mb"] > memory["pipeline_peak_mb"]
     scaling = result["scaling"]
@@ -137,8 +159,9 @@ def test_quick_run_memory_scaling_environment(quick_run: tuple[int, dict, str]) 
 
 def test_quick_run_prints_tables(quick_run: tuple[int, dict, str]) -> None:
     out = quick_run[2]
-    for name in STAGES:
+    for name in (*STAGES, *RAW):
         assert name in out
+    assert "tracker on 2 raw 160x120 frames: peak RSS" in out
     assert "CRLB" in out
     assert "scaling gicp: t ~ N^b" in out
     assert "wrote " in out and "BENCH.json" in out
@@ -278,6 +301,7 @@ def test_peers_interleaved_with_ratios_and_same_answers() -> None:
         "icp": {"open3d"},
         "gicp": {"open3d", "small_gicp"},
         "tracking_step": {"open3d"},
+        "raw_160x120": {"open3d"},
     }
     for name, stage in result["stages"].items():
         assert set(stage["peer"]) == expected.get(name, set()), name

@@ -41,6 +41,12 @@ def bench(
         f"peak traced memory {memory['pipeline_peak_mb']:.1f} MB, "
         f"max RSS {memory['max_rss_mb']:.0f} MB"
     )
+    if "tracker_stream" in memory:
+        stream = memory["tracker_stream"]
+        console.print(
+            f"tracker on {stream['frames']} raw {stream['width']}x{stream['height']} frames: "
+            f"peak RSS {stream['peak_mb']:.0f} MB (after imports {stream['baseline_mb']:.0f} MB)"
+        )
     for stage, series in result["scaling"]["stages"].items():
         exponents = ", ".join(f"{who} {s['exponent']:.2f}" for who, s in series.items())
         console.print(f"scaling {stage}: t ~ N^b with b = {exponents}")

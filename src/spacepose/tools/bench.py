@@ -20,6 +20,10 @@ Inputs (METHODS §3 lab scenario, frames 0, 1, 2 of a three-frame run):
   covariance); Open3D does the same core steps (voxel downsampling, normals, point-to-plane ICP
   against frame 0 prepared as a keyframe) without health checks or covariance.
 * ``ekf_step``: one predict + pose update of the orbit EKF, from the orbit truth.
+* ``raw_<W>x<H>``: the ``tracking_step`` on raw frames of the lab scene with its background at
+  the ToF camera's full resolution (:mod:`spacepose.tools.bench_fullres`, 300k points at 640×480,
+  900k at 1280×720); the untimed first frame's time (the scale estimate) is reported beside it.
+  The tracker's peak resident memory on a stream at the largest resolution is in ``memory``.
 
 Set-up that a stage needs but is not part of it (the earlier frames of a tracker) is done before
 each timed call and not timed.
@@ -34,8 +38,6 @@ import json
 import math
 import os
 import platform
-import resource
-import sys
 import time
 import tracemalloc
 from collections.abc import Callable, Mapping
@@ -47,7 +49,7 @@ from typing import Annotated, Any
 import numpy as np
 import scipy
 from numpy.typing import NDArray
-from pydantic import Field, PositiveFloat
+from pydantic import Field, PositiveFloat, PositiveInt
 from rich.table import Table
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
@@ -71,6 +73,7 @@ from spacepose.core.sim import (
 )
 from spacepose.core.tracker_config import StageLengths
 from spacepose.errors import ConfigError, InputError
+from spacepose.tools.bench_fullres import max_rss_mb, raw_frames, stream_peak_rss
 
 PEERS: tuple[str, ...] = ("open3d", "small_gicp")
 STAGES: tuple[str, ...] = (
@@ -120,6 +123,11 @@ class BenchConfig(StageConfig):
     fpfh_spacing_factor
         FPFH radius of the scaling runs as a multiple of the point spacing, so that every size
         does the same work per point.
+    full_resolutions
+        (width, height) of the raw-frame rows, one row each; the last is also streamed for the
+        tracker's peak memory. Empty: no raw rows.
+    stream_frames
+        Frames of that stream.
     """
 
     frame_scale: PositiveFloat = 1.0
@@ -131,10 +139,13 @@ class BenchConfig(StageConfig):
     max_correspondence_distance: PositiveFloat = 0.03
     max_iterations: int = Field(30, ge=1)
     fpfh_spacing_factor: PositiveFloat = 5.0
+    full_resolutions: tuple[tuple[PositiveInt, PositiveInt], ...] = ((640, 480), (1280, 720))
+    stream_frames: int = Field(8, ge=2)
 
 
 def bench_config(quick: bool, path: str | Path | None = None) -> BenchConfig:
-    """Defaults of a full or quick run (320×240 frames, scaling up to 20k points).
+    """Defaults of a full or quick run (320×240 frames, scaling up to 20k points, raw frames at
+    640×480 only).
 
     Parameters
     ----------
@@ -148,7 +159,12 @@ def bench_config(quick: bool, path: str | Path | None = None) -> BenchConfig:
     ConfigError
         An unreadable file or an invalid option.
     """
-    base = BenchConfig(frame_scale=0.5, scaling_sizes=QUICK_SIZES) if quick else BenchConfig()
+    quick_options = {"frame_scale": 0.5, "scaling_sizes": QUICK_SIZES}
+    base = (
+        BenchConfig(**quick_options, full_resolutions=((640, 480),), stream_frames=3)
+        if quick
+        else BenchConfig()
+    )
     if path is None:
         return base
     overrides = load_config(BenchConfig, path)
@@ -608,16 +624,22 @@ def _jicp_trials(data: BenchData, workers: int) -> dict[str, Trial]:
     return {"ours": setup}
 
 
-def _tracking_trials(data: BenchData, workers: int, peers: _Peers) -> dict[str, Trial]:
+def _tracking_trials(
+    f0: Frame, f1: Frame, workers: int, peers: _Peers, first_ms: list[float] | None = None
+) -> dict[str, Trial]:
+    """A fresh default tracker's second frame ``f1`` (``f0`` first, untimed, its time appended
+    to ``first_ms``) beside Open3D's core steps against ``f0`` prepared as a keyframe."""
     from spacepose.core.tracker import Tracker, TrackerConfig
 
-    f0, f1 = data.frames[:2]
     config = TrackerConfig()
     lengths = _tracker_lengths(f0.cloud)
 
     def setup() -> Callable[[], Any]:
         tracker = Tracker(config, None, workers)
+        tic = time.perf_counter()
         tracker.track_frame(f0.cloud, f0.timestamp)
+        if first_ms is not None:
+            first_ms.append(1e3 * (time.perf_counter() - tic))
         return lambda: tracker.track_frame(f1.cloud, f1.timestamp)
 
     trials: dict[str, Trial] = {"ours": setup}
@@ -821,12 +843,6 @@ def peak_memory(trials: Mapping[str, Trial]) -> dict:
     return {"tracemalloc_peak_mb": per_stage, "pipeline_peak_mb": max(per_stage.values())}
 
 
-def max_rss_mb() -> float:
-    """Largest resident set of this process so far (MB; ``ru_maxrss`` is KiB on Linux)."""
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / 2**20 if sys.platform == "darwin" else rss / 2**10
-
-
 def _threading_layer() -> str | None:
     """numba's threading layer once a parallel kernel has run (None before)."""
     import numba
@@ -950,7 +966,7 @@ def _measure(
         "icp": _icp_trials(src, tgt, _icp_config(config), workers, contenders),
         "gicp": _gicp_trials(src, tgt, _gicp_config(config), workers, contenders),
         "jicp_step": _jicp_trials(data, workers),
-        "tracking_step": _tracking_trials(data, workers, contenders),
+        "tracking_step": _tracking_trials(*data.frames[:2], workers, contenders),
         "ekf_step": _ekf_trials(seed),
     }
     n_points = {
@@ -964,6 +980,16 @@ def _measure(
         "tracking_step": len(data.frames[1].cloud),
         "ekf_step": 0,
     }
+    raw, first_ms = {}, {}
+    for k, (width, height) in enumerate(config.full_resolutions):
+        streamed = k == len(config.full_resolutions) - 1
+        frames = raw_frames(width, height, config.stream_frames if streamed else 2, seed)
+        name = f"raw_{width}x{height}"
+        first_ms[name] = []
+        stage_trials[name] = _tracking_trials(*frames[:2], workers, contenders, first_ms[name])
+        n_points[name] = len(frames[1].cloud)
+        if streamed:
+            raw = {"width": width, "height": height, "frames": frames}
     stages, accuracy = {}, {}
     bound = crlb_summary(data.frames[0])
     for name, trials in stage_trials.items():
@@ -974,11 +1000,20 @@ def _measure(
                 who: registration_error(t.last, data.T_gt) for who, t in timings.items()
             }
             accuracy[name]["crlb"] = bound
-        if name == "tracking_step":
+        if name == "tracking_step" or name in first_ms:
             stages[name]["substages"] = _tracking_shares(timings["ours"])
+        if name in first_ms:
+            # Every set-up's first frame: the warm-up ones too (each is a fresh tracker).
+            stages[name]["first_frame"] = summarize(first_ms[name])
     memory = peak_memory({name: trials["ours"] for name, trials in stage_trials.items()})
     scaling = run_scaling(config, data.frames[0], seed, workers, repeats, contenders)
     memory["max_rss_mb"] = max_rss_mb()
+    if raw:
+        memory["tracker_stream"] = {
+            "width": raw["width"],
+            "height": raw["height"],
+            **stream_peak_rss(raw["frames"], workers),
+        }
     return {
         "config": {**config.model_dump(mode="json"), "repeats": repeats, "seed": seed},
         "stages": stages,
