@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
@@ -30,7 +32,7 @@ from spacepose.core.sim.sensors import scan, sigma_at
 from spacepose.errors import ConfigError, FileFormatError, InputError
 
 SMALL_TOF = {"width": 320, "height": 240, "focal_px": 241.8}  # same field of view, 1/4 the rays
-HUBBLE = "/work/shared/data/models/hubble_model_kit.obj"
+HUBBLE = str(Path(__file__).resolve().parents[1] / "data" / "models" / "hubble_model_kit.obj")
 
 
 def _wall(distance: float) -> trimesh.Trimesh:
