@@ -13,10 +13,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
+from spacepose.errors import InputError
 
 # Recent model errors kept: enough for a stable RMS, few enough to follow a change of motion.
 _ERROR_WINDOW = 20
@@ -75,6 +76,29 @@ class Prediction:
     T_sensor_target: NDArray[np.float64]
     covariance: NDArray[np.float64]
     velocity_known: bool
+
+    @classmethod
+    def given(cls, T_sensor_target: ArrayLike, covariance: ArrayLike) -> Prediction:
+        """A prediction made outside the tracker (e.g. a navigation filter's), trusted as a
+        constant-velocity one.
+
+        Parameters
+        ----------
+        T_sensor_target
+            (4, 4) predicted pose (model-free: ``T_k0``, as the tracker reports it).
+        covariance
+            (6, 6) its covariance, twist (ω, v), left perturbation in the sensor frame.
+
+        Raises
+        ------
+        InputError
+            Not a rigid transform, or a covariance of the wrong shape or not finite.
+        """
+        T = se3.as_transform(T_sensor_target, "prior T_sensor_target")
+        cov = np.asarray(covariance, dtype=np.float64)
+        if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+            raise InputError(f"prior covariance must be a finite 6x6 matrix, got {cov.shape}")
+        return cls(rigid(T), 0.5 * (cov + cov.T), True)
 
 
 @dataclass

@@ -103,7 +103,12 @@ class Tracker:
 
     # -- the algorithm -----------------------------------------------------------------------
 
-    def track_frame(self, cloud: PointCloud | ArrayLike | None, timestamp: float) -> TrackResult:
+    def track_frame(
+        self,
+        cloud: PointCloud | ArrayLike | None,
+        timestamp: float,
+        prior: tuple[ArrayLike, ArrayLike] | None = None,
+    ) -> TrackResult:
         """Track one frame.
 
         Parameters
@@ -113,6 +118,10 @@ class Tracker:
             for a frame without data (reported as lost).
         timestamp
             Seconds; frames must come in time order.
+        prior
+            Optional ``(T_sensor_target (4, 4), covariance (6, 6))`` predicted outside the
+            tracker (a navigation filter): it replaces the motion model's prediction as the
+            start of registration and the reference of the health check.
 
         Returns
         -------
@@ -125,7 +134,7 @@ class Tracker:
         index = self._index
         self._index += 1
         times = dict.fromkeys(STAGES, 0.0)
-        prediction = self._predict(timestamp)
+        prediction = self._predict(timestamp) if prior is None else Prediction.given(*prior)
 
         tic = time.perf_counter()
         try:
