@@ -1,0 +1,54 @@
+"""Which points are the target (core/segmentation.py): synthetic scenes with a known answer."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spacepose.core.segmentation import crop_sphere, nearest_object, region_of
+
+
+def _plate(center, size, normal_axis, step, rng):
+    """Points every ``step`` m (jittered by 2 % of it) on an axis-aligned plate."""
+    axes = [a for a in range(3) if a != normal_axis]
+    u = np.arange(-size[0] / 2, size[0] / 2, step)
+    v = np.arange(-size[1] / 2, size[1] / 2, step)
+    U, V = np.meshgrid(u, v)
+    pts = np.zeros((U.size, 3))
+    pts[:, axes[0]], pts[:, axes[1]] = U.ravel(), V.ravel()
+    pts += np.asarray(center) + rng.normal(0, 0.02 * step, pts.shape)
+    return pts
+
+
+@pytest.mark.parametrize("scale", [1.0, 20.0])
+def test_nearest_object_keeps_the_target_and_its_parts_and_drops_the_wall(scale):
+    rng = np.random.default_rng(0)
+    s = 0.003 * scale
+    bus = _plate(np.array([0.0, 0.0, 1.2]) * scale, (0.2 * scale, 0.16 * scale), 2, s, rng)
+    # A wing 8 cm from the bus (its boom unseen), and a wall 0.8 m behind.
+    wing = _plate(np.array([0.28, 0.0, 1.22]) * scale, (0.2 * scale, 0.1 * scale), 2, s, rng)
+    wall = _plate(np.array([0.0, 0.0, 2.0]) * scale, (2.0 * scale, 1.5 * scale), 2, 2 * s, rng)
+    stray = rng.uniform(-0.5, 0.5, (5, 3)) * scale + np.array([0, 0, 1.6]) * scale
+    pts = np.r_[bus, wing, wall, stray]
+    mask = nearest_object(pts, s)
+    n_target = len(bus) + len(wing)
+    assert mask[:n_target].all()
+    assert not mask[n_target:].any()
+
+
+def test_a_lone_target_is_kept_whole_and_a_far_cluster_is_not_merged():
+    rng = np.random.default_rng(1)
+    plate = _plate([0.0, 0.0, 25.0], (4.0, 2.0), 2, 0.1, rng)
+    assert nearest_object(plate, 0.1).all()
+    # A second object 3 m away (more than half the first one's size): not merged.
+    other = _plate([6.0, 0.0, 26.0], (2.0, 2.0), 2, 0.1, rng)
+    mask = nearest_object(np.r_[plate, other], 0.1)
+    assert mask[: len(plate)].all() and not mask[len(plate) :].any()
+
+
+def test_region_and_crop_closed_form():
+    pts = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 2.0, 0], [0, -2.0, 0]])
+    region = region_of(pts)
+    np.testing.assert_allclose(region.center, 0.0)
+    assert region.radius == pytest.approx(2.0)
+    assert crop_sphere(pts, [1.0, 0, 0], 1.0).tolist() == [True, False, False, False]
