@@ -58,8 +58,13 @@ def make_truth(
     return states, deltas
 
 
-def measure(truth: NavState, deltas, rng):
-    """Noisy centroids of the faces turned towards the sensor, and a noisy attitude."""
+def measure(truth: NavState, deltas, rng, phi=np.zeros(3)):
+    """Noisy centroids of the faces turned towards the sensor, and a noisy attitude.
+
+    ``phi`` (3,): the error of the chaser attitude the filter will be given, in C (the filter
+    turns the sensor's attitude into I with ``R_O_C exp([φ]×)``, so it reads it turned by
+    ``R_C_Bᵀ φ`` in B).
+    """
     R_O_B = dynamics.R_I_O(N, truth.t).T @ Rotation.from_quat(truth.q_I_B).as_matrix()
     R_C_B = R_O_C.T @ R_O_B
     cents = []
@@ -67,7 +72,11 @@ def measure(truth: NavState, deltas, rng):
         if (R_C_B @ nrm)[2] < -0.2:  # facing the sensor
             c = R_O_C.T @ (truth.rho + R_O_B @ (np.asarray(d, float) + deltas[fid] - truth.com))
             cents.append((fid, d, c + rng.normal(0, SIG_C, 3)))
-    q_meas = Rotation.from_quat(truth.q_I_B) * Rotation.from_rotvec(rng.normal(0, SIG_ATT, 3))
+    q_meas = (
+        Rotation.from_quat(truth.q_I_B)
+        * Rotation.from_rotvec(R_C_B.T @ phi)
+        * Rotation.from_rotvec(rng.normal(0, SIG_ATT, 3))
+    )
     return cents, q_meas.as_quat()
 
 
@@ -100,13 +109,14 @@ CONFIG = EKFConfig(
 )
 
 
-def run_filter(states, deltas, seed=1, config=CONFIG, use_attitude=True):
+def run_filter(states, deltas, seed=1, config=CONFIG, use_attitude=True, phi=np.zeros(3)):
     rng = np.random.default_rng(seed)
-    ekf = RelativeNavEKF(N, R_O_C, initial_guess(states[0], config, rng), config)
+    R_O_C_given = R_O_C @ Rotation.from_rotvec(phi).as_matrix()
+    ekf = RelativeNavEKF(N, R_O_C_given, initial_guess(states[0], config, rng), config)
     nees, errors = [], []
     for truth in states:
         ekf.predict(truth.t)
-        cents, q_meas = measure(truth, deltas, rng)
+        cents, q_meas = measure(truth, deltas, rng, phi)
         if use_attitude:
             ekf.update_attitude(q_meas)
         for fid, d, c in cents:
@@ -222,6 +232,61 @@ def test_jacobians_match_finite_differences() -> None:
     ekf.update_pose(T0, np.eye(6))
     np.testing.assert_allclose(captured[0], num[:3], atol=1e-5)
     np.testing.assert_allclose(captured[1], num[3:], atol=1e-5)
+
+
+def test_consider_state_jacobians_match_a_turned_chaser() -> None:
+    # φ turns the true sensor frame: R_C_O(true) = exp([φ]×) R_C_O(given). The centroid,
+    # attitude and pose the sensor then reports, differentiated numerically in φ.
+    states, _ = make_truth(steps=3)
+    config = EKFConfig(sigma_chaser_attitude_deg=0.01)
+    ekf = RelativeNavEKF(N, R_O_C, states[2], config)
+    ekf.com = np.array([0.03, -0.02, 0.04])
+    assert ekf.has_consider and ekf.dim == 20
+    ekf.add_feature("+x")
+    ekf.features["+x"] = np.array([0.001, 0.002, -0.001])
+    d = np.array([1.2, 0, 0])
+    c0, T0 = ekf.predict_centroid("+x", d), ekf.predict_pose()
+    R_I_C = dynamics.R_I_O(N, ekf.t) @ R_O_C
+    eps = 1e-7
+    num = np.zeros((9, 3))
+    for j in range(3):
+        turn = Rotation.from_rotvec(eps * np.eye(3)[j]).as_matrix()
+        seen = RelativeNavEKF(N, R_O_C @ turn.T, ekf.state(), config)  # the true sensor frame
+        seen.features["+x"] = ekf.features["+x"]
+        R_I_B_meas = R_I_C @ seen.predict_pose()[:3, :3]  # read through the given R_O_C
+        att = (Rotation.from_quat(ekf.q).inv() * Rotation.from_matrix(R_I_B_meas)).as_rotvec()
+        num[:3, j] = (seen.predict_centroid("+x", d) - c0) / eps
+        num[3:6, j] = att / eps
+        num[6:, j] = se3.log(seen.predict_pose() @ se3.invert(T0))[:3] / eps
+        np.testing.assert_allclose(se3.log(seen.predict_pose() @ se3.invert(T0))[3:], 0, atol=1e-12)
+    captured = []
+    ekf._update = lambda r, H, R: captured.append(H) or True  # type: ignore[method-assign]
+    ekf.update_centroid("+x", d, np.zeros(3))
+    ekf.update_attitude(ekf.q)
+    ekf.update_pose(T0, np.eye(6))
+    for k, H in enumerate(captured):
+        np.testing.assert_allclose(H[:3, 17:20], num[3 * k : 3 * k + 3], atol=1e-5)
+
+
+def test_schmidt_consider_state_keeps_a_misaligned_chaser_consistent() -> None:
+    # The filter is given the chaser attitude 0.05° off per axis (1.3 cm across the line of
+    # sight at 25 m, four centroid σ): without the consider state ρ is biased far outside its
+    # covariance; with it (σ = the error's size) NEES stays inside its bounds, the consider
+    # state keeps its prior and no measurement moves it.
+    states, deltas = make_truth(steps=300)
+    phi = np.deg2rad(0.05) * np.array([1.0, -1.0, 1.0])
+    lo, hi = chi2.ppf([0.025, 0.975], 17)
+    _, nees_blind, _ = run_filter(states, deltas, phi=phi)
+    config = CONFIG.model_copy(update={"sigma_chaser_attitude_deg": 0.05})
+    ekf, nees, err = run_filter(states, deltas, phi=phi, config=config)
+    late = slice(len(nees) // 2, None)
+    inside = np.mean((nees[late] >= lo) & (nees[late] <= hi))
+    inside_blind = np.mean((nees_blind[late] >= lo) & (nees_blind[late] <= hi))
+    assert inside >= 0.9 > 0.5 > inside_blind, (inside, inside_blind)
+    np.testing.assert_allclose(np.diag(ekf.P)[17:20], np.deg2rad(0.05) ** 2, rtol=1e-12)
+    assert ekf.dim == 20 + 3 * len(ekf.features) and ekf.n_rejected == 0
+    # ρ's error is the turned line of sight (the bias φ makes), and its σ covers it.
+    assert np.all(np.abs(err[late, 0:3]).max(axis=0) < 3 * np.sqrt(np.diag(ekf.P)[0:3]))
 
 
 def test_propagation_jacobian_matches_finite_differences() -> None:

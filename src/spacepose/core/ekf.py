@@ -7,6 +7,16 @@ attitude B -> I (scalar last), ``omega_B`` (3) rate in B, ``p`` (2) inertia para
 ``(k_x, k_y)``, ``com`` (3) = Δ, the offset B' origin -> B origin in B, and one
 ``δ_j`` (3) per tracked rectangle (location error of its catalogue centroid, in B).
 
+Consider state
+--------------
+``φ`` (3), the error of the chaser attitude the filter is given (a star tracker's knowledge
+error), in C: ``R_O_C(given) = R_O_C(true) · exp([φ]×)``, so ``R_C_O(true) = exp([φ]×) R_C_O``.
+It is a constant bias no measurement can separate from ρ and the attitude (it turns the whole
+scene about the sensor), so it is held as a Schmidt *consider* state: prior σ
+(``sigma_chaser_attitude_deg``), never corrected (zero gain rows), but its covariance and its
+cross-covariances enter every update, so that P of the estimated states carries its effect.
+It sits after the fixed part (indices 17–19) when its σ is positive; rectangles follow.
+
 Error state (multiplicative for the attitude)
 ---------------------------------------------
 ``(δρ, δv, δθ, δω, δp, δΔ, δ_1, δ_2, ...)`` with the attitude error on the right, in B:
@@ -43,6 +53,8 @@ RHO, VEL, ATT, RATE, INERTIA, COM = (
     slice(14, 17),
 )
 N_FIXED = 17
+# The chaser-attitude consider state, when present (EKFConfig.sigma_chaser_attitude_deg > 0).
+CHASER = slice(N_FIXED, N_FIXED + 3)
 
 
 class EKFConfig(StageConfig):
@@ -65,6 +77,12 @@ class EKFConfig(StageConfig):
     )
     sigma_centroid: float = Field(0.005, gt=0, description="Centroid measurement σ, m.")
     sigma_attitude_deg: float = Field(0.2, gt=0, description="Attitude measurement σ, deg.")
+    sigma_chaser_attitude_deg: float = Field(
+        0.0,
+        ge=0,
+        description="1σ per axis of the knowledge error of the chaser attitude R_O_C, deg "
+        "(a star tracker's); positive adds the consider state φ, 0 takes R_O_C as exact.",
+    )
     gate_probability: float = Field(
         0.9999, gt=0, le=1, description="χ² gate on the innovation; 1 disables gating."
     )
@@ -173,6 +191,8 @@ class RelativeNavEKF:
                 np.full(3, c.init_sigma_com),
             ]
         )
+        if c.sigma_chaser_attitude_deg > 0:
+            sig = np.append(sig, np.full(3, np.deg2rad(c.sigma_chaser_attitude_deg)))
         self.P = np.diag(sig**2)
         self.n_accepted = 0
         self.n_rejected = 0
@@ -183,6 +203,11 @@ class RelativeNavEKF:
     def dim(self) -> int:
         """Size of the error state."""
         return len(self.P)
+
+    @property
+    def has_consider(self) -> bool:
+        """Whether the chaser-attitude consider state φ is part of the error state."""
+        return self.config.sigma_chaser_attitude_deg > 0
 
     @property
     def k(self) -> NDArray[np.float64]:
@@ -248,8 +273,8 @@ class RelativeNavEKF:
     def _jacobian(self, w: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
         """Jacobian F (17, 17) of the fixed error state at rate ``w`` and parameters ``p``.
 
-        The rectangle location errors are constant and enter no other derivative, so their
-        rows and columns of the full Jacobian are zero and are left out.
+        The consider state and the rectangle location errors are constant and enter no other
+        derivative, so their rows and columns of the full Jacobian are zero and are left out.
         """
         F = np.zeros((N_FIXED, N_FIXED))
         F[:6, :6] = dynamics.cw_matrix(self.n)
@@ -291,7 +316,8 @@ class RelativeNavEKF:
         F = 0.5 * (F0 + self._jacobian(self.w, self.p))
         Phi, Q = discretise(F, self._process_noise_density(), dt)
         m = N_FIXED
-        # Φ is the identity on the rectangle location errors: only the fixed block moves.
+        # Φ is the identity on the consider state and the rectangle location errors: only the
+        # fixed block moves.
         P = self.P.copy()
         P[:m, :m] = Phi @ self.P[:m, :m] @ Phi.T + 0.5 * (Q + Q.T)
         P[:m, m:] = Phi @ self.P[:m, m:]
@@ -353,6 +379,8 @@ class RelativeNavEKF:
         H[:, ATT] = -A @ se3.skew(r_B)
         H[:, COM] = -A
         H[:, i : i + 3] = A
+        if self.has_consider:
+            H[:, CHASER] = -se3.skew(z_hat)  # exp([φ]×) ẑ ≈ ẑ − [ẑ]× φ
         Rm = self.config.sigma_centroid**2 * np.eye(3) if cov is None else _cov(cov, 3)
         return self._update(c_C - z_hat, H, Rm)
 
@@ -365,6 +393,9 @@ class RelativeNavEKF:
         r = (Rotation.from_quat(self.q).inv() * Rotation.from_quat(q)).as_rotvec()
         H = np.zeros((3, self.dim))
         H[:, ATT] = np.eye(3)
+        if self.has_consider:
+            # R_I_B(meas) = R_I_O R_O_C exp([φ]×) R_C_B = R_I_B exp([R_C_Bᵀ φ]×).
+            H[:, CHASER] = (self.R_C_O @ self.R_O_B()).T
         s = np.deg2rad(self.config.sigma_attitude_deg)
         Rm = s**2 * np.eye(3) if cov is None else _cov(cov, 3)
         return self._update(r, H, Rm)
@@ -383,6 +414,17 @@ class RelativeNavEKF:
         T = se3.as_transform(T_sensor_model, "T_sensor_model")
         T_hat = self.predict_pose()
         r = se3.log(T @ se3.invert(T_hat))
+        return self._update(r, self._pose_jacobian(T_hat), _cov(cov6, 6))
+
+    def pose_covariance(self) -> NDArray[np.float64]:
+        """Covariance (6, 6) of :meth:`predict_pose`, ``H P Hᵀ``: twist (ω, v), left
+        perturbation in the sensor frame C (the registration convention)."""
+        H = self._pose_jacobian(self.predict_pose())
+        C = H @ self.P @ H.T
+        return 0.5 * (C + C.T)
+
+    def _pose_jacobian(self, T_hat: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Jacobian (6, dim) of the left twist of ``T_sensor_model`` about ``T_hat``."""
         R_C_B = T_hat[:3, :3]
         H = np.zeros((6, self.dim))
         H[:3, ATT] = R_C_B
@@ -390,7 +432,9 @@ class RelativeNavEKF:
         H[3:, RHO] = self.R_C_O
         H[3:, COM] = -R_C_B
         H[3:, ATT] = R_C_B @ se3.skew(self.com) + se3.skew(T_hat[:3, 3]) @ R_C_B
-        return self._update(r, H, _cov(cov6, 6))
+        if self.has_consider:
+            H[:3, CHASER] = np.eye(3)  # a turn of C about its origin: η = (φ, 0)
+        return H
 
     def _update(
         self, residual: NDArray[np.float64], H: NDArray[np.float64], Rm: NDArray[np.float64]
@@ -403,6 +447,8 @@ class RelativeNavEKF:
             self.n_rejected += 1
             return False
         K = np.linalg.solve(S, H @ self.P).T  # P Hᵀ S⁻¹ with S, P symmetric
+        if self.has_consider:
+            K[CHASER] = 0.0  # Schmidt: the consider state is never corrected
         IKH = np.eye(self.dim) - K @ H
         # Joseph form: stays symmetric positive definite even with a sub-optimal gain.
         self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
