@@ -1,4 +1,4 @@
-"""VoxelIndex against brute force and cKDTree: exact neighbours, ties, far queries, bad input."""
+"""VoxelIndex against brute force and cKDTree; voxel downsampling against numpy, to the bit."""
 
 from __future__ import annotations
 
@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from spacepose.core.cloud import PointCloud
 from spacepose.core.grid import VoxelIndex, numba_threads
-from spacepose.core.voxel import bounds, cell_keys, voxel_cells
+from spacepose.core.voxel import bounds, cell_keys, voxel_cells, voxel_downsample
 from spacepose.errors import InputError
 
 
@@ -189,3 +190,24 @@ def test_voxel_primitives_refuse_bad_input():
     np.testing.assert_array_equal(dims, cells.max(axis=0) - cells.min(axis=0) + 1)
     lexical = np.lexsort(((cells - offset)[:, 2], (cells - offset)[:, 1], (cells - offset)[:, 0]))
     np.testing.assert_array_equal(np.sort(keys), keys[lexical])
+
+
+# A coarse voxel leaves few cells in the box (a slot per cell), a fine one many (the hash).
+@pytest.mark.parametrize("voxel", [0.002, 0.01, 0.1])
+def test_voxel_downsample_equals_a_numpy_reference_to_the_bit(voxel):
+    rng = np.random.default_rng(3)
+    # Scan order (rows of the sheet) as a camera delivers them, then shuffled: the shortcut
+    # for a point in the previous point's cell must not change the sums' order.
+    pts = _surface(4000, seed=4)
+    pts = np.vstack([pts[np.argsort(pts[:, 1], kind="stable")], pts[rng.permutation(4000)]])
+    sigma = rng.uniform(0.001, 0.003, len(pts))
+    cells = np.floor(pts / voxel).astype(np.int64)
+    # np.unique orders rows lexicographically (x, y, z), the order of the keys.
+    _, cell, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    sums = np.column_stack([np.bincount(cell, weights=pts[:, a]) for a in range(3)])
+    down = voxel_downsample(PointCloud(pts, sigma=sigma), voxel)
+    np.testing.assert_array_equal(down.points, sums / counts[:, None])
+    np.testing.assert_array_equal(down.sigma, np.bincount(cell, weights=sigma) / counts)
+    centroids, of_point = voxel_cells(pts, voxel)
+    np.testing.assert_array_equal(centroids, down.points)
+    np.testing.assert_array_equal(of_point, cell)

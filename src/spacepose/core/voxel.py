@@ -3,7 +3,11 @@
 Compiled with numba: on a 18 000-point lab frame numpy spent about 0.5 ms on each axis-0
 ``min``/``max`` and as long on ``floor``/``astype``, and sorted every point's key to find the
 occupied cells; here one pass computes the keys and one hashes them, and only the occupied cells
-(a few thousand) are sorted.
+(a few thousand) are sorted. Downsampling (:func:`voxel_cells`, :func:`voxel_downsample`) takes
+the cells' bounds from the points' bounds (``⌊x / h⌋`` is monotonic in x) and then one pass
+keys, looks up and sums every point, point by point in index order: a raw 1280×720 frame
+(900k points) never materialises its keys, and a table with one slot per cell of the box (when
+the box has few cells, as at a coarse voxel) replaces the hash.
 """
 
 from __future__ import annotations
@@ -120,39 +124,103 @@ def voxel_cells(
         (M, 3) mean point of each occupied cell, ordered by cell key; (N,) cell index of each
         point.
     """
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    keys, _, _ = cell_keys(pts, voxel_size)
-    first_seen, unique, _, _ = group_cells(keys)
-    sums = np.zeros((len(unique), 3))
-    counts = np.zeros(len(unique))
-    # Point by point in index order: the same sums, to the bit, as a bincount per axis.
-    _accumulate(first_seen, pts, sums, counts)
-    # Rank the occupied cells by key: sorting M cells, not N points.
-    by_key = np.argsort(unique)
+    centroids, _, first_seen, by_key = _cell_sums(_finite_points(points), voxel_size, None)
     rank = np.empty_like(by_key)
     rank[by_key] = np.arange(len(by_key))
-    return sums[by_key] / counts[by_key, None], rank[first_seen]
+    return centroids, rank[first_seen]
+
+
+def _cell_sums(
+    pts: NDArray[np.float64], voxel_size: float, sigma: NDArray[np.float64] | None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
+    """Centroids (M, 3) and mean σ (M,; empty without σ) of the occupied cells ordered by key,
+    the (N,) cell of each point in order of first appearance and the (M,) key order of those.
+
+    ``pts`` are finite and contiguous. Sums run point by point in index order: the same bits
+    as a bincount per axis.
+    """
+    if not np.isfinite(voxel_size) or voxel_size <= 0:
+        raise InputError(f"cell size must be a positive number of metres, got {voxel_size}")
+    h = float(voxel_size)
+    low, high = _bounds(pts)
+    first, last = np.floor(low / h).astype(np.int64), np.floor(high / h).astype(np.int64)
+    dims = last - first + 1
+    n_cells = float(np.prod(dims.astype(np.float64)))
+    if n_cells >= _MAX_KEY:
+        raise InputError(
+            f"{dims.tolist()} cells of {voxel_size} m are too many to number; use larger cells"
+        )
+    if n_cells <= 2 * len(pts):
+        # Few cells in the box: a slot per cell, one load per lookup.
+        table, bits = np.full(int(n_cells), -1, dtype=np.int64), 0
+    else:
+        bits = hash_bits(len(pts))
+        table = np.full(1 << bits, -1, dtype=np.int64)
+    cell = np.empty(len(pts), dtype=np.int64)
+    unique = np.empty(len(pts), dtype=np.int64)
+    no_sigma = sigma is None
+    weights = np.empty(0) if no_sigma else np.ascontiguousarray(sigma, dtype=np.float64)
+    sums = np.zeros((len(pts), 4 if not no_sigma else 3))
+    counts = np.zeros(len(pts))
+    m = _key_and_sum(pts, h, first, dims, table, bits, weights, cell, unique, sums, counts)
+    # Rank the occupied cells by key: sorting M cells, not N points.
+    by_key = np.argsort(unique[:m])
+    sums, counts = sums[by_key], counts[by_key]
+    mean_sigma = np.empty(0) if no_sigma else sums[:, 3] / counts
+    return sums[:, :3] / counts[:, None], mean_sigma, cell, by_key
 
 
 @numba.njit(cache=True)
-def _accumulate(cell, points, sums, counts):
-    for i in range(len(cell)):
-        c = cell[i]
-        sums[c, 0] += points[i, 0]
-        sums[c, 1] += points[i, 1]
-        sums[c, 2] += points[i, 2]
-        counts[c] += 1.0
+def _key_and_sum(points, h, first, dims, table, bits, sigma, cell, unique, sums, counts):
+    """Key every point (cell ``⌊p / h⌋ − first`` packed with ``dims``), number the occupied cells
+    in order of first appearance (``unique`` their keys, ``cell`` each point's) and add each
+    point (and its σ, when ``sigma`` is not empty) to its cell's row of ``sums`` / ``counts``;
+    return the number of cells. A point in the previous point's cell (a scan's neighbouring
+    pixels) skips the lookup."""
+    mask = (1 << bits) - 1
+    count = 0
+    previous, rank = -1, -1
+    with_sigma = len(sigma) > 0
+    for i in range(len(points)):
+        cx = np.int64(np.floor(points[i, 0] / h)) - first[0]
+        cy = np.int64(np.floor(points[i, 1] / h)) - first[1]
+        cz = np.int64(np.floor(points[i, 2] / h)) - first[2]
+        key = (cx * dims[1] + cy) * dims[2] + cz
+        if key != previous:
+            s = key if bits == 0 else _slot(key, bits)
+            while True:
+                rank = table[s]
+                if rank == -1:
+                    table[s] = rank = count
+                    unique[count] = key
+                    count += 1
+                    break
+                if unique[rank] == key:
+                    break
+                s = (s + 1) & mask
+            previous = key
+        cell[i] = rank
+        sums[rank, 0] += points[i, 0]
+        sums[rank, 1] += points[i, 1]
+        sums[rank, 2] += points[i, 2]
+        if with_sigma:
+            sums[rank, 3] += sigma[i]
+        counts[rank] += 1.0
+    return count
 
 
 @numba.njit(cache=True)
 def _bounds(points):
-    low = points[0].copy()
-    high = points[0].copy()
+    # One scalar per axis and side, not a loop over the axes: a third of the time.
+    lx = hx = points[0, 0]
+    ly = hy = points[0, 1]
+    lz = hz = points[0, 2]
     for i in range(1, len(points)):
-        for a in range(3):
-            low[a] = min(low[a], points[i, a])
-            high[a] = max(high[a], points[i, a])
-    return low, high
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        lx, hx = min(lx, x), max(hx, x)
+        ly, hy = min(ly, y), max(hy, y)
+        lz, hz = min(lz, z), max(hz, z)
+    return np.array([lx, ly, lz]), np.array([hx, hy, hz])
 
 
 @numba.njit(cache=True)
@@ -227,9 +295,7 @@ def voxel_downsample(cloud: PointCloud, voxel_size: float) -> PointCloud:
 
     σ (if present) is averaged too; normals are dropped (recompute them on the sparse cloud).
     """
-    centroids, cell = voxel_cells(cloud.points, voxel_size)
-    sigma = None
-    if cloud.sigma is not None:
-        counts = np.bincount(cell, minlength=len(centroids))
-        sigma = np.bincount(cell, weights=cloud.sigma, minlength=len(centroids)) / counts
-    return PointCloud(centroids, None, sigma, source=cloud.source)
+    # A PointCloud's points are finite (N, 3) float64 already.
+    pts = np.ascontiguousarray(cloud.points, dtype=np.float64)
+    centroids, sigma, _, _ = _cell_sums(pts, voxel_size, cloud.sigma)
+    return PointCloud(centroids, None, None if cloud.sigma is None else sigma, source=cloud.source)
