@@ -14,8 +14,9 @@ the compiled kernels, one raw frame at a time, and the tracker's state.
 
 from __future__ import annotations
 
-import multiprocessing
+import json
 import resource
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from spacepose.core.sim import Frame, LabConfig, sensor_config, simulate_lab
+from spacepose.errors import SpaceposeError
 
 # Horizontal focal length per pixel of width of the lab's ToF camera (483.6 px at 640 px).
 _FOCAL_PER_WIDTH = 483.6 / 640
@@ -58,8 +60,8 @@ def max_rss_mb() -> float:
 def stream_peak_rss(frames: list[Frame], workers: int) -> dict:
     """Peak resident memory of a fresh process tracking ``frames`` with the default tracker.
 
-    The frames' points are written to a temporary folder and the child (a new interpreter,
-    ``spawn``) loads one at a time, as a process reading a camera holds one frame.
+    The frames' points are written to a temporary folder and the child (a new interpreter)
+    loads one at a time, as a process reading a camera holds one frame.
 
     Parameters
     ----------
@@ -73,6 +75,11 @@ def stream_peak_rss(frames: list[Frame], workers: int) -> dict:
     JSON-ready dict: ``frames``, ``points`` (per frame), ``baseline_mb`` (the child's largest
     resident set after its imports, before the first frame), ``peak_mb`` (after the last
     frame) and every frame's ``status``.
+
+    Raises
+    ------
+    SpaceposeError
+        When the child fails (its last line of stderr).
     """
     with tempfile.TemporaryDirectory(prefix="spacepose-bench-") as folder:
         paths = []
@@ -81,18 +88,45 @@ def stream_peak_rss(frames: list[Frame], workers: int) -> dict:
             np.save(path, frame.cloud.points)
             paths.append(str(path))
         timestamps = [float(f.timestamp) for f in frames]
-        with multiprocessing.get_context("spawn").Pool(1) as pool:
-            result = pool.apply(_track_stream, (paths, timestamps, workers))
+        child = subprocess.run(
+            [sys.executable, "-c", _CHILD],
+            input=json.dumps([paths, timestamps, workers]),
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+    if child.returncode != 0:
+        last = (child.stderr.strip().splitlines() or ["no message"])[-1]
+        raise SpaceposeError(f"the tracker's memory run failed: {last}")
+    result = json.loads(child.stdout.strip().splitlines()[-1])
     return {"frames": len(frames), "points": [len(f.cloud) for f in frames], **result}
+
+
+# The child's program: arguments as JSON on stdin, the result as the last line of stdout.
+_CHILD = (
+    "import json, sys; from spacepose.tools.bench_fullres import _track_stream; "
+    "print(json.dumps(_track_stream(*json.load(sys.stdin))))"
+)
+
+
+def _peak_resident_mb() -> float:
+    """Largest resident set (MB) of this process image: Linux's ``VmHWM``, which starts afresh
+    at ``exec`` (``ru_maxrss`` keeps the forking parent's peak), else ``ru_maxrss``."""
+    status = Path("/proc/self/status")
+    if status.exists():
+        for line in status.read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 2**10
+    return max_rss_mb()
 
 
 def _track_stream(paths: list[str], timestamps: list[float], workers: int) -> dict:
     """In the child: track the saved frames one by one; its resident set before and after."""
     from spacepose.core.tracker import Tracker, TrackerConfig
 
-    baseline = max_rss_mb()
+    baseline = _peak_resident_mb()
     tracker = Tracker(TrackerConfig(), None, workers)
     status = [
         tracker.track_frame(np.load(p), t).status for p, t in zip(paths, timestamps, strict=True)
     ]
-    return {"baseline_mb": baseline, "peak_mb": max_rss_mb(), "status": status}
+    return {"baseline_mb": baseline, "peak_mb": _peak_resident_mb(), "status": status}
