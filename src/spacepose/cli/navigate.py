@@ -1,4 +1,5 @@
-"""``spacepose navigate RUN --out NAV.csv``: rectangle-based relative navigation (Yu et al.)."""
+"""``spacepose navigate RUN --out NAV.csv``: relative navigation from rectangles (Yu et al.),
+registration poses of the model-based tracker, or both in one filter."""
 
 from __future__ import annotations
 
@@ -38,12 +39,28 @@ def navigate(
         None, help="Depth image intrinsics (YAML/JSON: fx, fy, cx, cy, depth_scale, k1..k6, p1, p2)"
     ),
     topic: str | None = typer.Option(None, help="Bag topic (PointCloud2 or depth Image)."),
+    measurements: str = typer.Option(
+        "rectangles",
+        help="rectangles (Yu's faces), registration (the model-based tracker's pose and "
+        "covariance each frame) or both, fused in one filter.",
+    ),
+    model: Path | None = typer.Option(
+        None,
+        help="Target surface samples (cloud file, model frame) for registration; default: "
+        "the scenario's model or the run's model.ply.",
+    ),
 ) -> None:
     """Estimate ρ, ρ̇, attitude, rate, inertia ratios and CoM offset for every frame of RUN."""
     from spacepose.core.config import load_config
     from spacepose.core.navigation import NavigationConfig
     from spacepose.tools.navigation_io import navigate_run
 
+    if measurements not in ("rectangles", "registration", "both"):
+        from spacepose.errors import ConfigError
+
+        raise ConfigError(
+            f"--measurements must be rectangles, registration or both, got {measurements!r}"
+        )
     cfg = None if config is None else load_config(NavigationConfig, config)
     with working("navigating"):
         summary = navigate_run(
@@ -55,6 +72,8 @@ def navigate(
             debug_prior_from_truth=debug_prior_from_truth,
             intrinsics=intrinsics,
             topic=topic,
+            measurements=measurements,
+            model=model,
         )
     if summary.ambiguous:
         err_console.print(
@@ -62,9 +81,10 @@ def navigate(
             f"{summary.candidates_csv}",
             markup=False,
         )
+    health = "" if summary.health_csv is None else f"; tracker health -> {summary.health_csv}"
     console.print(
         f"{summary.frames} frames ({summary.navigated} navigated) -> {summary.nav_csv}; "
-        f"config -> {summary.config_json}"
+        f"config -> {summary.config_json}{health}"
     )
 
 

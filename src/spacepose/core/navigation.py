@@ -75,6 +75,7 @@ __all__ = [
     "nav_table",
     "navigate",
     "scenario_geometry",
+    "start_filter",
 ]
 
 STATE_COLUMNS = (
@@ -359,20 +360,15 @@ class RelativeNavigator:
         return [used[i] for i in keep]
 
     def _start_filter(self, t: float, T_sensor_model: NDArray[np.float64]) -> RelativeNavEKF:
-        """Filter initialised from a coarse pose (Δ = 0, so ρ is the B' origin) and priors."""
-        R_O_B = self.R_O_C @ T_sensor_model[:3, :3]
-        R_I_B = dynamics.R_I_O(self.n, t) @ R_O_B
-        c = self.config
-        initial = NavState(
-            t,
-            self.R_O_C @ T_sensor_model[:3, 3],
-            np.zeros(3),
-            Rotation.from_matrix(R_I_B).as_quat(),
-            np.deg2rad(c.init_rate_deg_s),
-            np.asarray(c.init_k, dtype=np.float64),
-            np.zeros(3),
-        )
-        return RelativeNavEKF(self.n, self.R_O_C, initial, c.ekf)
+        return start_filter(t, T_sensor_model, self.n, self.R_O_C, self.config)
+
+    def start_from_pose(self, t: float, T_sensor_model: ArrayLike) -> bool:
+        """Start the filter from a pose measured otherwise (a registration) when none runs
+        yet; whether it did. ``t`` is the time of the frame the pose belongs to."""
+        if self.tracks:
+            return False
+        self.tracks = [_Track(self._start_filter(t, np.asarray(T_sensor_model, np.float64)))]
+        return True
 
     def _update(
         self, ekf: RelativeNavEKF, rects: list[tuple[RectangleMeasurement, CatalogueEntry]]
@@ -420,6 +416,28 @@ def _same_pose(T: NDArray[np.float64], U: NDArray[np.float64], same_pose_deg: fl
     to the filters' accuracy: every candidate fits the same points)."""
     angle = Rotation.from_matrix(T[:3, :3] @ U[:3, :3].T).magnitude()
     return bool(np.rad2deg(angle) < same_pose_deg)
+
+
+def start_filter(
+    t: float,
+    T_sensor_model: NDArray[np.float64],
+    mean_motion: float,
+    R_O_C: NDArray[np.float64],
+    config: NavigationConfig,
+) -> RelativeNavEKF:
+    """Filter initialised from a coarse pose ``T_sensor_model`` (4, 4) at time ``t`` (Δ = 0,
+    so ρ is the B' origin), ω and k from the config's priors."""
+    R_I_B = dynamics.R_I_O(mean_motion, t) @ R_O_C @ T_sensor_model[:3, :3]
+    initial = NavState(
+        t,
+        R_O_C @ T_sensor_model[:3, 3],
+        np.zeros(3),
+        Rotation.from_matrix(R_I_B).as_quat(),
+        np.deg2rad(config.init_rate_deg_s),
+        np.asarray(config.init_k, dtype=np.float64),
+        np.zeros(3),
+    )
+    return RelativeNavEKF(mean_motion, R_O_C, initial, config.ekf)
 
 
 def nav_table(rows: Sequence[NavRow]) -> tuple[list[str], list[list[float | int | str]]]:

@@ -1,5 +1,9 @@
 """Relative navigation of a run folder: read the run, navigate, write NAV.csv and its config.
 
+With registration poses (``measurements`` ``registration`` or ``both``) the model-based
+tracker's per-frame health goes to ``NAV.health.csv`` (the tracker's columns; a pose the
+filter's gate rejected is ``degraded`` with a ``navigation gate`` reason).
+
 While the target's pose is ambiguous (a symmetric target, or a view that hides what breaks the
 symmetry) NAV.csv has no state, and ``NAV.candidates.csv`` lists every candidate filter's
 estimate per frame. A run in which no frame is navigated writes both files and then fails with
@@ -18,6 +22,7 @@ from numpy.typing import ArrayLike
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, parse_problem
+from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
 from spacepose.core.navigation import (
     NavigationConfig,
     NavRow,
@@ -28,7 +33,7 @@ from spacepose.core.navigation import (
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.frames import open_frames
+from spacepose.tools.frames import open_frames, write_health_csv
 from spacepose.tools.runs import SCENARIO, read_run
 
 
@@ -43,6 +48,7 @@ class NavigationSummary:
     rows: tuple[NavRow, ...]
     ambiguous: int = 0
     candidates_csv: Path | None = None
+    health_csv: Path | None = None
 
 
 def write_nav_csv(path: str | Path, rows: Sequence[NavRow]) -> Path:
@@ -86,6 +92,9 @@ def navigate_run(
     debug_prior_from_truth: bool = False,
     intrinsics: str | Path | None = None,
     topic: str | None = None,
+    measurements: Measurements = "rectangles",
+    model: str | Path | None = None,
+    fusion: FusionConfig | None = None,
 ) -> NavigationSummary:
     """Navigate every frame of an orbit run; writes ``out`` and ``out``'s ``.config.json``.
 
@@ -113,6 +122,15 @@ def navigate_run(
         true start attitude, which no real run has.
     intrinsics, topic
         Depth image intrinsics file and bag topic (see :func:`spacepose.tools.frames.open_frames`).
+    measurements
+        ``rectangles`` (Yu's pipeline), ``registration`` (the model-based tracker's poses) or
+        ``both`` in one filter (:mod:`spacepose.core.fused_navigation`).
+    model
+        Cloud file of the target's surface samples (model frame B', normals estimated when
+        absent); overrides the scenario's ``model`` and the run's model.ply.
+    fusion
+        Tracker and pose settings for ``registration`` / ``both`` (its ``navigation`` and
+        ``measurements`` are replaced by ``config`` and ``measurements``).
 
     Raises
     ------
@@ -132,8 +150,10 @@ def navigate_run(
             "a folder of frames needs a scenario file (mean_motion, R_O_C, rectangles)", input_dir
         )
     n, R_O_C = scenario_geometry(description, source)
-    catalogue = parse_catalogue(description, cfg.rectangle, source)
-    model = _model(input_dir, scenario, description)
+    catalogue = []
+    if measurements != "registration" or description.get("rectangles"):
+        catalogue = parse_catalogue(description, cfg.rectangle, source)
+    model = read_cloud(model) if model is not None else _model(input_dir, scenario, description)
     if cfg.lost_in_space.fov_deg is None and "sensor_fov_deg" in description:
         fov = tuple(float(v) for v in description["sensor_fov_deg"])
         cfg = cfg.model_copy(update={"lost_in_space": cfg.lost_in_space.model_copy(
@@ -145,18 +165,41 @@ def navigate_run(
     if prior_q_I_B is not None:
         prior = tuple(float(v) for v in prior_q_I_B)
         cfg = NavigationConfig.model_validate(cfg.model_dump() | {"prior_q_I_B": prior})
-    rows = navigate(((f.timestamp, f.cloud) for f in frames), catalogue, n, R_O_C, cfg, model)
+    pairs = ((f.timestamp, f.cloud) for f in frames)
+    health_csv = None
+    if measurements == "rectangles":
+        rows = navigate(pairs, catalogue, n, R_O_C, cfg, model)
+        config_json = dump_config(cfg, Path(out).with_suffix(".config.json"))
+    else:
+        fusion = (fusion or FusionConfig()).model_copy(
+            update={"measurements": measurements, "navigation": cfg}
+        )
+        fused = fused_navigate(pairs, catalogue, n, R_O_C, fusion, model)
+        rows = [r.nav for r in fused]
+        health_csv = write_health_csv(
+            Path(out).with_suffix(".health.csv"), [r.track for r in fused]
+        )
+        config_json = dump_config(fusion, Path(out).with_suffix(".config.json"))
     nav_csv = write_nav_csv(out, rows)
-    config_json = dump_config(cfg, Path(out).with_suffix(".config.json"))
     navigated = sum(r.state is not None for r in rows)
     ambiguous = sum(r.status == "ambiguous" for r in rows)
     candidates_csv = None
     if ambiguous:
         candidates_csv = write_candidates_csv(Path(out).with_suffix(".candidates.csv"), rows)
     if navigated == 0:
-        raise InputError(_why_nothing(rows, candidates_csv, model is not None), input_dir)
+        why = _why_nothing(rows, candidates_csv, model is not None)
+        if measurements == "registration":
+            why = f"no frame navigated: the tracker gave no ok pose (see {health_csv})"
+        raise InputError(why, input_dir)
     return NavigationSummary(
-        nav_csv, config_json, len(rows), navigated, tuple(rows), ambiguous, candidates_csv
+        nav_csv,
+        config_json,
+        len(rows),
+        navigated,
+        tuple(rows),
+        ambiguous,
+        candidates_csv,
+        health_csv,
     )
 
 

@@ -16,7 +16,14 @@ from typing import Any
 from spacepose.errors import ConfigError
 
 # Modules that register experiments when imported.
-_MODULES: tuple[str, ...] = ("yu_geometry", "yu_nav", "li", "li_global", "robustness")
+_MODULES: tuple[str, ...] = (
+    "yu_geometry",
+    "yu_nav",
+    "li",
+    "li_global",
+    "robustness",
+    "fusion",
+)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,250 @@
+"""Relative navigation from registration poses, rectangles, or both (METHODS §2.4, issue 12).
+
+Per frame, with ``measurements``:
+
+* ``rectangles``: Yu's pipeline alone (:class:`spacepose.core.navigation.RelativeNavigator`);
+* ``registration``: the tracker (:class:`spacepose.core.tracker.Tracker`, model-based against
+  the target's surface samples) registers the frame; its pose ``T_sensor_model`` and 6×6
+  covariance are one pose measurement of the filter
+  (:meth:`spacepose.core.ekf.RelativeNavEKF.update_pose`), gated by its Mahalanobis distance
+  like any other measurement. The first pose the tracker calls ``ok`` starts the filter (no
+  prior: the tracker's first pose comes from coarse FPFH + RANSAC registration on the model);
+  when the gate has rejected ``restart_after`` consecutive ``ok`` poses the filter restarts
+  from the tracker (a start on a wrong coarse pose is otherwise never undone);
+* ``both``: the rectangle pipeline runs first (its lost-in-space start and its updates), then
+  the registration pose updates the same filter; while no rectangle has started the filter, a
+  registration pose starts it.
+
+The two help each other: once the filter has taken ``seed_after`` poses, its predicted pose and
+its covariance (``H P Hᵀ``) replace the tracker's constant-velocity prediction as the start of
+registration and the reference of the tracker's health check; and a pose the filter's gate
+rejects is flagged in the tracker's result (status ``degraded``, reason ``navigation gate``).
+
+Model-based only: without a target model the tracker's poses are ``T_k0`` in the first frame's
+sensor frame, whose rotation to the principal axes and offset to the centre of mass the filter
+would have to estimate as extra states; that is not built (a :class:`ConfigError` says so).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike
+from pydantic import Field
+from scipy.stats import chi2
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.config import StageConfig
+from spacepose.core.ekf import RelativeNavEKF
+from spacepose.core.nav_config import NavigationConfig
+from spacepose.core.navigation import NavRow, RelativeNavigator, start_filter
+from spacepose.core.rectangles import CatalogueEntry
+from spacepose.core.track_result import TrackResult
+from spacepose.core.tracker import Tracker
+from spacepose.core.tracker_config import TrackerConfig
+from spacepose.errors import ConfigError
+
+__all__ = ["FusedNavigator", "FusedRow", "FusionConfig", "Measurements", "fused_navigate"]
+
+Measurements = Literal["rectangles", "registration", "both"]
+GATE_REASON = "navigation gate"
+
+
+class FusionConfig(StageConfig):
+    """Settings of :class:`FusedNavigator`: which measurements, the filter's and the tracker's."""
+
+    measurements: Measurements = Field(
+        "registration",
+        description="rectangles (Yu), registration (the tracker's pose) or both in one filter.",
+    )
+    navigation: NavigationConfig = Field(
+        default_factory=NavigationConfig, description="The filter and the rectangle pipeline."
+    )
+    tracker: TrackerConfig = Field(
+        default_factory=TrackerConfig, description="The model-based tracker giving the poses."
+    )
+    pose_sigma_scale: float = Field(
+        1.0,
+        gt=0,
+        description="Factor on the tracker's 1-σ before the pose enters the filter (its "
+        "covariance times the square). 1 trusts the tracker's covariance as it is.",
+    )
+    seed_registration: bool = Field(
+        True,
+        description="Seed registration with the filter's predicted pose once it has taken "
+        "seed_after poses (else the tracker's own constant-velocity prediction).",
+    )
+    seed_after: int = Field(
+        10, ge=1, description="Pose updates the filter takes before its prediction seeds."
+    )
+    restart_after: int = Field(
+        10,
+        ge=1,
+        description="Registration only: consecutive poses the tracker calls ok and the "
+        "filter's gate rejects before the filter restarts from the tracker's pose (a start on "
+        "a wrong coarse registration, e.g. a near-symmetric twin, is otherwise never undone).",
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class FusedRow:
+    """One frame of :class:`FusedNavigator`.
+
+    Attributes
+    ----------
+    nav
+        The navigation row (NAV.csv), state after every update of the frame.
+    track
+        The tracker's result (None when registration is not used), flagged ``degraded`` with a
+        ``navigation gate`` reason when the filter rejected its pose.
+    pose_used
+        Whether the registration pose entered the filter (None when none was offered).
+    pose_nis
+        Its normalised innovation squared (NaN when none was tested).
+    seeded
+        Whether the filter's prediction seeded the registration.
+    """
+
+    nav: NavRow
+    track: TrackResult | None
+    pose_used: bool | None
+    pose_nis: float
+    seeded: bool
+
+
+class FusedNavigator:
+    """Relative navigation from rectangles, registration poses or both, one frame at a time.
+
+    Parameters
+    ----------
+    catalogue
+        The target's rectangles (model frame B'); may be empty for ``registration``.
+    mean_motion
+        Orbital mean motion n, rad/s.
+    R_O_C
+        (3, 3) constant sensor (chaser) attitude in O.
+    config
+        Measurements, filter, tracker.
+    model
+        Surface samples of the target with outward normals in B' (a run's ``model.ply``): the
+        tracker's reference, and the lost-in-space scorer of the rectangle start.
+
+    Raises
+    ------
+    ConfigError
+        Rectangles asked for with an empty catalogue, or registration without a model.
+    """
+
+    def __init__(
+        self,
+        catalogue: Sequence[CatalogueEntry],
+        mean_motion: float,
+        R_O_C: ArrayLike,
+        config: FusionConfig | None = None,
+        model: PointCloud | None = None,
+    ) -> None:
+        self.config = c = config or FusionConfig()
+        self.n = float(mean_motion)
+        self.R_O_C = np.asarray(R_O_C, dtype=np.float64)
+        uses_rectangles = c.measurements in ("rectangles", "both")
+        if uses_rectangles and len(catalogue) == 0:
+            raise ConfigError(
+                f"measurements {c.measurements!r} need a rectangle catalogue and this target "
+                "has none: use 'registration'"
+            )
+        if c.measurements != "rectangles" and model is None:
+            raise ConfigError(
+                "registration poses need a target model (model.ply or --model): model-free "
+                "navigation (the rotation to the principal axes and the CoM offset of the "
+                "first frame's target frame as filter states) is not built"
+            )
+        self.rectangles = (
+            RelativeNavigator(catalogue, mean_motion, R_O_C, c.navigation, model)
+            if uses_rectangles
+            else None
+        )
+        self.tracker = None if c.measurements == "rectangles" else Tracker(c.tracker, model)
+        self._ekf: RelativeNavEKF | None = None
+        self._poses_used = 0
+        self._rejected_ok = 0
+        self._gate = chi2.ppf(c.navigation.ekf.gate_probability, 6)
+
+    @property
+    def ekf(self) -> RelativeNavEKF | None:
+        """The running filter (None before the start and while the rectangles are ambiguous)."""
+        return self._ekf if self.rectangles is None else self.rectangles.ekf
+
+    def step(self, t: float, cloud: PointCloud | None) -> FusedRow:
+        """Process one frame taken at ``t`` (s since the epoch where I and O coincide)."""
+        row = None
+        if self.rectangles is not None:
+            row = self.rectangles.step(t, cloud)
+        elif self._ekf is not None:
+            self._ekf.predict(t)
+        if self.tracker is None:
+            return FusedRow(row, None, None, float("nan"), False)
+        ekf = self.ekf
+        seeded = (
+            ekf is not None
+            and self.config.seed_registration
+            and self._poses_used >= self.config.seed_after
+        )
+        prior = (ekf.predict_pose(), ekf.pose_covariance()) if seeded else None
+        track = self.tracker.track_frame(cloud, t, prior)
+        used, nis, started = None, float("nan"), False
+        if track.status != "lost":
+            if self.rectangles is None and self._rejected_ok >= self.config.restart_after:
+                ekf = self._ekf = None
+            if ekf is None and (row is None or row.status == "waiting"):
+                used = started = track.status == "ok" and self._start(t, track.T_sensor_target)
+            elif ekf is not None:
+                cov = self.config.pose_sigma_scale**2 * track.covariance
+                used = ekf.update_pose(track.T_sensor_target, cov)
+                nis = ekf.last_nis
+                self._poses_used += int(used)
+                self._rejected_ok = 0 if used or track.status != "ok" else self._rejected_ok + 1
+                if not used:
+                    reason = f"{GATE_REASON}: NIS {nis:.1f} > {self._gate:.1f}"
+                    track = replace(track, status="degraded", reasons=(*track.reasons, reason))
+        return FusedRow(self._nav_row(t, row, bool(used), started), track, used, nis, seeded)
+
+    def run(self, frames: Iterable[tuple[float, PointCloud | None]]) -> list[FusedRow]:
+        """:meth:`step` over ``(t, cloud)`` pairs in time order; one row per frame."""
+        return [self.step(t, cloud) for t, cloud in frames]
+
+    def _start(self, t: float, T_sensor_model: np.ndarray) -> bool:
+        """Start the filter from a registration pose (the rectangles' navigator if there is one)."""
+        if self.rectangles is not None:
+            return self.rectangles.start_from_pose(t, T_sensor_model)
+        self._ekf = start_filter(t, T_sensor_model, self.n, self.R_O_C, self.config.navigation)
+        self._poses_used = self._rejected_ok = 0
+        return True
+
+    def _nav_row(self, t: float, row: NavRow | None, pose_used: bool, started: bool) -> NavRow:
+        """The frame's NAV row with the state after the pose update."""
+        ekf = self.ekf
+        if ekf is None:
+            return row if row is not None else NavRow(t, None, None, 0, "waiting")
+        if started or (row is not None and row.status == "init"):
+            status = "init"
+        elif pose_used or (row is not None and row.status == "update"):
+            status = "update"
+        else:
+            status = "predict"
+        base = row if row is not None else NavRow(t, None, None, 0, status)
+        return replace(base, state=ekf.state(), sigmas=ekf.sigmas(), status=status)
+
+
+def fused_navigate(
+    frames: Iterable[tuple[float, PointCloud | None]],
+    catalogue: Sequence[CatalogueEntry],
+    mean_motion: float,
+    R_O_C: ArrayLike,
+    config: FusionConfig | None = None,
+    model: PointCloud | None = None,
+) -> list[FusedRow]:
+    """One call: run :class:`FusedNavigator` over ``(t, cloud)`` frames, one row per frame."""
+    return FusedNavigator(catalogue, mean_motion, R_O_C, config, model).run(frames)

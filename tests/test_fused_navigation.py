@@ -1,0 +1,114 @@
+"""Registration poses in the navigation filter (core/fused_navigation.py) on the orbit run,
+against the simulator's truth; the filter's predicted-pose covariance against Monte Carlo."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import se3
+from spacepose.core.ekf import EKFConfig, NavState, RelativeNavEKF, k_from_params
+from spacepose.core.fused_navigation import GATE_REASON, FusedNavigator, FusionConfig
+from spacepose.core.navigation import scenario_geometry
+from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
+from spacepose.errors import ConfigError
+from spacepose.tools.catalogue import parse_catalogue
+from spacepose.tools.experiments.yu_nav import truth_state
+
+FRAMES = 30
+
+
+@pytest.fixture(scope="module")
+def orbit():
+    sim = simulate_orbit(OrbitConfig(frames=FRAMES, seed=0))
+    scenario = sim.scenario()
+    n, R_O_C = scenario_geometry(scenario)
+    return sim, n, R_O_C, parse_catalogue(scenario), [sim.frame(k) for k in range(FRAMES)]
+
+
+def test_pose_covariance_is_that_of_the_predicted_pose():
+    """H P Hᵀ against the scatter of ``predict_pose`` over error states drawn from P."""
+    initial = NavState(
+        100.0,
+        np.array([25.0, 0.3, -0.2]),
+        np.zeros(3),
+        Rotation.from_euler("ZYX", [30, -20, 45], degrees=True).as_quat(),
+        np.radians([1.0, -2.0, 1.5]),
+        k_from_params([0.1, -0.2]),
+        np.array([0.02, -0.03, 0.05]),
+    )
+    cfg = EKFConfig(init_sigma_position=1e-3, init_sigma_attitude_deg=0.05, init_sigma_com=2e-3)
+    ekf = RelativeNavEKF(1.1e-3, Rotation.from_euler("x", 90, degrees=True).as_matrix(),
+                         initial, cfg)  # fmt: skip
+    T_hat = ekf.predict_pose()
+    rng = np.random.default_rng(5)
+    draws = rng.multivariate_normal(np.zeros(ekf.dim), ekf.P, size=2000)
+    twists = []
+    for dx in draws:
+        other = RelativeNavEKF(ekf.n, ekf.R_C_O.T, ekf.state(), cfg)
+        other._inject(dx)
+        twists.append(se3.log(other.predict_pose() @ se3.invert(T_hat)))
+    C_mc = np.cov(np.array(twists).T)
+    C = ekf.pose_covariance()
+    sd = np.sqrt(np.diag(C))
+    # Correlation-normalised difference: 2000 draws scatter by about 1/sqrt(2000) = 0.022.
+    assert np.abs((C_mc - C) / np.outer(sd, sd)).max() < 0.1
+    np.testing.assert_allclose(np.sqrt(np.diag(C_mc)), sd, rtol=0.06)
+
+
+def _errors(nav: FusedNavigator, sim, k: int) -> np.ndarray:
+    return nav.ekf.error_state(truth_state(sim.truth[k]))
+
+
+def test_registration_navigates_the_orbit_run_without_a_prior(orbit):
+    sim, n, R_O_C, _catalogue, frames = orbit
+    cfg = FusionConfig(measurements="registration", pose_sigma_scale=4.0, seed_after=5)
+    nav = FusedNavigator([], n, R_O_C, cfg, sim.model_cloud())
+    rows = [nav.step(f.timestamp, f.cloud) for f in frames]
+    statuses = [r.nav.status for r in rows]
+    assert statuses[0] in ("waiting", "init") and "init" in statuses
+    start = statuses.index("init")
+    assert start <= 3 and all(s == "update" for s in statuses[start + 1 :])
+    assert sum(r.seeded for r in rows) >= FRAMES - start - 7
+    e = _errors(nav, sim, FRAMES - 1)
+    # After 30 s: attitude within 0.5°, the body origin's position (ρ − R Δ) within 2 cm.
+    assert np.degrees(np.linalg.norm(e[6:9])) < 0.5
+    s = nav.ekf.sigmas()
+    assert np.all(np.abs(e[6:9]) < 5 * s["att"])
+
+
+def test_both_fuses_rectangles_and_poses_in_one_filter(orbit):
+    sim, n, R_O_C, catalogue, frames = orbit
+    cfg = FusionConfig(measurements="both", pose_sigma_scale=4.0)
+    nav = FusedNavigator(catalogue, n, R_O_C, cfg, sim.model_cloud())
+    rows = [nav.step(f.timestamp, f.cloud) for f in frames]
+    used = [r for r in rows if r.pose_used]
+    assert len(used) >= FRAMES - 10
+    assert any(r.nav.n_rect > 0 for r in used)  # the same frames also used rectangles
+    assert np.degrees(np.linalg.norm(_errors(nav, sim, FRAMES - 1)[6:9])) < 0.5
+
+
+def test_a_pose_the_gate_rejects_is_flagged_in_the_tracker_result(orbit):
+    """Frame 20 shifted by 30 cm: the tracker follows the points, the filter's gate rejects
+    the pose, and the tracker's result says so."""
+    sim, n, R_O_C, _catalogue, frames = orbit
+    cfg = FusionConfig(measurements="registration", pose_sigma_scale=4.0, seed_registration=False)
+    nav = FusedNavigator([], n, R_O_C, cfg, sim.model_cloud())
+    rows = []
+    for k, f in enumerate(frames[:22]):
+        shift = se3.make_transform(np.eye(3), [0.3, 0.0, 0.0])
+        rows.append(nav.step(f.timestamp, f.cloud.transformed(shift) if k == 20 else f.cloud))
+    bad = rows[20]
+    assert bad.pose_used is False and bad.pose_nis > 30
+    assert bad.track.status == "degraded"
+    assert any(r.startswith(GATE_REASON) for r in bad.track.reasons)
+    assert rows[21].pose_used
+
+
+def test_configuration_errors(orbit):
+    sim, n, R_O_C, catalogue, _ = orbit
+    with pytest.raises(ConfigError, match="model"):
+        FusedNavigator(catalogue, n, R_O_C, FusionConfig(measurements="registration"), None)
+    with pytest.raises(ConfigError, match="catalogue"):
+        FusedNavigator([], n, R_O_C, FusionConfig(measurements="both"), sim.model_cloud())
