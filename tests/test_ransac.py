@@ -262,8 +262,10 @@ def test_li_global_flip_cases_now_register(trial):
 
 def test_local_refits_let_the_true_pose_outcover_a_flip():
     # li-global trial 85: hypotheses near the truth, fitted to three noisy pairs, are 9-19° off
-    # and cover less of the clouds than a flip; one refit on their own inliers is not enough to
-    # overtake it, three are. Measured: 178.5° with one refit, 3.0° with the default 3.
+    # and cover less of the clouds than a wrong pose; one refit on their own inliers is not
+    # enough to make a coarse pose (failure: > 5°), three are. Measured at the voxel the frame's
+    # spacing gives (6.07 mm): 6.1° with one refit, 2.2° with the default 3 (at 6.00 mm the one
+    # refit was a 178.5° flip).
     config = GlobalExperimentConfig()
     sim = simulate(scenario_config("lab", seed=0))
     T_source_model = random_poses(100, config.max_translation, 0)[85]
@@ -276,7 +278,7 @@ def test_local_refits_let_the_true_pose_outcover_a_flip():
         coarse = config.coarse.model_copy(update={"ransac": ransac})
         out = ours_global(source, frame.cloud, config.model_copy(update={"coarse": coarse}), 2)
         errors.append(pose_error(out.coarse_T_target_source, true_T, T_source_model)[0])
-    assert errors[0] > 170.0 and errors[1] < 5.0, errors
+    assert errors[0] > 5.0 and errors[1] < 5.0, errors
 
 
 @pytest.mark.parametrize(("option", "value"), [("coverage_points", 0), ("local_refits", -1)])
