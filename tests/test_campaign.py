@@ -454,7 +454,7 @@ def test_registration_campaign_on_dask_matches_a_direct_call(tmp_path, scheduler
 def test_tracking_runner_scores_a_short_lab_run_against_truth() -> None:
     from spacepose.tools.campaign import get_runner
 
-    params = {"scenario": "lab", "noise_scale": 1.0, "method": "jicp", "seed": 2, "frames": 5}
+    params = {"scenario": "lab", "noise_scale": 1.0, "method": "keyframe", "seed": 2, "frames": 5}
     metrics = get_runner("tracking").fn(params)
     assert metrics["n_ok"] + metrics["n_degraded"] + metrics["n_lost"] == 5
     assert metrics["n_lost"] == 0

@@ -51,7 +51,9 @@ def _one_line_error(capsys) -> str:
 
 def test_track_writes_tum_health_and_config(frame_dir, lab, tmp_path, capsys):
     out = tmp_path / "est.tum"
-    code = main(["track", str(frame_dir), "--out", str(out), "--method", "icp", "--no-mls"])
+    code = main(
+        ["track", str(frame_dir), "--out", str(out), "--method", "point_to_plane", "--no-mls"]
+    )
     assert code == 0, capsys.readouterr().err
     est = read_tum(out)
     assert len(est) == N_FRAMES
@@ -71,7 +73,7 @@ def test_track_writes_tum_health_and_config(frame_dir, lab, tmp_path, capsys):
     assert all(float(r["sig_tx"]) >= 0 for r in rows)
 
     config = json.loads((tmp_path / "est.config.json").read_text())
-    assert config["method"] == "icp" and config["use_mls"] is False
+    assert config["method"] == "point_to_plane" and config["use_mls"] is False
     assert "jicp" in config and "health" in config  # every value, defaults included
 
 
@@ -141,9 +143,12 @@ def test_unreadable_frame_is_lost_and_the_others_written(frame_dir, tmp_path, ca
         content = (bad / "f002.ply").read_bytes()[:-5000]
     (bad / "f002.ply").write_bytes(content)
     out = tmp_path / "e.tum"
+    # "icp" is the deprecated name of point_to_plane: accepted, with one warning line.
     code = main(["track", str(bad), "--out", str(out), "--method", "icp", "--no-mls"])
     assert code == 0, capsys.readouterr().err
-    assert "3 ok, 0 degraded, 1 lost" in " ".join(capsys.readouterr().out.split())
+    printed = capsys.readouterr()
+    assert "3 ok, 0 degraded, 1 lost" in " ".join(printed.out.split())
+    assert "warning: --method icp is deprecated: use point_to_plane" in printed.err
     with (tmp_path / "e.health.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert [r["status"] for r in rows] == ["ok", "ok", "lost", "ok"]
@@ -194,7 +199,7 @@ def test_rows_are_written_as_the_run_goes(frame_dir, tmp_path, monkeypatch):
     monkeypatch.setattr(Tracker, "track_frame", dies_at_frame_2)
     out = tmp_path / "e.tum"
     with pytest.raises(KeyboardInterrupt):
-        track_folder(frame_dir, out, tracker_config(method="icp"))
+        track_folder(frame_dir, out, tracker_config(method="point_to_plane"))
     np.testing.assert_array_equal(read_tum(out).timestamps, [100.0, 100.5])
     with (tmp_path / "e.health.csv").open() as fh:
         assert [r["frame"] for r in csv.DictReader(fh)] == ["0", "1"]
@@ -254,7 +259,7 @@ def test_tracker_config_overrides(tmp_path):
     cfg = tracker_config(method="gicp", mls=True, background=True)
     assert (cfg.method, cfg.use_mls, cfg.use_background_removal) == ("gicp", True, True)
     path = tmp_path / "c.json"
-    path.write_text('{"use_mls": true, "method": "icp"}')
+    path.write_text('{"use_mls": true, "method": "point_to_plane"}')
     assert tracker_config(path).use_mls is True  # no override: the file's value stands
     assert tracker_config(path, mls=False, method="jicp").use_mls is False
     path.write_text('{"use_mls": "maybe"}')

@@ -87,7 +87,7 @@ def test_pose_disagreement_closed_form():
 
 def _lab_registrar() -> FrameRegistrar:
     """The registrar at the lab run's scale (6 mm voxels, 0.25 m radius)."""
-    return FrameRegistrar("jicp", stage_lengths(TrackerConfig(), 0.006, 0.25), 1.0, 1)
+    return FrameRegistrar("keyframe", stage_lengths(TrackerConfig(), 0.006, 0.25), 1.0, 1)
 
 
 def test_health_bounds_follow_the_scale():

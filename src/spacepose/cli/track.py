@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from spacepose.cli.app import app, console
+from spacepose.errors import SpaceposeWarning
+
+# Old method names still accepted, each with a one-line warning.
+_DEPRECATED = {"icp": "point_to_plane"}
 
 
 @app.command()
@@ -19,7 +24,9 @@ def track(
     ),
     out: Path = typer.Option(..., "--out", help="Estimated trajectory (TUM)."),
     method: str | None = typer.Option(
-        None, help="Fine registration: icp, gicp or jicp (default: the config's, else jicp)."
+        None,
+        help="Fine registration: point_to_point, point_to_plane, gicp, jicp (Li's J-ICP) or "
+        "keyframe (keyframe graph, ours; default: the config's, else keyframe).",
     ),
     model: Path | None = typer.Option(
         None, help="Reference model cloud (target frame): model-based tracking."
@@ -45,6 +52,10 @@ def track(
     """
     from spacepose.tools.frames import track_folder, tracker_config
 
+    if method in _DEPRECATED:
+        new = _DEPRECATED[method]
+        warnings.warn(SpaceposeWarning(f"--method {method} is deprecated: use {new}"), stacklevel=1)
+        method = new
     cfg = tracker_config(config, method=method, mls=mls, background=background)
     with Progress(
         TextColumn("tracking"),

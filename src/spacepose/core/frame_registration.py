@@ -1,8 +1,9 @@
 """Fine registration of a tracked frame onto its references (docs/methods.md §1.6, §5.5).
 
 :class:`FrameRegistrar` registers a prepared frame onto one reference (ICP or GICP, with the
-covariance from the point-to-plane residuals and the σ floor) or onto a window of keyframes
-solved as a pose graph (the keyframe J-ICP). When the motion model has been wrong by more than
+covariance from the point-to-plane residuals and the σ floor), onto the two frames before it
+averaged by Li's Eq. 9 (method ``jicp``), or onto a window of keyframes solved as a pose graph
+(method ``keyframe``, ours). When the motion model has been wrong by more than
 the fine gate, a first point-to-plane pass with a gate of three model-error σ brings the frame
 within reach of the fine gate (KISS-ICP's adaptive threshold, in two stages).
 """
@@ -13,14 +14,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
-from spacepose.core.gicp import gicp
+from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.icp import (
     Correspondences,
+    ICPConfig,
     find_correspondences,
     icp,
     icp_correspondences,
     point_to_plane_system,
 )
+from spacepose.core.jicp import average_three, average_three_covariance
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, moved_covariance
 from spacepose.core.motion import rigid
 from spacepose.core.normals import estimate_normals
@@ -92,8 +95,8 @@ class FrameRegistrar:
     Parameters
     ----------
     method
-        ``"icp"``, ``"gicp"`` or ``"jicp"`` (see
-        :class:`~spacepose.core.tracker_config.TrackerConfig`).
+        ``"point_to_point"``, ``"point_to_plane"``, ``"gicp"``, ``"jicp"`` or ``"keyframe"``
+        (see :class:`~spacepose.core.tracker_config.TrackerConfig`).
     lengths
         The stage configs with their derived lengths.
     covariance_scale
@@ -109,11 +112,16 @@ class FrameRegistrar:
         self.lengths = lengths
         self.covariance_scale = covariance_scale
         self.workers = workers
-
-    @property
-    def pairwise(self) -> str:
-        """The pairwise registration: ``"icp"`` or ``"gicp"``."""
-        return self.lengths.jicp.registration if self.method == "jicp" else self.method
+        L = lengths
+        self._icp: ICPConfig = L.icp
+        self._gicp: GICPConfig = L.gicp
+        # The pairwise registration, "icp" or "gicp", and its configs.
+        self.pairwise = "gicp" if method == "gicp" else "icp"
+        if method in ("jicp", "keyframe"):
+            stage = L.jicp if method == "jicp" else L.keyframe_graph
+            self._icp, self._gicp, self.pairwise = stage.icp, stage.gicp, stage.registration
+        elif method in ("point_to_point", "point_to_plane"):
+            self._icp = L.icp.model_copy(update={"method": method})
 
     def as_target(self, prepared: PreparedCloud) -> PreparedCloud:
         """The prepared cloud with normals, estimated the first time it is a registration
@@ -166,17 +174,14 @@ class FrameRegistrar:
         (both left perturbations in the reference frame; see :func:`plane_covariance`).
         """
         L = self.lengths
-        kind = self.pairwise
-        icp_cfg = L.jicp.icp if self.method == "jicp" else L.icp
-        gicp_cfg = L.jicp.gicp if self.method == "jicp" else L.gicp
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
         tgt = self.as_target(ref.prepared)
-        if kind == "gicp":
+        if self.pairwise == "gicp":
             res = gicp(
                 prepared.cloud,
                 tgt.cloud,
                 init_T_ref_k,
-                gicp_cfg,
+                self._gicp,
                 workers=self.workers,
                 source_covariances=prepared.covariances,
                 target_covariances=tgt.covariances,
@@ -190,7 +195,7 @@ class FrameRegistrar:
                 prepared.cloud,
                 tgt.cloud,
                 init_T_ref_k,
-                icp_cfg,
+                self._icp,
                 workers=self.workers,
                 target_tree=tgt.tree,
             )
@@ -213,6 +218,44 @@ class FrameRegistrar:
         cov = cov + drift_covariance(prepared.centroid, bias)
         return FineEstimate(T, cov, own, res, ref, step, bias=bias)
 
+    def li_step(
+        self, prepared: PreparedCloud, window: list[Keyframe], T_init: NDArray[np.float64]
+    ) -> FineEstimate:
+        """Li's J-ICP: the frame k onto the two frames j, i before it, averaged by Eq. 9.
+
+        ``window`` holds the references, oldest first (the last two are i and j). The direct
+        ``T_kj`` and the indirect ``T_ki · T_ji⁻¹`` (``T_ji`` being frame j's own registration
+        onto i, stored as its edge) are averaged on SE(3) and chained, ``T_k0 = ΔT_kj T_j0``;
+        the earlier poses stay as they were output. With one reference, or when frame k does
+        not register onto i, the direct estimate stands alone.
+        """
+        j = window[-1]
+        latest = self.register(prepared, j, T_init)
+        res, cov_j_k, step = latest
+        T_kj = se3.invert(res.T_target_source)
+        own = _moved(cov_j_k, T_kj)
+        delta, cov_delta = T_kj, own
+        through = _edge_onto(j, window[-2]) if len(window) >= 2 else None
+        if through is not None:
+            T_start = rigid(T_kj @ j.T_ref_target)
+            try:
+                res_i, cov_i_k, _ = self.register(prepared, window[-2], T_start)
+            except SpaceposeError:
+                res_i = None
+            if res_i is not None:
+                T_ji, cov_ji = through
+                T_ki = se3.invert(res_i.T_target_source)
+                delta = average_three(T_kj, T_ki, T_ji)
+                cov_delta = average_three_covariance(
+                    T_ki, T_ji, own, _moved(cov_i_k, T_ki), cov_ji
+                )
+        T_k0 = rigid(delta @ j.T_ref_target)
+        cov = cov_delta + _moved(j.covariance, delta)
+        bias = self._drift(prepared, res, j)
+        cov = cov + drift_covariance(prepared.centroid, bias)
+        edge = (j.index, res.T_target_source, np.linalg.pinv(cov_j_k, hermitian=True))
+        return FineEstimate(T_k0, cov, own, res, j, step, (edge,), (), bias)
+
     def joint(
         self,
         prepared: PreparedCloud,
@@ -220,11 +263,17 @@ class FrameRegistrar:
         T_init: NDArray[np.float64],
         equal_weights: bool,
     ) -> FineEstimate:
-        """Keyframe J-ICP: register the frame to each keyframe of the window, solve the graph.
+        """Keyframe graph (ours): register the frame to each keyframe of the window, solve it.
 
         Nodes are the window's keyframes (the oldest fixed) and the new frame; edges are the
         stored keyframe-to-keyframe registrations and the new frame's registrations to every
         keyframe, each weighted by its information (or equally).
+
+        How it differs from Li's J-ICP (:meth:`li_step`, docs/methods.md §5.5): its references
+        are keyframes, not the two frames before, so frames between keyframes do not chain;
+        the earlier keyframe poses are re-estimated, not fixed once output; the edges include
+        the keyframes' own registrations and are weighted by their inverse covariance, not
+        equally; its pairs are point-to-plane ICP, not Li's point-to-point.
         """
         node = {kf.index: n for n, kf in enumerate(window)}
         k = len(window)
@@ -298,6 +347,24 @@ class FrameRegistrar:
         L = self.lengths
         c_ref = se3.transform_points(res.T_target_source, prepared.centroid[None])[0]
         return drift_covariance(c_ref, (L.floor_rotation, L.floor_translation))
+
+
+def _moved(cov: NDArray[np.float64], T_b_a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A covariance (6, 6) left in frame a carried into frame b by ``T_b_a``'s adjoint."""
+    Ad = se3.adjoint(T_b_a)
+    return Ad @ cov @ Ad.T
+
+
+def _edge_onto(
+    frame: Keyframe, earlier: Keyframe
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """``T_frame_earlier`` and its covariance (left, in ``frame``) from ``frame``'s stored
+    registration onto ``earlier``, or None when it has none."""
+    for index, T_earlier_frame, info in frame.edges:
+        if index == earlier.index:
+            T = se3.invert(T_earlier_frame)
+            return T, _moved(np.linalg.pinv(info, hermitian=True), T)
+    return None
 
 
 def drift_covariance(

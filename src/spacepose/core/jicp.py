@@ -1,12 +1,16 @@
-"""J-ICP: joint registration over a sliding window of frames (Li §2.3.2, METHODS §1.6).
+"""Li et al.'s J-ICP (Li §2.3.2, Eqs. 8–9; docs/methods.md §1.6), exactly, for any length.
 
-Li et al. average, for three frames i (oldest), j, k (newest), the direct estimate ``T_kj`` and
-the indirect one through frame i, ``T_ki · T_ji⁻¹`` (Eq. 9), then chain ``T_k0 = ΔT_kj · T_j0``.
-:func:`average_three` is that average on SE(3). :class:`JointICP` generalises it to a window of
-W frames: the newest frame is registered against every earlier frame of the window and its pose
-is solved from all those pairs as a pose graph (:mod:`spacepose.core.posegraph`) weighted by each
-pair's information. The poses already output stay fixed, as in the paper's chaining: with W = 3
-and equal weights a step reproduces Eq. 9 exactly.
+Li registers three consecutive frames i (oldest), j, k (newest) pairwise by ICP, with the newer
+frame as the reference of each pair (Eq. 8 with P_r the newer frame): ``T_ji``, ``T_ki`` and
+``T_kj``, where ``T_ba`` maps frame a into frame b. The motion from j to k is the average of the
+direct estimate ``T_kj`` and the indirect one through frame i, ``T_ki · T_ji⁻¹`` (Eq. 9), and
+the poses are chained, ``T_k0 = ΔT_kj · T_j0``. ``T_ji`` is the registration made when frame j
+was the newest; every pose is projected back onto SE(3) as it is chained, so that rounding cannot
+grow along a run of any length.
+
+:func:`average_three` is Eq. 9 on SE(3), :func:`average_three_covariance` its first-order
+covariance, :class:`JointICP` the scheme over a sequence. The tracker runs the same step with its
+health checks as method ``jicp`` (:mod:`spacepose.core.frame_registration`).
 """
 
 from __future__ import annotations
@@ -17,7 +21,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import Field
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
@@ -25,33 +28,26 @@ from spacepose.core.config import StageConfig
 from spacepose.core.gicp import GICPConfig, compute_covariances, gicp
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import ICPConfig, as_registration_cloud, icp
+from spacepose.core.motion import rigid
 from spacepose.core.normals import estimate_normals
-from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
 from spacepose.core.registration import RegistrationResult
 
 
 class JICPConfig(StageConfig):
-    """Parameters of :class:`JointICP`.
+    """Parameters of :class:`JointICP` (and of the tracker's method ``jicp``).
 
     Attributes
     ----------
-    window
-        Frames in the window, the newest included (3 is the paper's scheme).
     registration
-        Pairwise registration inside the window: ``"icp"`` (with ``icp``) or ``"gicp"``
-        (with ``gicp``).
+        Pairwise registration of the frames: ``"icp"`` (with ``icp``; Li's Eq. 6 is
+        point-to-point, the default) or ``"gicp"`` (with ``gicp``).
     icp, gicp
         Configs of the pairwise registration.
-    weighting
-        ``"information"``: each pair weighted by the inverse of its covariance; ``"equal"``:
-        every pair weighted alike (Eq. 9 for W = 3).
     """
 
-    window: int = Field(3, ge=2, le=10)
     registration: Literal["icp", "gicp"] = "icp"
-    icp: ICPConfig = ICPConfig()
+    icp: ICPConfig = ICPConfig(method="point_to_point")
     gicp: GICPConfig = GICPConfig()
-    weighting: Literal["information", "equal"] = "information"
 
 
 def average_three(T_kj: ArrayLike, T_ki: ArrayLike, T_ji: ArrayLike) -> NDArray[np.float64]:
@@ -67,11 +63,38 @@ def average_three(T_kj: ArrayLike, T_ki: ArrayLike, T_ji: ArrayLike) -> NDArray[
     -------
     (4, 4) ``ΔT_kj = T_kj · exp(½ · log(T_kj⁻¹ · T_ki · T_ji⁻¹))``: the midpoint of the
     one-parameter curve from ``T_kj`` (direct) to ``T_ki · T_ji⁻¹`` (through frame i), i.e. the
-    transform M with ``log(T_kj M⁻¹) = −log(T_ki T_ji⁻¹ M⁻¹)``. Chain ``T_k0 = ΔT_kj · T_j0``.
+    transform M with ``log(T_kj M⁻¹) = −log(T_ki T_ji⁻¹ M⁻¹)``; to first order its twist is Li's
+    ``½((ξ_ki − ξ_ji) + ξ_kj)``. Chain ``T_k0 = ΔT_kj · T_j0``.
     """
     T_kj = se3.as_transform(T_kj, "T_kj")
     indirect = se3.as_transform(T_ki, "T_ki") @ se3.invert(se3.as_transform(T_ji, "T_ji"))
-    return T_kj @ se3.exp(0.5 * se3.log(se3.invert(T_kj) @ indirect))
+    return rigid(T_kj @ se3.exp(0.5 * se3.log(se3.invert(T_kj) @ indirect)))
+
+
+def average_three_covariance(
+    T_ki: ArrayLike,
+    T_ji: ArrayLike,
+    cov_kj: ArrayLike,
+    cov_ki: ArrayLike,
+    cov_ji: ArrayLike,
+) -> NDArray[np.float64]:
+    """First-order covariance (6, 6) of :func:`average_three`'s ``ΔT_kj``.
+
+    Parameters
+    ----------
+    T_ki, T_ji
+        (4, 4) the registrations through frame i.
+    cov_kj, cov_ki, cov_ji
+        (6, 6) covariances of ``T_kj``, ``T_ki`` and ``T_ji``, each a left perturbation in the
+        frame it maps into (k, k and j), twist (omega, v); the three taken as independent.
+
+    Returns
+    -------
+    ``¼ (C_kj + C_ki + Ad C_ji Adᵀ)`` with ``Ad`` the adjoint of ``T_ki T_ji⁻¹``: the indirect
+    estimate's error is ``δ_ki − Ad δ_ji`` and the midpoint halves the sum of the two errors.
+    """
+    Ad = se3.adjoint(np.asarray(T_ki) @ se3.invert(T_ji))
+    return 0.25 * (np.asarray(cov_kj) + np.asarray(cov_ki) + Ad @ np.asarray(cov_ji) @ Ad.T)
 
 
 @dataclass(frozen=True)
@@ -85,11 +108,11 @@ class JointStep:
     T_k0
         (4, 4) motion from the first frame into frame k (identity for k = 0).
     covariance
-        (6, 6) covariance of ``T_k0`` (left perturbation, (omega, v)) given the earlier poses
-        of the window, i.e. the uncertainty this step adds; zero for k = 0.
+        (6, 6) covariance of ``T_k0`` (left perturbation in frame k, (omega, v)): the pairwise
+        registrations' covariances carried along the chain; zero for k = 0.
     pairwise
-        Registrations of the earlier window frames (oldest first) onto frame k; their
-        ``T_target_source`` is ``T_km``.
+        The registrations of the earlier frames onto frame k, oldest first (``T_ki``, ``T_kj``;
+        only ``T_10`` at k = 1); their ``T_target_source`` is ``T_km``.
     """
 
     index: int
@@ -103,28 +126,31 @@ class _Frame:
     cloud: PointCloud
     covariances: NDArray[np.float64] | None
     T_k0: NDArray[np.float64]
+    cov_k0: NDArray[np.float64]
+    # This frame's direct registration onto the frame before it (T_jm, its covariance).
+    direct: tuple[NDArray[np.float64], NDArray[np.float64]] | None
 
 
 class JointICP:
-    """Sliding-window joint ICP tracker.
+    """Li's J-ICP over a sequence: each frame against its two predecessors, Eq. 9, chained.
 
     Parameters
     ----------
     config
-        Window, pairwise registration and weighting.
+        Pairwise registration.
     workers
         Threads for neighbour searches (results do not depend on it).
 
     Examples
     --------
-    >>> tracker = JointICP(JICPConfig(window=3))          # doctest: +SKIP
+    >>> tracker = JointICP(JICPConfig())                      # doctest: +SKIP
     >>> poses = [tracker.step(cloud).T_k0 for cloud in frames]  # doctest: +SKIP
     """
 
     def __init__(self, config: JICPConfig = JICPConfig(), workers: int = -1) -> None:
         self.config = config
         self.workers = workers
-        self._window: deque[_Frame] = deque(maxlen=config.window - 1)
+        self._window: deque[_Frame] = deque(maxlen=2)
         self._count = 0
 
     def step(
@@ -156,39 +182,38 @@ class JointICP:
             cloud = estimate_normals(cloud, cfg.icp.normals, workers=self.workers)
         k = self._count
         if not self._window:
-            self._window.append(_Frame(cloud, covs, np.eye(4)))
+            self._window.append(_Frame(cloud, covs, np.eye(4), np.zeros((6, 6)), None))
             self._count += 1
             return JointStep(0, np.eye(4), np.zeros((6, 6)), ())
 
-        prev = self._window[-1]
+        j = self._window[-1]
         if init_T_k_prev is not None:
             T_k_prev = se3.as_transform(init_T_k_prev, "init_T_k_prev")
-        elif len(self._window) >= 2:
-            T_k_prev = prev.T_k0 @ se3.invert(self._window[-2].T_k0)
+        elif len(self._window) == 2:
+            T_k_prev = rigid(j.T_k0 @ se3.invert(self._window[0].T_k0))
         else:
             T_k_prev = np.eye(4)
         tree = VoxelIndex(cloud.points)
-        # Newest pair first: its result seeds the guesses for the older, larger motions.
-        X_k = T_k_prev @ prev.T_k0
-        results: list[RegistrationResult] = []
-        for past in reversed(self._window):
-            res = self._register(past, cloud, covs, X_k @ se3.invert(past.T_k0), tree)
-            if not results:
-                X_k = res.T_target_source @ past.T_k0
-            results.append(res)
-        results.reverse()
-
-        n = len(self._window)
-        edges = [
-            PoseGraphEdge(m, n, res.T_target_source, self._edge_information(res))
-            for m, res in enumerate(results)
-        ]
-        poses = np.stack([f.T_k0 for f in self._window] + [X_k])
-        graph = optimize_pose_graph(poses, edges, fixed=range(n))
-        T_k0 = graph.poses[n]
-        self._window.append(_Frame(cloud, covs, T_k0))
+        # Frame j onto k (direct), then frame i onto k, started from the direct estimate.
+        res_kj = self._register(j, cloud, covs, T_k_prev, tree)
+        T_kj, cov_kj = res_kj.T_target_source, self._covariance(res_kj)
+        delta, cov_delta, pairwise = T_kj, cov_kj, (res_kj,)
+        if len(self._window) == 2:
+            i = self._window[0]
+            T_ji, cov_ji = j.direct
+            res_ki = self._register(i, cloud, covs, T_kj @ T_ji, tree)
+            T_ki = res_ki.T_target_source
+            delta = average_three(T_kj, T_ki, T_ji)
+            cov_delta = average_three_covariance(
+                T_ki, T_ji, cov_kj, self._covariance(res_ki), cov_ji
+            )
+            pairwise = (res_ki, res_kj)
+        T_k0 = rigid(delta @ j.T_k0)
+        Ad = se3.adjoint(delta)
+        cov_k0 = cov_delta + Ad @ j.cov_k0 @ Ad.T
+        self._window.append(_Frame(cloud, covs, T_k0, cov_k0, (T_kj, cov_kj)))
         self._count += 1
-        return JointStep(k, T_k0, graph.covariances[n], tuple(results))
+        return JointStep(k, T_k0, cov_k0, pairwise)
 
     def _register(
         self,
@@ -198,7 +223,7 @@ class JointICP:
         init_T_k_m: NDArray[np.float64],
         tree: VoxelIndex,
     ) -> RegistrationResult:
-        """Register an earlier window frame (source) onto the new frame (target)."""
+        """Register an earlier frame (source) onto the new frame (target, Li's reference)."""
         if self.config.registration == "gicp":
             return gicp(
                 past.cloud,
@@ -212,11 +237,6 @@ class JointICP:
             )
         return icp(past.cloud, cloud, init_T_k_m, self.config.icp, self.workers, target_tree=tree)
 
-    def _edge_information(self, result: RegistrationResult) -> NDArray[np.float64]:
-        """Weight of a pair in the pose graph: identity, or the inverse of its covariance."""
-        if self.config.weighting == "equal":
-            return np.eye(6)
-        if self.config.registration == "gicp":
-            return result.information  # already noise-weighted (see gicp)
-        # ICP information is in 1/m²; RegistrationResult.covariance scales it by the inlier RMSE.
-        return result.information / max(result.inlier_rmse, np.finfo(float).tiny) ** 2
+    def _covariance(self, result: RegistrationResult) -> NDArray[np.float64]:
+        """Covariance of a pair (left perturbation in the newer frame); GICP's is noise-weighted."""
+        return result.covariance(1.0) if self.config.registration == "gicp" else result.covariance()

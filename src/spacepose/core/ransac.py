@@ -12,13 +12,15 @@ tell a near-symmetric target from its flip (the lab mock-up turned 180° about a
 collects as many feature matches as the true pose), but the flip leaves part of the observed
 surface unexplained. Sampling stops at the confidence bound ``k = log(1 − p) / log(1 − w³)``
 (w the inlier ratio of the best hypothesis so far) or at the iteration limit; the best hypothesis
-is refitted on its inliers with Kabsch. All randomness comes from one seeded generator consumed
-in a fixed order, so the result is the same for any ``workers``.
+is refitted on its inliers with Kabsch. ``ranking="inliers"`` is the paper's plain RANSAC
+instead: no refits, no coverage, the most correspondence inliers win. All randomness comes from
+one seeded generator consumed in a fixed order, so the result is the same for any ``workers``.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numba
 import numpy as np
@@ -81,6 +83,10 @@ class RansacConfig(StageConfig):
         Rounds of Kabsch refit on the hypothesis' own inlier correspondences (and recount)
         before it is scored, as in LO-RANSAC: hypotheses from three noisy pairs can be 10° off
         and under-cover. Each round costs one pass over hypotheses × correspondences.
+    ranking
+        ``"coverage"`` (ours): local refits, then the coverage score as above;
+        ``"inliers"``: the paper's plain RANSAC, hypotheses ranked by their inlier count (the
+        smaller sum of squared inlier residuals breaking ties), without refits or coverage.
     """
 
     max_correspondence_distance: float = Field(default=0.015, gt=0)
@@ -92,6 +98,7 @@ class RansacConfig(StageConfig):
     batch_size: int = Field(default=256, ge=1)
     min_inliers: int = Field(default=10, ge=4)
     coverage_points: int = Field(default=300, ge=1)
+    ranking: Literal["coverage", "inliers"] = "coverage"
     local_refits: int = Field(default=3, ge=0)
 
 
@@ -303,7 +310,8 @@ def ransac_correspondences(
         # pairs can be 10° off, and a flip would then out-cover a true pose sampled less
         # exactly. Too few inliers (at any round) is no consensus, whatever the coverage.
         keep = inl.sum(axis=1) >= config.min_inliers
-        for _ in range(config.local_refits):
+        plain = config.ranking == "inliers"
+        for _ in range(0 if plain else config.local_refits):
             T, inl = T[keep], inl[keep]
             shape = (len(T), *src_c.shape)
             T = kabsch(np.broadcast_to(src_c, shape), np.broadcast_to(tgt_c, shape), inl)
@@ -317,9 +325,11 @@ def ransac_correspondences(
         sq = np.where(inl, r2, 0.0).sum(axis=1)
         # Both directions: a partial view registered to a whole model (either way round) is
         # judged by how much of the view the model explains, and a flip loses on both.
-        cover = coverage_counts(T, src_sub, tgt_tree, gate, workers) + coverage_counts(
-            se3.invert(T), tgt_sub, src_tree, gate, workers
-        )
+        cover = np.zeros(len(T), dtype=np.int64)
+        if not plain:
+            cover = coverage_counts(T, src_sub, tgt_tree, gate, workers) + coverage_counts(
+                se3.invert(T), tgt_sub, src_tree, gate, workers
+            )
         # Best coverage, then most inliers, then smallest squared error; lexsort keeps the
         # first on a full tie, and so does the strict comparison across batches.
         h = np.lexsort((sq, -count, -cover))[0]

@@ -5,8 +5,9 @@ Each frame goes through
 1. the motion model's prediction (constant velocity, with its observed error);
 2. preprocessing: optional background removal, mpp-MLS or voxel downsampling at the voxel the
    first frame's spacing gives (:mod:`spacepose.core.scale`);
-3. fine registration from the prediction (ICP, GICP, or the keyframe J-ICP), after a wide first
-   pass when the motion model has been wrong by more than the fine gate;
+3. fine registration from the prediction (point-to-point or point-to-plane ICP, GICP, Li's
+   J-ICP, or our keyframe graph), after a wide first pass when the motion model has been wrong
+   by more than the fine gate;
 4. a health check that labels the frame ``ok``, ``degraded`` or ``lost``
    (:mod:`spacepose.core.health`);
 5. coarse re-initialisation (FPFH + RANSAC at the derived scale) when the frame is lost;
@@ -328,10 +329,13 @@ class Tracker:
     def _fine(self, prepared: PreparedCloud, T_init: NDArray[np.float64]) -> FineEstimate:
         """Fine registration of the frame from the initial ``T_sensor_target``."""
         cfg = self.config
-        if cfg.method != "jicp" or self.model_based:
+        if cfg.method not in ("jicp", "keyframe") or self.model_based:
             return self._registrar.single(prepared, self._reference(), T_init)
-        window = self._keyframes[-(cfg.jicp.window - 1) :]
-        return self._registrar.joint(prepared, window, T_init, cfg.jicp.weighting == "equal")
+        if cfg.method == "jicp":
+            return self._registrar.li_step(prepared, self._keyframes[-2:], T_init)
+        graph = cfg.keyframe_graph
+        window = self._keyframes[-(graph.window - 1) :]
+        return self._registrar.joint(prepared, window, T_init, graph.weighting == "equal")
 
     def _check(
         self, estimate: FineEstimate, prepared: PreparedCloud, prediction: Prediction | None
@@ -485,7 +489,9 @@ class Tracker:
         if trusted:
             for kf, T_kf, cov_kf in estimate.window_poses:
                 kf.T_ref_target, kf.covariance = T_kf, cov_kf
-        if not needs_keyframe(
+        # Li's J-ICP registers every frame to the two accepted frames before it.
+        li = self.config.method == "jicp"
+        if not li and not needs_keyframe(
             estimate, prepared, self.config.keyframe, self._scale.radius, not trusted
         ):
             return False
@@ -498,7 +504,8 @@ class Tracker:
             list(estimate.edges),
             estimate.bias,
         )
-        self._keyframes = [*self._keyframes[-self.config.jicp.window :], kf]
+        keep = 1 if li else self.config.keyframe_graph.window
+        self._keyframes = [*self._keyframes[-keep:], kf]
         return True
 
 

@@ -51,6 +51,35 @@ class KeyframeConfig(StageConfig):
     stale_fitness: float = Field(0.7, ge=0, le=1)
 
 
+class KeyframeGraphConfig(StageConfig):
+    """The keyframe graph (method ``keyframe``, ours; docs/methods.md §5.5).
+
+    Attributes
+    ----------
+    window
+        Keyframes in the graph plus the new frame: the frame is registered to the last
+        ``window − 1`` keyframes.
+    registration
+        Pairwise registration: ``"icp"`` (with ``icp``) or ``"gicp"`` (with ``gicp``).
+    icp, gicp
+        Configs of the pairwise registration (their gates are derived).
+    weighting
+        ``"information"``: each edge weighted by the inverse of its covariance; ``"equal"``:
+        every edge alike.
+    """
+
+    window: int = Field(4, ge=2, le=10)
+    registration: Literal["icp", "gicp"] = "icp"
+    icp: ICPConfig = ICPConfig(method="point_to_plane", max_iterations=10)
+    gicp: GICPConfig = GICPConfig()
+    weighting: Literal["information", "equal"] = "information"
+
+
+# The tracker's methods: the pairwise registrations onto the current keyframe, Li's J-ICP, and
+# our keyframe graph.
+Method = Literal["point_to_point", "point_to_plane", "gicp", "jicp", "keyframe"]
+
+
 class HealthConfig(StageConfig):
     """Bounds of the per-frame health check, in voxels ``v`` unless named otherwise.
 
@@ -113,9 +142,12 @@ class TrackerConfig(StageConfig):
     Attributes
     ----------
     method
-        Fine registration: ``"icp"`` (point-to-plane ICP against the last keyframe), ``"gicp"``
-        or ``"jicp"`` (the frame registered to the last ``jicp.window − 1`` keyframes and the
-        window solved as a pose graph).
+        Fine registration: ``"point_to_point"`` (Li's Eq. 6 ICP), ``"point_to_plane"`` (ICP)
+        or ``"gicp"``, each onto the current keyframe; ``"jicp"``, Li's J-ICP (the frame
+        registered to the two frames before it, the two estimates averaged by Eq. 9 and the
+        poses chained; ``jicp``); ``"keyframe"`` (ours, the default), the keyframe graph (the
+        frame registered to the last ``keyframe_graph.window − 1`` keyframes and the window
+        solved as a pose graph; ``keyframe_graph``).
     points_per_frame
         Points a frame keeps after downsampling: the voxel edge follows from it and the first
         frame's spacing (:func:`spacepose.core.scale.voxel_for`). 3,000 gives 6 mm on the lab
@@ -150,7 +182,7 @@ class TrackerConfig(StageConfig):
         weights of the pose graph (there it made the lab run's y error 2-3× worse).
     """
 
-    method: Literal["icp", "gicp", "jicp"] = "jicp"
+    method: Method = "keyframe"
     points_per_frame: PositiveInt = 3000
     voxel_size: PositiveFloat | None = None
     gate: PositiveFloat = 0.83
@@ -170,9 +202,8 @@ class TrackerConfig(StageConfig):
     ransac: RansacConfig = RansacConfig(mutual_filter=False)
     icp: ICPConfig = ICPConfig(method="point_to_plane")
     gicp: GICPConfig = GICPConfig()
-    jicp: JICPConfig = JICPConfig(
-        window=4, icp=ICPConfig(method="point_to_plane", max_iterations=10)
-    )
+    jicp: JICPConfig = JICPConfig()
+    keyframe_graph: KeyframeGraphConfig = KeyframeGraphConfig()
     keyframe: KeyframeConfig = KeyframeConfig()
     health: HealthConfig = HealthConfig()
 
@@ -188,7 +219,7 @@ class StageLengths:
         Voxel edge, fine correspondence gate and coarse voxel edge (m).
     floor_translation, floor_rotation, floor_motion
         σ floor (m, rad, fraction of the motion) of every registration.
-    icp, gicp, jicp, normals, coarse_normals, fpfh, ransac, mls
+    icp, gicp, jicp, keyframe_graph, normals, coarse_normals, fpfh, ransac, mls
         The stage configs with every length set.
     """
 
@@ -201,6 +232,7 @@ class StageLengths:
     icp: ICPConfig
     gicp: GICPConfig
     jicp: JICPConfig
+    keyframe_graph: KeyframeGraphConfig
     normals: NormalsConfig
     coarse_normals: NormalsConfig
     fpfh: FPFHConfig
@@ -226,9 +258,9 @@ def stage_lengths(config: TrackerConfig, voxel: float, radius: float) -> StageLe
     def gated(stage: ICPConfig | GICPConfig) -> ICPConfig | GICPConfig:
         return stage.model_copy(update={"max_correspondence_distance": gate})
 
-    jicp = config.jicp.model_copy(
-        update={"icp": gated(config.jicp.icp), "gicp": gated(config.jicp.gicp)}
-    )
+    def pairs_gated(stage: JICPConfig | KeyframeGraphConfig) -> JICPConfig | KeyframeGraphConfig:
+        return stage.model_copy(update={"icp": gated(stage.icp), "gicp": gated(stage.gicp)})
+
     return StageLengths(
         voxel=voxel,
         gate=gate,
@@ -238,7 +270,8 @@ def stage_lengths(config: TrackerConfig, voxel: float, radius: float) -> StageLe
         floor_motion=config.floor_motion,
         icp=gated(config.icp),
         gicp=gated(config.gicp),
-        jicp=jicp,
+        jicp=pairs_gated(config.jicp),
+        keyframe_graph=pairs_gated(config.keyframe_graph),
         normals=config.normals,
         coarse_normals=config.coarse_normals.model_copy(update={"radius": 2.0 * coarse}),
         fpfh=config.fpfh.model_copy(update={"radius": 5.0 * coarse}),

@@ -14,7 +14,7 @@ Inputs (METHODS §3 lab scenario, frames 0, 1, 2 of a three-frame run):
   features for every contender, so it compares the sampling and scoring alone.
 * ``icp`` (point-to-plane, target normals given) and ``gicp``: frame 1 (source) onto frame 0
   (target) from the identity; truth ``T_s0_s1 = T_s0_target · T_s1_target⁻¹``.
-* ``jicp_step``: the third step of a fresh :class:`~spacepose.core.jicp.JointICP` (window 3).
+* ``jicp_step``: the third step of a fresh :class:`~spacepose.core.jicp.JointICP` (Li's J-ICP).
 * ``tracking_step``: the second frame of a fresh model-free
   :class:`~spacepose.core.tracker.Tracker` (preprocess + fine registration + health and
   covariance); Open3D does the same core steps (voxel downsampling, normals, point-to-plane ICP
@@ -652,7 +652,7 @@ def _tracking_trials(
             keyframe.estimate_normals(o3d.o3d.geometry.KDTreeSearchParamKNN(config.normals.k))
             keyframe.orient_normals_towards_camera_location(np.zeros(3))
             return lambda: o3d.tracking_step(
-                f1.cloud, keyframe, lengths.voxel, config.normals.k, lengths.jicp.icp
+                f1.cloud, keyframe, lengths.voxel, config.normals.k, lengths.keyframe_graph.icp
             )
 
         trials["open3d"] = setup_open3d

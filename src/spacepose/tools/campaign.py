@@ -140,6 +140,9 @@ def get_runner(name: str) -> CaseRunner:
 # --------------------------------------------------------------------------------------------
 
 REGISTRATION_METHODS: tuple[str, ...] = ("point_to_point", "point_to_plane", "gicp")
+# The tracker's methods (TrackerConfig.method): the three above onto the current keyframe, Li's
+# J-ICP and our keyframe graph.
+TRACKER_METHODS: tuple[str, ...] = (*REGISTRATION_METHODS, "jicp", "keyframe")
 # Defaults of the optional axes, per scenario: the lab mock-up is 0.3 m across at 1.2 m, the
 # orbit satellite 6 m across at 25 m, so the initial offset and the gate scale with it.
 REGISTRATION_DEFAULTS: dict[str, dict[str, float]] = {
@@ -244,7 +247,7 @@ def registration_case(params: dict[str, Scalar]) -> Metrics:
 
 @case_runner(
     "tracking",
-    choices={"method": ("icp", "gicp", "jicp"), "scenario": ("lab",), "background": (False, True)},
+    choices={"method": TRACKER_METHODS, "scenario": ("lab",), "background": (False, True)},
     extra_axes=("frames", "background"),
 )
 def tracking_case(params: dict[str, Scalar]) -> Metrics:

@@ -20,6 +20,7 @@ _MODULES: tuple[str, ...] = (
     "yu_geometry",
     "yu_nav",
     "li",
+    "li_tracking",
     "li_global",
     "robustness",
     "fusion",

@@ -1,51 +1,53 @@
-"""Li et al. 2024 on the simulator (METHODS §1.7): experiments L1–L4.
+"""Li et al. 2024 on the simulator (docs/methods.md §1.7): experiments L1–L4.
+
+Methods carry one name everywhere (tracker, tables, JSON): ``point_to_point`` (Li's Eq. 6 ICP),
+``point_to_plane`` (ICP), ``gicp``, each onto the current keyframe; ``jicp`` (Li's J-ICP, each
+frame against the two before it, Eq. 9); ``keyframe`` (our keyframe graph, the default).
 
 - ``li-l1``: normal consistency (Li Fig. 5) of a raw lab frame and of the same frame after
-  mpp-MLS: histogram of the neighbour normal angles and the share below 20°.
+  mpp-MLS, on the clean and the paper-like ToF profile: histogram of the neighbour normal angles
+  and the share below 20°, mean ± std over seeds.
 - ``li-l2``: coarse registration (FPFH + RANSAC, frame onto the model) error against isotropic
-  Gaussian noise (Li Figs. 9–10), with and without mpp-MLS. The paper's σ ∈ {0.01 … 0.07} are in
-  the units of its model coordinates, which it does not state; here σ is scaled to the model:
-  ``σ = σ_paper × L / 10`` with L the largest extent of the lab mock-up (0.89 m), i.e. 0.9–6.2
-  mm, from below to about five times the ToF noise at 1.2 m.
-- ``li-l3``: the lab run (570 mm, 57°) tracked model-free with ICP, GICP and J-ICP; Li's Table 2
-  (per-axis mean ± std of the absolute errors), the paper's values beside ours, and a CRLB
-  column (√diag of the frame-to-frame bound of each frame, METHODS §4, averaged over the
-  frames); error curves per axis (Li Figs. 11–12). "ICP" is Li's Eq. 6 (point-to-point) and
-  GICP is Segal's, each registering every frame to the current keyframe; J-ICP is the tracker's
-  default (point-to-plane pairs in a window of 4, solved as a pose graph). A point-to-plane ICP
-  column shows how much of the J-ICP gain the error metric alone brings. In full mode the
-  three methods run again on the scene with background (wall, turntable) and background
-  removal.
-- ``li-l4``: time per frame per method (Li Table 3).
+  Gaussian noise (Li Figs. 9–10), and on the paper-like ToF profile, with and without mpp-MLS.
+  The paper's σ ∈ {0.01 … 0.07} are in the units of its model coordinates, which it does not
+  state; here ``σ = σ_paper × L / 10`` with L the largest extent of the lab mock-up (0.89 m),
+  i.e. 0.9–6.2 mm. A pose more than 5° or 5 cm off (at the model origin) is a failure.
+- ``li-l3``, ``li-l4``: tracking with every method (:mod:`.li_tracking`).
 
-``quick`` runs 8 frames instead of 58 (L3/L4), 3 σ and 1 pose instead of 6 and 6 (L2), and
-skips the background run; the numbers then only smoke-test the pipeline.
+``quick`` runs 1 seed (L1), 3 σ and 1 pose instead of 6 and 6 (L2), 5 frames (L3; L4: 8); the
+numbers then only smoke-test the pipeline.
 """
 
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
+from numpy.typing import NDArray
 
-from spacepose.core.metrics import error_table, pose_errors
 from spacepose.core.mls import MLSConfig, mpp_mls
 from spacepose.core.normals import NormalsConfig, estimate_normals, normal_consistency
 from spacepose.core.sim.scenarios import LabConfig, Simulation, simulate_lab
 from spacepose.core.sim.sensors import sensor_config
-from spacepose.core.tracker import Tracker, TrackerConfig, track_sequence
+from spacepose.core.tracker import Tracker, TrackerConfig
 from spacepose.tools import plots
 from spacepose.tools.experiments import ExperimentOptions, register
 
 AXES = ("x_mm", "y_mm", "z_mm", "pitch_deg", "yaw_deg", "roll_deg")
-METHODS = ("icp", "gicp", "jicp")
-# Li et al. 2024, Table 2: mean (std) of the absolute per-frame errors.
+METHOD_LABELS: dict[str, str] = {
+    "point_to_point": "point-to-point ICP (Li Eq. 6), onto the current keyframe",
+    "point_to_plane": "point-to-plane ICP, onto the current keyframe",
+    "gicp": "GICP, onto the current keyframe",
+    "jicp": "J-ICP (paper): each frame onto the two before it, Eq. 9, chained",
+    "keyframe": "keyframe graph (ours): onto 3 keyframes, pose graph (tracker default)",
+}
+METHODS = tuple(METHOD_LABELS)
+# Li et al. 2024, Table 2: mean (std) of the absolute per-frame errors; its ICP is Eq. 6.
 PAPER_TABLE2: dict[str, dict[str, tuple[float, float]]] = {
-    "icp": {
+    "point_to_point": {
         "x_mm": (2.06, 1.50),
         "y_mm": (3.59, 3.02),
         "z_mm": (0.54, 0.42),
@@ -74,6 +76,9 @@ PAPER_TIME_MS = 98.0  # Li Table 3: J-ICP per frame on an i7-7700; +18.1 % over 
 PAPER_JICP_OVER_ICP = 0.181
 L2_SIGMAS = (0.01, 0.02, 0.03, 0.04, 0.05, 0.07)
 MLS = MLSConfig(voxel_size=0.006, h=0.006)
+# A coarse pose further off than this (deg, m at the model origin) is a failure.
+COARSE_FAILURE = (5.0, 0.05)
+PROFILES = ("tof-clean", "tof-paper")
 
 
 def _write(out_dir: Path, name: str, table: dict[str, Any], figures: dict[str, Figure]) -> dict:
@@ -83,9 +88,12 @@ def _write(out_dir: Path, name: str, table: dict[str, Any], figures: dict[str, F
     return table
 
 
-def _lab(options: ExperimentOptions, frames: int | None = None, **overrides: Any) -> Simulation:
+def _lab(
+    options: ExperimentOptions, frames: int | None = None, seed: int | None = None, **overrides: Any
+) -> Simulation:
     n = frames if frames is not None else (8 if options.quick else 58)
-    return simulate_lab(LabConfig(frames=n, seed=options.seed, **overrides))
+    seed = options.seed if seed is None else seed
+    return simulate_lab(LabConfig(frames=n, seed=seed, **overrides))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -94,35 +102,49 @@ def _lab(options: ExperimentOptions, frames: int | None = None, **overrides: Any
 
 @register("li-l1")
 def normal_consistency_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
-    """Li Fig. 5: neighbour normal angles, raw ToF frame vs mpp-MLS output."""
-    cloud = _lab(options, frames=1).frame(0).cloud
-    raw = estimate_normals(cloud, NormalsConfig(k=10), workers=options.workers)
-    smoothed = mpp_mls(cloud, MLS, workers=options.workers)
-    results = {
-        "raw": normal_consistency(raw, k=10, workers=options.workers),
-        "mpp-MLS": normal_consistency(smoothed, k=10, workers=options.workers),
-    }
+    """Li Fig. 5: neighbour normal angles, raw ToF frame vs mpp-MLS output, both profiles."""
+    seeds = range(options.seed, options.seed + (options.seeds or (1 if options.quick else 10)))
+    shares: dict[str, dict[str, list[float]]] = {}
+    counts: dict[str, NDArray[np.int64]] = {}
+    for profile in PROFILES:
+        for seed in seeds:
+            sim = _lab(options, frames=1, seed=seed, sensor=sensor_config(profile))
+            cloud = sim.frame(0).cloud
+            clouds = {
+                "raw": estimate_normals(cloud, NormalsConfig(k=10), workers=options.workers),
+                "mpp-MLS": mpp_mls(cloud, MLS, workers=options.workers),
+            }
+            for variant, pc in clouds.items():
+                r = normal_consistency(pc, k=10, workers=options.workers)
+                key = f"{profile} {variant}"
+                shares.setdefault(key, []).append(r.share_below_20)
+                counts[key] = counts.get(key, 0) + r.counts
     table = {
         "experiment": "li-l1",
-        "points": {"raw": len(raw), "mpp-MLS": len(smoothed)},
-        "share_below_20deg": {k: r.share_below_20 for k, r in results.items()},
-        "share_20_to_160deg": {
-            k: float(np.mean((r.angles_deg >= 20) & (r.angles_deg <= 160)))
-            for k, r in results.items()
+        "seeds": list(seeds),
+        "share_below_20deg": {k: _mean_std(v) for k, v in shares.items()},
+        "improvement_points": {
+            p: _mean_std(
+                100 * (np.array(shares[f"{p} mpp-MLS"]) - np.array(shares[f"{p} raw"]))
+            )
+            for p in PROFILES
         },
-        "paper": {"raw_share_20_to_160deg": 0.8, "mpp_mls_share_below_20deg": 0.8},
-        "histogram_edges_deg": results["raw"].bin_edges_deg.tolist(),
-        "histogram_counts": {k: r.counts.tolist() for k, r in results.items()},
+        "paper": {"raw_share_below_20deg": 0.2, "mpp_mls_share_below_20deg": 0.8},
+        "histogram_edges_deg": r.bin_edges_deg.tolist(),
+        "histogram_counts": {k: c.tolist() for k, c in counts.items()},
         "mls": MLS.model_dump(),
-        "seed": options.seed,
     }
     fig = plots.histogram_comparison(
-        results["raw"].bin_edges_deg,
-        {k: r.counts for k, r in results.items()},
+        r.bin_edges_deg,
+        counts,
         "angle between neighbouring normals (deg)",
         "normal consistency: raw ToF frame vs mpp-MLS (Li Fig. 5)",
     )
     return _write(out_dir, "li-l1", table, {"": fig})
+
+
+def _mean_std(values: list[float] | NDArray[np.float64]) -> dict[str, float]:
+    return {"mean": float(np.mean(values)), "std": float(np.std(values))}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -131,11 +153,14 @@ def normal_consistency_experiment(out_dir: Path, options: ExperimentOptions) -> 
 
 @register("li-l2")
 def coarse_noise_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
-    """Li Figs. 9–10: RANSAC coarse registration error against Gaussian noise σ.
+    """Li Figs. 9–10: RANSAC coarse registration error against Gaussian noise σ, and on the
+    paper-like ToF profile.
 
-    Each frame (lab pose, ``gaussian`` sensor) is registered onto the model cloud by the
-    tracker's coarse stage alone; "mpp-MLS" preprocesses the frame by mpp-MLS first (h = max(6
-    mm, 2σ): features below h are smoothed away, METHODS §1.2), "raw" by voxel downsampling.
+    Each frame (a lab pose) is registered onto the model cloud by the tracker's coarse stage
+    alone; "mpp-MLS" preprocesses the frame by mpp-MLS first (h = max(6 mm, 2σ): features below
+    h are smoothed away, METHODS §1.2), "raw" by voxel downsampling. Errors are over the
+    successful trials; a trial fails when RANSAC finds no consensus or lands more than 5° or
+    5 cm off.
     """
     sigmas = (0.01, 0.04, 0.07) if options.quick else L2_SIGMAS
     n_poses = 1 if options.quick else 6
@@ -143,10 +168,13 @@ def coarse_noise_experiment(out_dir: Path, options: ExperimentOptions) -> dict[s
     model = base.model_cloud()
     extent = float(np.ptp(model.points, axis=0).max())
     poses = np.linspace(0, len(base) - 1, n_poses + 2)[1:-1].round().astype(int)
+    noises: list[tuple[str, float | None, float]] = [
+        ("gaussian", s, s * extent / 10.0) for s in sigmas
+    ]
+    noises.append(("tof-paper", None, 0.0))
     rows = []
-    for s_paper in sigmas:
-        sigma = s_paper * extent / 10.0
-        sensor = sensor_config("gaussian", sigma_const=sigma)
+    for name, s_paper, sigma in noises:
+        sensor = sensor_config(name, sigma_const=sigma) if s_paper else sensor_config(name)
         sim = simulate_lab(LabConfig(frames=58, seed=options.seed, sensor=sensor))
         frames = [sim.frame(int(k)) for k in poses]
         for variant in ("raw", "mpp-MLS"):
@@ -165,15 +193,19 @@ def coarse_noise_experiment(out_dir: Path, options: ExperimentOptions) -> dict[s
                     continue
                 # Position of the target (model origin, at its centre), not of ΔT's translation
                 # about the sensor, which a rotation error inflates by the 1.2 m lever arm.
-                t_err.append(
-                    1e3 * float(np.linalg.norm(T_est[:3, 3] - frame.T_sensor_target[:3, 3]))
-                )
+                dt = float(np.linalg.norm(T_est[:3, 3] - frame.T_sensor_target[:3, 3]))
                 dR = T_est[:3, :3] @ frame.T_sensor_target[:3, :3].T
-                r_err.append(float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))))
+                angle = float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))))
+                if angle > COARSE_FAILURE[0] or dt > COARSE_FAILURE[1]:
+                    failures += 1
+                    continue
+                t_err.append(1e3 * dt)
+                r_err.append(angle)
             rows.append(
                 {
+                    "noise": name,
                     "sigma_paper": s_paper,
-                    "sigma_mm": 1e3 * sigma,
+                    "sigma_mm": 1e3 * sigma if s_paper else None,
                     "variant": variant,
                     "position_error_mm_mean": _mean(t_err),
                     "position_error_mm_median": _median(t_err),
@@ -186,6 +218,7 @@ def coarse_noise_experiment(out_dir: Path, options: ExperimentOptions) -> dict[s
     table = {
         "experiment": "li-l2",
         "sigma_scaling": f"sigma = sigma_paper * L / 10, L = {extent:.3f} m (largest model extent)",
+        "failure": "no consensus, or more than 5 deg or 5 cm off at the model origin",
         "rows": rows,
         "seed": options.seed,
     }
@@ -203,7 +236,7 @@ def _median(values: list[float]) -> float | None:
 def _l2_figure(rows: list[dict[str, Any]]) -> Figure:
     fig, axes = plots.plt.subplots(1, 2, figsize=(11, 3.8))
     for variant in ("raw", "mpp-MLS"):
-        sel = [r for r in rows if r["variant"] == variant]
+        sel = [r for r in rows if r["variant"] == variant and r["sigma_paper"] is not None]
         x = [r["sigma_paper"] for r in sel]
         for ax, key in zip(
             axes, ("position_error_mm_median", "rotation_angle_error_deg_median"), strict=True
@@ -219,149 +252,3 @@ def _l2_figure(rows: list[dict[str, Any]]) -> Figure:
     fig.suptitle("coarse registration (FPFH + RANSAC) against noise (Li Figs. 9–10)")
     fig.tight_layout()
     return fig
-
-
-# ---------------------------------------------------------------------------------------------
-# L3 / L4
-
-
-def method_configs() -> dict[str, TrackerConfig]:
-    """The tracker configs compared in L3/L4 (see the module docstring)."""
-    base = TrackerConfig()
-    icp_p2p = base.icp.model_copy(update={"method": "point_to_point"})
-    return {
-        "icp": base.model_copy(update={"method": "icp", "icp": icp_p2p}),
-        "icp_point_to_plane": base.model_copy(update={"method": "icp"}),
-        "gicp": base.model_copy(update={"method": "gicp"}),
-        "jicp": base,
-    }
-
-
-def run_methods(
-    sim: Simulation, options: ExperimentOptions, background: bool = False
-) -> dict[str, dict[str, Any]]:
-    """Track the run with every method of :func:`method_configs`; errors, σ and timings."""
-    frames = [sim.frame(k) for k in range(len(sim))]
-    gt = sim.groundtruth.rebased_first().poses
-    out: dict[str, dict[str, Any]] = {}
-    for name, cfg in method_configs().items():
-        cfg = cfg.model_copy(update={"use_background_removal": background})
-        tic = time.perf_counter()
-        tracked = track_sequence(
-            [f.cloud for f in frames], sim.timestamps, cfg, workers=options.workers
-        )
-        wall = time.perf_counter() - tic
-        poses = tracked.trajectory.poses
-        dt, de = pose_errors(poses, gt)
-        times = np.array([r.time_ms["total"] for r in tracked.results])
-        out[name] = {
-            "table": error_table(poses, gt).to_dict(),
-            "errors": np.c_[1e3 * dt, np.degrees(de[:, [1, 0, 2]])],  # x y z mm, pitch yaw roll
-            "status": [r.status for r in tracked.results],
-            "time_ms": times,
-            "stage_ms": {
-                s: float(np.median([r.time_ms[s] for r in tracked.results[1:]]))
-                for s in ("preprocess", "coarse", "fine")
-            },
-            "wall_s": wall,
-        }
-    return out
-
-
-def crlb_column(sim: Simulation) -> dict[str, float]:
-    """Mean over frames 1.. of √diag of the frame-to-frame CRLB, in the table's axes/units."""
-    stds = np.array([sim.frame(k).crlb(frame_to_frame=True).std for k in range(1, len(sim))])
-    m = stds.mean(axis=0)
-    # Twist (rx, ry, rz, tx, ty, tz); pitch is about y, yaw about z, roll about x (METHODS §0).
-    return {
-        "x_mm": 1e3 * m[3],
-        "y_mm": 1e3 * m[4],
-        "z_mm": 1e3 * m[5],
-        "pitch_deg": float(np.degrees(m[1])),
-        "yaw_deg": float(np.degrees(m[2])),
-        "roll_deg": float(np.degrees(m[0])),
-    }
-
-
-def l3_summary(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """Table 2 layout plus the acceptance figures of J-ICP against ICP and the paper."""
-    mean = {m: runs[m]["table"]["mean"] for m in runs}
-    reduction = {a: 1.0 - mean["jicp"][a] / mean["icp"][a] for a in AXES}
-    return {
-        "table": {
-            a: {m: [runs[m]["table"]["mean"][a], runs[m]["table"]["std"][a]] for m in runs}
-            for a in AXES
-        },
-        "jicp_reduction_vs_icp": reduction,
-        "jicp_mean_reduction_vs_icp": float(np.mean(list(reduction.values()))),
-        "jicp_at_or_below_paper": {a: mean["jicp"][a] <= PAPER_TABLE2["jicp"][a][0] for a in AXES},
-        "status_counts": {
-            m: {s: runs[m]["status"].count(s) for s in ("ok", "degraded", "lost")} for m in runs
-        },
-    }
-
-
-@register("li-l3")
-def lab_run_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
-    """Li Table 2 and Figs. 11–12 on the simulated lab run."""
-    sim = _lab(options)
-    runs = run_methods(sim, options)
-    table: dict[str, Any] = {
-        "experiment": "li-l3",
-        "frames": len(sim),
-        **l3_summary(runs),
-        "crlb_frame_to_frame": crlb_column(sim),
-        "paper": PAPER_TABLE2,
-        "methods": {
-            "icp": "point-to-point ICP (Li Eq. 6) to the current keyframe",
-            "icp_point_to_plane": "point-to-plane ICP to the current keyframe",
-            "gicp": "GICP to the current keyframe",
-            "jicp": "J-ICP: point-to-plane pairs to 3 keyframes, pose graph (tracker default)",
-        },
-        "seed": options.seed,
-    }
-    t = sim.timestamps - sim.timestamps[0]
-    figures = {
-        "": plots.pose_error_curves(
-            t, {m: r["errors"] for m, r in runs.items()}, "lab run: pose errors (Li Figs. 11-12)"
-        ),
-        "_health": plots.health_timeline(t, {m: r["status"] for m, r in runs.items()}),
-    }
-    if not options.quick:
-        bg = run_methods(_lab(options, background=True), options, background=True)
-        table["background"] = l3_summary(bg)
-        figures["_background"] = plots.pose_error_curves(
-            t, {m: r["errors"] for m, r in bg.items()}, "lab run with background removal"
-        )
-    return _write(out_dir, "li-l3", table, figures)
-
-
-@register("li-l4")
-def timing_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
-    """Li Table 3: tracking time per frame per method (frame 0 excluded: no registration)."""
-    runs = run_methods(_lab(options), options)
-    rows = {
-        m: {
-            "mean_ms": float(r["time_ms"][1:].mean()),
-            "median_ms": float(np.median(r["time_ms"][1:])),
-            "stage_median_ms": r["stage_ms"],
-        }
-        for m, r in runs.items()
-    }
-    table = {
-        "experiment": "li-l4",
-        "frames": len(runs["jicp"]["time_ms"]),
-        "workers": options.workers,
-        "rows": rows,
-        "jicp_over_icp": rows["jicp"]["median_ms"] / rows["icp"]["median_ms"] - 1.0,
-        "paper": {"jicp_ms": PAPER_TIME_MS, "jicp_over_icp": PAPER_JICP_OVER_ICP},
-        "note": "wall time on this machine, shared with other jobs; see `spacepose bench`",
-    }
-    fig, ax = plots.plt.subplots(figsize=(7, 3.5))
-    names = list(rows)
-    ax.bar(names, [rows[m]["median_ms"] for m in names])
-    ax.axhline(PAPER_TIME_MS, color="0.4", ls="--", label="paper J-ICP (i7-7700)")
-    ax.set_ylabel("median time per frame (ms)")
-    ax.legend()
-    fig.tight_layout()
-    return _write(out_dir, "li-l4", table, {"": fig})
