@@ -93,7 +93,12 @@ def test_a_pose_the_gate_rejects_is_flagged_in_the_tracker_result(orbit):
     """Frame 20 shifted by 30 cm: the tracker follows the points, the filter's gate rejects
     the pose, and the tracker's result says so."""
     sim, n, R_O_C, _catalogue, frames = orbit
-    cfg = FusionConfig(measurements="registration", pose_sigma_scale=4.0, seed_registration=False)
+    cfg = FusionConfig(
+        measurements="registration",
+        pose_sigma_scale=4.0,
+        seed_registration=False,
+        use_degraded=True,
+    )
     nav = FusedNavigator([], n, R_O_C, cfg, sim.model_cloud())
     rows = []
     for k, f in enumerate(frames[:22]):

@@ -1,0 +1,43 @@
+"""``spacepose experiment fusion --quick``: registration poses in the filter, scored against the
+orbit run's truth, and the tracker's covariance scored against its own errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+from scipy.stats import chi2
+
+from spacepose.tools.experiments import ExperimentOptions, available, run_experiment
+from spacepose.tools.experiments.fusion import tracker_errors
+
+
+def test_tracker_errors_closed_form():
+    """A pose off by a turn about the sensor origin: at the target origin the error is the
+    turn's displacement of that point; the NEES is the turn's χ² against the covariance."""
+    from spacepose.core import se3
+
+    T_true = se3.make_transform(np.eye(3), [0.0, 0.0, 25.0])
+    turn = se3.exp([0.0, 1e-3, 0.0, 0.0, 0.0, 0.0])
+    cov = np.diag([1e-6] * 3 + [1e-4] * 3)
+    e, sigma, nees = tracker_errors(turn @ T_true, cov, T_true)
+    np.testing.assert_allclose(e[:3], [0.0, 1e-3, 0.0], atol=1e-12)
+    np.testing.assert_allclose(e[3:], [25.0 * np.sin(1e-3), 0.0, 0.0], rtol=1e-6)
+    assert abs(nees - 1.0) < 1e-9
+    # σ about the target: the rotation's 1e-3 rad at 25 m adds 25 mm to x and y.
+    np.testing.assert_allclose(sigma[3:], np.sqrt([1e-4 + 625e-6, 1e-4 + 625e-6, 1e-4]))
+    assert chi2.ppf(0.975, 6) > nees
+
+
+def test_quick_fusion_writes_its_table(tmp_path):
+    assert "fusion" in available()
+    table = run_experiment("fusion", tmp_path, ExperimentOptions(quick=True))
+    assert set(table["runs"]) == {"default / registration", "default / both"}
+    saved = json.loads((tmp_path / "fusion.json").read_text())
+    assert saved["frames"] == 30 and (tmp_path / "fusion.md").read_text().count("\n") == 4
+    for run in table["runs"].values():
+        s = run["summary"]
+        assert s["frames_navigated"]["mean"] >= 26
+        # 30 s in: attitude within 1°, the tracker's poses mostly inside the gate.
+        assert max(s["attitude_rms_deg"]["mean"]) < 1.0
+        assert s["gate_rejections"]["mean"] <= 8
