@@ -55,8 +55,11 @@ def test_score_on_known_errors() -> None:
         "n_rect": np.ones(N, dtype=int),
         "truth": truth,
         "ekf": _FakeEKF(),
+        "nees_terms": np.tile(np.arange(N_FIXED, dtype=float), (N, 1)),
     }
     table = score(result)
+    # Per block: ρ 0+1+2, ρ̇ 3+4+5, attitude 6+7+8, ω 9+10+11, k 12+13, Δ 14+15+16.
+    assert table["nees_terms_second_half"] == [3.0, 12.0, 21.0, 30.0, 25.0, 45.0]
     np.testing.assert_allclose(table["position_rms_mm"], [2.0, 0.0, 0.0])
     np.testing.assert_allclose(table["position_mean_mm"], [2.0, 0.0, 0.0])
     np.testing.assert_allclose(table["attitude_rms_deg"], [0.05, 0.0, 0.0])
@@ -108,6 +111,10 @@ def test_process_noise_comes_from_the_scenario() -> None:
     config = navigation_config(sim.scenario(), NavigationConfig())
     assert config.ekf.sigma_accel == measured != NavigationConfig().ekf.sigma_accel
     assert config.ekf.sigma_angular_accel == NavigationConfig().ekf.sigma_angular_accel
+    # The chaser attitude's σ the scenario states (not its error) sizes the consider state.
+    assert config.ekf.sigma_chaser_attitude_deg == OrbitConfig().chaser_attitude_sigma_deg > 0
+    exact = simulate_orbit(OrbitConfig(frames=2, chaser_attitude_sigma_deg=0.0)).scenario()
+    assert navigation_config(exact, NavigationConfig()).ekf.sigma_chaser_attitude_deg == 0.0
     assert config.lost_in_space.fov_deg == tuple(sim.scenario()["sensor_fov_deg"])
     assert navigation_config({}, NavigationConfig()) == NavigationConfig()
 

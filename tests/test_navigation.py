@@ -238,27 +238,29 @@ def test_area_weighted_centroid_removes_the_perspective_bias() -> None:
     assert weighted < 0.1 * plain
 
 
-def test_attitude_covariance_follows_the_face_geometry() -> None:
+def test_attitude_covariance_matches_the_scatter_of_the_plane_fit() -> None:
+    # 300 draws of 400 uniform points on a face-on 1.4 x 1.8 m face with 1 cm range noise: the
+    # measured normal's tilts and the long side's turn scatter as the model of each draw says.
     rng = np.random.default_rng(0)
     a, b, n = 1.4, 1.8, 400
-    pts = np.column_stack([rng.uniform(-a / 2, a / 2, n), rng.uniform(-b / 2, b / 2, n)])
-    pts = np.column_stack([pts, 25.0 + rng.normal(0, 0.01, n)])
-    m = measure_rectangle(pts, 0.01)
-    # Face normal along body +x.
-    R_B_plane = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
     entry = CatalogueEntry(
-        name="f", center=(1.2, 0, 0), R_model_plane=tuple(map(tuple, R_B_plane)), a=a, b=b
+        name="f", center=(0, 0, 0.7), R_model_plane=((1, 0, 0), (0, 1, 0), (0, 0, 1)), a=a, b=b
     )
     config = NavigationConfig()
-    C = attitude_covariance(m, entry, config)
-    spin = config.spin_scale * a * b / (np.sqrt(n) * (b**2 - a**2))
-    # Range noise along the normal is σ_r |cos θ| (θ ≈ 0 here: cos = 1 − 2.5e-6).
-    tilt = config.tilt_scale * 0.01 * incidence_cosine(m) * np.sqrt(12 / n) / np.array([b, a])
-    np.testing.assert_allclose(C[0, 0], spin**2)  # turn about the normal (body x)
-    # About the short side (body y) the long side b levers the tilt, and vice versa.
-    np.testing.assert_allclose(np.diag(C)[1:], tilt**2)
-    np.testing.assert_allclose(C - np.diag(np.diag(C)), 0.0, atol=1e-20)
-    assert C[0, 0] > 100 * C[1, 1]
+    errors, model = [], []
+    for _ in range(300):
+        pts = np.column_stack([rng.uniform(-a / 2, a / 2, n), rng.uniform(-b / 2, b / 2, n)])
+        m = measure_rectangle(np.column_stack([pts, 25.0 + rng.normal(0, 0.01, n)]), 0.01)
+        normal, long_side = m.normal * np.sign(m.normal[2]), m.R_sensor_plane[:, 1]
+        long_side = long_side * np.sign(long_side[1])
+        # Tilt about the short side (x) moves the normal along y, about the long side along x.
+        errors.append([normal[1], normal[0], long_side[0]])
+        model.append(np.diag(attitude_covariance(m, entry, config)))  # B = the face's axes
+    rms, sig = np.sqrt(np.mean(np.square(errors), axis=0)), np.sqrt(np.mean(model, axis=0))
+    # Random points: the turn is the unscaled bound (spin_scale is for a sensor's grid).
+    sig[2] /= config.spin_scale
+    np.testing.assert_allclose(rms, sig, rtol=0.15)
+    assert sig[2] > 10 * sig[0]  # the turn about the normal is the weak one
 
 
 def _tilted_face(incidence_deg: float, n: int = 600, seed: int = 0):
@@ -273,29 +275,67 @@ def _tilted_face(incidence_deg: float, n: int = 600, seed: int = 0):
     return measure_rectangle(pts, 0.01)
 
 
-def test_centroid_covariance_is_tight_along_the_normal_only() -> None:
+def _grid_face(a: float, b: float, pitch: float, rng, hidden: float = 0.0) -> np.ndarray:
+    """A face-on a x b face at 25 m on the boresight, sampled by a square grid of ``pitch``
+    aligned with its sides at a random phase, the last ``hidden`` metres of the long side
+    left out: its points (sensor frame)."""
+    u = np.arange(rng.uniform(-a / 2, -a / 2 + pitch), a / 2, pitch)
+    v = np.arange(rng.uniform(-b / 2, -b / 2 + pitch), b / 2 - hidden, pitch)
+    U, V = np.meshgrid(u, v)
+    return np.column_stack([U.ravel(), V.ravel(), np.full(U.size, 25.0)])
+
+
+def test_centroid_covariance_follows_the_grid_pitch_and_the_missing_side() -> None:
+    # 1.4 x 1.8 m face, pitch 7-9 cm (range and incidence change it, so the side is no fixed
+    # multiple of it): over 400 random grid phases the centroid scatters by p / √24 per side
+    # (two uniform edge gaps), which the model reads from the points alone.
+    rng = np.random.default_rng(0)
+    a, b, pitch = 1.4, 1.8, 0.08
+    pitches = rng.uniform(0.07, 0.09, 400)
+    entry = CatalogueEntry(
+        name="f", center=(0, 0, 0), R_model_plane=((1, 0, 0), (0, 1, 0), (0, 0, 1)), a=a, b=b
+    )
+    config = NavigationConfig(rectangle=RectangleConfig(sigma=0.0))
+    errors, model = [], []
+    for p in pitches:
+        m = measure_rectangle(_grid_face(a, b, p, rng), 0.0)
+        axes = m.R_sensor_plane[:, :2].T
+        errors.append(np.abs(axes @ (m.centroid - [0, 0, 25.0])))
+        C = centroid_covariance(m, entry, config)
+        model.append(np.einsum("ki,ij,kj->k", axes, C, axes))
+        np.testing.assert_allclose(C @ m.normal, 1e-8 * m.normal, atol=1e-15)  # the floor
+    rms = np.sqrt(np.mean(np.square(errors), axis=0))
+    np.testing.assert_allclose(rms, np.sqrt(np.mean(pitches**2) / 24), rtol=0.1)
+    # The model adds the scatter of the measured sides (also a pitch): it lies within 1-1.6x.
+    ratio = np.sqrt(np.mean(model, axis=0)) / rms
+    assert np.all((ratio >= 1.0) & (ratio <= 1.6)), ratio
+    # 30 cm of the long side hidden: the centroid moves 15 cm along it, and the model's σ
+    # along that side is that half-deficit (within half a pitch), across it still the grid's.
+    m = measure_rectangle(_grid_face(a, b, pitch, rng, hidden=0.3), 0.0)
+    axes = m.R_sensor_plane[:, :2].T
+    shift = np.abs(axes @ (m.centroid - [0, 0, 25.0]))
+    sig = np.sqrt(np.einsum("ki,ij,kj->k", axes, centroid_covariance(m, entry, config), axes))
+    assert shift[1] == pytest.approx(0.15, abs=pitch / 2) and shift[0] < pitch / 2
+    assert sig[1] == pytest.approx(0.15, abs=pitch / 2) and sig[0] < pitch / 2
+
+
+def test_centroid_is_tight_along_the_normal() -> None:
     m = _tilted_face(60.0)
-    config = NavigationConfig()
-    C = centroid_covariance(m, config)
+    entry = CatalogueEntry(
+        name="f", center=(0, 0, 0), R_model_plane=((1, 0, 0), (0, 1, 0), (0, 0, 1)), a=1.4, b=1.8
+    )
+    C = centroid_covariance(m, entry, NavigationConfig())
     cos = incidence_cosine(m)
     assert cos == pytest.approx(0.5, abs=0.01)  # the face turned by 60°
-    # Along the normal: σ_r cos θ / √N = 0.2 mm; in the plane: ekf.sigma_centroid.
+    # Along the normal: σ_r cos θ / √N = 0.2 mm.
     along = 0.01 * cos / np.sqrt(600)
     np.testing.assert_allclose(C @ m.normal, along**2 * m.normal, atol=1e-15)
-    in_plane = np.cross(m.normal, [0.0, 1.0, 0.0])
-    in_plane /= np.linalg.norm(in_plane)
-    np.testing.assert_allclose(C @ in_plane, config.ekf.sigma_centroid**2 * in_plane, atol=1e-15)
     np.testing.assert_allclose(C, C.T, atol=0)
-    # Without range noise the floor min_centroid_sigma stands along the normal.
-    noiseless = NavigationConfig(rectangle=RectangleConfig(sigma=0.0))
-    floor = noiseless.min_centroid_sigma
-    np.testing.assert_allclose(
-        centroid_covariance(m, noiseless) @ m.normal, floor**2 * m.normal, atol=1e-15
-    )
 
 
-def test_attitude_tilt_sigma_follows_the_incidence_down_to_its_floor() -> None:
-    # The same face (same points in its own frame) face-on, at 60° and at 80° incidence.
+def test_attitude_tilt_sigma_follows_the_fit_residual_with_the_incidence() -> None:
+    # The same face (same points in its own frame) face-on, at 60° and at 80° incidence: range
+    # noise along the rays is σ_r cos θ off the plane, which the fit's residual measures.
     entry = CatalogueEntry(
         name="f", center=(0, 0, 0.7), R_model_plane=((1, 0, 0), (0, 1, 0), (0, 0, 1)), a=1.4, b=1.8
     )
@@ -306,34 +346,41 @@ def test_attitude_tilt_sigma_follows_the_incidence_down_to_its_floor() -> None:
         cos[angle] = incidence_cosine(m)
         tilt_var[angle] = np.diag(attitude_covariance(m, entry, config))[:2]
     assert [cos[0.0], cos[60.0], cos[80.0]] == pytest.approx([1.0, 0.5, 0.174], abs=0.01)
-    # Same points in the face's frame, so only the cosine changes the σ (floored at 0.25).
-    np.testing.assert_allclose(tilt_var[60.0] / tilt_var[0.0], (cos[60.0] / cos[0.0]) ** 2)
-    np.testing.assert_allclose(tilt_var[80.0] / tilt_var[0.0], (0.25 / cos[0.0]) ** 2)
+    np.testing.assert_allclose(tilt_var[60.0] / tilt_var[0.0], cos[60.0] ** 2, rtol=0.15)
+    # Near grazing the rays' spread over the face adds to the residual (1.5x cos² about one
+    # axis),     # and the floor min_tilt_cosine holds the residual at (σ_r 0.25)² or more.
+    np.testing.assert_allclose(tilt_var[80.0] / tilt_var[0.0], 0.25**2, rtol=0.15)
     assert config.min_tilt_cosine == 0.25
 
 
 def test_ray_share_out_removes_the_range_bias_of_the_centroids() -> None:
     # 200 frames of the default orbit run (every third): recognised centroids against the true
-    # face centres along the ray. Measured: -0.14 mm mean and 8.9 mm RMS (388 centroids) with
-    # the share-out; without it +5.3 mm and 16.9 mm (351), the bias Y4 showed in ρ_x.
+    # face centres (not the catalogue the navigator is given, 2 mm off) along the ray, and
+    # divided by the σ along the ray of their measured covariance. Measured: +0.6 mm mean,
+    # 12.8 mm RMS, normalised RMS 0.51 (394 centroids) with the share-out; without it +5.1 mm
+    # and 18.6 mm (349). The RMS is the tilted faces' in-plane error seen along the ray (the
+    # wing seen in part), which the covariance carries.
     sim = simulate_orbit(OrbitConfig(frames=600))
     scenario = sim.scenario()
     n, R_O_C = scenario_geometry(scenario)
-    errors = {}
+    true = {e.name: e for e in parse_catalogue({"rectangles": scenario["rectangles_true"]})}
+    errors, normalised = {}, {}
     for share in (True, False):
         config = NavigationConfig(ray_share_out=share)
         nav = RelativeNavigator(parse_catalogue(scenario, config.rectangle), n, R_O_C, config)
-        out = []
+        out, z = [], []
         for k in range(0, 600, 3):
             T = sim.T_sensor_target[k]
             for m, e in nav.recognise(sim.frame(k).cloud, T[:3, :3]):
-                centre = T[:3, :3] @ e.centre + T[:3, 3]
-                out.append((m.centroid - centre) @ centre / np.linalg.norm(centre))
-        errors[share] = np.array(out)
+                centre = T[:3, :3] @ true[e.name].centre + T[:3, 3]
+                ray = centre / np.linalg.norm(centre)
+                out.append((m.centroid - centre) @ ray)
+                z.append(out[-1] / np.sqrt(ray @ centroid_covariance(m, e, config) @ ray))
+        errors[share], normalised[share] = np.array(out), np.array(z)
     with_share, without = errors[True], errors[False]
     assert len(with_share) >= 350 and len(without) >= 300
-    assert abs(np.mean(with_share)) < 0.0015 and np.sqrt(np.mean(with_share**2)) < 0.011
-    assert np.mean(without) > 0.003 and np.sqrt(np.mean(without**2)) > 0.013
+    assert abs(np.mean(with_share)) < 0.0015 and np.mean(without) > 0.003
+    assert np.sqrt(np.mean(normalised[True] ** 2)) < 1.0
 
 
 def test_plane_config_of_the_navigator() -> None:

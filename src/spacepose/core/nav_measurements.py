@@ -1,7 +1,8 @@
 """Measurement noise of the rectangle navigation (Yu et al. 2019, METHODS §2.2–2.4).
 
 The covariance of the attitude and of the centroid one recognised rectangle gives, from its
-size, point count and incidence, and the area-weighted centroid of a range image's plane.
+size, point count, incidence and the sides measured against the catalogue's, and the
+area-weighted centroid of a range image's plane.
 Used by :class:`spacepose.core.navigation.RelativeNavigator` (settings in
 :class:`~spacepose.core.nav_config.NavigationConfig`).
 """
@@ -36,18 +37,28 @@ def attitude_covariance(
 ) -> NDArray[np.float64]:
     """Covariance (3, 3, rad², body frame) of the attitude measured from one rectangle.
 
-    The normal is fixed by the out-of-plane noise over the whole face (σ ≈ σ_n √12 / (side √N)
-    about each in-plane axis, with ``σ_n = σ_r |cos θ|`` the range noise along the normal of a
-    face seen at incidence θ, the cosine floored at ``min_tilt_cosine``); the turn about the
-    normal only by the difference of the in-plane eigenvalues, ``σ² ≈ a² b² / (N (b² − a²)²)``
-    — far weaker for a near-square face.
+    From the plane fit itself: with the eigenvalues ``λ_0 <= λ_1 <= λ_2`` of the N points'
+    distribution matrix (``λ_0`` the mean squared residual off the plane, range noise and
+    whatever else bends the face; ``λ_1, λ_2`` the spreads along the short and long side),
+
+    - the tilt of the normal about each side: ``σ² = λ_0 / (N λ_lever)``, the lever being the
+      spread along the other side (the least-squares normal of N points), with ``λ_0`` no less
+      than ``(σ_r min_tilt_cosine)²``: near grazing the outline's stretched pixels bend the
+      fit more than its residual shows (orbit run, seed 0: without the floor the attitude
+      runs away by 3° and 1,410 updates are gated out; with it none);
+    - the turn about the normal: ``σ² = λ_1 λ_2 / (N (λ_2 − λ_1)²)``, the eigenvector-angle
+      scatter of N points spread as measured (far weaker for a near-square face, or for a
+      face seen in part whose measured spreads come close).
+
+    Each σ is scaled (``tilt_scale``, ``spin_scale``), floored at ``min_attitude_sigma_deg``
+    and the diagonal turned from the face's axes into B.
     """
     n = max(measurement.n_points, 1)
-    a, b = entry.a, entry.b
-    cos = max(incidence_cosine(measurement), config.min_tilt_cosine)
-    sigma_n = max(config.rectangle.sigma * cos, 1e-6)
-    tilt = config.tilt_scale * sigma_n * np.sqrt(12.0 / n) / np.array([b, a])
-    spin = config.spin_scale * a * b / (np.sqrt(n) * (b**2 - a**2))
+    lam = np.maximum(np.asarray(measurement.eigenvalues, dtype=np.float64), 1e-300)
+    residual = max(lam[0], (config.rectangle.sigma * config.min_tilt_cosine) ** 2)
+    tilt = config.tilt_scale * np.sqrt(residual / (n * lam[[2, 1]]))
+    gap = max(lam[2] - lam[1], 1e-300)
+    spin = config.spin_scale * np.sqrt(lam[1] * lam[2] / n) / gap
     floor = np.deg2rad(config.min_attitude_sigma_deg)
     sig = np.maximum(np.array([tilt[0], tilt[1], spin]), floor)
     R_B_plane = entry.rotation  # B' and B are parallel
@@ -55,24 +66,41 @@ def attitude_covariance(
 
 
 def centroid_covariance(
-    measurement: RectangleMeasurement, config: NavigationConfig
+    measurement: RectangleMeasurement, entry: CatalogueEntry, config: NavigationConfig
 ) -> NDArray[np.float64]:
     """Covariance (3, 3, m², sensor frame) of one rectangle's measured centroid.
 
     Along the face normal the centroid is as good as the mean of N range errors projected on
-    it, ``σ_r |cos θ| / √N`` (sub-millimetre); in the plane it is limited by where the pixel
-    grid cuts the outline, ``ekf.sigma_centroid`` (the pixels are 8 cm wide at 25 m).
+    it, ``σ_r |cos θ| / √N`` (sub-millimetre, floored at ``min_centroid_sigma``). In the plane,
+    along each side u (the measurement's own axes), two things measured on the frame:
+
+    - where the pixel grid cuts the outline: the points start and stop within one pitch
+      ``p_u`` of each edge, two independent uniform gaps, so the mean moves by
+      ``σ² = p_u² / 24``. The pitch comes from the points: each covers ``a_m b_m / N`` of the
+      face (measured sides), and a side foreshortened by the view, ``c_u = √(1 − (u·r̂)²)``
+      (r̂ the ray to the centroid, floored at ``min_tilt_cosine``), is crossed by pixels
+      ``1 / c_u`` times as long: ``p_u² = (a_m b_m / N) c_a c_b / c_u²``.
+      This is the bound of a grid aligned with the face; a turned grid cuts each row at
+      another phase and does better (measured on the default orbit run: a third of it);
+    - how much of the side is missing (hidden, out of view, or cut by a neighbour's share):
+      a side measured ``d_u`` shorter (or longer) than the catalogue's has its centroid moved
+      by up to ``d_u / 2``, taken as ``σ² = (d_u / 2)²``. On the default orbit run the 6 m wing
+      seen in part gives the largest centroid errors (8-18 cm), each with such a deficit.
     """
     n_hat = measurement.normal
-    along = (
-        config.rectangle.sigma
-        * incidence_cosine(measurement)
-        / np.sqrt(max(measurement.n_points, 1))
-    )
+    n_points = max(measurement.n_points, 1)
+    along = config.rectangle.sigma * incidence_cosine(measurement) / np.sqrt(n_points)
     along = max(along, config.min_centroid_sigma)
-    in_plane = config.ekf.sigma_centroid
-    N = np.outer(n_hat, n_hat)
-    return in_plane**2 * (np.eye(3) - N) + along**2 * N
+    ray = measurement.centroid / max(float(np.linalg.norm(measurement.centroid)), 1e-300)
+    axes = measurement.R_sensor_plane[:, :2].T  # (2, 3): the short and the long side
+    cos = np.maximum(np.sqrt(np.clip(1.0 - (axes @ ray) ** 2, 0.0, 1.0)), config.min_tilt_cosine)
+    sides = np.array([measurement.a, measurement.b])
+    area_per_point = max(float(np.prod(sides)), 0.0) / n_points
+    pitch_sq = area_per_point * np.prod(cos) / cos**2
+    deficit = np.array([entry.a, entry.b]) - sides
+    var = pitch_sq / 24.0 + (deficit / 2.0) ** 2
+    C = along**2 * np.outer(n_hat, n_hat)
+    return C + np.einsum("k,ki,kj->ij", var, axes, axes)
 
 
 def area_weighted_centroid(points: ArrayLike) -> NDArray[np.float64]:

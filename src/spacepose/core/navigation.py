@@ -383,7 +383,7 @@ class RelativeNavigator:
                 Rotation.from_matrix(R_I_B).as_quat(), attitude_covariance(m, e, self.config)
             )
             ok_c = ekf.update_centroid(
-                e.name, e.centre, m.centroid, centroid_covariance(m, self.config)
+                e.name, e.centre, m.centroid, centroid_covariance(m, e, self.config)
             )
             used += int(ok_att or ok_c)
         return used

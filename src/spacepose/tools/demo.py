@@ -4,7 +4,9 @@ Steps, each writing into one folder:
 
 1. simulate the lab run (Li et al.) and the orbit run (Yu et al.);
 2. track the lab run with ICP, GICP and J-ICP (model-free, METHODS §0);
-3. navigate the orbit run with the rectangle-based EKF;
+3. navigate the orbit run with the rectangle-based EKF, with no prior (the lost-in-space start
+   on the run's model; the scenario's measured process noise and chaser-attitude σ, as
+   experiment yu-y4 does);
 4. score both against the ground truth: Li's Table 2 layout and Yu's Y4 errors;
 5. run the two quick experiments whose figures the report shows (normal consistency L1,
    coarse registration against noise L2);
@@ -24,10 +26,11 @@ import numpy as np
 from rich.table import Table
 
 from spacepose.core.metrics import evaluate, navigation_errors
+from spacepose.core.navigation import NavigationConfig
 from spacepose.core.sim import scenario_config, simulate
 from spacepose.tools.experiments import ExperimentOptions, run_experiment
 from spacepose.tools.experiments.li import AXES, METHODS, PAPER_TABLE2
-from spacepose.tools.experiments.yu_nav import attitude_prior
+from spacepose.tools.experiments.yu_nav import navigation_config
 from spacepose.tools.frames import track_folder, tracker_config
 from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.report import build_report
@@ -122,13 +125,8 @@ def run_demo(
                 lab_dir, lab_dir / "tracks" / f"{m}.tum", tracker_config(method=m), workers=workers
             ),
         )
-    orbit = read_run(orbit_dir)
-    # The target's symmetric faces need a coarse attitude prior at start: the true initial
-    # attitude turned by 15° about a seeded axis, as in experiment yu-y4.
-    prior = attitude_prior(np.asarray(orbit.scenario["initial_q_I_B"]), seed)
-    step(
-        "navigate orbit", lambda: navigate_run(orbit_dir, orbit_dir / "nav.csv", prior_q_I_B=prior)
-    )
+    nav_config = navigation_config(read_run(orbit_dir).scenario, NavigationConfig())
+    step("navigate orbit", lambda: navigate_run(orbit_dir, orbit_dir / "nav.csv", nav_config))
     li_table = _li_table(lab_dir)
     yu_table = _yu_table(orbit_dir)
     options = ExperimentOptions(seed=seed, quick=True, workers=workers)

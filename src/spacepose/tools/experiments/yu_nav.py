@@ -73,12 +73,20 @@ def attitude_prior(q_I_B: NDArray[np.float64], seed: int) -> tuple[float, ...]:
 
 
 def navigation_config(scenario: dict[str, Any], base: NavigationConfig) -> NavigationConfig:
-    """``base`` with what the scenario tells: its measured translational process noise and,
-    when ``base`` leaves it unset, the sensor's field of view for the lost-in-space start."""
+    """``base`` with what the scenario tells: its measured translational process noise, the
+    σ of the chaser attitude it gives the filter (the consider state; the scenario's
+    ``chaser_attitude_sigma_deg``, a star tracker's specification, not its error) and, when
+    ``base`` leaves it unset, the sensor's field of view for the lost-in-space start."""
     update: dict[str, Any] = {}
+    ekf: dict[str, float] = {}
     noise = scenario.get("process_noise")
     if noise:
-        update["ekf"] = base.ekf.model_copy(update={"sigma_accel": float(noise["sigma_accel"])})
+        ekf["sigma_accel"] = float(noise["sigma_accel"])
+    chaser = scenario.get("config", {}).get("chaser_attitude_sigma_deg")
+    if chaser is not None:
+        ekf["sigma_chaser_attitude_deg"] = float(chaser)
+    if ekf:
+        update["ekf"] = base.ekf.model_copy(update=ekf)
     if base.lost_in_space.fov_deg is None and "sensor_fov_deg" in scenario:
         fov = tuple(float(v) for v in scenario["sensor_fov_deg"])
         update["lost_in_space"] = base.lost_in_space.model_copy(update={"fov_deg": fov})
@@ -100,6 +108,8 @@ def navigate_with_truth(
     -------
     dict with ``t`` (N,), ``errors`` (N, 17) error states (truth ⊟ estimate, NaN before the
     filter starts), ``sigmas`` (N, 17) the filter's 1-σ of the same components, ``nees`` (N,),
+    ``nees_terms`` (N, 17) its per-state terms ``e_i (P⁻¹ e)_i`` (they sum to the NEES, and
+    each has expectation 1 when the filter is consistent),
     ``coarse_att_deg`` and ``raw_att_deg`` (N,) coarse attitude errors with and without the
     4-fold fix (NaN without a rectangle), ``coarse_pos_mm`` (N, 3), ``status`` (N,),
     ``n_rect`` (N,), ``ekf`` the final filter, ``truth`` (N, 20) and ``process_noise`` (the
@@ -119,6 +129,7 @@ def navigate_with_truth(
         "errors": np.full((N, N_FIXED), np.nan),
         "sigmas": np.full((N, N_FIXED), np.nan),
         "nees": np.full(N, np.nan),
+        "nees_terms": np.full((N, N_FIXED), np.nan),
         "coarse_att_deg": np.full(N, np.nan),
         "raw_att_deg": np.full(N, np.nan),
         "coarse_pos_mm": np.full((N, 3), np.nan),
@@ -143,6 +154,8 @@ def navigate_with_truth(
             out["errors"][k] = nav.ekf.error_state(truth)
             out["sigmas"][k] = np.sqrt(np.diag(nav.ekf.P)[:N_FIXED])
             out["nees"][k] = nav.ekf.nees(truth)
+            e = out["errors"][k]
+            out["nees_terms"][k] = e * np.linalg.solve(nav.ekf.P[:N_FIXED, :N_FIXED], e)
     out["ekf"] = nav.ekf
     out["process_noise"] = scenario.get("process_noise")
     return out
@@ -153,7 +166,9 @@ def score(result: dict[str, Any]) -> dict[str, Any]:
 
     Units: mm, mm/s, deg, deg/s, mm and % (inertia ratios: relative error of each of the three
     ratios, from the estimated pair); NEES share of frames inside the two-sided 95 %
-    bounds of χ²(17); ``attitude_jump_deg`` the largest change of the filter's attitude error
+    bounds of χ²(17) and its mean per block of states over the second half
+    (``nees_terms_second_half``: ρ, ρ̇, attitude, ω, k, Δ; expected 3, 3, 3, 3, 2, 3);
+    ``attitude_jump_deg`` the largest change of the filter's attitude error
     between consecutive frames (also after the first ``SETTLE_S``); the coarse attitude errors
     with and without the 4-fold fix.
     """
@@ -203,6 +218,7 @@ def score(result: dict[str, Any]) -> dict[str, Any]:
         "nees_inside_95_second_half": float(np.mean(inside[half][finite[half]])),
         "nees_median_second_half": float(np.nanmedian(nees[half])),
         "nees_bounds": [float(lo), float(hi)],
+        "nees_terms_second_half": _block_means(result.get("nees_terms"), half),
         "attitude_jump_deg": float(np.nanmax(jumps)),
         "attitude_jump_after_10s_deg": float(np.nanmax(jumps[settled]))
         if settled.any()
@@ -219,6 +235,18 @@ def score(result: dict[str, Any]) -> dict[str, Any]:
         key: bool(np.all(np.asarray(table[key]) <= limit)) for key, limit in TARGETS.items()
     }
     return table
+
+
+# Blocks of the error state whose NEES terms are summed: ρ, ρ̇, attitude, ω, k, Δ.
+_BLOCKS = (slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), INERTIA, slice(14, 17))
+
+
+def _block_means(terms: NDArray[np.float64] | None, rows: slice) -> list[float]:
+    """Mean over ``rows`` of the NEES terms (N, 17) summed per block (6,); NaN without them."""
+    if terms is None or not np.isfinite(terms[rows]).any():
+        return [float("nan")] * len(_BLOCKS)
+    mean = np.nanmean(terms[rows], axis=0)
+    return [float(mean[b].sum()) for b in _BLOCKS]
 
 
 _FIGURES = (
@@ -290,6 +318,7 @@ SUMMARY_KEYS = (
     *PAPER,
     "nees_inside_95_all",
     "nees_inside_95_second_half",
+    "nees_terms_second_half",
     "frames_navigated",
     "gate_rejections",
 )
