@@ -295,6 +295,7 @@ def test_peers_interleaved_with_ratios_and_same_answers() -> None:
     pytest.importorskip("small_gicp")
     result = run_benchmark(quick=True, peers=True, repeats=1, config=BenchConfig(**TINY))
     expected = {
+        "voxel": {"open3d"},
         "normals": {"open3d", "small_gicp"},
         "fpfh": {"open3d"},
         "ransac": {"open3d"},

@@ -9,6 +9,7 @@ also scored against the simulator's ground truth beside the Cramér–Rao bound 
 Inputs (METHODS §3 lab scenario, frames 0, 1, 2 of a three-frame run):
 
 * ``normals``, ``mpp_mls``: frame 0 as rendered.
+* ``voxel``: frame 0 voxel-downsampled at the default tracker's voxel (what it derives from it).
 * ``fpfh``, ``ransac``: frames 0 and 1 voxel-downsampled (``coarse_voxel_size``), normals within
   2× and FPFH within 5× the voxel (Open3D's global-registration recipe); RANSAC gets the same
   features for every contender, so it compares the sampling and scoring alone.
@@ -77,6 +78,7 @@ from spacepose.tools.bench_fullres import max_rss_mb, raw_frames, stream_peak_rs
 
 PEERS: tuple[str, ...] = ("open3d", "small_gicp")
 STAGES: tuple[str, ...] = (
+    "voxel",
     "normals",
     "mpp_mls",
     "fpfh",
@@ -406,6 +408,9 @@ class _Open3D:
             pcd.normals = self.o3d.utility.Vector3dVector(np.array(cloud.normals))
         return pcd
 
+    def voxel(self, cloud: PointCloud, voxel_size: float) -> Any:
+        return self.cloud(cloud, normals=False).voxel_down_sample(voxel_size)
+
     def normals(self, cloud: PointCloud, k: int) -> Any:
         pcd = self.cloud(cloud, normals=False)
         pcd.estimate_normals(self.o3d.geometry.KDTreeSearchParamKNN(k))
@@ -471,7 +476,7 @@ class _Open3D:
     ) -> NDArray:
         """The tracker's steps for one frame: voxel downsampling, normals, point-to-plane ICP
         against the (prepared) keyframe from the previous pose."""
-        pcd = self.cloud(frame, normals=False).voxel_down_sample(voxel_size)
+        pcd = self.voxel(frame, voxel_size)
         pcd.estimate_normals(self.o3d.geometry.KDTreeSearchParamKNN(k))
         result = self.reg.registration_icp(
             pcd,
@@ -546,6 +551,15 @@ def _ready(call: Callable[[], Any]) -> Trial:
 
 # --------------------------------------------------------------------------------------------
 # Stages: the trials of every contender of a stage, on identical inputs
+
+
+def _voxel_trials(cloud: PointCloud, voxel_size: float, peers: _Peers) -> dict[str, Trial]:
+    from spacepose.core.voxel import voxel_downsample
+
+    trials = {"ours": _ready(lambda: voxel_downsample(cloud, voxel_size))}
+    if peers.open3d is not None:
+        trials["open3d"] = _ready(lambda: peers.open3d.voxel(cloud, voxel_size))
+    return trials
 
 
 def _normals_trials(
@@ -958,7 +972,9 @@ def _measure(
     """Everything :func:`run_benchmark` reports but the environment."""
     data = prepare_data(config, seed, workers)
     (tgt, src), (tgt_coarse, _) = data.clouds, data.coarse
+    frame0 = data.frames[0].cloud
     stage_trials: dict[str, dict[str, Trial]] = {
+        "voxel": _voxel_trials(frame0, _tracker_lengths(frame0).voxel, contenders),
         "normals": _normals_trials(data.frames[0].cloud, config.normals, workers, contenders),
         "mpp_mls": _mls_trials(data, workers),
         "fpfh": _fpfh_trials(tgt_coarse, _coarse_fpfh(config), workers, contenders),
@@ -970,6 +986,7 @@ def _measure(
         "ekf_step": _ekf_trials(seed),
     }
     n_points = {
+        "voxel": len(frame0),
         "normals": len(data.frames[0].cloud),
         "mpp_mls": len(data.frames[0].cloud),
         "fpfh": len(tgt_coarse),
