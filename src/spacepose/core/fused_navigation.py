@@ -22,9 +22,13 @@ its covariance (``H P Hᵀ``) replace the tracker's constant-velocity prediction
 registration and the reference of the tracker's health check; and a pose the filter's gate
 rejects is flagged in the tracker's result (status ``degraded``, reason ``navigation gate``).
 
-Model-based only: without a target model the tracker's poses are ``T_k0`` in the first frame's
-sensor frame, whose rotation to the principal axes and offset to the centre of mass the filter
-would have to estimate as extra states; that is not built (a :class:`ConfigError` says so).
+Model-free (``registration`` without a model): the tracker's poses are ``T_k0``, in the frame F
+of its first view, whose principal axes and centre of mass are unknown. The first
+``model_free_frames`` ok poses are a batch (:mod:`spacepose.core.model_free_start`: angular
+momentum conservation gives the axes and inertia ratios, a CW fit the centre of mass); the
+filter then starts with that body frame ``T_F_B'`` and takes ``T_k0 T_F_B'`` as its pose
+measurement. The alignment is fixed after the batch (not a filter state), and each principal
+axis keeps the sign ambiguity no motion resolves.
 """
 
 from __future__ import annotations
@@ -39,9 +43,11 @@ from pydantic import Field
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
+from spacepose.core import dynamics
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
-from spacepose.core.ekf import RelativeNavEKF
+from spacepose.core.ekf import NavState, RelativeNavEKF
+from spacepose.core.model_free_start import model_free_start
 from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.navigation import NavRow, RelativeNavigator, start_filter
 from spacepose.core.rectangles import CatalogueEntry
@@ -102,6 +108,13 @@ class FusionConfig(StageConfig):
         "gate rejects and restart_deg or more from the filter's prediction, before the filter "
         "restarts from the tracker's pose (a start on a wrong coarse registration, e.g. a "
         "near-symmetric twin, is otherwise never undone).",
+    )
+    model_free_frames: int = Field(
+        200,
+        ge=10,
+        description="Model-free: ok poses collected before the batch estimate of the body "
+        "frame (principal axes, centre of mass) starts the filter; the batch grows until its "
+        "moments are a rigid body's.",
     )
     restart_deg: float = Field(
         5.0,
@@ -178,11 +191,10 @@ class FusedNavigator:
                 f"measurements {c.measurements!r} need a rectangle catalogue and this target "
                 "has none: use 'registration'"
             )
-        if c.measurements != "rectangles" and model is None:
+        if c.measurements == "both" and model is None:
             raise ConfigError(
-                "registration poses need a target model (model.ply or --model): model-free "
-                "navigation (the rotation to the principal axes and the CoM offset of the "
-                "first frame's target frame as filter states) is not built"
+                "'both' needs a target model (model.ply or --model): rectangles live in the "
+                "model frame, model-free poses in the first view's frame"
             )
         self.rectangles = (
             RelativeNavigator(catalogue, mean_motion, R_O_C, c.navigation, model)
@@ -194,6 +206,9 @@ class FusedNavigator:
         self._poses_used = 0
         self._rejected_ok = 0
         self._last_ok_used = False
+        # Model-free: the batch of (t, T_k0) before the start, then the body frame in F.
+        self._batch: list[tuple[float, np.ndarray]] | None = [] if model is None else None
+        self.T_F_B: np.ndarray | None = None
         self._gate = chi2.ppf(c.navigation.ekf.gate_probability, 6)
 
     @property
@@ -225,11 +240,14 @@ class FusedNavigator:
         if offered:
             if self.rectangles is None and self._rejected_ok >= c.restart_after:
                 ekf = self._ekf = None
+            T_meas = track.T_sensor_target
+            if self.T_F_B is not None:
+                T_meas = T_meas @ self.T_F_B
             if ekf is None and (row is None or row.status == "waiting"):
-                used = started = track.status == "ok" and self._start(t, track.T_sensor_target)
+                used = started = track.status == "ok" and self._start(t, T_meas)
             elif ekf is not None:
                 cov = c.pose_sigma_scale**2 * track.covariance
-                used = ekf.update_pose(track.T_sensor_target, cov)
+                used = ekf.update_pose(T_meas, cov)
                 nis = ekf.last_nis
                 self._poses_used += int(used)
                 far = _angle_deg(track.T_sensor_target, T_pred) >= c.restart_deg
@@ -249,7 +267,34 @@ class FusedNavigator:
         """Start the filter from a registration pose (the rectangles' navigator if there is one)."""
         if self.rectangles is not None:
             return self.rectangles.start_from_pose(t, T_sensor_model)
+        if self._batch is not None:
+            return self._start_model_free(t, T_sensor_model)
         self._ekf = start_filter(t, T_sensor_model, self.n, self.R_O_C, self.config.navigation)
+        self._poses_used = self._rejected_ok = 0
+        return True
+
+    def _start_model_free(self, t: float, T_k0: np.ndarray) -> bool:
+        """Collect the batch; at its end, the body frame in F and a filter started on it."""
+        self._batch.append((t, T_k0))
+        if len(self._batch) < self.config.model_free_frames:
+            return False
+        times = np.array([b[0] for b in self._batch])
+        poses = np.array([b[1] for b in self._batch])
+        found = model_free_start(times, poses, self.n, self.R_O_C)
+        if not found.axes.physical:
+            return False  # too little of the tumble seen yet: the batch grows
+        self.T_F_B = found.T_F_B
+        T = T_k0 @ found.T_F_B
+        R_I_B = dynamics.R_I_O(self.n, t) @ self.R_O_C @ T[:3, :3]
+        x = dynamics.cw_stm(self.n, t - times[0]) @ found.state0
+        # The body rate over the batch's last interval, in B.
+        R_I_B_prev = dynamics.R_I_O(self.n, times[-2]) @ self.R_O_C @ poses[-2][:3, :3]
+        R_I_B_prev = R_I_B_prev @ found.T_F_B[:3, :3]
+        step = Rotation.from_matrix(R_I_B_prev.T @ R_I_B).as_rotvec() / (t - times[-2])
+        initial = NavState(t, x[:3], x[3:], Rotation.from_matrix(R_I_B).as_quat(),
+                           step, found.axes.k, np.zeros(3))  # fmt: skip
+        self._ekf = RelativeNavEKF(self.n, self.R_O_C, initial, self.config.navigation.ekf)
+        self._batch = None
         self._poses_used = self._rejected_ok = 0
         return True
 

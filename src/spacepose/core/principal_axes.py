@@ -44,7 +44,8 @@ class PrincipalAxes:
     moments
         (3,) principal moments, normalised to sum 1.
     k
-        (3,) inertia ratios of :func:`spacepose.core.dynamics.inertia_ratios` in that order.
+        (3,) inertia ratios of :func:`spacepose.core.dynamics.inertia_ratios` in that order
+        (NaN when a moment is not positive).
     h_I
         (3,) angular momentum direction in I (unit, same scale as ``moments``).
     residual
@@ -56,6 +57,13 @@ class PrincipalAxes:
     k: NDArray[np.float64]
     h_I: NDArray[np.float64]
     residual: float
+
+    @property
+    def physical(self) -> bool:
+        """Whether the moments can be a rigid body's: positive, each at most the sum of the
+        other two (too short a batch can give neither)."""
+        m = self.moments
+        return bool(np.all(m > 0) and np.all(2 * m <= m.sum() + 1e-12))
 
 
 def principal_axes(t: ArrayLike, R_I_F: ArrayLike, baseline: int = 5) -> PrincipalAxes:
@@ -99,4 +107,5 @@ def principal_axes(t: ArrayLike, R_I_F: ArrayLike, baseline: int = 5) -> Princip
     scale = lam.sum()
     h = x[6:] / scale
     residual = float(np.linalg.norm(A @ x) / np.sqrt(len(w_F)) / np.linalg.norm(x[6:]))
-    return PrincipalAxes(V, lam / scale, inertia_ratios(lam), h, residual)
+    k = inertia_ratios(lam) if lam.min() > 0 else np.full(3, np.nan)
+    return PrincipalAxes(V, lam / scale, k, h, residual)
