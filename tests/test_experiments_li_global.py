@@ -1,5 +1,6 @@
 """``li-global`` (tools/experiments/li_global.py): the quick acceptance run (10 random poses of
-the lab model onto ToF frames, ours and Open3D's pipeline), the error measure, the random poses,
+the lab model onto ToF frames, ours, the paper's plain RANSAC and Open3D's pipeline), the error
+measure, the random poses,
 the Open3D-less path and bad configs."""
 
 from __future__ import annotations
@@ -55,6 +56,21 @@ def test_quick_run_ours_succeeds_on_nine_of_ten(quick_run):
         expected = row["rotation_error_deg"] < 1.0 and row["translation_error_mm"] < 10.0
         assert row["success"] == expected
     assert table["summary"]["ours"] == ours
+    assert ours["coarse_failures"] == sum(t["ours"]["coarse_failure"] for t in saved["trials"])
+
+
+def test_quick_run_has_the_papers_plain_ransac(quick_run):
+    """The same pipeline with inlier-ranked RANSAC: its coarse failures are the poses more than
+    5° or 5 cm off (the mock-up's flips), each also a final failure."""
+    table, _ = quick_run
+    plain = table["summary"]["plain"]
+    assert plain["trials"] == 10
+    for trial in table["trials"]:
+        row = trial["plain"]
+        rot, pos = row["coarse_rotation_error_deg"], row["coarse_translation_error_mm"]
+        assert row["coarse_failure"] == (rot is None or rot > 5.0 or pos > 50.0)
+        if row["coarse_failure"] and rot is not None and rot > 90:
+            assert not row["success"]  # ICP does not undo a flip
 
 
 @pytest.mark.peers
@@ -62,7 +78,7 @@ def test_quick_run_has_open3d_beside_ours(quick_run):
     o3d = pytest.importorskip("open3d")
     table, _ = quick_run
     assert table["open3d"] == o3d.__version__
-    assert set(table["summary"]) == {"ours", "open3d"}
+    assert set(table["summary"]) == {"ours", "plain", "open3d"}
     # Open3D's pipeline on the same inputs is the independent check of the wiring (normal
     # orientation, features, gates). Measured: 10 / 10, median 0.048° and 0.50 mm.
     peer = table["summary"]["open3d"]
@@ -122,11 +138,12 @@ def test_without_open3d_ours_runs_alone(tmp_path, monkeypatch):
         li_global, "GlobalExperimentConfig", lambda: GlobalExperimentConfig(quick_poses=1)
     )
     table = run_experiment("li-global", tmp_path, QUICK)
-    assert "not importable" in table["open3d"] and "ours ran alone" in table["open3d"]
-    assert set(table["summary"]) == {"ours"} and set(table["trials"][0]) == {
+    assert "not importable" in table["open3d"] and "ours and plain ran alone" in table["open3d"]
+    assert set(table["summary"]) == {"ours", "plain"} and set(table["trials"][0]) == {
         "trial",
         "frame",
         "ours",
+        "plain",
     }
     assert (tmp_path / "li-global.png").is_file()
 

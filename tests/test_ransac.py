@@ -240,6 +240,10 @@ def test_coverage_outranks_more_correspondences_of_a_flip():
     assert res.fitness == 1.0 and res.n_correspondences == len(src)
     # The stopping bound follows the inlier ratio of the kept (true) hypothesis, 50 / 130.
     assert res.converged and res.iterations >= iteration_bound(50 / 130, 0.999)
+    # The paper's plain RANSAC ranks by correspondence inliers alone: it takes the flip.
+    plain = RansacConfig(max_correspondence_distance=gate, ranking="inliers")
+    res = ransac_correspondences(src, tgt, pairs, plain, 1)
+    np.testing.assert_allclose(res.T_target_source, T_true @ flip, atol=1e-9)
 
 
 @pytest.mark.parametrize("trial", [14, 18, 93])
