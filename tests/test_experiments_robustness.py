@@ -158,6 +158,7 @@ def test_criteria_and_table_rows() -> None:
     row |= {"seeds": [0, 1], "errors": [], "tracked_share": 0.97, "tracked_share_std": 0.01}
     row |= {"error_over_crlb": 2.0, "false_ok": 0, "coverage_3sigma": float("nan")}
     assert failed_criteria(row) == ["tracked_share", "coverage_3sigma"]
+    assert failed_criteria(row | {"ok": 0})[-1] == "no_ok_frame"
     row["fails"] = failed_criteria(row)
     line = markdown_table([row]).splitlines()[2]
     assert "97.0 ± 1.0" in line and "tracked_share, coverage_3sigma" in line

@@ -256,14 +256,25 @@ def cell_table(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def failed_criteria(row: dict[str, Any]) -> list[str]:
-    """Names of the "Done when" criteria a cell row fails (a missing or NaN metric fails)."""
+    """Names of the "Done when" criteria a cell row fails (a missing or NaN metric fails).
+
+    A cell without any ``ok`` frame has no 3σ coverage: it fails as ``no_ok_frame``.
+    """
     fails = []
     for name, op, bound in DONE_WHEN:
         value = row.get(name, float("nan"))
         good = value >= bound if op == ">=" else value <= bound
         if not good:  # NaN compares False
-            fails.append(name)
+            fails.append(
+                "no_ok_frame" if name == "coverage_3sigma" and row.get("ok") == 0 else name
+            )
     return fails
+
+
+def _fails(row: dict[str, Any], criterion: str) -> bool:
+    """Whether a cell row fails a criterion (no ok frame counts as failing the coverage)."""
+    no_ok = criterion == "coverage_3sigma" and "no_ok_frame" in row["fails"]
+    return criterion in row["fails"] or no_ok
 
 
 def _pm(row: dict[str, Any], name: str, fmt: str, scale: float = 1.0) -> str:
@@ -307,7 +318,7 @@ def summary_figure(table: Sequence[dict[str, Any]]) -> Figure:
             labels.append(
                 f"{axis} = {value:g}" if isinstance(value, float) else f"{axis} = {value}"
             )
-            shares.append([np.mean([c not in r["fails"] for r in rows]) for c in criteria])
+            shares.append([np.mean([not _fails(r, c) for r in rows]) for c in criteria])
     image = ax_pass.imshow(np.array(shares), vmin=0, vmax=1, cmap="RdYlGn", aspect="auto")
     ax_pass.set_xticks(range(len(criteria)), criteria, rotation=20)
     ax_pass.set_yticks(range(len(labels)), labels, fontsize=8)
@@ -316,7 +327,7 @@ def summary_figure(table: Sequence[dict[str, Any]]) -> Figure:
     for consistent in (True, False):
         rows = [
             r for r in table
-            if ("false_ok" in r["fails"] or "coverage_3sigma" in r["fails"]) != consistent
+            if (_fails(r, "false_ok") or _fails(r, "coverage_3sigma")) != consistent
         ]  # fmt: skip
         ax_cells.scatter(
             [100.0 * r.get("tracked_share", np.nan) for r in rows],

@@ -143,6 +143,7 @@ def score_frame(
         "reference": result.reference_index,
         "fitness": result.fitness,
         "rmse_mm": 1e3 * result.rmse,
+        "condition": result.condition_number,
         "err_t_mm": 1e3 * float(np.linalg.norm(moved.mean(axis=0))),
         "err_r_deg": float(np.degrees(np.linalg.norm(delta[:3]))),
         "disp_mm": 1e3 * disp,
