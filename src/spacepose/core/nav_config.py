@@ -55,17 +55,16 @@ class NavigationConfig(StageConfig):
         gt=0,
         le=1,
         description="Floor of the incidence cosine: the normal's residual is taken as at least "
-        "(rectangle.sigma min_tilt_cosine)², and a side's foreshortening in the centroid's pixel "
-        "pitch at least this (nav_measurements).",
+        "(rectangle.sigma max(cos θ, min_tilt_cosine))², and a side's foreshortening in the "
+        "centroid's pixel pitch at least this (nav_measurements).",
     )
     spin_scale: float = Field(
         0.25,
         gt=0,
-        description="Scale of the turn about the normal, σ² = λ_1 λ_2 / (N (λ_2 − λ_1)²) from "
-        "the measured spreads (the bound of N random points; a pixel grid does better). Orbit "
-        "run, seed 0 (394 faces): the errors' RMS is 0.39 of the bound, heavy-tailed (at 0.25, "
-        "7 % lie beyond 3 σ). A looser 0.4 or 1 lets the start wander (symmetric target, seed "
-        "1: 3.3° and 9° off in frame 4, against 1.7° at 0.25) and leaves NEES no better.",
+        description="Scale of the turn about the normal, σ ≈ a b / (√N (b² − a²)) (the bound of "
+        "N random points; a pixel grid does better). Orbit run, seed 0 (394 faces): the errors' "
+        "RMS is 1.6 σ at 0.25 (0.39 of the bound), heavy-tailed (6 % beyond 3 σ). 0.4 or 1 let the "
+        "start wander (symmetric target, seed 1: 3.3° and 9° off in frame 4, 1.7° at 0.25).",
     )
     min_attitude_sigma_deg: float = Field(
         0.01, gt=0, description="Floor of every attitude measurement σ, deg."

@@ -37,28 +37,30 @@ def attitude_covariance(
 ) -> NDArray[np.float64]:
     """Covariance (3, 3, rad², body frame) of the attitude measured from one rectangle.
 
-    From the plane fit itself: with the eigenvalues ``λ_0 <= λ_1 <= λ_2`` of the N points'
-    distribution matrix (``λ_0`` the mean squared residual off the plane, range noise and
-    whatever else bends the face; ``λ_1, λ_2`` the spreads along the short and long side),
+    The tilt of the normal about each side from the plane fit itself, ``σ² = λ_0' / (N λ_l)``:
+    ``λ_l`` the measured spread (eigenvalue) along the other side, the lever, and ``λ_0'`` the
+    mean squared residual off the plane ``λ_0`` (range noise and whatever else bends the face),
+    no less than the range noise along the normal, ``(σ_r max(|cos θ|, min_tilt_cosine))²``:
+    near grazing the outline's stretched pixels bend the fit more than its residual shows
+    (orbit run, seed 0: with the residual alone the attitude ran 3° off and 1,410 updates were
+    gated out).
 
-    - the tilt of the normal about each side: ``σ² = λ_0 / (N λ_lever)``, the lever being the
-      spread along the other side (the least-squares normal of N points), with ``λ_0`` no less
-      than ``(σ_r min_tilt_cosine)²``: near grazing the outline's stretched pixels bend the
-      fit more than its residual shows (orbit run, seed 0: without the floor the attitude
-      runs away by 3° and 1,410 updates are gated out; with it none);
-    - the turn about the normal: ``σ² = λ_1 λ_2 / (N (λ_2 − λ_1)²)``, the eigenvector-angle
-      scatter of N points spread as measured (far weaker for a near-square face, or for a
-      face seen in part whose measured spreads come close).
+    The turn about the normal, ``σ² ≈ a² b² / (N (b² − a²)²)`` with the catalogue's sides (the
+    eigenvector-angle scatter of N random points, far weaker for a near-square face), scaled by
+    ``spin_scale``. Not from the measured spreads: a face seen in part can show sides further
+    apart than its own, and the turn then looked better than it is (seed 0 diverged, 1,057
+    updates gated out).
 
-    Each σ is scaled (``tilt_scale``, ``spin_scale``), floored at ``min_attitude_sigma_deg``
-    and the diagonal turned from the face's axes into B.
+    Each σ is scaled, floored at ``min_attitude_sigma_deg`` and the diagonal turned from the
+    face's axes into B.
     """
     n = max(measurement.n_points, 1)
     lam = np.maximum(np.asarray(measurement.eigenvalues, dtype=np.float64), 1e-300)
-    residual = max(lam[0], (config.rectangle.sigma * config.min_tilt_cosine) ** 2)
+    cos = max(incidence_cosine(measurement), config.min_tilt_cosine)
+    residual = max(lam[0], (config.rectangle.sigma * cos) ** 2)
     tilt = config.tilt_scale * np.sqrt(residual / (n * lam[[2, 1]]))
-    gap = max(lam[2] - lam[1], 1e-300)
-    spin = config.spin_scale * np.sqrt(lam[1] * lam[2] / n) / gap
+    a, b = entry.a, entry.b
+    spin = config.spin_scale * a * b / (np.sqrt(n) * (b**2 - a**2))
     floor = np.deg2rad(config.min_attitude_sigma_deg)
     sig = np.maximum(np.array([tilt[0], tilt[1], spin]), floor)
     R_B_plane = entry.rotation  # B' and B are parallel
