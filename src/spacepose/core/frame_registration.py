@@ -71,9 +71,13 @@ def plane_covariance(
     RegistrationError
         Fewer than 7 correspondences within ``max_distance``.
     """
+    sigma2 = None
     if correspondences is not None and correspondences.system is not None:
         n_matches = len(correspondences.src_idx)
         H, g, sse = correspondences.system
+        if correspondences.weights is not None:
+            # Robust sums: the M-estimator's own variance, not the weighted Σ r².
+            sigma2 = correspondences.residual_sigma**2
     else:
         moved = se3.transform_points(T_target_source, source_points)
         if correspondences is None:
@@ -84,7 +88,8 @@ def plane_covariance(
         H, g, sse = point_to_plane_system(moved[s], target.cloud.points[t], target.cloud.normals[t])
     if n_matches < 7:
         raise RegistrationError(f"{n_matches} correspondences are too few for a covariance")
-    sigma2 = sse / (n_matches - 6)
+    if sigma2 is None:
+        sigma2 = sse / (n_matches - 6)
     H_inv = np.linalg.pinv(H, hermitian=True)
     return sigma2 * H_inv, -H_inv @ g
 
@@ -148,7 +153,10 @@ class FrameRegistrar:
             return T_init_sensor_target
         tgt = self.as_target(ref.prepared)
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
-        wide = cfg.model_copy(update={"max_correspondence_distance": wide_gate})
+        # A wide gate takes in wrong surfaces too: a redescending kernel keeps them out.
+        wide = cfg.model_copy(
+            update={"max_correspondence_distance": wide_gate, "robust_kernel": "geman_mcclure"}
+        )
         try:
             res = icp(
                 prepared.cloud,
@@ -215,8 +223,8 @@ class FrameRegistrar:
         cov = Ad @ (cov_ref_k + ref.covariance) @ Ad.T
         T = rigid(T_k_ref @ ref.T_ref_target)
         bias = self._drift(prepared, res, ref)
-        cov = cov + drift_covariance(prepared.centroid, bias)
-        return FineEstimate(T, cov, own, res, ref, step, bias=bias)
+        drift = shaped_drift(prepared, bias, own)
+        return FineEstimate(T, cov + drift, own, res, ref, step, bias=bias, drift=drift)
 
     def li_step(
         self, prepared: PreparedCloud, window: list[Keyframe], T_init: NDArray[np.float64]
@@ -252,9 +260,10 @@ class FrameRegistrar:
         T_k0 = rigid(delta @ j.T_ref_target)
         cov = cov_delta + _moved(j.covariance, delta)
         bias = self._drift(prepared, res, j)
-        cov = cov + drift_covariance(prepared.centroid, bias)
+        drift = shaped_drift(prepared, bias, own)
+        cov = cov + drift
         edge = (j.index, res.T_target_source, np.linalg.pinv(cov_j_k, hermitian=True))
-        return FineEstimate(T_k0, cov, own, res, j, step, (edge,), (), bias)
+        return FineEstimate(T_k0, cov, own, res, j, step, (edge,), (), bias, drift)
 
     def joint(
         self,
@@ -310,7 +319,8 @@ class FrameRegistrar:
         Ad_own = se3.adjoint(se3.invert(res.T_target_source))
         own = Ad_own @ cov_ref_k @ Ad_own.T
         bias = self._drift(prepared, res, window[-1])
-        cov = cov + drift_covariance(prepared.centroid, bias)
+        drift = shaped_drift(prepared, bias, own)
+        cov = cov + drift
         # Node n < k is window[n]; the oldest (n = 0) is fixed.
         updated = tuple(
             (
@@ -321,7 +331,7 @@ class FrameRegistrar:
             for n in range(1, k)
         )
         return FineEstimate(
-            T_k0, cov, own, res, window[-1], step, tuple(new_edges), updated, bias
+            T_k0, cov, own, res, window[-1], step, tuple(new_edges), updated, bias, drift
         )
 
     def _drift(
@@ -346,7 +356,7 @@ class FrameRegistrar:
         """The voxel floor (see TrackerConfig) about the centroid, in the reference frame."""
         L = self.lengths
         c_ref = se3.transform_points(res.T_target_source, prepared.centroid[None])[0]
-        return drift_covariance(c_ref, (L.floor_rotation, L.floor_translation))
+        return isotropic_about(c_ref, (L.floor_rotation, L.floor_translation))
 
 
 def _moved(cov: NDArray[np.float64], T_b_a: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -367,7 +377,7 @@ def _edge_onto(
     return None
 
 
-def drift_covariance(
+def isotropic_about(
     point: NDArray[np.float64], sigma: tuple[float, float]
 ) -> NDArray[np.float64]:
     """(6, 6) covariance of an isotropic ``sigma`` = (rad, m) twist about ``point`` (3,),
@@ -378,3 +388,29 @@ def drift_covariance(
     M = np.eye(6)
     M[3:, :3] = se3.skew(point)
     return M @ cov_c @ M.T
+
+
+def shaped_drift(
+    prepared: PreparedCloud, drift: tuple[float, float], own: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(6, 6) covariance (frame k, about the origin) of a keyframe chain's drift.
+
+    ``drift`` (rad, m) is the chain's 1-σ (:meth:`FrameRegistrar._drift`) as a displacement at
+    the target's radius; it is spread over the directions in proportion to the frame's own
+    registration covariance ``own`` (about the centroid, rotations scaled by the radius): a
+    bias builds up where the registration is least constrained (across the line of sight on
+    the lab run, not in depth).
+    """
+    c, r = prepared.centroid, prepared.radius
+    s = drift[1] + r * drift[0]
+    if s <= 0:
+        return np.zeros((6, 6))
+    # Twist about the origin -> about the centroid, rotations in metres at the radius.
+    to_c = np.eye(6)
+    to_c[3:, :3] = -se3.skew(c)
+    N = np.diag([r] * 3 + [1.0] * 3) @ to_c
+    own_n = N @ own @ N.T
+    top = float(np.linalg.eigvalsh(0.5 * (own_n + own_n.T))[-1])
+    shape = own_n / top if top > 0 else np.eye(6)
+    N_inv = np.linalg.inv(N)
+    return N_inv @ (s**2 * shape) @ N_inv.T

@@ -109,9 +109,9 @@ class FineEstimate:
         (6,) point-to-plane Gauss-Newton step from the registered pose (reference frame).
     edges, window_poses
         J-ICP: the frame's pose-graph edges and the window keyframes' updated poses.
-    bias
-        1-σ (rad, m) of the keyframe chain's drift up to this frame (included in
-        ``covariance``).
+    bias, drift
+        1-σ (rad, m) of the keyframe chain's drift up to this frame, and the (6, 6)
+        covariance it adds to ``covariance`` (None: none).
     """
 
     T_sensor_target: NDArray[np.float64]
@@ -123,6 +123,7 @@ class FineEstimate:
     edges: tuple[Edge, ...] = ()
     window_poses: tuple[tuple[Keyframe, NDArray[np.float64], NDArray[np.float64]], ...] = ()
     bias: tuple[float, float] = (0.0, 0.0)
+    drift: NDArray[np.float64] | None = None
 
     def in_reference(self, point_k: NDArray[np.float64]) -> NDArray[np.float64]:
         """A frame-k point (3,) expressed in the reference frame (where the information is)."""

@@ -30,9 +30,10 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from spacepose.core import se3
 from spacepose.core.background import remove_background
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.frame_registration import FrameRegistrar, drift_covariance
+from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.gicp import compute_covariances
 from spacepose.core.health import (
     HealthBounds,
@@ -47,7 +48,8 @@ from spacepose.core.mls import mpp_mls
 from spacepose.core.motion import MotionModel, Prediction
 from spacepose.core.normals import estimate_normals
 from spacepose.core.relocalise import coarse_pose
-from spacepose.core.scale import DataScale, derive_scale
+from spacepose.core.scale import DataScale, derive_scale, point_spacing
+from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_object, region_of
 from spacepose.core.track_result import STAGES, TrackingOutput, TrackResult
 from spacepose.core.tracker_config import TrackerConfig, stage_lengths
 from spacepose.core.trajectory import Trajectory
@@ -90,8 +92,11 @@ class Tracker:
         self._scale: DataScale | None = None
         self._registrar: FrameRegistrar | None = None
         self._t_start = 0.0
+        self._region: TargetRegion | None = None
         self._model_cloud = None if model is None else self._check_model(model)
         self._model: Keyframe | None = None
+        if self._model_cloud is not None:
+            self._model_region = region_of(self._model_cloud.points)
 
     @property
     def model_based(self) -> bool:
@@ -139,7 +144,7 @@ class Tracker:
 
         tic = time.perf_counter()
         try:
-            prepared = self._preprocess(cloud)
+            prepared = self._preprocess(cloud, prediction)
         except SpaceposeError as exc:
             times["preprocess"] = _ms(tic)
             return self._lost(index, timestamp, prediction, (f"unusable frame: {exc}",), times)
@@ -194,13 +199,17 @@ class Tracker:
             fallback = (self.config.health.max_motion * r, self.config.health.max_motion)
         return self._motion.predict(timestamp, self._lost_streak, fallback or (0.0, 0.0))
 
-    def _preprocess(self, cloud: PointCloud | ArrayLike | None) -> PreparedCloud:
+    def _preprocess(
+        self, cloud: PointCloud | ArrayLike | None, prediction: Prediction | None = None
+    ) -> PreparedCloud:
         cfg = self.config
         if cloud is None:
             raise InputError("no points")
         pc = as_cloud(cloud, "frame")
         if cfg.use_background_removal:
             pc, _ = remove_background(pc, cfg.background)
+        if cfg.isolate_target:
+            pc = self._isolate(pc, prediction)
         if self._scale is None:
             self._set_scale(pc)
         L = self._registrar.lengths
@@ -213,6 +222,27 @@ class Tracker:
                 f"{len(pc)} points after preprocessing (< {cfg.health.min_points})", pc.source
             )
         return self._prepared(pc)
+
+    def _isolate(self, pc: PointCloud, prediction: Prediction | None) -> PointCloud:
+        """The target's points: the nearest object on the first frame (or whenever there is
+        no prediction), then the points near where the prediction puts it."""
+        if self._region is None or prediction is None:
+            mask = nearest_object(pc.points, point_spacing(pc.points))
+            if mask.sum() < self.config.health.min_points:
+                return pc
+            region = region_of(pc.points[mask])
+            if self._region is None:
+                # Held in the target frame: model-free, frame 0 is the target frame; a model's
+                # own bounding sphere is known.
+                self._region = region if self._model_cloud is None else self._model_region
+            return pc.select(np.flatnonzero(mask))
+        center = se3.transform_points(prediction.T_sensor_target, self._region.center[None])[0]
+        # The prediction's own uncertainty at the object's edge (3 σ), or the wide gate's reach
+        # while the motion model has no error to show yet.
+        slack = self._wide_gate(prediction) if self._scale is not None else 0.0
+        radius = self.config.crop_margin * self._region.radius + slack
+        mask = crop_sphere(pc.points, center, radius)
+        return pc.select(np.flatnonzero(mask))
 
     def _set_scale(self, first: PointCloud) -> None:
         """Derive every length from the first usable frame (and prepare the model with it)."""
@@ -500,7 +530,7 @@ class Tracker:
             index,
             prepared,
             estimate.T_sensor_target,
-            estimate.covariance - drift_covariance(prepared.centroid, estimate.bias),
+            estimate.covariance - (0.0 if estimate.drift is None else estimate.drift),
             list(estimate.edges),
             estimate.bias,
         )

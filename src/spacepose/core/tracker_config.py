@@ -161,8 +161,16 @@ class TrackerConfig(StageConfig):
     coarse_voxel
         Voxel of the sparse cloud behind FPFH + RANSAC (voxels); its normals use a radius of
         2, FPFH 5 and RANSAC's gate 1.5 of these.
+    isolate_target
+        Keep the target's points only (:mod:`spacepose.core.segmentation`): the nearest
+        object of the first frame, then the points within ``crop_margin`` times its bounding
+        radius (plus the motion model's error) of where the prediction puts it.
+    crop_margin
+        See ``isolate_target``: the first frame shows part of the target, and its centroid is
+        off the target's centre.
     use_background_removal
-        Remove walls, floor and turntable around the target first (``background``).
+        Remove walls, floor and turntable around the target first (``background``; the lab
+        settings, in metres).
     use_mls
         mpp-MLS (denoise + downsample + normals) instead of voxel downsampling + PCA normals;
         its voxel is ``v`` and its kernel width ``mls_h`` voxels.
@@ -187,6 +195,8 @@ class TrackerConfig(StageConfig):
     voxel_size: PositiveFloat | None = None
     gate: PositiveFloat = 0.83
     coarse_voxel: PositiveFloat = 2.0
+    isolate_target: bool = True
+    crop_margin: float = Field(1.2, ge=1)
     use_background_removal: bool = False
     use_mls: bool = False
     mls_h: PositiveFloat = 1.67
