@@ -13,8 +13,8 @@ METHODS_DOC = ROOT / "docs" / "methods.md"
 
 # A heading that opens a section: "## §1", "### §2.4 The EKF (Yu §3)" -> "1", "2.4".
 _HEADING = re.compile(r"^#{1,6}\s+§(\d+(?:\.\d+)*)\b", re.MULTILINE)
-# A citation and the run of section numbers after it: "METHODS §1.7 and §2.5",
-# "docs/methods.md §1.6, §5.5", "METHODS §2.1–2.4". Only the first is required to carry "§".
+# A citation and the run of section numbers after it: "methods.md §1.7 and §2.5",
+# "methods.md §1.6, §5.5", "methods.md §2.1–2.4". Only the first is required to carry "§".
 _CITATION = re.compile(
     r"(?:METHODS|methods\.md) (§\d+(?:\.\d+)*(?:\s*(?:–|-|,|and)\s*§?\d+(?:\.\d+)*)*)"
 )
@@ -29,7 +29,7 @@ def methods_sections(text: str) -> set[str]:
 
 
 def cited_sections(text: str) -> list[str]:
-    """Every section number cited as "METHODS §x" or "methods.md §x" in ``text``."""
+    """Every section number cited as "methods.md §x" or "methods.md §x" in ``text``."""
     return [n for run in _CITATION.findall(text) for n in _NUMBER.findall(run)]
 
 
@@ -47,8 +47,8 @@ def test_parsers_on_known_text() -> None:
     doc = "# Title\n## §0 Conventions\n### §1.6 J-ICP (Li §2.3.2)\ntext §9.9\n#### §10.2 x\n"
     assert methods_sections(doc) == {"0", "1.6", "10.2"}
     text = (
-        '"""(METHODS §1.7 and §2.5) ... METHODS §2.1–2.4) ... (docs/methods.md §1.6, §5.5).\n'
-        "METHODS §3. Next sentence 4.5; METHODS = (1, 2) and METHODS Y1\n"
+        '"""(methods.md §1.7 and §2.5) ... methods.md §2.1–2.4) ... (methods.md §1.6, §5.5).\n'
+        "methods.md §3. Next sentence 4.5; METHODS = (1, 2) and METHODS Y1\n"
     )
     assert cited_sections(text) == ["1.7", "2.5", "2.1", "2.4", "1.6", "5.5", "3"]
 

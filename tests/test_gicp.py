@@ -205,7 +205,7 @@ def test_collinear_points_are_degenerate(lm: bool) -> None:
 
 
 def test_linearize_matches_explicit_normal_equations(rng: np.random.Generator) -> None:
-    # Reference: numpy's inverse and the explicit Jacobians J = [−skew(p) I] (METHODS §1.5).
+    # Reference: numpy's inverse and the explicit Jacobians J = [−skew(p) I] (methods.md §1.5).
     p = rng.normal(size=(50, 3))
     q = p + 0.05 * rng.normal(size=(50, 3))
     Cp = compute_covariances(rng.normal(size=(80, 3)), 6, 1e-3, 1)[:50]

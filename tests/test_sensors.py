@@ -1,4 +1,4 @@
-"""Tests of the sensor noise profiles (METHODS §3): the paper-like ToF camera, its artefacts."""
+"""Tests of the sensor noise profiles (methods.md §3): the paper-like ToF camera, its artefacts."""
 
 from __future__ import annotations
 

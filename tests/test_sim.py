@@ -1,4 +1,4 @@
-"""Tests of the simulator (METHODS §3): targets, sensor noise, scenario motion, orbit truth."""
+"""Tests of the simulator (methods.md §3): targets, sensor noise, scenario motion, orbit truth."""
 
 from __future__ import annotations
 
@@ -322,7 +322,7 @@ def test_frame_crlb_matches_an_independent_fisher_matrix() -> None:
     keep = frame.on_target & ~frame.flying
     p, n = frame.cloud.points[keep], frame.true_normals[keep]
     r = np.linalg.norm(p, axis=1)
-    # METHODS §4: σ_i = σ_r(r)·|cos θ_i|; σ_r at the measured range (≈ true range to 1e-3).
+    # methods.md §4: σ_i = σ_r(r)·|cos θ_i|; σ_r at the measured range (≈ true range to 1e-3).
     sigma = (0.5e-3 + 0.5e-3 * r**2) * np.abs(np.einsum("ij,ij->i", p / r[:, None], n))
     h = np.hstack([np.cross(p, n), n])
     fisher = np.einsum("ni,nj->ij", h / sigma[:, None] ** 2, h)

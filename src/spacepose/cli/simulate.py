@@ -1,4 +1,4 @@
-"""``spacepose simulate {lab,orbit}``: write a simulated run folder (METHODS §3)."""
+"""``spacepose simulate {lab,orbit}``: write a simulated run folder (methods.md §3)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Coarse target pose from recognised rectangles; the fix of the 4-fold ambiguity (METHODS §2.3).
+"""Coarse target pose from recognised rectangles; the fix of the 4-fold ambiguity (methods.md §2.3).
 
 The eigenvectors of a rectangle's distribution matrix fix its axes only up to sign, which leaves
 four right-handed plane frames, related by 180° turns about the plane's x, y and z axes. Of these

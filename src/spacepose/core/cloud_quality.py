@@ -1,4 +1,4 @@
-"""How clean a raw frame is, measured as Li et al. do (METHODS §1.1, Li Eq. 1 and Fig. 5).
+"""How clean a raw frame is, measured as Li et al. do (methods.md §1.1, Li Eq. 1 and Fig. 5).
 
 The measure is the consistency of neighbouring normals: estimate each point's normal from its
 k = 10 nearest neighbours (PCA, oriented towards the sensor), take the angle

@@ -1,4 +1,4 @@
-"""Cramér–Rao lower bound of point-to-plane registration (METHODS §4).
+"""Cramér–Rao lower bound of point-to-plane registration (methods.md §4).
 
 For a residual ``r_i = n_iᵀ (p_i − q_i)`` with noise of standard deviation σ_i along the
 normal, a left perturbation ``p ← exp(δ) p`` with ``δ = (ω, v)`` changes the residual by

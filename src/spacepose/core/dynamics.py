@@ -1,4 +1,4 @@
-"""Relative orbital and attitude dynamics (METHODS §2.4, Yu §3): pure functions.
+"""Relative orbital and attitude dynamics (methods.md §2.4, Yu §3): pure functions.
 
 Frames and conventions (shared with the simulator)
 --------------------------------------------------

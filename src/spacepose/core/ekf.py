@@ -1,4 +1,4 @@
-"""Relative-navigation error-state EKF for a tumbling target (METHODS §2.4, Yu §3).
+"""Relative-navigation error-state EKF for a tumbling target (methods.md §2.4, Yu §3).
 
 Nominal state
 -------------

@@ -1,4 +1,4 @@
-"""Fast Point Feature Histograms (METHODS §1.3; Rusu et al. 2009; Li §2.3.1).
+"""Fast Point Feature Histograms (methods.md §1.3; Rusu et al. 2009; Li §2.3.1).
 
 The definition follows Open3D's ``compute_fpfh_feature`` number for number (bin edges, the swap
 rule, the 1/d² weighting, the per-sub-histogram scaling to 100), so the two can be compared

@@ -1,4 +1,4 @@
-"""Relative navigation from registration poses, rectangles, or both (METHODS §2.4, issue 12).
+"""Relative navigation from registration poses, rectangles, or both (methods.md §2.4, issue 12).
 
 Per frame, with ``measurements``:
 

@@ -1,4 +1,4 @@
-"""Generalized ICP (Segal et al. 2009; METHODS §1.5).
+"""Generalized ICP (Segal et al. 2009; methods.md §1.5).
 
 Each point carries a covariance from its k nearest neighbours, regularised to a plane: the
 eigenvalues are replaced by ``(ε, 1, 1)`` (smallest along the normal), as Segal et al.,

@@ -1,4 +1,4 @@
-"""Iterative closest point: point-to-point and point-to-plane (METHODS §1.5, Li Eqs. 6–7).
+"""Iterative closest point: point-to-point and point-to-plane (methods.md §1.5, Li Eqs. 6–7).
 
 The loop follows Open3D's ``registration_icp`` step for step so that point-to-point results can
 be checked against it: correspondences are the nearest target point strictly within the maximum

@@ -1,6 +1,6 @@
 """Pose error metrics: Li's per-axis table (Li §3.2.2, Eq. 10) and evo-compatible ATE.
 
-Two error definitions are used on purpose (METHODS §0):
+Two error definitions are used on purpose (methods.md §0):
 
 * The per-axis table follows Li Eq. 10: ``ΔT = T_est · T_gt⁻¹``; the translation errors are the
   components of ``Δt`` and the rotation errors are ``ΔR`` as ZYX Euler angles (yaw, pitch, roll).
@@ -201,7 +201,7 @@ def evaluate(
     est, gt
         Estimated and true poses of the same frames (e.g. ``T_sensor_target``).
     rebase_first
-        Express both trajectories relative to their first associated pose (METHODS §0,
+        Express both trajectories relative to their first associated pose (methods.md §0,
         model-free tracking), so a constant offset of the whole estimate is not counted.
     align_by
         ``"timestamp"``: pair each estimate with the ground truth within ``tolerance`` seconds

@@ -1,4 +1,4 @@
-"""mpp-MLS: micro-plane projection moving least squares (METHODS §1.2, Li §2.2, Eqs. 2–5).
+"""mpp-MLS: micro-plane projection moving least squares (methods.md §1.2, Li §2.2, Eqs. 2–5).
 
 Index points are chosen on a voxel grid (the point nearest each occupied voxel's centre), which
 removes redundant points and evens out the spacing. Each index point r is then moved onto a local

@@ -1,7 +1,7 @@
 """Model-free start of the navigation filter: where the body's principal axes and centre of mass
 sit in the frame F of the first tracked view, from a batch of model-free tracked poses.
 
-The model-free tracker reports ``T_C_F(k)`` (``T_k0``, METHODS §0.7). With the chaser attitude
+The model-free tracker reports ``T_C_F(k)`` (``T_k0``, methods.md §0.7). With the chaser attitude
 ``R_O_C`` and O turning at the mean motion, each pose gives the attitude ``R_I_F(k)``; the
 principal axes ``R_F_B`` and the inertia ratios follow from the conservation of angular momentum
 (:func:`spacepose.core.principal_axes.principal_axes`). The centre of mass ``p_F`` (in F) is the

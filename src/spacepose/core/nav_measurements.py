@@ -1,4 +1,4 @@
-"""Measurement noise of the rectangle navigation (Yu et al. 2019, METHODS §2.2–2.4).
+"""Measurement noise of the rectangle navigation (Yu et al. 2019, methods.md §2.2–2.4).
 
 The covariance of the attitude and of the centroid one recognised rectangle gives, from its
 size, point count, incidence and the sides measured against the catalogue's, and the
@@ -110,7 +110,7 @@ def area_weighted_centroid(points: ArrayLike) -> NDArray[np.float64]:
 
     A pixel of solid angle Ω at range r on a plane at distance h from the sensor covers
     ``Ω r² / cos(incidence) = Ω r³ / h``, so weights ``∝ |p|³`` turn the image-uniform samples
-    into surface-uniform ones, whose mean is the face's centre (METHODS §2.2 assumes the latter).
+    into surface-uniform ones, whose mean is the face's centre (methods.md §2.2 assumes the latter).
     """
     p = np.asarray(points, dtype=np.float64)
     w = np.linalg.norm(p, axis=1) ** 3

@@ -1,4 +1,4 @@
-"""Relative navigation from rectangles (Yu et al. 2019, METHODS §2.1–2.4): the whole pipeline.
+"""Relative navigation from rectangles (Yu et al. 2019, methods.md §2.1–2.4): the whole pipeline.
 
 Per frame: planes → rectangles measured and matched by size to the catalogue → coarse pose of
 each rectangle with the 4-fold fix against the filter's predicted pose → EKF predict and update

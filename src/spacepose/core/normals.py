@@ -1,4 +1,4 @@
-"""Surface normals from neighbourhood covariances, and their consistency (METHODS §1.1, Li Eq. 1).
+"""Surface normals from neighbourhood covariances and their consistency (methods.md §1.1).
 
 The normal at a point is the eigenvector of the smallest eigenvalue of the covariance of its
 neighbours (k nearest, or within a radius capped at k), oriented towards the sensor. The

@@ -1,4 +1,4 @@
-"""RANSAC plane extraction (METHODS §2.1, Yu et al. 2019 §2.1).
+"""RANSAC plane extraction (methods.md §2.1, Yu et al. 2019 §2.1).
 
 Hypotheses (planes through three sampled points) are scored in batches: a (B, chunk) matrix of
 point-to-plane distances at a time, so no Python loop runs over points. The best plane is refitted
@@ -129,7 +129,7 @@ def as_points(cloud_or_points: PointCloud | ArrayLike, what: str = "points") -> 
 def distribution(
     points: ArrayLike,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Centroid and eigen-decomposition of the distribution matrix (METHODS §2.2).
+    """Centroid and eigen-decomposition of the distribution matrix (methods.md §2.2).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Pose-graph optimisation on SE(3) for a small window of frames (METHODS §1.6).
+"""Pose-graph optimisation on SE(3) for a small window of frames (methods.md §1.6).
 
 Nodes are poses ``X_i = T_i_ref`` (frame ``ref`` into frame i). An edge ``(i, j)`` carries a
 measurement ``Z = T_j_i`` (frame i into frame j, e.g. a registration of cloud i onto cloud j)

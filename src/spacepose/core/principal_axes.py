@@ -1,6 +1,6 @@
 """Principal axes and inertia ratios of a tumbling target from its tracked attitudes (model-free).
 
-A model-free tracker reports the target's motion in the frame F of its first view (METHODS §0.7);
+A model-free tracker reports the target's motion in the frame F of its first view (methods.md §0.7);
 the navigation filter needs the body's principal axes B. A torque-free body keeps its angular
 momentum in inertial space: with ``J`` the inertia tensor in F (unknown, up to scale) and
 ``ω_F`` the body rate in F,

@@ -1,4 +1,4 @@
-"""Coarse registration: RANSAC on FPFH correspondences (METHODS §1.4, Li §2.3.1).
+"""Coarse registration: RANSAC on FPFH correspondences (methods.md §1.4, Li §2.3.1).
 
 Correspondences are nearest neighbours in feature space (optionally mutual). Hypotheses are drawn
 and scored in batches: three distinct correspondences per hypothesis, a cheap edge-length test,

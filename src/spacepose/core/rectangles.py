@@ -1,4 +1,4 @@
-"""Rectangle recognition from the distribution matrix of a plane's points (METHODS §2.2).
+"""Rectangle recognition from the distribution matrix of a plane's points (methods.md §2.2).
 
 For an a×b rectangle (a <= b) sampled uniformly with isotropic noise σ, the distribution matrix has
 eigenvalues ``(σ², a²/12 + σ², b²/12 + σ²)``, so the noise-corrected sides are

@@ -1,6 +1,6 @@
 """Rigid transforms on SE(3), built on :class:`scipy.spatial.transform.Rotation`.
 
-Conventions (METHODS §0)
+Conventions (methods.md §0)
 ------------------------
 * ``T_a_b`` is a 4×4 float64 matrix mapping coordinates in frame b into frame a.
 * A twist ``xi`` is a 6-vector ``(omega, v)``: rotation first, then translation, the same order

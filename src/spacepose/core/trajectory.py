@@ -81,7 +81,7 @@ class Trajectory:
         return self.poses[:, :3, 3]
 
     def rebased_first(self) -> Trajectory:
-        """The trajectory expressed relative to its first pose (METHODS §0, model-free tracking).
+        """The trajectory expressed relative to its first pose (methods.md §0, model-free tracking).
 
         Pose k becomes ``poses[k] @ inv(poses[0])``, so the first pose is the identity and each
         pose is the motion since the first frame, in the frame the poses map into.

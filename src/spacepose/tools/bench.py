@@ -6,7 +6,7 @@ change in machine load hits every contender alike. A peer's time includes turnin
 inputs into its own types, as a Python caller has to. Registrations (ICP, GICP, RANSAC) are
 also scored against the simulator's ground truth beside the Cramér–Rao bound of the frame.
 
-Inputs (METHODS §3 lab scenario, frames 0, 1, 2 of a three-frame run):
+Inputs (methods.md §3 lab scenario, frames 0, 1, 2 of a three-frame run):
 
 * ``normals``, ``mpp_mls``: frame 0 as rendered.
 * ``voxel``: frame 0 voxel-downsampled at the default tracker's voxel (what it derives from it).
@@ -93,7 +93,7 @@ REGISTRATIONS: tuple[str, ...] = ("ransac", "icp", "gicp")
 SCALING_STAGES: tuple[str, ...] = ("normals", "fpfh", "icp", "gicp")
 FULL_SIZES: tuple[int, ...] = (5000, 10000, 20000, 40000, 80000)
 QUICK_SIZES: tuple[int, ...] = (5000, 10000, 20000)
-# ToF camera of the lab scenario (METHODS §3); the frames are rendered at multiples of it.
+# ToF camera of the lab scenario (methods.md §3); the frames are rendered at multiples of it.
 _BASE_WIDTH, _BASE_HEIGHT, _BASE_FOCAL = 640, 480, 483.6
 # Render the scaling frames with this margin over the largest size, then subsample.
 _RENDER_MARGIN = 1.15

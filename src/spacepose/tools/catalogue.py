@@ -1,4 +1,4 @@
-"""Read and check a target's rectangle catalogue (METHODS §2.2) from scenario.json or YAML.
+"""Read and check a target's rectangle catalogue (methods.md §2.2) from scenario.json or YAML.
 
 Accepted layouts (JSON or YAML): a list of entries; a mapping with a ``rectangles`` list (a
 user file); a scenario file with ``target.rectangles`` (what ``spacepose simulate`` writes) or a

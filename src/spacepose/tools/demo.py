@@ -3,7 +3,7 @@
 Steps, each writing into one folder:
 
 1. simulate the lab run (Li et al.) and the orbit run (Yu et al.);
-2. track the lab run with ICP, GICP and J-ICP (model-free, METHODS §0);
+2. track the lab run with ICP, GICP and J-ICP (model-free, methods.md §0);
 3. navigate the orbit run with the rectangle-based EKF, with no prior (the lost-in-space start
    on the run's model; the scenario's measured process noise and chaser-attitude σ, as
    experiment yu-y4 does);
@@ -37,7 +37,7 @@ from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run, write_run
 from spacepose.tools.trajectory_io import read_tum
 
-# Yu et al. 2019 (METHODS §2.5, Y4): accuracy the paper reports after convergence, per axis.
+# Yu et al. 2019 (methods.md §2.5, Y4): accuracy the paper reports after convergence, per axis.
 PAPER_Y4 = {
     "position (mm)": (1.4, 3.2, 1.4),
     "velocity (mm/s)": (0.01, 0.01, 0.01),

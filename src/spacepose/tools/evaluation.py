@@ -88,7 +88,7 @@ def compare_trajectory_files(
     est_path, gt_path
         Trajectories (TUM or KITTI) of the same pose, e.g. ``T_sensor_target``, metres.
     rebase_first
-        Express both relative to their first paired pose (model-free tracking, METHODS §0).
+        Express both relative to their first paired pose (model-free tracking, methods.md §0).
     tolerance
         Largest time difference of a pair, seconds.
 
@@ -136,5 +136,5 @@ def compare_trajectory_files(
 
 
 def starts_at_identity(T_first: np.ndarray) -> bool:
-    """Whether a first pose (4, 4) is the identity, as a model-free estimate's is (METHODS §0)."""
+    """Whether a first pose (4, 4) is the identity, as a model-free estimate's (methods.md §0)."""
     return bool(np.allclose(T_first, np.eye(4), rtol=0.0, atol=_IDENTITY_TOLERANCE))

@@ -366,7 +366,7 @@ def track_folder(
         A bag, run folder, depth image folder or folder of frame files (see
         :func:`open_frames`).
     out
-        The TUM trajectory to write (one line per input frame, METHODS §0); ``.health.csv``
+        The TUM trajectory to write (one line per input frame, methods.md §0); ``.health.csv``
         and ``.config.json`` are written beside it with the same stem.
     config
         Tracker config (written out as the effective config).

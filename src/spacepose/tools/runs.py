@@ -1,4 +1,4 @@
-"""Run folders: what ``spacepose simulate`` writes and every evaluation reads (METHODS §3).
+"""Run folders: what ``spacepose simulate`` writes and every evaluation reads (methods.md §3).
 
 Layout of a run folder ``DIR``::
 

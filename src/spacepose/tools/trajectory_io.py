@@ -1,6 +1,6 @@
 """Trajectory files: TUM (``t tx ty tz qx qy qz qw``) and KITTI (3×4 row-major per line).
 
-TUM is the project's exchange format (METHODS §0); it is what ``evo_ape tum ref est`` reads.
+TUM is the project's exchange format (methods.md §0); it is what ``evo_ape tum ref est`` reads.
 Quaternions are scalar-last, as in scipy. Values are written with 17 significant digits so a
 write/read round trip reproduces the poses to float64 precision.
 """

@@ -1,4 +1,4 @@
-"""The simulator (METHODS §3): targets, range sensors and the lab and orbit scenarios."""
+"""The simulator (methods.md §3): targets, range sensors and the lab and orbit scenarios."""
 
 from spacepose.core.sim.grid import grid_scenario
 from spacepose.core.sim.scenarios import (

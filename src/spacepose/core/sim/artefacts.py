@@ -1,4 +1,4 @@
-"""Range-camera artefacts for the simulator (METHODS §3): flying pixels and multipath.
+"""Range-camera artefacts for the simulator (methods.md §3): flying pixels and multipath.
 
 Both work on the organised image of true ranges a sensor sees before noise (row-major, one entry
 per pixel, ``inf`` where a pixel has no return).

@@ -1,4 +1,4 @@
-"""The lab scene of METHODS §3: the target's motion profiles, its size and the clutter around it.
+"""The lab scene of methods.md §3: the target's motion profiles, its size and the clutter around it.
 
 The sensor is fixed and level (sensor −y is up). The table frame has the sensor's axes and its
 origin on the turntable axis at the target-frame origin, ``range_m`` ahead; the slide carries it

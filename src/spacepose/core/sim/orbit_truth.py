@@ -1,4 +1,4 @@
-"""Truth of the orbit run from physics the navigation filter does not share (METHODS §3).
+"""Truth of the orbit run from physics the navigation filter does not share (methods.md §3).
 
 The filter (:mod:`spacepose.core.ekf`) models the relative translation with the linear
 Clohessy–Wiltshire equations in a frame O turning uniformly at the mean motion n, and the

@@ -1,4 +1,4 @@
-"""The simulated scenarios of METHODS §3: the lab slide-and-turntable run and the orbit run.
+"""The simulated scenarios of methods.md §3: the lab slide-and-turntable run and the orbit run.
 
 A :class:`Simulation` holds everything that defines a run (target, sensor, poses, background,
 seed); its frames are rendered on demand, frame k from ``default_rng([seed, k])``, so any frame
@@ -13,7 +13,7 @@ profiles (constant steps, accelerating, tumbling), the target's size and the clu
 :mod:`spacepose.core.sim.lab_scene`; :mod:`spacepose.core.sim.grid` builds a lab config from the
 coordinates of the robustness grid.
 
-Orbit (Yu et al., METHODS §2.4): I coincides with O at t = 0, O turns about −y_O at the mean
+Orbit (Yu et al., methods.md §2.4): I coincides with O at t = 0, O turns about −y_O at the mean
 motion n; ρ = target CoM − chaser CoM in O comes from both spacecraft propagated in inertial
 two-body + J2 dynamics (optionally eccentric, optionally drag) and the target's torque-free
 attitude from its own integrator (:mod:`spacepose.core.sim.orbit_truth`), not from the filter's
@@ -74,7 +74,7 @@ class _ScenarioConfig(StageConfig):
 
 
 class LabConfig(_ScenarioConfig):
-    """The lab run of METHODS §3 (Li et al.): a ToF camera, a mock-up on a slide and turntable."""
+    """The lab run of methods.md §3 (Li et al.): a ToF camera, a mock-up on slide and turntable."""
 
     frames: int = Field(58, ge=1, description="Number of frames.")
     sensor: SensorConfig = Field(default_factory=lambda: SENSOR_PRESETS["tof"])
@@ -105,7 +105,7 @@ class LabConfig(_ScenarioConfig):
 
 
 class OrbitConfig(_ScenarioConfig):
-    """The orbit run of METHODS §3 (Yu et al.): a flash LiDAR 25 m behind a tumbling satellite."""
+    """The orbit run of methods.md §3 (Yu et al.): a flash LiDAR 25 m from a tumbling satellite."""
 
     frames: int = Field(600, ge=1, description="Number of frames.")
     sensor: SensorConfig = Field(default_factory=lambda: SENSOR_PRESETS["flash-lidar"])
@@ -176,7 +176,7 @@ class Frame:
     sigma_normal: NDArray[np.float64]
 
     def crlb(self, frame_to_frame: bool = False) -> CramerRaoBound:
-        """Cramér–Rao bound of registering this frame's target points (METHODS §4).
+        """Cramér–Rao bound of registering this frame's target points (methods.md §4).
 
         Uses the target's non-flying points, their true normals and ``σ_i = σ_r·|cos θ_i|``.
         The twist is about the sensor-frame origin, rotation first (see :mod:`spacepose.core.crlb`).
@@ -305,7 +305,7 @@ def _target(config: LabConfig | OrbitConfig, procedural: Target) -> Target:
 
 
 def simulate_lab(config: LabConfig | None = None) -> Simulation:
-    """The lab run (METHODS §3): 58 ToF frames of the mock-up on the slide and turntable."""
+    """The lab run (methods.md §3): 58 ToF frames of the mock-up on the slide and turntable."""
     config = config or LabConfig()
     target = _target(config, lab_target())
     target = sized_target(target, config.target_size_m, align=config.model is not None)
@@ -370,7 +370,7 @@ def orbit_poses(truth: NDArray[np.float64], R_O_C: NDArray[np.float64], n: float
 
 
 def simulate_orbit(config: OrbitConfig | None = None) -> Simulation:
-    """The orbit run (METHODS §3): flash-LiDAR frames of the tumbling satellite from 25 m.
+    """The orbit run (methods.md §3): flash-LiDAR frames of the tumbling satellite from 25 m.
 
     ``extras`` hold what the filter is given (``mean_motion``, ``R_O_C`` and ``rectangles``
     with their knowledge errors, ``process_noise`` measured by

@@ -1,4 +1,4 @@
-"""Range sensors for the simulator (METHODS §3): pinhole ray casting, range noise, artefacts.
+"""Range sensors for the simulator (methods.md §3): pinhole ray casting, range noise, artefacts.
 
 One ray per pixel is cast from the sensor origin against a triangle mesh already posed in the
 sensor frame (embree through trimesh, first hit per ray). The hit range is then recomputed in
@@ -42,7 +42,7 @@ _BARYCENTRIC_TOL = 1e-12
 
 
 class SensorConfig(StageConfig):
-    """A pinhole range sensor; the defaults are the ``tof`` camera of METHODS §3.
+    """A pinhole range sensor; the defaults are the ``tof`` camera of methods.md §3.
 
     Noise: ``σ(r, a) = noise_scale · (sigma_const + sigma_quad · (r / 1 m)²) · a^−γ`` metres,
     along the ray for ``tof`` and ``flash-lidar``, on each of x, y, z for ``gaussian``; ``a =
@@ -191,7 +191,7 @@ def pixel_directions(config: SensorConfig) -> NDArray[np.float64]:
     """Unit ray directions (H·W, 3) in the sensor frame, row-major (row v, then column u).
 
     Pinhole model with the principal point at the image centre; z is the boresight, x right,
-    y down (METHODS §0). Read-only and cached: every frame of a run casts the same rays.
+    y down (methods.md §0). Read-only and cached: every frame of a run casts the same rays.
     """
     return _pixel_directions(config.width, config.height, config.focal_px)
 

@@ -1,8 +1,8 @@
-"""Target geometry for the simulator (METHODS §3): procedural satellites, mesh files, rectangles.
+"""Target geometry for the simulator (methods.md §3): procedural satellites, mesh files, rectangles.
 
 A :class:`Target` is one triangle mesh in its model frame (the target frame of every simulated
 pose), plus the catalogue of its flat rectangular faces that rectangle-based pose estimation
-(METHODS §2.2–2.3) recognises. The procedural targets are concatenations of trimesh primitives;
+(methods.md §2.2–2.3) recognises. The procedural targets are concatenations of trimesh primitives;
 the primitives are kept so that surface samples hidden inside another part can be dropped.
 """
 
@@ -159,7 +159,7 @@ def _assemble(name: str, parts: list[trimesh.Trimesh], rectangles: list[Rectangl
 
 
 def lab_target() -> Target:
-    """The lab mock-up of Li et al. (METHODS §3), model frame at the bus centre.
+    """The lab mock-up of Li et al. (methods.md §3), model frame at the bus centre.
 
     Bus 0.20 × 0.16 × 0.16 m (x × y × z); two 0.30 × 0.12 m wings (5 mm thick) along ±x on booms
     of different lengths (60 and 30 mm); a 0.06 m radius dish on the +z face, off-centre; a nozzle
@@ -205,7 +205,7 @@ def symmetric_orbit_target() -> Target:
 
 
 def orbit_target() -> Target:
-    """The default orbit satellite (METHODS §3), asymmetric as real ones are; model frame = B'.
+    """The default orbit satellite (methods.md §3), asymmetric as real ones are; model frame = B'.
 
     The bus and wing of :func:`symmetric_orbit_target` (bus 2.4 × 1.8 × 1.4 m, one 6.0 × 2.0 m
     wing on a 0.5 m boom from +y, faces normal to ±z), plus:

@@ -1,4 +1,4 @@
-"""Reproductions of the papers' experiments (METHODS §1.7 and §2.5) on the simulator.
+"""Reproductions of the papers' experiments (methods.md §1.7 and §2.5) on the simulator.
 
 Each experiment is a function ``(out_dir, options) -> dict`` registered under a name such as
 ``li-l3`` or ``yu-y1``; it writes its tables (JSON) and figures (PNG) into ``out_dir`` and returns

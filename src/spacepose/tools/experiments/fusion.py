@@ -77,7 +77,7 @@ def tracker_errors(
     """Left error (6,) of a tracked pose about the target origin, its 1-σ (6,) there, NEES.
 
     The error ``log(T_est T_true⁻¹)`` and the covariance are moved from the sensor origin to the
-    target's origin (METHODS §0.4), where a point on the target sees them.
+    target's origin (methods.md §0.4), where a point on the target sees them.
     """
     D = T_est @ se3.invert(T_true)
     e = np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]]
@@ -138,7 +138,7 @@ def navigate_fused_with_truth(
         if track is not None and track.status != "lost":
             out["gated"][k] = any(r.startswith(GATE_REASON) for r in track.reasons)
             T_true = frame.T_sensor_target
-            if model_free:  # the track is T_k0 (METHODS §0.7)
+            if model_free:  # the track is T_k0 (methods.md §0.7)
                 T_true = T_true @ se3.invert(sim.T_sensor_target[0])
             e, s, nees = tracker_errors(track.T_sensor_target, track.covariance, T_true)
             out["tracker_error"][k], out["tracker_sigma"][k], out["tracker_nees"][k] = e, s, nees

@@ -1,4 +1,4 @@
-"""Li et al. 2024 on the simulator (docs/methods.md §1.7): experiments L1–L4.
+"""Li et al. 2024 on the simulator (methods.md §1.7): experiments L1–L4.
 
 Methods carry one name everywhere (tracker, tables, JSON): ``point_to_point`` (Li's Eq. 6 ICP),
 ``point_to_plane`` (ICP), ``gicp``, each onto the current keyframe; ``jicp`` (Li's J-ICP, each
@@ -158,7 +158,7 @@ def coarse_noise_experiment(out_dir: Path, options: ExperimentOptions) -> dict[s
 
     Each frame (a lab pose) is registered onto the model cloud by the tracker's coarse stage
     alone; "mpp-MLS" preprocesses the frame by mpp-MLS first (h = max(6 mm, 2σ): features below
-    h are smoothed away, METHODS §1.2), "raw" by voxel downsampling. Errors are over the
+    h are smoothed away, methods.md §1.2), "raw" by voxel downsampling. Errors are over the
     successful trials; a trial fails when RANSAC finds no consensus or lands more than 5° or
     5 cm off.
     """

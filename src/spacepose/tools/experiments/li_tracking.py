@@ -1,10 +1,10 @@
-"""Li et al. 2024 on the simulator (docs/methods.md §1.7): L3 and L4, tracking with every method.
+"""Li et al. 2024 on the simulator (methods.md §1.7): L3 and L4, tracking with every method.
 
 - ``li-l3``: the lab run (570 mm, 57°) tracked model-free with every method of
   :data:`~spacepose.tools.experiments.li.METHODS`, over seeds (``--seeds``, 10 by default):
   Li's Table 2 (per-axis mean absolute error; its mean and std over seeds and the mean
   within-run std), the paper's values beside, a CRLB column (√diag of the frame-to-frame
-  bound, METHODS §4, averaged over frames and seeds), on the clean profile and on the
+  bound, methods.md §4, averaged over frames and seeds), on the clean profile and on the
   paper-like one with mpp-MLS off and on; error curves of the first seed (Li Figs. 11–12). In
   full mode the methods run again on the scene with background (wall, turntable) and
   background removal, first seed.
@@ -81,7 +81,7 @@ def crlb_column(sim: Simulation) -> dict[str, float]:
     """Mean over frames 1.. of √diag of the frame-to-frame CRLB, in the table's axes/units."""
     stds = np.array([sim.frame(k).crlb(frame_to_frame=True).std for k in range(1, len(sim))])
     m = stds.mean(axis=0)
-    # Twist (rx, ry, rz, tx, ty, tz); pitch is about y, yaw about z, roll about x (METHODS §0).
+    # Twist (rx, ry, rz, tx, ty, tz); pitch is about y, yaw about z, roll about x (methods.md §0).
     return {
         "x_mm": 1e3 * m[3],
         "y_mm": 1e3 * m[4],

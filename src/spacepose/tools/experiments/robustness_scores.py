@@ -1,6 +1,6 @@
-"""Scores of one tracked run of the robustness grid against its ground truth (METHODS §4, §6).
+"""Scores of one tracked run of the robustness grid against its ground truth (methods.md §4, §6).
 
-Model-free tracking estimates ``T_k0`` (frame 0 defines the target frame, METHODS §0.7); its
+Model-free tracking estimates ``T_k0`` (frame 0 defines the target frame, methods.md §0.7); its
 truth is ``T_sensor_target(k) · T_sensor_target(0)⁻¹``. For frame k:
 
 - the *error twist* ``δ = Log(T_est · T_true⁻¹)`` (rotation first, left perturbation in the sensor
@@ -10,7 +10,7 @@ truth is ``T_sensor_target(k) · T_sensor_target(0)⁻¹``. For frame k:
   target points (the position error of the target, free of the lever arm of the sensor origin)
   and ``e_r`` the rotation angle of ``ΔR``;
 - the *displacement* ``d``: RMS over the frame's target points of ``|ΔT p − p|``;
-- two Cramér–Rao bounds (METHODS §4), each as ``sqrt(trace)`` of its translation block at c and
+- two Cramér–Rao bounds (methods.md §4), each as ``sqrt(trace)`` of its translation block at c and
   of its rotation block, comparable with ``e_t`` and ``e_r`` (the mean norm of an efficient
   estimator's 3-vector error is about 0.9 of these):
 

@@ -1,4 +1,4 @@
-"""Yu et al. 2019, Tables 1–4: plane extraction and rectangle eigenvalues (METHODS §2.5, Y1–Y3).
+"""Yu et al. 2019, Tables 1–4: plane extraction and rectangle eigenvalues (methods.md §2.5, Y1–Y3).
 
 The scene of all three: a 10 × 18 cm rectangle in the plane z = 6.5 cm (x ∈ [−5, 5] cm,
 y ∈ [−9, 9] cm), whose distribution matrix has eigenvalues 8.3333, 27 and 0 cm².
@@ -31,7 +31,8 @@ from spacepose.tools.experiments import ExperimentOptions, register
 
 CM = 0.01
 SIDE_A, SIDE_B, HEIGHT = 0.10, 0.18, 0.065  # m
-OUTLIER_BOX = (np.array([-0.10, -0.15, 0.0]), np.array([0.10, 0.15, 0.13]))  # m (METHODS Y1)
+# m (methods.md §2.5, Y1)
+OUTLIER_BOX = (np.array([-0.10, -0.15, 0.0]), np.array([0.10, 0.15, 0.13]))
 DESIGNS = ("iid", "stratified")
 
 

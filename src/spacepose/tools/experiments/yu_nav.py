@@ -1,4 +1,4 @@
-"""Yu et al. 2019, Figs. 8–16: relative navigation on the orbit run (METHODS §2.5, Y4).
+"""Yu et al. 2019, Figs. 8–16: relative navigation on the orbit run (methods.md §2.5, Y4).
 
 The orbit run (flash LiDAR 25 m behind a tumbling satellite, 1 Hz) is navigated with
 :class:`spacepose.core.navigation.RelativeNavigator` and scored against the simulator's truth
@@ -45,7 +45,7 @@ PriorSource = Literal["perturbed-truth", "none"]
 # frames' rectangles and the target model; "perturbed-truth" is kept for debugging.
 PRIOR_SOURCE: PriorSource = "none"
 PRIOR_ERROR_DEG = 15.0
-# Y4 targets (METHODS §2.5 and the brief), second half of the run.
+# Y4 targets (methods.md §2.5 and the brief), second half of the run.
 TARGETS = {
     "position_rms_mm": 5.0,
     "velocity_rms_mm_s": 0.1,
