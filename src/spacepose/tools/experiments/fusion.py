@@ -183,14 +183,19 @@ def relabelled_truth(
 
 
 def fused_score(result: dict[str, Any]) -> dict[str, Any]:
+    """:func:`_fused_score` without numpy's warnings about runs with no navigated frame (a
+    model-free run shorter than its batch): their figures are NaN."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return _fused_score(result)
+
+
+def _fused_score(result: dict[str, Any]) -> dict[str, Any]:
     """:func:`yu_nav.score` (second half) plus the tracker's consistency over every frame it
     tracked: median NEES (6 dof), share inside the 95 % χ²(6) bounds, share of frames with each
     axis (rx, ry, rz in rad; tx, ty, tz about the target origin) within 3σ, RMS error / mean σ
     per axis, and the frames seeded and gated."""
-    with warnings.catch_warnings():
-        # The coarse rectangle poses score() also reads are all NaN here (no ablation).
-        warnings.simplefilter("ignore", RuntimeWarning)
-        table = score(result)
+    table = score(result)  # its coarse rectangle poses are all NaN here (no ablation)
     e, s, ne = result["tracker_error"], result["tracker_sigma"], result["tracker_nees"]
     tracked = np.isfinite(ne) & np.all(np.isfinite(e), axis=1)
     lo, hi = chi2.ppf([0.025, 0.975], 6)
