@@ -127,7 +127,7 @@ def test_model_free_registration_starts_after_its_batch():
     frames = 104
     sim = simulate_orbit(OrbitConfig(frames=frames, seed=0))
     n, R_O_C = scenario_geometry(sim.scenario())
-    cfg = FusionConfig(measurements="registration", model_free_frames=15, pose_sigma_scale=1.0)
+    cfg = FusionConfig(measurements="registration", model_free_frames=15)
     nav = FusedNavigator([], n, R_O_C, cfg, None)
     statuses = [nav.step(f.timestamp, f.cloud).nav.status for f in sim.frames()]
     start = statuses.index("init")

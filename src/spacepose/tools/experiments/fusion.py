@@ -224,10 +224,6 @@ def over_seeds(
     per-seed tables."""
     model_free = kind == "model-free"
     update: dict[str, Any] = {"measurements": "registration" if model_free else kind}
-    if model_free:
-        # The model-free tracker's covariance is already conservative (median NEES 0.26 of 6
-        # on the orbit run, seed 0): it enters as it is.
-        update["pose_sigma_scale"] = 1.0
     fusion = base.model_copy(update=update)
     tables = []
     for seed in seeds:
