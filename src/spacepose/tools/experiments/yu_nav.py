@@ -323,8 +323,9 @@ SUMMARY_KEYS = (
     "gate_rejections",
 )
 # The runs of Y4 over seeds: OrbitConfig fields on top of the defaults. The third is a
-# diagnostic: the chaser attitude known exactly, since the filter has no state for its error
-# (0.01° at 25 m is 4.4 mm across the line of sight, a bias no measurement reveals).
+# diagnostic: the chaser attitude known exactly (no consider state then), since the filter can
+# only consider its error (0.01° at 25 m is 4.4 mm across the line of sight, a bias no
+# measurement reveals), not remove it.
 ORBITS: dict[str, dict[str, Any]] = {
     "near-circular": {},
     "eccentric": {"eccentricity": 0.05},
