@@ -114,7 +114,9 @@ def normalised_condition(
     # Information about the centroid: Λ_c = Jᵀ Λ J with J the inverse of the covariance_at map.
     J = np.eye(6)
     J[3:, :3] = se3.skew(np.asarray(centroid, dtype=np.float64))
-    S = np.diag([radius] * 3 + [1.0] * 3)
+    # Rotations as the displacement they give at the radius (ρ = r ω, so ω = ρ / r): the
+    # information of ρ is that of ω over r².
+    S = np.diag([1.0 / radius] * 3 + [1.0] * 3)
     info = S.T @ J.T @ information @ J @ S
     ev = np.linalg.eigvalsh(0.5 * (info + info.T))
     return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
