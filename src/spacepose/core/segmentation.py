@@ -92,7 +92,8 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
         radius = float(np.linalg.norm(own - own.mean(axis=0), axis=1).max()) + cell
         # A part need only be a real share of the object, not of a frame full of wall.
         part = counts >= _MIN_SHARE * len(own)
-        near = part & (_gaps(own, centroids, labels, n_labels) <= _MERGE_RADII * radius)
+        reach = _MERGE_RADII * radius
+        near = part & (_gaps(own, centroids, labels, n_labels, reach) <= reach)
         grown = keep | near[labels]
         if grown.sum() == keep.sum():
             return keep[of_point]
@@ -142,9 +143,11 @@ def _gaps(
     centroids: NDArray[np.float64],
     labels: NDArray[np.intp],
     n_labels: int,
+    reach: float,
 ) -> NDArray[np.float64]:
-    """(n_labels,) smallest distance from each cluster's cells to the object's cells."""
-    d, _ = cKDTree(own).query(centroids)
+    """(n_labels,) smallest distance from each cluster's cells to the object's cells (inf
+    beyond ``reach``: only whether a cluster is that close matters)."""
+    d, _ = cKDTree(own).query(centroids, distance_upper_bound=reach)
     gaps = np.full(n_labels, np.inf)
     np.minimum.at(gaps, labels, d)
     return gaps
