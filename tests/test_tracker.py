@@ -361,3 +361,20 @@ def test_condition_number_is_scale_free_and_a_sliding_plane_is_lost():
     for r in results[1:]:
         # Measured 1.57e4 (the lab mock-up: 45-100), also after coarse re-initialisation.
         assert r.status == "lost" and r.reasons[0].startswith("condition"), r.reasons
+
+
+def test_a_fast_tumble_is_tracked_ok_within_sigma():
+    """10° a frame about a turning axis: every frame a keyframe, none 'far' from the one before.
+    Measured (20 frames): 19 ok, frame 1 degraded (no step seen yet), mean 2.5 / 2.0 / 0.3 mm,
+    every ok frame within 3σ."""
+    from spacepose.core.sim import simulate
+    from spacepose.core.sim.grid import grid_scenario
+
+    sim = simulate(grid_scenario(motion="tumbling-10", frames=12))
+    out = track_sequence([sim.frame(k).cloud for k in range(len(sim))], sim.timestamps)
+    statuses = [r.status for r in out.results]
+    assert statuses.count("ok") >= 10 and "lost" not in statuses
+    gt = sim.groundtruth.rebased_first().poses
+    z = _twist_errors(out.trajectory.poses, gt)[1:] / np.array([r.sigma for r in out.results])[1:]
+    ok = np.array(statuses[1:]) == "ok"
+    assert (np.abs(z[ok]) <= 3).all()

@@ -398,10 +398,22 @@ class Tracker:
             # reference whose registration can lock onto a wrong but plausible overlap.
             kc, f = self.config.keyframe, self.config.health.max_reference_factor
             dt, dr = pose_disagreement(estimate.T_sensor_target, estimate.reference.T_ref_target, c)
-            if dt > f * kc.max_translation * scale.radius or dr > f * kc.max_rotation_deg:
+            # Far beyond the promotion thresholds, or beyond the target's own last step when it
+            # moves more than those in one frame (a 10°-a-frame tumble: every frame promoted).
+            step_t, step_r = self._last_step(c)
+            far_t = f * max(kc.max_translation * scale.radius, step_t)
+            far_r = f * max(kc.max_rotation_deg, step_r)
+            if dt > far_t or dr > far_r:
                 status = "degraded"
                 reasons = (f"{_FAR_KEYFRAME} {1e3 * dt:.0f} mm / {dr:.1f} deg away",)
         return status, reasons
+
+    def _last_step(self, point: NDArray[np.float64]) -> tuple[float, float]:
+        """(displacement of ``point`` m, rotation deg) between the last two accepted poses."""
+        history = self._motion.history
+        if len(history) < 2:
+            return 0.0, 0.0
+        return pose_disagreement(history[-1][1], history[-2][1], point)
 
     # -- state -------------------------------------------------------------------------------
 
