@@ -130,3 +130,39 @@ def test_bad_depth_image_is_lost_with_its_reason(folders, tmp_path):
 def test_depth_folder_without_intrinsics(folders, tmp_path):
     with pytest.raises(InputError, match="no depth images"):
         open_frames(folders["clouds"], intrinsics=folders["depth"] / "intrinsics.yaml")
+
+
+def test_register_takes_depth_images(sim, camera, tmp_path, capsys):
+    """`spacepose register` on two 16-bit PNG depth frames gives what it gives on their clouds,
+    and lands within 2 mm / 0.2° of the simulator's relative pose of frames 0 and 3."""
+    import json
+
+    from spacepose.core import se3
+    from spacepose.tools.depth_io import read_depth_cloud
+    from spacepose.tools.register import register_files
+
+    paths = []
+    for k in (0, 3):
+        image = render_depth(sim.frame(k).cloud.points, camera, camera.height, camera.width)
+        paths.append(write_depth_image(tmp_path / f"{k}.png", image, DEPTH_SCALE))
+    (tmp_path / "intrinsics.yaml").write_text(
+        "".join(f"{k}: {v}\n" for k, v in camera.model_dump().items() if v is not None)
+    )
+    out = tmp_path / "result.json"
+    assert main(["register", str(paths[1]), str(paths[0]), "--out", str(out)]) == 0, (
+        capsys.readouterr().err
+    )
+    T = np.array(json.loads(out.read_text())["T_target_source"])
+    clouds = [read_depth_cloud(p, camera) for p in paths]
+    for k, cloud in enumerate(clouds):
+        np.save(tmp_path / f"{k}.npy", cloud.points)
+    same = register_files(tmp_path / "1.npy", tmp_path / "0.npy").result.T_target_source
+    np.testing.assert_allclose(T, same, atol=1e-12)
+    truth = sim.frame(0).T_sensor_target @ se3.invert(sim.frame(3).T_sensor_target)
+    D = T @ se3.invert(truth)
+    assert np.linalg.norm(D[:3, 3]) < 2e-3
+    assert np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))) < 0.2
+    # Without intrinsics beside the image or on the command line: one line naming the file.
+    (tmp_path / "intrinsics.yaml").unlink()
+    assert main(["register", str(paths[1]), str(paths[0])]) == 1
+    assert "needs --intrinsics" in capsys.readouterr().err

@@ -12,7 +12,9 @@ from spacepose.cli.app import app
 
 @app.command()
 def register(
-    source: Path = typer.Argument(..., help="Cloud to move (PLY, PCD, XYZ/TXT/CSV, NPY/NPZ), m."),
+    source: Path = typer.Argument(
+        ..., help="Cloud to move (PLY, PCD, XYZ/TXT/CSV, NPY/NPZ, m; or a 16-bit depth image)."
+    ),
     target: Path = typer.Argument(..., help="Cloud to align onto, same formats."),
     global_: bool = typer.Option(
         False, "--global", help="FPFH + RANSAC first (for an unknown initial pose)."
@@ -28,6 +30,9 @@ def register(
         None, help="Voxel size (m); default: derived from the spacing and size of the clouds."
     ),
     out: Path | None = typer.Option(None, help="Write the result as JSON here."),
+    intrinsics: Path | None = typer.Option(
+        None, help="Camera intrinsics of depth-image inputs (default: intrinsics.yaml beside)."
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the JSON summary instead."),
 ) -> None:
     """Register SOURCE onto TARGET; print T_target_source, fitness, RMSE, covariance, time."""
@@ -44,7 +49,7 @@ def register(
         },
         "command line",
     )
-    outcome = register_files(source, target, init, config, out)
+    outcome = register_files(source, target, init, config, out, intrinsics=intrinsics)
     if as_json:
         typer.echo(json.dumps(outcome.to_dict()))
         return

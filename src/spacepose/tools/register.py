@@ -46,6 +46,12 @@ from spacepose.core.robust import RobustKernelName
 from spacepose.core.voxel import voxel_cells
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.cloud_io import read_cloud
+from spacepose.tools.depth_io import (
+    DEPTH_SUFFIXES,
+    find_intrinsics,
+    read_depth_cloud,
+    read_intrinsics,
+)
 
 Method = Literal["point_to_plane", "point_to_point", "gicp"]
 # Points whose nearest-neighbour distance samples the spacing (seeded subsample).
@@ -342,9 +348,15 @@ def register_files(
     config: RegisterConfig = RegisterConfig(),
     out: str | Path | None = None,
     workers: int = -1,
+    intrinsics: str | Path | None = None,
 ) -> RegisterResult:
-    """Read two cloud files, :func:`register` them and optionally write the JSON summary."""
-    source, target = read_cloud(source_path), read_cloud(target_path)
+    """Read two cloud files, :func:`register` them and optionally write the JSON summary.
+
+    A depth image (16-bit PNG or TIFF) is read through ``intrinsics`` (or the
+    ``intrinsics.yaml`` / ``.json`` beside it) into the camera's sensor frame.
+    """
+    source = _read_input(source_path, intrinsics)
+    target = _read_input(target_path, intrinsics)
     init = None if init_path is None else read_transform(init_path)
     outcome = register(source, target, init, config, workers)
     if out is not None:
@@ -353,3 +365,14 @@ def register_files(
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(summary, indent=2) + "\n")
     return outcome
+
+
+def _read_input(path: str | Path, intrinsics: str | Path | None) -> PointCloud:
+    """A cloud file, or a depth image with its camera's intrinsics."""
+    path = Path(path)
+    if path.suffix.lower() not in DEPTH_SUFFIXES:
+        return read_cloud(path)
+    found = intrinsics if intrinsics is not None else find_intrinsics(path.parent)
+    if found is None:
+        raise InputError("a depth image needs --intrinsics (or intrinsics.yaml beside it)", path)
+    return read_depth_cloud(path, read_intrinsics(found))
