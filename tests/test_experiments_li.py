@@ -136,8 +136,8 @@ def test_l3_acceptance_on_the_default_lab_run():
     """58 frames, clean ToF noise, model-free, seed 0: the keyframe graph's translation below
     point-to-point ICP's and within 1.5× the paper's J-ICP on every axis. One seed is an
     anecdote (seed 0 gives yaw 0.059° against the paper's 0.046°): over 10 seeds the means are
-    0.46 / 0.47 / 0.17 mm and 0.059 / 0.027 / 0.023°, at or below the paper but for roll
-    (0.019°), the README's table."""
+    0.46 / 0.47 / 0.17 mm and 0.027 / 0.059 / 0.023° (pitch / yaw / roll), at or below the
+    paper but for yaw and roll, the README's table."""
     sim = simulate_lab(LabConfig())
     runs = run_methods(sim, ExperimentOptions(seed=0, workers=2))
     summary = l3_summary([runs])
