@@ -218,7 +218,8 @@ def _table_cells(d: dict) -> list[tuple[float, float]]:
 
 def _navigation_section(run: Path, skipped: _Skipped) -> str:
     truth_path = run / "truth.csv"
-    navs = sorted(run.rglob("nav*.csv"))
+    # NAV.csv itself, not its companions (NAV.candidates.csv, NAV.health.csv).
+    navs = sorted(p for p in run.rglob("nav*.csv") if "." not in p.stem)
     if not truth_path.exists() or not navs:
         return ""
     truth = {k: np.asarray(v, dtype=float) for k, v in _read_csv(truth_path).items()}
