@@ -80,7 +80,8 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
     labels = _cluster_labels(cells)
     n_labels = int(labels.max()) + 1
     counts = np.bincount(labels, minlength=n_labels)
-    real = counts >= max(_MIN_SHARE * len(cells), 1)
+    # The largest cluster always counts: a frame of many small equal pieces has one still.
+    real = counts >= min(max(_MIN_SHARE * len(cells), 1), counts.max())
     ranges = np.linalg.norm(centroids, axis=1)
     big = np.flatnonzero(real)
     median_range = np.array([np.median(ranges[labels == c]) for c in big])
