@@ -57,7 +57,7 @@ def test_region_and_crop_closed_form():
 def test_a_frame_of_many_small_pieces_keeps_the_nearest_one():
     # 100 blobs of 30 points, 1 m apart, none a 2 % share of the frame (was a raw ValueError).
     rng = np.random.default_rng(0)
-    pts = np.concatenate([rng.normal(0, 0.01, (30, 3)) + [x, 0, 2] for x in range(100)])
+    pts = np.concatenate([rng.normal(0, 0.01, (30, 3)) + np.array([x, 0, 2]) for x in range(100)])
     mask = nearest_object(pts, 0.004)
     # One whole blob, nothing of the others (the largest-by-cells among equals; here blob 36).
     kept = np.flatnonzero(mask)
