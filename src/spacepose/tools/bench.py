@@ -6,7 +6,8 @@ change in machine load hits every contender alike. A peer's time includes turnin
 inputs into its own types, as a Python caller has to. Registrations (ICP, GICP, RANSAC) are
 also scored against the simulator's ground truth beside the Cramér–Rao bound of the frame.
 
-Inputs (methods.md §3 lab scenario, frames 0, 1, 2 of a three-frame run):
+Inputs (methods.md §3 lab scenario, frames 0, 1, 2 of a three-frame run, and a longer run of
+the same scenario for ``tracking_step``):
 
 * ``normals``, ``mpp_mls``: frame 0 as rendered.
 * ``voxel``: frame 0 voxel-downsampled at the default tracker's voxel (what it derives from it).
@@ -16,22 +17,31 @@ Inputs (methods.md §3 lab scenario, frames 0, 1, 2 of a three-frame run):
 * ``icp`` (point-to-plane, target normals given) and ``gicp``: frame 1 (source) onto frame 0
   (target) from the identity; truth ``T_s0_s1 = T_s0_target · T_s1_target⁻¹``.
 * ``jicp_step``: the third step of a fresh :class:`~spacepose.core.jicp.JointICP` (Li's J-ICP).
-* ``tracking_step``: the second frame of a fresh model-free
+* ``tracking_step``: the steady state of a running model-free
   :class:`~spacepose.core.tracker.Tracker` (preprocess + fine registration + health and
-  covariance); Open3D does the same core steps (voxel downsampling, normals, point-to-plane ICP
-  against frame 0 prepared as a keyframe) without health checks or covariance.
+  covariance): the default tracker runs frames ``0 .. tracking_warmup_frames − 1`` once
+  (untimed; its keyframe window is then full), and each timed call restores that state and
+  tracks the next ``tracking_frames`` frames; the row is the time per frame. Open3D does its
+  core steps on the same frames (voxel downsampling, normals, point-to-plane ICP onto the
+  previous frame prepared as its keyframe, from the previous pose) without health checks or
+  covariance.
+* ``tracking_second_frame``: the cold start, the second frame of a fresh tracker (no motion
+  history yet, so the motion model's wide robust first pass runs), beside Open3D's core steps
+  against frame 0 prepared as a keyframe.
 * ``ekf_step``: one predict + pose update of the orbit EKF, from the orbit truth.
 * ``raw_<W>x<H>``: the ``tracking_step`` on raw frames of the lab scene with its background at
   the ToF camera's full resolution (:mod:`spacepose.tools.bench_fullres`, 300k points at 640×480,
-  900k at 1280×720); the untimed first frame's time (the scale estimate) is reported beside it.
+  900k at 1280×720): two untimed frames (the first, the scale estimate, and the second, the cold
+  start, are reported beside the row), then ``raw_frames`` timed frames per call.
   The tracker's peak resident memory on a stream at the largest resolution is in ``memory``.
 
-Set-up that a stage needs but is not part of it (the earlier frames of a tracker) is done before
-each timed call and not timed.
+Set-up that a stage needs but is not part of it (the earlier frames of a tracker, restored from a
+copy) is done before each timed call and not timed.
 """
 
 from __future__ import annotations
 
+import copy
 import datetime
 import importlib
 import importlib.metadata
@@ -87,6 +97,7 @@ STAGES: tuple[str, ...] = (
     "gicp",
     "jicp_step",
     "tracking_step",
+    "tracking_second_frame",
     "ekf_step",
 )
 REGISTRATIONS: tuple[str, ...] = ("ransac", "icp", "gicp")
@@ -125,9 +136,16 @@ class BenchConfig(StageConfig):
     fpfh_spacing_factor
         FPFH radius of the scaling runs as a multiple of the point spacing, so that every size
         does the same work per point.
+    tracking_warmup_frames
+        Lab frames the ``tracking_step`` tracker runs untimed before the timed ones (by then the
+        lab run's keyframe window is full).
+    tracking_frames
+        Lab frames each timed ``tracking_step`` call tracks (two keyframe periods of the lab run).
     full_resolutions
         (width, height) of the raw-frame rows, one row each; the last is also streamed for the
         tracker's peak memory. Empty: no raw rows.
+    raw_frames
+        Timed frames per call of a raw row (after its two untimed ones).
     stream_frames
         Frames of that stream.
     """
@@ -141,13 +159,16 @@ class BenchConfig(StageConfig):
     max_correspondence_distance: PositiveFloat = 0.03
     max_iterations: int = Field(30, ge=1)
     fpfh_spacing_factor: PositiveFloat = 5.0
+    tracking_warmup_frames: int = Field(9, ge=2)
+    tracking_frames: PositiveInt = 8
     full_resolutions: tuple[tuple[PositiveInt, PositiveInt], ...] = ((640, 480), (1280, 720))
+    raw_frames: PositiveInt = 4
     stream_frames: int = Field(8, ge=2)
 
 
 def bench_config(quick: bool, path: str | Path | None = None) -> BenchConfig:
     """Defaults of a full or quick run (320×240 frames, scaling up to 20k points, raw frames at
-    640×480 only).
+    640×480 only, two timed raw frames per call).
 
     Parameters
     ----------
@@ -163,7 +184,7 @@ def bench_config(quick: bool, path: str | Path | None = None) -> BenchConfig:
     """
     quick_options = {"frame_scale": 0.5, "scaling_sizes": QUICK_SIZES}
     base = (
-        BenchConfig(**quick_options, full_resolutions=((640, 480),), stream_frames=3)
+        BenchConfig(**quick_options, full_resolutions=((640, 480),), raw_frames=2, stream_frames=3)
         if quick
         else BenchConfig()
     )
@@ -471,22 +492,38 @@ class _Open3D:
         )
         return np.asarray(result.transformation)
 
-    def tracking_step(
-        self, frame: PointCloud, keyframe: Any, voxel_size: float, k: int, config: ICPConfig
-    ) -> NDArray:
-        """The tracker's steps for one frame: voxel downsampling, normals, point-to-plane ICP
-        against the (prepared) keyframe from the previous pose."""
+    def prepared(self, frame: PointCloud, voxel_size: float, k: int) -> Any:
+        """A frame as a tracker keeps it: voxel-downsampled, normals towards the sensor."""
         pcd = self.voxel(frame, voxel_size)
         pcd.estimate_normals(self.o3d.geometry.KDTreeSearchParamKNN(k))
-        result = self.reg.registration_icp(
-            pcd,
-            keyframe,
-            config.max_correspondence_distance,
-            np.eye(4),
-            self.reg.TransformationEstimationPointToPlane(),
-            self._criteria(config),
-        )
-        return np.asarray(result.transformation)
+        pcd.orient_normals_towards_camera_location(np.zeros(3))
+        return pcd
+
+    def track(
+        self,
+        frames: list[PointCloud],
+        keyframe: Any,
+        voxel_size: float,
+        k: int,
+        config: ICPConfig,
+    ) -> list[NDArray]:
+        """The tracker's core steps for each frame in turn: voxel downsampling, normals,
+        point-to-plane ICP onto the frame before (``keyframe`` for the first, prepared) from
+        the previous pose. Returns each frame's ``T_previous_frame`` (4, 4)."""
+        poses = []
+        for frame in frames:
+            pcd = self.prepared(frame, voxel_size, k)
+            result = self.reg.registration_icp(
+                pcd,
+                keyframe,
+                config.max_correspondence_distance,
+                np.eye(4),
+                self.reg.TransformationEstimationPointToPlane(),
+                self._criteria(config),
+            )
+            poses.append(np.asarray(result.transformation))
+            keyframe = pcd
+        return poses
 
     def gicp(self, source: PointCloud, target: PointCloud, config: GICPConfig) -> NDArray:
         # Points only: Open3D estimates the covariances itself, as ours does. It has no
@@ -638,7 +675,7 @@ def _jicp_trials(data: BenchData, workers: int) -> dict[str, Trial]:
     return {"ours": setup}
 
 
-def _tracking_trials(
+def _second_frame_trials(
     f0: Frame, f1: Frame, workers: int, peers: _Peers, first_ms: list[float] | None = None
 ) -> dict[str, Trial]:
     """A fresh default tracker's second frame ``f1`` (``f0`` first, untimed, its time appended
@@ -646,7 +683,6 @@ def _tracking_trials(
     from spacepose.core.tracker import Tracker, TrackerConfig
 
     config = TrackerConfig()
-    lengths = _tracker_lengths(f0.cloud)
 
     def setup() -> Callable[[], Any]:
         tracker = Tracker(config, None, workers)
@@ -654,23 +690,52 @@ def _tracking_trials(
         tracker.track_frame(f0.cloud, f0.timestamp)
         if first_ms is not None:
             first_ms.append(1e3 * (time.perf_counter() - tic))
-        return lambda: tracker.track_frame(f1.cloud, f1.timestamp)
+        return lambda: [tracker.track_frame(f1.cloud, f1.timestamp)]
 
-    trials: dict[str, Trial] = {"ours": setup}
+    return {"ours": setup, **_open3d_tracking(f0, [f1], peers)}
+
+
+def _steady_trials(
+    frames: list[Frame], warmup: int, workers: int, peers: _Peers, warm_ms: list[float]
+) -> dict[str, Trial]:
+    """A running default tracker on ``frames[warmup:]``: it tracks ``frames[:warmup]`` once,
+    untimed (each frame's time appended to ``warm_ms``), and every set-up restores a copy of
+    that state; beside Open3D's core steps on the same frames."""
+    from spacepose.core.tracker import Tracker, TrackerConfig
+
+    tracker = Tracker(TrackerConfig(), None, workers)
+    for frame in frames[:warmup]:
+        tic = time.perf_counter()
+        tracker.track_frame(frame.cloud, frame.timestamp)
+        warm_ms.append(1e3 * (time.perf_counter() - tic))
+    timed = frames[warmup:]
+
+    def setup() -> Callable[[], Any]:
+        running = copy.deepcopy(tracker)
+        return lambda: [running.track_frame(f.cloud, f.timestamp) for f in timed]
+
+    return {"ours": setup, **_open3d_tracking(frames[0], timed, peers, frames[warmup - 1])}
+
+
+def _open3d_tracking(
+    first: Frame, timed: list[Frame], peers: _Peers, previous: Frame | None = None
+) -> dict[str, Trial]:
+    """Open3D's trial tracking ``timed`` frame to frame, with the voxel and normals the default
+    tracker derives from ``first``; ``previous`` (default ``first``) is prepared untimed as the
+    keyframe of the first timed frame. Empty without Open3D."""
     o3d = peers.open3d
-    if o3d is not None:
+    if o3d is None:
+        return {}
+    from spacepose.core.tracker import TrackerConfig
 
-        def setup_open3d() -> Callable[[], Any]:
-            # Frame 0 as the keyframe, prepared as the tracker prepares its keyframes.
-            keyframe = o3d.cloud(f0.cloud, normals=False).voxel_down_sample(lengths.voxel)
-            keyframe.estimate_normals(o3d.o3d.geometry.KDTreeSearchParamKNN(config.normals.k))
-            keyframe.orient_normals_towards_camera_location(np.zeros(3))
-            return lambda: o3d.tracking_step(
-                f1.cloud, keyframe, lengths.voxel, config.normals.k, lengths.keyframe_graph.icp
-            )
+    lengths, k = _tracker_lengths(first.cloud), TrackerConfig().normals.k
+    clouds = [f.cloud for f in timed]
 
-        trials["open3d"] = setup_open3d
-    return trials
+    def setup() -> Callable[[], Any]:
+        keyframe = o3d.prepared((previous or first).cloud, lengths.voxel, k)
+        return lambda: o3d.track(clouds, keyframe, lengths.voxel, k, lengths.keyframe_graph.icp)
+
+    return {"open3d": setup}
 
 
 def _tracker_lengths(first: PointCloud) -> StageLengths:
@@ -725,27 +790,41 @@ def _stage_entry(timings: dict[str, Timing], n_points: int) -> dict:
     }
 
 
-def _tracking_shares(timing: Timing) -> dict:
-    """Median per-stage times the tracker reported over the timed calls, and their shares.
+def _per_frame(timing: Timing) -> Timing:
+    """A tracking contender's call times divided by the frames each call tracked (every output
+    is the list of one call's per-frame results)."""
+    return Timing(
+        [t / len(out) for t, out in zip(timing.times_ms, timing.outputs, strict=True)],
+        timing.outputs,
+    )
 
-    ``status`` is the last call's health label: a lost frame would time the wrong work;
-    ``tracker`` says which default pipeline was timed.
+
+def _tracking_shares(timing: Timing) -> dict:
+    """Per-frame stage times the tracker reported over the timed calls, and their shares.
+
+    ``status`` is the last frame's health label and ``statuses`` counts every timed frame's: a
+    lost frame would time the wrong work; ``tracker`` says which default pipeline was timed.
     """
     from spacepose.core.tracker import STAGES as TRACKER_STAGES
     from spacepose.core.tracker import TrackerConfig
 
-    reports = [result.time_ms for result in timing.outputs]
+    results = [result for call in timing.outputs for result in call]
+    reports = [result.time_ms for result in results]
     medians = {s: float(np.median([r.get(s, 0.0) for r in reports])) for s in TRACKER_STAGES}
-    # Shares as ratios of sums over the calls: the stages partition each call's total, so the
+    # Shares as ratios of sums over the frames: the stages partition each frame's total, so the
     # shares add up to 1 (medians of the parts need not add up to the median of the whole).
     sums = {s: float(sum(r.get(s, 0.0) for r in reports)) for s in TRACKER_STAGES}
     total = sums["total"]
+    statuses = [result.status for result in results]
     return {
         "tracker": TrackerConfig().model_dump(
             include={"method", "use_mls", "points_per_frame", "voxel_size"}
         ),
-        "status": timing.last.status,
+        "status": statuses[-1],
+        "statuses": {s: statuses.count(s) for s in sorted(set(statuses))},
+        "frames_per_call": len(timing.last),
         "median_ms": medians,
+        "mean_ms": {s: v / len(reports) for s, v in sums.items()},
         "share": {s: v / total for s, v in sums.items() if s != "total" and total > 0},
     }
 
@@ -973,6 +1052,9 @@ def _measure(
     data = prepare_data(config, seed, workers)
     (tgt, src), (tgt_coarse, _) = data.clouds, data.coarse
     frame0 = data.frames[0].cloud
+    # The steady tracking row runs on a longer lab run (time per frame, after its warm-up).
+    warm = config.tracking_warmup_frames
+    lab = render_frames(config.frame_scale, warm + config.tracking_frames, seed)
     stage_trials: dict[str, dict[str, Trial]] = {
         "voxel": _voxel_trials(frame0, _tracker_lengths(frame0).voxel, contenders),
         "normals": _normals_trials(data.frames[0].cloud, config.normals, workers, contenders),
@@ -982,7 +1064,8 @@ def _measure(
         "icp": _icp_trials(src, tgt, _icp_config(config), workers, contenders),
         "gicp": _gicp_trials(src, tgt, _gicp_config(config), workers, contenders),
         "jicp_step": _jicp_trials(data, workers),
-        "tracking_step": _tracking_trials(*data.frames[:2], workers, contenders),
+        "tracking_step": _steady_trials(lab, warm, workers, contenders, []),
+        "tracking_second_frame": _second_frame_trials(*data.frames[:2], workers, contenders),
         "ekf_step": _ekf_trials(seed),
     }
     n_points = {
@@ -994,34 +1077,42 @@ def _measure(
         "icp": len(src),
         "gicp": len(src),
         "jicp_step": len(data.frames[2].cloud),
-        "tracking_step": len(data.frames[1].cloud),
+        "tracking_step": len(lab[warm].cloud),
+        "tracking_second_frame": len(data.frames[1].cloud),
         "ekf_step": 0,
     }
-    raw, first_ms = {}, {}
+    # Raw rows: two untimed frames (their times reported beside), then the timed ones.
+    raw, warm_ms = {}, {}
     for k, (width, height) in enumerate(config.full_resolutions):
         streamed = k == len(config.full_resolutions) - 1
-        frames = raw_frames(width, height, config.stream_frames if streamed else 2, seed)
+        count = 2 + config.raw_frames
+        rendered = max(count, config.stream_frames) if streamed else count
+        frames = raw_frames(width, height, rendered, seed)
         name = f"raw_{width}x{height}"
-        first_ms[name] = []
-        stage_trials[name] = _tracking_trials(*frames[:2], workers, contenders, first_ms[name])
-        n_points[name] = len(frames[1].cloud)
+        warm_ms[name] = []
+        stage_trials[name] = _steady_trials(frames[:count], 2, workers, contenders, warm_ms[name])
+        n_points[name] = len(frames[2].cloud)
         if streamed:
-            raw = {"width": width, "height": height, "frames": frames}
+            raw = {"width": width, "height": height, "frames": frames[: config.stream_frames]}
     stages, accuracy = {}, {}
     bound = crlb_summary(data.frames[0])
     for name, trials in stage_trials.items():
         timings = time_interleaved(trials, repeats, config.warmup)
+        tracking = name.startswith(("tracking_", "raw_"))
+        if tracking:
+            timings = {who: _per_frame(t) for who, t in timings.items()}
         stages[name] = _stage_entry(timings, n_points[name])
         if name in REGISTRATIONS:
             accuracy[name] = {
                 who: registration_error(t.last, data.T_gt) for who, t in timings.items()
             }
             accuracy[name]["crlb"] = bound
-        if name == "tracking_step" or name in first_ms:
+        if tracking:
             stages[name]["substages"] = _tracking_shares(timings["ours"])
-        if name in first_ms:
-            # Every set-up's first frame: the warm-up ones too (each is a fresh tracker).
-            stages[name]["first_frame"] = summarize(first_ms[name])
+        if name in warm_ms:
+            # One untimed run of each (every set-up restores a copy of the state after them).
+            first, second = warm_ms[name]
+            stages[name]["first_frame_ms"], stages[name]["second_frame_ms"] = first, second
     memory = peak_memory({name: trials["ours"] for name, trials in stage_trials.items()})
     scaling = run_scaling(config, data.frames[0], seed, workers, repeats, contenders)
     memory["max_rss_mb"] = max_rss_mb()
