@@ -17,8 +17,9 @@ kernel over a hash of voxel cells:
 * the k nearest of every indexed point (normals, covariances) are taken a cell at a time, the
   block of cells around it shared by all its points (:meth:`VoxelIndex.query_self`);
 * the gated nearest point (ICP correspondences) starts at the point's previous match, or else
-  visits cells ring by ring, nearest first (:func:`nearest_point`, also called from other
-  modules' kernels).
+  at its own cell (a gate within a cell) or the cells ring by ring, nearest first
+  (:func:`nearest_point`, also called from other modules' kernels); a query that moved less
+  than its last search's margin keeps that answer unsearched (:func:`certified_nearest`).
 
 Queries are independent, so the result is the same on any thread count. :class:`VoxelIndex`
 answers ``query`` with the contract of ``cKDTree.query`` (missing neighbours: index ``n``,
@@ -448,17 +449,79 @@ def nearest_point(grid, rings, qx, qy, qz, gate, hint):
     gate.
 
     With a hint inside the gate, one pass over the box of the hint's distance (a cell or two
-    after a small move). Without, the cells ring by ring, nearest first, until no further ring
-    can hold anything nearer: a wide gate's box holds hundreds of cells.
+    after a small move). Without, the query's own cell, then the box of the distance found
+    there (or of the gate) when the gate is within a cell; else the cells ring by ring, nearest
+    first, until no further ring can hold anything nearer: a wide gate's box holds hundreds of
+    cells.
     """
-    points, order, starts, cell_keys, table, bits, origin, h, dims, rank = grid
-    best, found = gate * gate, -1
+    best, found = _hinted(grid, qx, qy, qz, gate, hint)
+    j, d2, _ = _gated_search(grid, rings, qx, qy, qz, gate, best, found)
+    return j, d2
+
+
+@numba.njit(cache=True, inline="always")
+def certified_nearest(grid, rings, qx, qy, qz, gate, hint, anchor, bound):
+    """:func:`nearest_point` for a query that moves a little between calls (ICP's source
+    points), skipping the search while a certificate from an earlier one still holds.
+
+    The certificate of a search at ``anchor`` is a lower bound ``b`` on the distance from there
+    to every indexed point but the nearest found (the second nearest scanned, or the scanned
+    block's border when nearer): at a query ``δ`` from the anchor every other point is at least
+    ``b − δ`` away, so the previous nearest ``hint`` is still the nearest when it is strictly
+    within ``b − δ``. Without a nearest (none within the gate) ``b`` bounds every point, and
+    there is still none while ``b − δ`` reaches the gate. The answer is :func:`nearest_point`'s
+    to the bit (same distances, ties by index); a tie or a bound within rounding of the
+    distance is searched again.
+
+    Parameters
+    ----------
+    grid, rings, qx, qy, qz, gate, hint
+        As for :func:`nearest_point` (``hint``: the previous call's answer for this query).
+    anchor
+        (3,) where this query's certificate was taken (read only when ``bound`` is not 0).
+    bound
+        The certificate: ``b > 0`` with a nearest (``hint``), ``−b < 0`` without one, 0 none.
+
+    Returns
+    -------
+    (index, squared distance, certificate)
+        As :func:`nearest_point`, and the certificate of a new search at this query (store it
+        with the query as the new anchor; 0 after a ring search) or NaN when the old one held
+        (keep both).
+    """
+    best, found = _hinted(grid, qx, qy, qz, gate, hint)
+    if bound != 0.0:
+        dx, dy, dz = qx - anchor[0], qy - anchor[1], qz - anchor[2]
+        delta = np.sqrt(dx * dx + dy * dy + dz * dz)
+        if bound > 0.0 and found >= 0 and np.sqrt(best) + delta < bound:
+            return hint, best, np.nan
+        if bound < 0.0 and -bound - delta >= gate:
+            return -1, best, np.nan
+    return _gated_search(grid, rings, qx, qy, qz, gate, best, found)
+
+
+@numba.njit(cache=True, inline="always")
+def _hinted(grid, qx, qy, qz, gate, hint):
+    """(squared distance, sorted rank) of the hint when it lies strictly within the gate, else
+    (gate², -1)."""
+    points, rank = grid[0], grid[9]
     if hint >= 0:
         j = rank[hint]
         d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
-        if d2 < best:
-            best, found = d2, j
-    if found < 0:
+        if d2 < gate * gate:
+            return d2, j
+    return gate * gate, -1
+
+
+@numba.njit(cache=True, inline="always")
+def _gated_search(grid, rings, qx, qy, qz, gate, best, found):
+    """The search of :func:`nearest_point` from ``(best, found)`` (:func:`_hinted`):
+    ``(original index or -1, squared distance, certificate)``, the certificate as
+    :func:`certified_nearest` returns it (0 after a ring search)."""
+    points, order, starts, cell_keys, table, bits, origin, h, dims, _ = grid
+    second, own = np.inf, -1
+    if found < 0 and gate > h:
+        # A gate wider than a cell and nothing to start from: ring by ring, nearest first.
         ox = int(np.floor((qx - origin[0]) / h))
         oy = int(np.floor((qy - origin[1]) / h))
         oz = int(np.floor((qz - origin[2]) / h))
@@ -478,7 +541,19 @@ def nearest_point(grid, rings, qx, qy, qz, gate, hint):
                 best, found = _nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, found)
         # Every cell beyond the rings is at least their count of cells away.
         if best < (rings[-1, 3] * h) ** 2:
-            return (order[found] if found >= 0 else -1), best
+            return (order[found] if found >= 0 else -1), best, 0.0
+    elif found < 0:
+        # The own cell first: its nearest (if any) shrinks the box of the others.
+        ox = int(np.floor((qx - origin[0]) / h))
+        oy = int(np.floor((qy - origin[1]) / h))
+        oz = int(np.floor((qz - origin[2]) / h))
+        if 0 <= ox < dims[0] and 0 <= oy < dims[1] and 0 <= oz < dims[2]:
+            own = (ox * dims[1] + oy) * dims[2] + oz
+            cell = find_cell(table, cell_keys, bits, own)
+            if cell >= 0:
+                best, second, found = _two_nearest_in_cell(
+                    points, order, starts, cell, qx, qy, qz, best, second, found
+                )
     # (1 + 1e-12): a tie at exactly the best distance must fall inside the box.
     radius = np.sqrt(best) * (1.0 + 1e-12)
     x0, x1 = _cell_range(qx, radius, origin[0], h, dims[0])
@@ -488,12 +563,49 @@ def nearest_point(grid, rings, qx, qy, qz, gate, hint):
         for cy in range(y0, y1 + 1):
             row = (cx * dims[1] + cy) * dims[2]
             for cz in range(z0, z1 + 1):
+                if row + cz == own:
+                    continue
                 cell = find_cell(table, cell_keys, bits, row + cz)
                 if cell >= 0:
-                    best, found = _nearest_in_cell(
-                        points, order, starts, cell, qx, qy, qz, best, found
+                    best, second, found = _two_nearest_in_cell(
+                        points, order, starts, cell, qx, qy, qz, best, second, found
                     )
-    return (order[found] if found >= 0 else -1), best
+    # Every point outside the scanned block is beyond its nearest face (none past the grid).
+    outside = np.inf
+    if x0 > 0:
+        outside = min(outside, qx - (origin[0] + x0 * h))
+    if x1 < dims[0] - 1:
+        outside = min(outside, origin[0] + (x1 + 1) * h - qx)
+    if y0 > 0:
+        outside = min(outside, qy - (origin[1] + y0 * h))
+    if y1 < dims[1] - 1:
+        outside = min(outside, origin[1] + (y1 + 1) * h - qy)
+    if z0 > 0:
+        outside = min(outside, qz - (origin[2] + z0 * h))
+    if z1 < dims[2] - 1:
+        outside = min(outside, origin[2] + (z1 + 1) * h - qz)
+    # Rounding of the distances (relative to the coordinates) must not fake a certificate.
+    b = max(min(np.sqrt(second), outside) - 1e-12 * (1.0 + abs(qx) + abs(qy) + abs(qz)), 0.0)
+    if found < 0:
+        # Everything scanned is at the gate or beyond, and so is the block's border.
+        return -1, best, -b
+    return order[found], best, b
+
+
+@numba.njit(cache=True, inline="always")
+def _two_nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, second, found):
+    """:func:`_nearest_in_cell` that also keeps the second smallest squared distance offered
+    (``second``; the point ``found`` itself is skipped, as it is already counted)."""
+    for j in range(starts[cell], starts[cell + 1]):
+        if j == found:
+            continue
+        d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
+        if d2 < best or (d2 == best and found >= 0 and order[j] < order[found]):
+            second = best
+            best, found = d2, j
+        elif d2 < second:
+            second = d2
+    return best, second, found
 
 
 @numba.njit(cache=True, inline="always")

