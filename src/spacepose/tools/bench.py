@@ -1170,7 +1170,7 @@ def _ms(entry: dict | None) -> str:
 def stage_table(result: dict) -> Table:
     """Rich table of the stage times: ours (median, min–max) and each peer with its ratio."""
     names = [p for p in PEERS if any(p in s["peer"] for s in result["stages"].values())]
-    table = Table(title="stage times (ms, median of repeats)")
+    table = Table(title="stage times (ms, median of repeats; tracking rows: per frame)")
     for col in ("stage", "N", "ours", "ours min-max", *(f"{p} (x ours)" for p in names)):
         table.add_column(col, justify="left" if col == "stage" else "right")
     for stage, s in result["stages"].items():
