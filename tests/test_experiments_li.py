@@ -85,11 +85,12 @@ def test_l3_quick_table_layout(tmp_path):
     for variant in saved["variants"]:
         assert (tmp_path / f"li-l3_{variant}.png").is_file()
         assert (tmp_path / f"li-l3_{variant}_health.png").is_file()
-    # The keyframe graph keeps every frame of both seeds ok on the clean run.
+    # The keyframe graph keeps every frame of both seeds ok on the clean run, but the second,
+    # which no velocity confirms yet (degraded).
     assert table["frames"] == 5
     assert table["variants"]["tof-clean"]["status_counts"]["keyframe"] == {
-        "ok": 10,
-        "degraded": 0,
+        "ok": 8,
+        "degraded": 2,
         "lost": 0,
     }
 
@@ -148,7 +149,8 @@ def test_l3_acceptance_on_the_default_lab_run():
         assert mean["keyframe"][a] < mean["point_to_point"][a], a
     for a in AXES:
         assert mean["keyframe"][a] <= 1.5 * PAPER_TABLE2["jicp"][a][0], a
-    assert summary["status_counts"]["keyframe"]["ok"] == len(sim)
+    # Every frame ok but the second (no velocity yet to confirm it).
+    assert summary["status_counts"]["keyframe"] == {"ok": len(sim) - 1, "degraded": 1, "lost": 0}
     # Li's J-ICP tracks every frame (none lost).
     assert summary["status_counts"]["jicp"]["lost"] == 0
 

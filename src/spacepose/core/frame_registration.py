@@ -29,6 +29,7 @@ from spacepose.core.motion import rigid
 from spacepose.core.normals import estimate_normals
 from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
 from spacepose.core.registration import RegistrationResult
+from spacepose.core.residual_noise import ResidualNoise, point_to_plane_sigma
 from spacepose.core.tracker_config import StageLengths
 from spacepose.errors import RegistrationError, SpaceposeError
 
@@ -115,6 +116,8 @@ class FrameRegistrar:
     ) -> None:
         self.method = method
         self.lengths = lengths
+        # The fine gate widens to three measured residual σ on a sensor noisier than the voxel.
+        self.noise = ResidualNoise(lengths.gate)
         self.covariance_scale = covariance_scale
         self.workers = workers
         L = lengths
@@ -149,7 +152,7 @@ class FrameRegistrar:
         Returns the improved initial ``T_sensor_target`` (the input when no pass is needed).
         """
         cfg = self.lengths.icp
-        if wide_gate <= _WIDE_PASS_RATIO * cfg.max_correspondence_distance:
+        if wide_gate <= _WIDE_PASS_RATIO * self.noise.gate:
             return T_init_sensor_target
         tgt = self.as_target(ref.prepared)
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
@@ -181,36 +184,53 @@ class FrameRegistrar:
         Returns the result, the covariance of ``T_ref_k`` and the point-to-plane step from it
         (both left perturbations in the reference frame; see :func:`plane_covariance`).
         """
-        L = self.lengths
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
         tgt = self.as_target(ref.prepared)
+        res, matches = self._pairwise(prepared, tgt, init_T_ref_k)
+        sigma = point_to_plane_sigma(
+            res.T_target_source, prepared.cloud.points, tgt, self.noise.window, self.workers
+        )
+        if self.noise.add(sigma):
+            # The gate cut the residuals: again with the gate the noise asks for.
+            res, matches = self._pairwise(prepared, tgt, res.T_target_source)
+        cov, step = plane_covariance(
+            res.T_target_source,
+            prepared.cloud.points,
+            tgt,
+            self.noise.gate,
+            self.workers,
+            matches,
+        )
+        return res, self.covariance_scale * cov + self._floor(prepared, res), step
+
+    def _pairwise(
+        self, prepared: PreparedCloud, tgt: PreparedCloud, init_T_ref_k: NDArray[np.float64]
+    ) -> tuple[RegistrationResult, Correspondences | None]:
+        """The pairwise registration at the current gate, with ICP's final correspondences
+        (None for GICP)."""
+        gated = {"max_correspondence_distance": self.noise.gate}
         if self.pairwise == "gicp":
             res = gicp(
                 prepared.cloud,
                 tgt.cloud,
                 init_T_ref_k,
-                self._gicp,
+                self._gicp.model_copy(update=gated),
                 workers=self.workers,
                 source_covariances=prepared.covariances,
                 target_covariances=tgt.covariances,
                 target_tree=tgt.tree,
             )
-            matches = None
-        else:
-            # ICP hands back its final correspondences (and point-to-plane sums): the covariance
-            # need not search or sum again.
-            res, matches = icp_correspondences(
-                prepared.cloud,
-                tgt.cloud,
-                init_T_ref_k,
-                self._icp,
-                workers=self.workers,
-                target_tree=tgt.tree,
-            )
-        cov, step = plane_covariance(
-            res.T_target_source, prepared.cloud.points, tgt, L.gate, self.workers, matches
+            return res, None
+        # ICP hands back its final correspondences (and point-to-plane sums): the covariance
+        # need not search or sum again.
+        return icp_correspondences(
+            prepared.cloud,
+            tgt.cloud,
+            init_T_ref_k,
+            self._icp.model_copy(update=gated),
+            workers=self.workers,
+            target_tree=tgt.tree,
         )
-        return res, self.covariance_scale * cov + self._floor(prepared, res), step
 
     def single(
         self, prepared: PreparedCloud, ref: Keyframe, T_init: NDArray[np.float64]

@@ -151,6 +151,7 @@ def assess_health(
     bounds: HealthBounds,
     velocity_known: bool = True,
     surface_step: tuple[float, float] = (0.0, 0.0),
+    model_reference: bool = False,
 ) -> tuple[Status, tuple[str, ...]]:
     """Status and reasons of one registered frame.
 
@@ -168,9 +169,13 @@ def assess_health(
     bounds
         From :meth:`HealthBounds.from_scale`.
     velocity_known
-        False when the prediction is only the last pose (the motion bound applies).
+        False when the prediction is only the last pose: the motion bound applies, and the
+        frame is at best degraded (unconfirmed) unless ``model_reference``.
     surface_step
         (displacement m, rotation deg) of the point-to-plane step from the registered pose.
+    model_reference
+        The frame was registered onto a model: its fit to the model confirms it (two views of
+        one sensor share a sampling and its noise; a model shares neither).
     """
     lost: list[str] = []
     weak: list[str] = []
@@ -205,7 +210,12 @@ def assess_health(
         dt, dr = disagreement
         ok_t, ok_r = b.ok_prediction_translation, b.ok_prediction_rotation_deg
         if not velocity_known:
+            # The last pose alone bounds the motion but confirms no pose within the bound: a
+            # second frame's registration can stop anywhere short of the true step (noisy
+            # frames: most of the robustness grid's false oks were second frames).
             ok_t, ok_r = b.max_motion_translation, b.max_motion_rotation_deg
+            if not model_reference:
+                weak.append("no velocity yet to confirm the pose")
         msg = f"off the prediction by {1e3 * dt:.1f} mm / {dr:.2f} deg"
         if dt > f * ok_t or dr > f * ok_r:
             lost.append(msg)

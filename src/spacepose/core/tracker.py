@@ -392,6 +392,7 @@ class Tracker:
             bounds,
             velocity_known=prediction is not None and prediction.velocity_known,
             surface_step=step_size(estimate.surface_step, c_ref),
+            model_reference=self.model_based,
         )
         if status == "ok" and not self.model_based:
             # A keyframe far behind (none promoted for a while: the frames were degraded) is a
@@ -463,6 +464,8 @@ class Tracker:
         coarse: bool = False,
     ) -> TrackResult:
         self._lost_streak += 1
+        if self._registrar is not None:
+            self._registrar.noise.discard()
         if prediction is None:
             # Nothing known: an identity pose with infinite uncertainty, flagged lost.
             T, cov = np.eye(4), np.diag(np.full(6, np.inf))
@@ -484,6 +487,7 @@ class Tracker:
     ) -> TrackResult:
         status, reasons = health
         self._lost_streak = 0
+        self._registrar.noise.commit()
         T, cov = estimate.T_sensor_target, estimate.covariance
         error = None
         # Only a constant-velocity prediction has a model error (the last pose alone has none).

@@ -1,0 +1,53 @@
+"""The fine gate follows the measured residual noise (core.residual_noise)."""
+
+import numpy as np
+import pytest
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.keyframes import PreparedCloud
+from spacepose.core.residual_noise import (
+    GATE_SIGMAS,
+    MEMORY,
+    ResidualNoise,
+    point_to_plane_sigma,
+)
+
+
+def _plane(n: int, rng: np.random.Generator) -> PointCloud:
+    xy = rng.uniform(-0.5, 0.5, size=(n, 2))
+    pts = np.c_[xy, np.zeros(n)]
+    return PointCloud(pts, np.tile([0.0, 0.0, 1.0], (n, 1)))
+
+
+@pytest.mark.parametrize("sigma", [0.5e-3, 2e-3, 8e-3])
+def test_sigma_of_gaussian_offsets_from_a_plane(sigma):
+    """Source points N(0, σ) off an exact plane: the robust σ is σ (MAD of 20k normal draws
+    is within 2 %), whatever the gate, as long as the window holds the distribution."""
+    rng = np.random.default_rng(3)
+    target = PreparedCloud(_plane(20000, rng))
+    src = _plane(20000, rng).points + np.c_[np.zeros((20000, 2)), rng.normal(0, sigma, 20000)]
+    measured = point_to_plane_sigma(np.eye(4), src, target, 6 * sigma, workers=1)
+    assert measured == pytest.approx(sigma, rel=0.03)
+    # Too few pairs within the window: no measurement.
+    far = src + np.array([0.0, 0.0, 1.0])
+    assert point_to_plane_sigma(np.eye(4), far, target, 0.01, 1) is None
+
+
+def test_gate_widens_to_three_sigma_and_forgets_lost_frames():
+    noise = ResidualNoise(voxel_gate=0.005)
+    assert noise.sigma is None and noise.gate == 0.005 and noise.window == pytest.approx(0.015)
+    # Below a third of the gate: the voxel gate stands and nothing needs repeating.
+    assert noise.add(0.001) is False
+    assert noise.gate == 0.005
+    noise.commit()
+    # A lost frame's large residuals are dropped.
+    assert noise.add(0.05) is True
+    noise.discard()
+    assert noise.sigma == pytest.approx(0.001) and noise.gate == 0.005
+    # An accepted noisy sensor: the median of the recent measurements sets the gate.
+    for _ in range(MEMORY):
+        noise.add(0.004)
+        noise.commit()
+    assert noise.sigma == pytest.approx(0.004)
+    assert noise.gate == pytest.approx(GATE_SIGMAS * 0.004)
+    assert noise.add(None) is False
