@@ -8,6 +8,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.grid import VoxelIndex, numba_threads
+from spacepose.core.segmentation import crop_sphere
 from spacepose.core.voxel import bounds, cell_keys, voxel_cells, voxel_downsample
 from spacepose.errors import InputError
 
@@ -211,3 +212,27 @@ def test_voxel_downsample_equals_a_numpy_reference_to_the_bit(voxel):
     centroids, of_point = voxel_cells(pts, voxel)
     np.testing.assert_array_equal(centroids, down.points)
     np.testing.assert_array_equal(of_point, cell)
+
+
+@pytest.mark.parametrize("voxel", [0.002, 0.01])
+def test_voxel_downsample_within_a_sphere_equals_cropping_first(voxel):
+    # The compiled crop must keep exactly crop_sphere's points (one on the sphere included)
+    # and sum them in the same order: the same bits as downsampling the cropped cloud.
+    rng = np.random.default_rng(5)
+    pts = _surface(6000, seed=6)
+    sigma = rng.uniform(0.001, 0.003, len(pts))
+    cloud = PointCloud(pts, sigma=sigma, source="frame")
+    center = pts.mean(axis=0) + np.array([0.05, -0.02, 0.0])
+    # A point whose squared distance is a radius squared to the bit lies on the sphere.
+    d2 = ((pts - center) ** 2).sum(axis=1)
+    on = next(i for i in np.argsort(d2)[len(pts) // 2 :] if np.sqrt(d2[i]) ** 2 == d2[i])
+    radius = float(np.sqrt(d2[on]))
+    mask = crop_sphere(pts, center, radius)
+    assert mask[on] and 0.2 * len(pts) < mask.sum() < 0.9 * len(pts)
+    cropped = voxel_downsample(cloud.select(np.flatnonzero(mask)), voxel)
+    fused = voxel_downsample(cloud, voxel, within=(center, radius))
+    np.testing.assert_array_equal(fused.points, cropped.points)
+    np.testing.assert_array_equal(fused.sigma, cropped.sigma)
+    assert fused.source == "frame"
+    with pytest.raises(InputError, match="no point within"):
+        voxel_downsample(cloud, voxel, within=(center + 10.0, 0.1))

@@ -14,13 +14,15 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, as_points
 from spacepose.errors import InputError
 
 # Largest key: three cell indices pack into one int64.
 _MAX_KEY = 2.0**62
+# The ``keep`` mask of the kernels that means every point.
+_ALL = np.empty(0, dtype=np.bool_)
 _FIBONACCI = np.uint64(0x9E3779B97F4A7C15)
 
 
@@ -67,7 +69,8 @@ def cell_keys(
 
 def bounds(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(3,) smallest and (3,) largest coordinates of the (N, 3) finite points, N >= 1."""
-    return _bounds(_finite_points(points))
+    low, high, _ = _bounds(_finite_points(points), _ALL)
+    return low, high
 
 
 def _finite_points(points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -124,25 +127,29 @@ def voxel_cells(
         (M, 3) mean point of each occupied cell, ordered by cell key; (N,) cell index of each
         point.
     """
-    centroids, _, first_seen, by_key = _cell_sums(_finite_points(points), voxel_size, None)
+    centroids, _, first_seen, by_key = _cell_sums(_finite_points(points), voxel_size, None, _ALL)
     rank = np.empty_like(by_key)
     rank[by_key] = np.arange(len(by_key))
     return centroids, rank[first_seen]
 
 
 def _cell_sums(
-    pts: NDArray[np.float64], voxel_size: float, sigma: NDArray[np.float64] | None
+    pts: NDArray[np.float64],
+    voxel_size: float,
+    sigma: NDArray[np.float64] | None,
+    keep: NDArray[np.bool_],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
     """Centroids (M, 3) and mean σ (M,; empty without σ) of the occupied cells ordered by key,
     the (N,) cell of each point in order of first appearance and the (M,) key order of those.
 
-    ``pts`` are finite and contiguous. Sums run point by point in index order: the same bits
-    as a bincount per axis.
+    ``pts`` are finite and contiguous; ``keep`` (N,) marks the points to take (at least one),
+    or is empty for all of them (the cell of a point left out is undefined). Sums run point by
+    point in index order: the same bits as a bincount per axis over the points taken.
     """
     if not np.isfinite(voxel_size) or voxel_size <= 0:
         raise InputError(f"cell size must be a positive number of metres, got {voxel_size}")
     h = float(voxel_size)
-    low, high = _bounds(pts)
+    low, high, n_kept = _bounds(pts, keep)
     first, last = np.floor(low / h).astype(np.int64), np.floor(high / h).astype(np.int64)
     dims = last - first + 1
     n_cells = float(np.prod(dims.astype(np.float64)))
@@ -150,19 +157,19 @@ def _cell_sums(
         raise InputError(
             f"{dims.tolist()} cells of {voxel_size} m are too many to number; use larger cells"
         )
-    if n_cells <= 2 * len(pts):
+    if n_cells <= 2 * n_kept:
         # Few cells in the box: a slot per cell, one load per lookup.
         table, bits = np.full(int(n_cells), -1, dtype=np.int64), 0
     else:
-        bits = hash_bits(len(pts))
+        bits = hash_bits(n_kept)
         table = np.full(1 << bits, -1, dtype=np.int64)
     cell = np.empty(len(pts), dtype=np.int64)
-    unique = np.empty(len(pts), dtype=np.int64)
+    unique = np.empty(n_kept, dtype=np.int64)
     no_sigma = sigma is None
     weights = np.empty(0) if no_sigma else np.ascontiguousarray(sigma, dtype=np.float64)
-    sums = np.zeros((len(pts), 4 if not no_sigma else 3))
-    counts = np.zeros(len(pts))
-    m = _key_and_sum(pts, h, first, dims, table, bits, weights, cell, unique, sums, counts)
+    sums = np.zeros((n_kept, 4 if not no_sigma else 3))
+    counts = np.zeros(n_kept)
+    m = _key_and_sum(pts, keep, h, first, dims, table, bits, weights, cell, unique, sums, counts)
     # Rank the occupied cells by key: sorting M cells, not N points.
     by_key = np.argsort(unique[:m])
     sums, counts = sums[by_key], counts[by_key]
@@ -171,17 +178,20 @@ def _cell_sums(
 
 
 @numba.njit(cache=True)
-def _key_and_sum(points, h, first, dims, table, bits, sigma, cell, unique, sums, counts):
-    """Key every point (cell ``⌊p / h⌋ − first`` packed with ``dims``), number the occupied cells
-    in order of first appearance (``unique`` their keys, ``cell`` each point's) and add each
-    point (and its σ, when ``sigma`` is not empty) to its cell's row of ``sums`` / ``counts``;
-    return the number of cells. A point in the previous point's cell (a scan's neighbouring
-    pixels) skips the lookup."""
+def _key_and_sum(points, keep, h, first, dims, table, bits, sigma, cell, unique, sums, counts):
+    """Key every point taken (``keep[i]``, or all when ``keep`` is empty; cell ``⌊p / h⌋ −
+    first`` packed with ``dims``), number the occupied cells in order of first appearance
+    (``unique`` their keys, ``cell`` each point's) and add each point (and its σ, when ``sigma``
+    is not empty) to its cell's row of ``sums`` / ``counts``; return the number of cells. A
+    point in the previous point's cell (a scan's neighbouring pixels) skips the lookup."""
     mask = (1 << bits) - 1
     count = 0
     previous, rank = -1, -1
     with_sigma = len(sigma) > 0
+    every = len(keep) == 0
     for i in range(len(points)):
+        if not every and not keep[i]:
+            continue
         cx = np.int64(np.floor(points[i, 0] / h)) - first[0]
         cy = np.int64(np.floor(points[i, 1] / h)) - first[1]
         cz = np.int64(np.floor(points[i, 2] / h)) - first[2]
@@ -210,17 +220,41 @@ def _key_and_sum(points, h, first, dims, table, bits, sigma, cell, unique, sums,
 
 
 @numba.njit(cache=True)
-def _bounds(points):
+def _bounds(points, keep):
+    """(3,) smallest and (3,) largest coordinates of the points taken (``keep[i]``, or all
+    when ``keep`` is empty; at least one) and how many there are."""
     # One scalar per axis and side, not a loop over the axes: a third of the time.
-    lx = hx = points[0, 0]
-    ly = hy = points[0, 1]
-    lz = hz = points[0, 2]
-    for i in range(1, len(points)):
+    every = len(keep) == 0
+    start = 0
+    while not every and not keep[start]:
+        start += 1
+    lx = hx = points[start, 0]
+    ly = hy = points[start, 1]
+    lz = hz = points[start, 2]
+    n = 1
+    for i in range(start + 1, len(points)):
+        if not every and not keep[i]:
+            continue
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         lx, hx = min(lx, x), max(hx, x)
         ly, hy = min(ly, y), max(hy, y)
         lz, hz = min(lz, z), max(hz, z)
-    return np.array([lx, ly, lz]), np.array([hx, hy, hz])
+        n += 1
+    return np.array([lx, ly, lz]), np.array([hx, hy, hz]), n
+
+
+@numba.njit(cache=True)
+def _within(points, center, radius2, keep):
+    """``keep[i]``: point i lies within ``radius2`` (squared, m²) of ``center``, with the
+    squared distance summed as numpy sums a row ((dx² + dy²) + dz²); return how many do."""
+    n = 0
+    for i in range(len(points)):
+        dx = points[i, 0] - center[0]
+        dy = points[i, 1] - center[1]
+        dz = points[i, 2] - center[2]
+        keep[i] = dx * dx + dy * dy + dz * dz <= radius2
+        n += keep[i]
+    return n
 
 
 @numba.njit(cache=True)
@@ -290,12 +324,35 @@ def _group(keys, bits, cell, unique, table):
     return count
 
 
-def voxel_downsample(cloud: PointCloud, voxel_size: float) -> PointCloud:
+def voxel_downsample(
+    cloud: PointCloud,
+    voxel_size: float,
+    within: tuple[ArrayLike, float] | None = None,
+) -> PointCloud:
     """Centroid of the points in each occupied voxel (edge ``voxel_size`` m), sorted by voxel.
 
     σ (if present) is averaged too; normals are dropped (recompute them on the sparse cloud).
+
+    ``within`` = ``(center (3,), radius m)`` takes only the points within that sphere (distance
+    <= radius, as :func:`~spacepose.core.segmentation.crop_sphere` keeps them) without making
+    the cropped cloud: the same bits as cropping first, in compiled passes (a raw 1280×720
+    frame, 900k points, cropped to the lab target's 170k: 7 ms instead of 38 ms for the crop,
+    the cropped cloud and the downsampling).
+
+    Raises
+    ------
+    InputError
+        A bad voxel size, or no point within the sphere.
     """
     # A PointCloud's points are finite (N, 3) float64 already.
     pts = np.ascontiguousarray(cloud.points, dtype=np.float64)
-    centroids, sigma, _, _ = _cell_sums(pts, voxel_size, cloud.sigma)
+    keep = _ALL
+    if within is not None:
+        center, radius = within
+        keep = np.empty(len(pts), dtype=np.bool_)
+        # radius**2 as crop_sphere squares it.
+        center = np.asarray(center, dtype=np.float64).reshape(3)
+        if _within(pts, center, float(radius) ** 2, keep) == 0:
+            raise InputError(f"no point within {radius} m of {center.tolist()}", cloud.source)
+    centroids, sigma, _, _ = _cell_sums(pts, voxel_size, cloud.sigma, keep)
     return PointCloud(centroids, None, None if cloud.sigma is None else sigma, source=cloud.source)
