@@ -36,6 +36,25 @@ def test_nearest_object_keeps_the_target_and_its_parts_and_drops_the_wall(scale)
     assert not mask[n_target:].any()
 
 
+def test_a_part_behind_the_nearest_piece_is_merged_but_the_wall_around_the_object_is_not():
+    """A dish 4 cm in front of a wide bus (the nearest piece, its mount unseen) grows by the
+    bus, which is larger and spans it in the view but is not wholly behind it; a wall within
+    the grown object's reach that is wholly behind it and seen past it on every side is the
+    background (the lab mock-up seen with a wall 0.8 of its range behind)."""
+    rng = np.random.default_rng(2)
+    s = 0.004
+    dish = _plate([0.0, 0.0, 1.1], (0.1, 0.1), 2, s, rng)
+    bus = _plate([0.0, 0.0, 1.14], (0.6, 0.3), 2, s, rng)
+    wall = _plate([0.0, 0.0, 1.35], (2.0, 1.5), 2, 2 * s, rng)
+    pts = np.r_[dish, bus, wall]
+    mask = nearest_object(pts, s)
+    n_target = len(dish) + len(bus)
+    assert mask[:n_target].all()
+    # The wall is 0.19 m behind the bus, within the grown object's 0.26 m reach: the gap rule
+    # alone merges it (the previous rule did).
+    assert not mask[n_target:].any()
+
+
 def test_a_lone_target_is_kept_whole_and_a_far_cluster_is_not_merged():
     rng = np.random.default_rng(1)
     plate = _plate([0.0, 0.0, 25.0], (4.0, 2.0), 2, 0.1, rng)

@@ -9,8 +9,9 @@ target alone:
    clusters (grid cells of four point spacings, linked to their 26 neighbours); the object is
    the cluster nearest the sensor (smallest median range) among those holding a real share of
    the frame, grown by every cluster whose gap to it is below 3/4 of its size (a wing on a boom
-   the sensor does not see); everything else (the wall behind, debris, stray pixels) is
-   background;
+   the sensor does not see) unless it is the background: wholly behind the object and seen
+   past it on every side (the wall behind a big object, the Earth behind a satellite);
+   everything else (the wall behind, debris, stray pixels) is background;
 2. on every later frame, :func:`crop_sphere`: the points within the object's bounding sphere,
    carried by the predicted pose and widened by the motion model's error.
 
@@ -86,14 +87,22 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
     big = np.flatnonzero(real)
     median_range = np.array([np.median(ranges[labels == c]) for c in big])
     keep = labels == big[int(np.argmin(median_range))]
+    # Directions in the view (horizontal and vertical angle from the optical axis +z).
+    view = np.arctan2(centroids[:, :2], centroids[:, 2:3])
+    nearest = np.full(n_labels, np.inf)
+    np.minimum.at(nearest, labels, ranges)
     # Grow the object by the clusters close beside it (parts joined by what the sensor does
     # not see), each merge widening the reach with the object's size.
     while True:
         own = centroids[keep]
         radius = float(np.linalg.norm(own - own.mean(axis=0), axis=1).max()) + cell
-        # A part need only be a real share of the object, not of a frame full of wall.
-        part = counts >= _MIN_SHARE * len(own)
         reach = _MERGE_RADII * radius
+        # A part need only be a real share of the object, not of a frame full of wall; and it
+        # is not the background: around the object in the view and wholly behind it (a wall
+        # behind a big object is near it, but the object hides a hole in it).
+        behind = nearest > ranges[keep].max()
+        background = behind & _surrounds(view, labels, n_labels, keep)
+        part = (counts >= _MIN_SHARE * len(own)) & ~background
         near = part & (_gaps(own, centroids, labels, n_labels, reach) <= reach)
         grown = keep | near[labels]
         if grown.sum() == keep.sum():
@@ -137,6 +146,19 @@ def _cluster_labels(cells: NDArray[np.int64]) -> NDArray[np.intp]:
     graph = coo_matrix((np.ones(len(r)), (r, c)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     return labels
+
+
+def _surrounds(
+    view: NDArray[np.float64], labels: NDArray[np.intp], n_labels: int, keep: NDArray[np.bool_]
+) -> NDArray[np.bool_]:
+    """(n_labels,) True for the clusters whose extent in the view (angles (M, 2)) holds the
+    object's (cells ``keep``) on both axes: what lies around the object, seen past it."""
+    lo = np.full((n_labels, 2), np.inf)
+    hi = np.full((n_labels, 2), -np.inf)
+    np.minimum.at(lo, labels, view)
+    np.maximum.at(hi, labels, view)
+    own = view[keep]
+    return np.all((lo <= own.min(axis=0)) & (hi >= own.max(axis=0)), axis=1)
 
 
 def _gaps(
