@@ -178,8 +178,12 @@ class FrameRegistrar:
         prepared: PreparedCloud,
         ref: Keyframe,
         T_init_sensor_target: NDArray[np.float64],
+        measure: bool = True,
     ) -> tuple[RegistrationResult, NDArray[np.float64], NDArray[np.float64]]:
         """Register the frame (source) onto a reference.
+
+        ``measure``: measure the residual noise after it (once a frame, on the latest
+        reference: the extra search costs about a fifth of a lab frame's step).
 
         Returns the result, the covariance of ``T_ref_k`` and the point-to-plane step from it
         (both left perturbations in the reference frame; see :func:`plane_covariance`).
@@ -187,12 +191,13 @@ class FrameRegistrar:
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
         tgt = self.as_target(ref.prepared)
         res, matches = self._pairwise(prepared, tgt, init_T_ref_k)
-        sigma = point_to_plane_sigma(
-            res.T_target_source, prepared.cloud.points, tgt, self.noise.window, self.workers
-        )
-        if self.noise.add(sigma):
-            # The gate cut the residuals: again with the gate the noise asks for.
-            res, matches = self._pairwise(prepared, tgt, res.T_target_source)
+        if measure:
+            sigma = point_to_plane_sigma(
+                res.T_target_source, prepared.cloud.points, tgt, self.noise.window, self.workers
+            )
+            if self.noise.add(sigma):
+                # The gate cut the residuals: again with the gate the noise asks for.
+                res, matches = self._pairwise(prepared, tgt, res.T_target_source)
         cov, step = plane_covariance(
             res.T_target_source,
             prepared.cloud.points,
@@ -267,7 +272,7 @@ class FrameRegistrar:
         if through is not None:
             T_start = rigid(T_kj @ j.T_ref_target)
             try:
-                res_i, cov_i_k, _ = self.register(prepared, window[-2], T_start)
+                res_i, cov_i_k, _ = self.register(prepared, window[-2], T_start, measure=False)
             except SpaceposeError:
                 res_i = None
             if res_i is not None:
@@ -321,7 +326,7 @@ class FrameRegistrar:
         poses = [kf.T_ref_target for kf in window] + [T_start]
         for kf in window[:-1]:
             try:
-                pairs.append((kf, self.register(prepared, kf, T_start)))
+                pairs.append((kf, self.register(prepared, kf, T_start, measure=False)))
             except SpaceposeError:
                 continue
         for kf, (res, cov, _) in pairs:

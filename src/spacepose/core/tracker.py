@@ -60,6 +60,8 @@ from spacepose.errors import InputError, SpaceposeError
 _FAR_KEYFRAME = "keyframe"
 
 Checked = tuple[FineEstimate | None, Status, tuple[str, ...]]
+# A crop: center (3,) and radius (m), sensor frame.
+Sphere = tuple[NDArray[np.float64], float]
 
 
 class Tracker:
@@ -208,41 +210,47 @@ class Tracker:
         pc = as_cloud(cloud, "frame")
         if cfg.use_background_removal:
             pc, _ = remove_background(pc, cfg.background)
+        sphere = None
         if cfg.isolate_target:
-            pc = self._isolate(pc, prediction)
+            pc, sphere = self._isolate(pc, prediction)
+        if self._scale is None or cfg.use_mls:
+            pc, sphere = _cropped(pc, sphere), None
         if self._scale is None:
             self._set_scale(pc)
         L = self._registrar.lengths
         if cfg.use_mls:
             pc = mpp_mls(pc, L.mls, workers=self.workers)
         else:
-            pc = voxel_downsample(pc, L.voxel)
+            # Crop and downsample in one pass: a raw frame's cropped copy is never made.
+            pc = voxel_downsample(pc, L.voxel, within=sphere)
         if len(pc) < cfg.health.min_points:
             raise InputError(
                 f"{len(pc)} points after preprocessing (< {cfg.health.min_points})", pc.source
             )
         return self._prepared(pc)
 
-    def _isolate(self, pc: PointCloud, prediction: Prediction | None) -> PointCloud:
+    def _isolate(
+        self, pc: PointCloud, prediction: Prediction | None
+    ) -> tuple[PointCloud, Sphere | None]:
         """The target's points: the nearest object on the first frame (or whenever there is
-        no prediction), then the points near where the prediction puts it."""
+        no prediction); then the sphere (center (3,), radius m) around where the prediction puts
+        it, which the caller crops to."""
         if self._region is None or prediction is None:
             mask = nearest_object(pc.points, point_spacing(pc.points))
             if mask.sum() < self.config.health.min_points:
-                return pc
+                return pc, None
             region = region_of(pc.points[mask])
             if self._region is None:
                 # Held in the target frame: model-free, frame 0 is the target frame; a model's
                 # own bounding sphere is known.
                 self._region = region if self._model_cloud is None else self._model_region
-            return pc.select(np.flatnonzero(mask))
+            return pc.select(np.flatnonzero(mask)), None
         center = se3.transform_points(prediction.T_sensor_target, self._region.center[None])[0]
         # The prediction's own uncertainty at the object's edge (3 σ), or the wide gate's reach
         # while the motion model has no error to show yet.
         slack = self._wide_gate(prediction) if self._scale is not None else 0.0
         radius = self.config.crop_margin * self._region.radius + slack
-        mask = crop_sphere(pc.points, center, radius)
-        return pc.select(np.flatnonzero(mask))
+        return pc, (center, radius)
 
     def _set_scale(self, first: PointCloud) -> None:
         """Derive every length from the first usable frame (and prepare the model with it)."""
@@ -553,6 +561,13 @@ class Tracker:
         keep = 1 if li else self.config.keyframe_graph.window
         self._keyframes = [*self._keyframes[-keep:], kf]
         return True
+
+
+def _cropped(pc: PointCloud, sphere: Sphere | None) -> PointCloud:
+    """The points of ``pc`` within ``sphere`` (all of them without one)."""
+    if sphere is None:
+        return pc
+    return pc.select(np.flatnonzero(crop_sphere(pc.points, *sphere)))
 
 
 def _ms(tic: float) -> float:
