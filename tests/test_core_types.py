@@ -341,3 +341,53 @@ def test_the_same_warning_for_many_files_is_printed_three_times_then_counted(mon
         "warning: g.ply: another problem",
         "warning: 4 more file(s) with the same warning: coordinates look like mm",
     ]
+
+
+def test_pointcloud_drops_exactly_the_rows_numpy_finds_non_finite() -> None:
+    rng = np.random.default_rng(3)
+    pts, normals, sigma = rng.normal(size=(500, 3)), rng.normal(size=(500, 3)), rng.random(500)
+    pts[rng.choice(500, 40), rng.integers(0, 3, 40)] = np.nan
+    normals[rng.choice(500, 20), rng.integers(0, 3, 20)] = -np.inf
+    sigma[rng.choice(500, 10)] = np.inf
+    keep = np.isfinite(pts).all(axis=1) & np.isfinite(normals).all(axis=1) & np.isfinite(sigma)
+    cloud = PointCloud(pts, normals, sigma)
+    assert cloud.n_dropped == 500 - keep.sum()
+    np.testing.assert_array_equal(cloud.points, pts[keep])
+    np.testing.assert_array_equal(cloud.normals, normals[keep])
+    np.testing.assert_array_equal(cloud.sigma, sigma[keep])
+    # Out of range among the kept rows is refused; a dropped row's value does not count.
+    pts[~keep] = np.nan
+    pts[np.flatnonzero(keep)[0], 1] = -1e200
+    with pytest.raises(InputError, match=r"^points reach \|coordinate\| 1e\+200"):
+        PointCloud(pts)
+
+
+def test_pointcloud_copies_what_the_caller_could_still_write() -> None:
+    buffer = np.zeros((4, 3))
+    view = buffer.view()
+    view.setflags(write=False)  # read-only, but its buffer is not
+    single = np.zeros((4, 3), dtype=np.float32)
+    clouds = [PointCloud(view), PointCloud(single), PointCloud(buffer.T.copy().T)]
+    buffer[0, 0], single[0, 0] = 1.0, 1.0
+    for cloud in clouds:
+        assert cloud.points[0, 0] == 0.0 and cloud.points.flags.c_contiguous
+        assert cloud.points.dtype == np.float64 and not cloud.points.flags.writeable
+    # A cloud's own arrays are read-only: the next cloud shares them rather than copying.
+    cloud = PointCloud(np.ones((4, 3)), sigma=np.arange(4.0))
+    assert cloud.with_normals(np.tile([0.0, 0.0, 1.0], (4, 1))).points is cloud.points
+    assert np.shares_memory(cloud.transformed(np.eye(4)).sigma, cloud.sigma)
+
+
+def test_pointcloud_select_by_mask_index_and_negative_index() -> None:
+    rng = np.random.default_rng(4)
+    cloud = PointCloud(rng.normal(size=(7, 3)), rng.normal(size=(7, 3)), rng.random(7))
+    mask = np.array([1, 0, 1, 1, 0, 0, 1], dtype=bool)
+    for index, rows in ((mask, [0, 2, 3, 6]), ([6, -7, 2], [6, 0, 2])):
+        sub = cloud.select(index)
+        np.testing.assert_array_equal(sub.points, cloud.points[rows])
+        np.testing.assert_array_equal(sub.normals, cloud.normals[rows])
+        np.testing.assert_array_equal(sub.sigma, cloud.sigma[rows])
+    with pytest.raises(IndexError):
+        cloud.select(mask[:5])
+    with pytest.raises(IndexError):
+        cloud.select([7])

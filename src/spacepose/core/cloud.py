@@ -45,6 +45,9 @@ class PointCloud:
     Rows with a non-finite coordinate (or normal, or σ) are dropped and counted in ``n_dropped``
     rather than poisoning every later stage. A cloud with no finite row raises
     :class:`~spacepose.errors.InputError`: an empty cloud is never silently accepted.
+
+    The arrays are read-only and the cloud's own: a caller's writable array (or a view of one)
+    is copied, while a read-only array owning its data (another cloud's) is shared.
     """
 
     points: NDArray[np.float64]
@@ -64,26 +67,28 @@ class PointCloud:
             raise InputError(f"{len(normals)} normals for {n} points", self.source)
         if sigma is not None and len(sigma) != n:
             raise InputError(f"{len(sigma)} sigma values for {n} points", self.source)
-        keep = np.isfinite(pts).all(axis=1)
-        if normals is not None:
-            keep &= np.isfinite(normals).all(axis=1)
-        if sigma is not None:
-            keep &= np.isfinite(sigma)
-        n_keep = int(keep.sum())
-        if n_keep == 0:
-            what = "is empty" if n == 0 else f"has no finite point (all {n} rows NaN/inf)"
-            raise InputError(f"point cloud {what}", self.source)
-        _check_magnitude(pts[keep], "points", self.source)
-        if n_keep < n:
-            pts = pts[keep]
-            normals = None if normals is None else normals[keep]
-            sigma = None if sigma is None else sigma[keep]
-        for name, value in (("points", pts), ("normals", normals), ("sigma", sigma)):
-            if value is not None:
-                # A private copy: freezing the caller's own array would break their later writes.
-                value = np.array(value, dtype=np.float64, order="C", copy=True)
-                value.setflags(write=False)
-            object.__setattr__(self, name, value)
+        values = [pts, normals, sigma]
+        given = [self.points, self.normals, self.sigma]
+        # NaN when a coordinate is NaN, inf when one is infinite: one pass checks both.
+        peak = _peak(pts) if n else float("nan")
+        n_keep = n
+        if not (np.isfinite(peak) and all(_all_finite(v) for v in values[1:] if v is not None)):
+            keep = _finite_rows(pts)
+            for v in values[1:]:
+                if v is not None:
+                    keep &= _finite_rows(v)
+            n_keep = int(np.count_nonzero(keep))
+            if n_keep == 0:
+                what = "is empty" if n == 0 else f"has no finite point (all {n} rows NaN/inf)"
+                raise InputError(f"point cloud {what}", self.source)
+            if n_keep < n:
+                # Fresh arrays: the private copies below need not copy them again.
+                values = [None if v is None else np.compress(keep, v, axis=0) for v in values]
+                given = [None] * 3
+            peak = _peak(values[0])
+        _check_peak(peak, "points", self.source)
+        for name, value, raw in zip(("points", "normals", "sigma"), values, given, strict=True):
+            object.__setattr__(self, name, None if value is None else _private(value, raw))
         object.__setattr__(self, "n_dropped", self.n_dropped + (n - n_keep))
 
     def __len__(self) -> int:
@@ -96,10 +101,12 @@ class PointCloud:
     def select(self, index: ArrayLike) -> PointCloud:
         """Subset by integer index or boolean mask; normals and σ follow."""
         idx = np.asarray(index)
+        if idx.dtype == bool and idx.shape == (len(self),):
+            idx = np.flatnonzero(idx)
         return PointCloud(
-            self.points[idx],
-            None if self.normals is None else self.normals[idx],
-            None if self.sigma is None else self.sigma[idx],
+            _rows(self.points, idx),
+            None if self.normals is None else _rows(self.normals, idx),
+            None if self.sigma is None else _rows(self.sigma, idx),
             source=self.source,
         )
 
@@ -107,8 +114,8 @@ class PointCloud:
         """The cloud mapped from its frame b into frame a by ``T_a_b`` (normals rotated)."""
         T_a_b = se3.as_transform(T_a_b, "T_a_b")
         return PointCloud(
-            se3.transform_points(T_a_b, self.points),
-            None if self.normals is None else se3.rotate_vectors(T_a_b, self.normals),
+            _frozen(se3.transform_points(T_a_b, self.points)),
+            None if self.normals is None else _frozen(se3.rotate_vectors(T_a_b, self.normals)),
             self.sigma,
             source=self.source,
         )
@@ -156,9 +163,10 @@ def as_points(
             f"got {len(arr)}",
             source,
         )
-    if not np.all(np.isfinite(arr)):
+    peak = _peak(arr)
+    if not np.isfinite(peak):
         raise InputError(f"{name} have non-finite entries (NaN or inf)", source)
-    _check_magnitude(arr, name, source)
+    _check_peak(peak, name, source)
     return arr
 
 
@@ -182,14 +190,75 @@ def as_cloud(
     return cloud
 
 
-def _check_magnitude(points: NDArray[np.float64], name: str, source: str | None) -> None:
+def _peak(points: NDArray[np.float64]) -> float:
+    """Largest |coordinate| of a non-empty array: NaN if any entry is NaN, inf if any is
+    infinite (max and min propagate both), so one pass is also the finite check."""
+    return float(max(points.max(), -points.min()))
+
+
+def _check_peak(peak: float, name: str, source: str | None) -> None:
     """Refuse coordinates whose squares would overflow float64 in a covariance or a distance."""
-    if len(points) and (peak := max(points.max(), -points.min())) > MAX_ABS_COORDINATE:
+    if peak > MAX_ABS_COORDINATE:
         raise InputError(
             f"{name} reach |coordinate| {peak:.3g}, beyond {MAX_ABS_COORDINATE:.3g}: their squares "
             "overflow float64 (wrong units or a corrupt file?)",
             source,
         )
+
+
+def _all_finite(values: NDArray[np.float64]) -> bool:
+    return bool(np.isfinite(values).all())
+
+
+def _finite_rows(values: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """(N,) True where the row of an (N,) or (N, k) array is finite: column by column, as
+    numpy's ``all(axis=1)`` over (N, 3) is about 6x slower."""
+    finite = np.isfinite(values)
+    if finite.ndim == 1:
+        return finite
+    keep = finite[:, 0].copy()
+    for column in finite.T[1:]:
+        keep &= column
+    return keep
+
+
+def _frozen(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A fresh array made read-only, so that a new cloud takes it as its own without a copy."""
+    values.setflags(write=False)
+    return values
+
+
+def _rows(values: NDArray[np.float64], index: NDArray) -> NDArray[np.float64]:
+    """``values[index]``, frozen: the new cloud's own array, no second copy. A 1-D integer
+    index goes through ``np.take`` (3-6x faster on (N, 3) rows); any other index is numpy's,
+    with numpy's errors."""
+    if index.ndim == 1 and index.dtype.kind in "iu":
+        return _frozen(np.take(values, index, axis=0))
+    return _frozen(values[index])
+
+
+def _private(value: NDArray[np.float64], given: object) -> NDArray[np.float64]:
+    """The cloud's own read-only, C-ordered float64 copy of ``value`` (validated from ``given``).
+
+    No copy when ``value`` is already private: an array made here (``given`` None), converted
+    from a list or from an array of another dtype (no memory shared with it), or a read-only
+    array owning its data (a cloud's own, or :func:`_frozen`): nobody can write it through a
+    view. Any other array is copied: freezing the caller's own array would break their later
+    writes, and a view of a writable buffer could change under the cloud.
+    """
+    fresh = given is None or isinstance(given, list | tuple)
+    if isinstance(given, np.ndarray):
+        fresh = not np.may_share_memory(value, given)
+    base = value
+    while isinstance(base.base, np.ndarray):
+        base = base.base
+    frozen = not value.flags.writeable and not base.flags.writeable and base.flags.owndata
+    if not (fresh or frozen):
+        value = np.array(value, dtype=np.float64, order="C", copy=True)
+    elif not value.flags.c_contiguous:
+        value = np.ascontiguousarray(value)
+    value.setflags(write=False)
+    return value
 
 
 def check_rows(name: str, *arrays: ArrayLike, shapes: tuple[tuple[int, ...], ...] = ()) -> None:
