@@ -30,7 +30,7 @@ from spacepose.core.normals import estimate_normals
 from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.residual_noise import ResidualNoise, point_to_plane_sigma
-from spacepose.core.tracker_config import StageLengths
+from spacepose.core.tracker_config import StageLengths, pairwise_kind
 from spacepose.errors import RegistrationError, SpaceposeError
 
 # Largest pose-graph update (rad, m) at which J-ICP stops iterating. Its Gauss-Newton shrinks the
@@ -124,10 +124,10 @@ class FrameRegistrar:
         self._icp: ICPConfig = L.icp
         self._gicp: GICPConfig = L.gicp
         # The pairwise registration, "icp" or "gicp", and its configs.
-        self.pairwise = "gicp" if method == "gicp" else "icp"
+        self.pairwise = pairwise_kind(method, L)
         if method in ("jicp", "keyframe"):
             stage = L.jicp if method == "jicp" else L.keyframe_graph
-            self._icp, self._gicp, self.pairwise = stage.icp, stage.gicp, stage.registration
+            self._icp, self._gicp = stage.icp, stage.gicp
         elif method in ("point_to_point", "point_to_plane"):
             self._icp = L.icp.model_copy(update={"method": method})
 

@@ -30,11 +30,9 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from spacepose.core import se3
-from spacepose.core.background import remove_background
 from spacepose.core.cloud import PointCloud, as_cloud
+from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.frame_registration import FrameRegistrar
-from spacepose.core.gicp import compute_covariances
 from spacepose.core.health import (
     HealthBounds,
     Status,
@@ -44,24 +42,18 @@ from spacepose.core.health import (
     step_size,
 )
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
-from spacepose.core.mls import mpp_mls
 from spacepose.core.motion import MotionModel, Prediction
-from spacepose.core.normals import estimate_normals
 from spacepose.core.relocalise import coarse_pose
-from spacepose.core.scale import DataScale, derive_scale, point_spacing
-from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_object, region_of
+from spacepose.core.scale import DataScale
 from spacepose.core.track_result import STAGES, TrackingOutput, TrackResult
-from spacepose.core.tracker_config import TrackerConfig, stage_lengths
+from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
-from spacepose.core.voxel import voxel_downsample
 from spacepose.errors import InputError, SpaceposeError
 
 # Reason of a frame degraded only because its keyframe is far: it may become the new keyframe.
 _FAR_KEYFRAME = "keyframe"
 
 Checked = tuple[FineEstimate | None, Status, tuple[str, ...]]
-# A crop: center (3,) and radius (m), sensor frame.
-Sphere = tuple[NDArray[np.float64], float]
 
 
 class Tracker:
@@ -91,14 +83,11 @@ class Tracker:
         self._motion = MotionModel()
         self._lost_streak = 0
         self._keyframes: list[Keyframe] = []
-        self._scale: DataScale | None = None
         self._registrar: FrameRegistrar | None = None
         self._t_start = 0.0
-        self._region: TargetRegion | None = None
         self._model_cloud = None if model is None else self._check_model(model)
         self._model: Keyframe | None = None
-        if self._model_cloud is not None:
-            self._model_region = region_of(self._model_cloud.points)
+        self._frames = FramePreparer(config, self._model_cloud, workers)
 
     @property
     def model_based(self) -> bool:
@@ -107,7 +96,7 @@ class Tracker:
     @property
     def scale(self) -> DataScale | None:
         """The lengths derived from the first usable frame (None before it)."""
-        return self._scale
+        return self._frames.scale
 
     # -- the algorithm -----------------------------------------------------------------------
 
@@ -196,83 +185,31 @@ class Tracker:
 
     def _predict(self, timestamp: float) -> Prediction | None:
         fallback = None
-        if self._scale is not None:
-            r = self._scale.radius
+        if self._frames.scale is not None:
+            r = self._frames.scale.radius
             fallback = (self.config.health.max_motion * r, self.config.health.max_motion)
         return self._motion.predict(timestamp, self._lost_streak, fallback or (0.0, 0.0))
 
     def _preprocess(
         self, cloud: PointCloud | ArrayLike | None, prediction: Prediction | None = None
     ) -> PreparedCloud:
-        cfg = self.config
-        if cloud is None:
-            raise InputError("no points")
-        pc = as_cloud(cloud, "frame")
-        if cfg.use_background_removal:
-            pc, _ = remove_background(pc, cfg.background)
-        sphere = None
-        if cfg.isolate_target:
-            pc, sphere = self._isolate(pc, prediction)
-        if self._scale is None or cfg.use_mls:
-            pc, sphere = _cropped(pc, sphere), None
-        if self._scale is None:
-            self._set_scale(pc)
-        L = self._registrar.lengths
-        if cfg.use_mls:
-            pc = mpp_mls(pc, L.mls, workers=self.workers)
-        else:
-            # Crop and downsample in one pass: a raw frame's cropped copy is never made.
-            pc = voxel_downsample(pc, L.voxel, within=sphere)
-        if len(pc) < cfg.health.min_points:
-            raise InputError(
-                f"{len(pc)} points after preprocessing (< {cfg.health.min_points})", pc.source
+        slack = 0.0
+        if prediction is not None and self._frames.scale is not None:
+            # The prediction's own uncertainty at the object's edge (3 σ), or the wide gate's
+            # reach while the motion model has no error to show yet.
+            slack = self._wide_gate(prediction)
+        T = None if prediction is None else prediction.T_sensor_target
+        prepared = self._frames.prepare(cloud, T, slack)
+        if self._registrar is None:
+            # The first usable frame has set every length.
+            cfg = self.config
+            lengths = self._frames.lengths
+            self._registrar = FrameRegistrar(
+                cfg.method, lengths, cfg.covariance_scale, self.workers
             )
-        return self._prepared(pc)
-
-    def _isolate(
-        self, pc: PointCloud, prediction: Prediction | None
-    ) -> tuple[PointCloud, Sphere | None]:
-        """The target's points: the nearest object on the first frame (or whenever there is
-        no prediction); then the sphere (center (3,), radius m) around where the prediction puts
-        it, which the caller crops to."""
-        if self._region is None or prediction is None:
-            mask = nearest_object(pc.points, point_spacing(pc.points))
-            if mask.sum() < self.config.health.min_points:
-                return pc, None
-            region = region_of(pc.points[mask])
-            if self._region is None:
-                # Held in the target frame: model-free, frame 0 is the target frame; a model's
-                # own bounding sphere is known.
-                self._region = region if self._model_cloud is None else self._model_region
-            return pc.select(np.flatnonzero(mask)), None
-        center = se3.transform_points(prediction.T_sensor_target, self._region.center[None])[0]
-        # The prediction's own uncertainty at the object's edge (3 σ), or the wide gate's reach
-        # while the motion model has no error to show yet.
-        slack = self._wide_gate(prediction) if self._scale is not None else 0.0
-        radius = self.config.crop_margin * self._region.radius + slack
-        return pc, (center, radius)
-
-    def _set_scale(self, first: PointCloud) -> None:
-        """Derive every length from the first usable frame (and prepare the model with it)."""
-        cfg = self.config
-        scale = derive_scale(first.points, cfg.points_per_frame, cfg.voxel_size)
-        if scale.radius <= 0:
-            raise InputError("the first frame has no extent: no scale to derive", first.source)
-        lengths = stage_lengths(cfg, scale.voxel, scale.radius)
-        self._scale = scale
-        self._registrar = FrameRegistrar(cfg.method, lengths, cfg.covariance_scale, self.workers)
-        if self._model_cloud is not None:
-            self._model = self._prepare_model(self._model_cloud)
-
-    def _prepared(self, pc: PointCloud) -> PreparedCloud:
-        covariances = None
-        if self._registrar.pairwise == "gicp":
-            # Once per frame: reused whenever the frame is a source or a keyframe target.
-            g = self._registrar.lengths.gicp
-            covariances = compute_covariances(
-                pc.points, min(g.k_covariance, len(pc)), g.epsilon, self.workers
-            )
-        return PreparedCloud(pc, covariances)
+            if self._model_cloud is not None:
+                self._model = self._frames.prepare_model(self._model_cloud)
+        return prepared
 
     def _check_model(self, model: PointCloud | ArrayLike) -> PointCloud:
         pc = as_cloud(model, "model")
@@ -281,25 +218,6 @@ class Tracker:
                 f"model has {len(pc)} points (< {self.config.health.min_points})", pc.source
             )
         return pc
-
-    def _prepare_model(self, model: PointCloud) -> Keyframe:
-        pc = model
-        if not self.config.use_mls:
-            pc = voxel_downsample(pc, self._registrar.lengths.voxel)
-        if len(pc) < self.config.health.min_points:
-            raise InputError(
-                f"model has {len(pc)} points at the frame's voxel (< "
-                f"{self.config.health.min_points})",
-                model.source,
-            )
-        if not pc.has_normals:
-            # Outward normals for a closed model: point them away from its centroid.
-            centroid = pc.points.mean(axis=0)
-            inward = estimate_normals(
-                pc, self.config.normals, viewpoint=centroid, workers=self.workers
-            )
-            pc = inward.with_normals(-inward.normals)
-        return Keyframe(-1, self._prepared(pc), np.eye(4), np.zeros((6, 6)))
 
     def _reference(self) -> Keyframe:
         return self._model if self._model is not None else self._keyframes[-1]
@@ -356,7 +274,7 @@ class Tracker:
 
     def _wide_gate(self, prediction: Prediction) -> float:
         """Gate (m) of the first pass: three model-error σ at the radius (KISS-ICP-like)."""
-        h, r = self.config.health, self._scale.radius
+        h, r = self.config.health, self._frames.scale.radius
         if not prediction.velocity_known:
             return h.max_motion * r
         error = self._motion.model_error()
@@ -386,7 +304,7 @@ class Tracker:
             disagreement = pose_disagreement(
                 estimate.T_sensor_target, prediction.T_sensor_target, c
             )
-        scale = self._scale
+        scale = self._frames.scale
         bounds = HealthBounds.from_scale(
             self.config.health, scale.voxel, scale.radius, self._motion.model_error()
         )
@@ -546,7 +464,7 @@ class Tracker:
         # Li's J-ICP registers every frame to the two accepted frames before it.
         li = self.config.method == "jicp"
         if not li and not needs_keyframe(
-            estimate, prepared, self.config.keyframe, self._scale.radius, not trusted
+            estimate, prepared, self.config.keyframe, self._frames.scale.radius, not trusted
         ):
             return False
         # The keyframe keeps the noise covariance; its drift is carried apart.
@@ -561,13 +479,6 @@ class Tracker:
         keep = 1 if li else self.config.keyframe_graph.window
         self._keyframes = [*self._keyframes[-keep:], kf]
         return True
-
-
-def _cropped(pc: PointCloud, sphere: Sphere | None) -> PointCloud:
-    """The points of ``pc`` within ``sphere`` (all of them without one)."""
-    if sphere is None:
-        return pc
-    return pc.select(np.flatnonzero(crop_sphere(pc.points, *sphere)))
 
 
 def _ms(tic: float) -> float:

@@ -290,3 +290,15 @@ def stage_lengths(config: TrackerConfig, voxel: float, radius: float) -> StageLe
         ransac=config.ransac.model_copy(update={"max_correspondence_distance": 1.5 * coarse}),
         mls=config.mls.model_copy(update={"voxel_size": voxel, "h": config.mls_h * voxel}),
     )
+
+
+def pairwise_kind(method: str, stages: TrackerConfig | StageLengths) -> Literal["icp", "gicp"]:
+    """The pairwise registration a method runs: GICP for ``gicp``, the ``registration`` of
+    the J-ICP or keyframe-graph stage for those, ICP otherwise."""
+    if method == "gicp":
+        return "gicp"
+    if method == "jicp":
+        return stages.jicp.registration
+    if method == "keyframe":
+        return stages.keyframe_graph.registration
+    return "icp"

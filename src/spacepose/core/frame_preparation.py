@@ -1,0 +1,167 @@
+"""What the tracker registers of a frame (docs/methods.md §5.1, §5.7).
+
+:class:`FramePreparer` turns a raw frame into a :class:`~spacepose.core.keyframes.PreparedCloud`:
+optional background removal, the target's points (:mod:`spacepose.core.segmentation`: the
+nearest object on the first frame, then a sphere around where the prediction puts it), then
+mpp-MLS or voxel downsampling at the voxel the first usable frame's spacing gives
+(:mod:`spacepose.core.scale`), and the per-point covariances GICP reuses. It also prepares a
+reference model at the frame's voxel. Every length it uses is derived on the first frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from spacepose.core import se3
+from spacepose.core.background import remove_background
+from spacepose.core.cloud import PointCloud, as_cloud
+from spacepose.core.gicp import compute_covariances
+from spacepose.core.keyframes import Keyframe, PreparedCloud
+from spacepose.core.mls import mpp_mls
+from spacepose.core.normals import estimate_normals
+from spacepose.core.scale import DataScale, derive_scale, point_spacing
+from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_object, region_of
+from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
+from spacepose.core.voxel import voxel_downsample
+from spacepose.errors import InputError
+
+# A crop: center (3,) and radius (m), sensor frame.
+Sphere = tuple[NDArray[np.float64], float]
+
+
+class FramePreparer:
+    """Prepares frames (and a model) for registration; holds the lengths of the first frame.
+
+    Parameters
+    ----------
+    config
+        The tracker's config.
+    model
+        The reference model (target frame), or None for model-free tracking: its bounding
+        sphere is then the target's region.
+    workers
+        Threads of the searches.
+    """
+
+    def __init__(self, config: TrackerConfig, model: PointCloud | None, workers: int) -> None:
+        self.config = config
+        self.workers = workers
+        self.scale: DataScale | None = None
+        self.lengths: StageLengths | None = None
+        self.region: TargetRegion | None = None
+        self._model_region = None if model is None else region_of(model.points)
+        self._covariances = pairwise_kind(config.method, config) == "gicp"
+
+    def prepare(
+        self,
+        cloud: PointCloud | ArrayLike | None,
+        T_predicted: NDArray[np.float64] | None,
+        slack: float = 0.0,
+    ) -> PreparedCloud:
+        """The prepared frame.
+
+        Parameters
+        ----------
+        cloud
+            The raw frame, sensor frame.
+        T_predicted
+            (4, 4) predicted ``T_sensor_target``, or None (the nearest object is then found
+            anew).
+        slack
+            Added to the crop sphere's radius (m): the prediction's uncertainty at the edge.
+
+        Raises
+        ------
+        InputError
+            No points, or too few after preprocessing.
+        """
+        cfg = self.config
+        if cloud is None:
+            raise InputError("no points")
+        pc = as_cloud(cloud, "frame")
+        if cfg.use_background_removal:
+            pc, _ = remove_background(pc, cfg.background)
+        sphere = None
+        if cfg.isolate_target:
+            pc, sphere = self._isolate(pc, T_predicted, slack)
+        if self.scale is None or cfg.use_mls:
+            pc, sphere = _cropped(pc, sphere), None
+        if self.scale is None:
+            self._set_scale(pc)
+        L = self.lengths
+        if cfg.use_mls:
+            pc = mpp_mls(pc, L.mls, workers=self.workers)
+        else:
+            # Crop and downsample in one pass: a raw frame's cropped copy is never made.
+            pc = voxel_downsample(pc, L.voxel, within=sphere)
+        if len(pc) < cfg.health.min_points:
+            raise InputError(
+                f"{len(pc)} points after preprocessing (< {cfg.health.min_points})", pc.source
+            )
+        return self.with_covariances(pc)
+
+    def prepare_model(self, model: PointCloud) -> Keyframe:
+        """The model as a fixed reference (index −1, identity pose) at the frame's voxel, with
+        outward normals when it has none. Needs the first frame's lengths."""
+        cfg = self.config
+        pc = model
+        if not cfg.use_mls:
+            pc = voxel_downsample(pc, self.lengths.voxel)
+        if len(pc) < cfg.health.min_points:
+            raise InputError(
+                f"model has {len(pc)} points at the frame's voxel (< {cfg.health.min_points})",
+                model.source,
+            )
+        if not pc.has_normals:
+            # Outward normals for a closed model: point them away from its centroid.
+            centroid = pc.points.mean(axis=0)
+            inward = estimate_normals(pc, cfg.normals, viewpoint=centroid, workers=self.workers)
+            pc = inward.with_normals(-inward.normals)
+        return Keyframe(-1, self.with_covariances(pc), np.eye(4), np.zeros((6, 6)))
+
+    def with_covariances(self, pc: PointCloud) -> PreparedCloud:
+        """``pc`` prepared; with its GICP covariances when the registration uses them (once
+        per frame: reused whenever the frame is a source or a keyframe target)."""
+        covariances = None
+        if self._covariances:
+            g = self.lengths.gicp
+            covariances = compute_covariances(
+                pc.points, min(g.k_covariance, len(pc)), g.epsilon, self.workers
+            )
+        return PreparedCloud(pc, covariances)
+
+    def _isolate(
+        self, pc: PointCloud, T_predicted: NDArray[np.float64] | None, slack: float
+    ) -> tuple[PointCloud, Sphere | None]:
+        """The target's points: the nearest object on the first frame (or whenever there is
+        no prediction); then the sphere around where the prediction puts the target, which
+        the caller crops to."""
+        if self.region is None or T_predicted is None:
+            mask = nearest_object(pc.points, point_spacing(pc.points))
+            if mask.sum() < self.config.health.min_points:
+                return pc, None
+            if self.region is None:
+                # Held in the target frame: model-free, frame 0 is the target frame; a model's
+                # own bounding sphere is known.
+                own = region_of(pc.points[mask])
+                self.region = own if self._model_region is None else self._model_region
+            return pc.select(np.flatnonzero(mask)), None
+        center = se3.transform_points(T_predicted, self.region.center[None])[0]
+        return pc, (center, self.config.crop_margin * self.region.radius + slack)
+
+    def _set_scale(self, first: PointCloud) -> None:
+        """Derive every length from the first usable frame."""
+        cfg = self.config
+        scale = derive_scale(first.points, cfg.points_per_frame, cfg.voxel_size)
+        if scale.radius <= 0:
+            raise InputError("the first frame has no extent: no scale to derive", first.source)
+        self.lengths = stage_lengths(cfg, scale.voxel, scale.radius)
+        self.scale = scale
+
+
+def _cropped(pc: PointCloud, sphere: Sphere | None) -> PointCloud:
+    """The points of ``pc`` within ``sphere`` (all of them without one)."""
+    if sphere is None:
+        return pc
+    return pc.select(np.flatnonzero(crop_sphere(pc.points, *sphere)))
