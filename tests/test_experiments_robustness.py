@@ -84,6 +84,15 @@ def test_default_lab_cell_is_tracked_without_false_ok(quick) -> None:
     assert 0.01 < lab["crlb_t_mm"] < 0.2 and 0.005 < lab["crlb_r_deg"] < 0.05
 
 
+def test_noisy_cell_has_no_false_ok(quick) -> None:
+    """Three times the ToF noise: the second frame, which no velocity confirms, is degraded
+    rather than ok (it was the cell's one false ok, 5.3σ in x, before)."""
+    table, _ = quick
+    (noisy,) = [r for r in table["table"] if r["noise"] == 3.0]
+    assert noisy["false_ok"] == 0 and noisy["tracked_share"] == 1.0
+    assert noisy["degraded"] >= 1 and noisy["coverage_3sigma"] == 1.0
+
+
 def _result(
     T: np.ndarray, sigma: np.ndarray, status: str = "ok", index: int = 0, **kw
 ) -> TrackResult:
