@@ -107,6 +107,20 @@ def test_query_self_equals_query_of_the_points(k):
         index.query_self(len(pts) + 1)
 
 
+@pytest.mark.parametrize("k", [8, 30])
+def test_query_self_breaks_ties_by_index_on_a_lattice_and_duplicates(k):
+    # Equal distances everywhere: the squared-distance bands the search sorts into hold many
+    # points each, and the k-th often ties with points beyond it.
+    lattice = np.stack(np.meshgrid(*[np.arange(12.0)] * 2, np.arange(3.0)), -1).reshape(-1, 3)
+    rng = np.random.default_rng(12)
+    dups = np.repeat(rng.normal(0.5, 0.02, (60, 3)), 5, axis=0)
+    for pts in (0.01 * lattice, dups):
+        dist, idx = VoxelIndex(pts).query_self(k, workers=2)
+        ref_d2, ref_idx = _brute(pts, pts, k)
+        np.testing.assert_array_equal(idx, ref_idx)
+        np.testing.assert_allclose(dist**2, ref_d2, rtol=1e-12, atol=1e-18)
+
+
 def test_thread_count_does_not_change_the_answer():
     pts = _surface(20000, seed=8)
     index = VoxelIndex(pts)

@@ -272,8 +272,9 @@ def estimate_normals(
     else:
         idx, _ = hybrid(tree, pts, config.radius, k, workers=workers)
     normals = neighbourhood_normals(pts, idx, workers)
-    sparse = (idx >= 0).sum(axis=1) < 3
-    if np.any(sparse):
+    # A k-nearest search always finds k >= 3 neighbours; a radius search may find fewer.
+    sparse = None if config.radius is None else (idx >= 0).sum(axis=1) < 3
+    if sparse is not None and np.any(sparse):
         sight = np.asarray(viewpoint, dtype=np.float64).reshape(3) - pts[sparse]
         norm = np.linalg.norm(sight, axis=1, keepdims=True)
         # A point exactly at the viewpoint has no line of sight: fall back to the boresight.
