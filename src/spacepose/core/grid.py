@@ -193,7 +193,7 @@ class VoxelIndex:
             _search(self.kernel_grid, np.ascontiguousarray(q, dtype=np.float64), k, bound, d2, idx)
         missing = idx < 0
         idx[missing] = self.n
-        dist = np.sqrt(d2)
+        dist = np.sqrt(d2, out=d2)
         if k == 1:
             return dist[:, 0], idx[:, 0]
         return dist, idx
@@ -236,7 +236,7 @@ class VoxelIndex:
         with numba_threads(workers):
             reach = max(reach, 1)
             _self_knn(self.kernel_grid, k, _near_first(reach), reach, d2, idx, unsure)
-        dist = np.sqrt(d2)
+        dist = np.sqrt(d2, out=d2)
         if unsure.any():
             rows = np.flatnonzero(unsure)
             # A few per cent of the rows: one thread, as waking a second costs more.
