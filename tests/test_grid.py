@@ -250,3 +250,18 @@ def test_voxel_downsample_within_a_sphere_equals_cropping_first(voxel):
     assert fused.source == "frame"
     with pytest.raises(InputError, match="no point within"):
         voxel_downsample(cloud, voxel, within=(center + 10.0, 0.1))
+
+
+def test_fuller_cells_give_the_same_self_search():
+    from spacepose.core.grid import self_knn_occupancy
+
+    pts = _surface(3000, seed=13)
+    ref_d2, ref_idx = _brute(pts, pts, 30)
+    for occupancy in (self_knn_occupancy(30), 25.0):
+        index = VoxelIndex(pts, occupancy=occupancy)
+        assert len(pts) / len(index._cell_keys) > 0.5 * occupancy
+        dist, idx = index.query_self(30, workers=2)
+        np.testing.assert_array_equal(idx, ref_idx)
+        np.testing.assert_allclose(dist**2, ref_d2, rtol=1e-12)
+    with pytest.raises(InputError, match="occupancy"):
+        VoxelIndex(pts, occupancy=0.5)

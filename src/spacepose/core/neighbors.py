@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import as_points
-from spacepose.core.grid import VoxelIndex, numba_threads
+from spacepose.core.grid import VoxelIndex, numba_threads, self_knn_occupancy
 from spacepose.errors import InputError
 
 SearchIndex = cKDTree | VoxelIndex
@@ -46,7 +46,8 @@ def knn(
     queries
         (M, 3) query points, same frame as the searched points; None for the searched points
         themselves (a VoxelIndex then shares its cell lookups between neighbouring queries,
-        :meth:`~spacepose.core.grid.VoxelIndex.query_self`).
+        :meth:`~spacepose.core.grid.VoxelIndex.query_self`; one built here from points has
+        cells of :func:`~spacepose.core.grid.self_knn_occupancy` points).
     k
         Number of neighbours, ``1 <= k <= N``. A query that is itself one of the points gets
         itself as its first neighbour.
@@ -58,8 +59,12 @@ def knn(
     dist, idx
         (M, k) Euclidean distances, ascending, and the (M, k) indices into the searched points.
     """
-    tree = as_tree(tree_or_points)
     k = int(k)
+    if queries is None and not isinstance(tree_or_points, cKDTree | VoxelIndex):
+        # Its own index, with cells sized for this k (the same answer, sooner).
+        tree = VoxelIndex(as_points(tree_or_points, "points"), occupancy=self_knn_occupancy(k))
+    else:
+        tree = as_tree(tree_or_points)
     if not 1 <= k <= tree.n:
         raise InputError(f"knn: k must be in 1..{tree.n} (number of points), got {k}")
     if queries is None and isinstance(tree, VoxelIndex):

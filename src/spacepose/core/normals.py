@@ -18,7 +18,7 @@ from pydantic import Field, PositiveFloat
 from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.core.config import StageConfig
 from spacepose.core.grid import numba_threads
-from spacepose.core.neighbors import SearchIndex, as_tree, hybrid, knn, row_moments
+from spacepose.core.neighbors import SearchIndex, hybrid, knn, row_moments
 from spacepose.errors import InputError
 
 # Matrices per unit of parallel work: amortises scheduling, balances the two threads.
@@ -262,15 +262,15 @@ def estimate_normals(
     pts = cloud.points
     if len(pts) < 3:
         raise InputError(f"normal estimation needs at least 3 points, got {len(pts)}", cloud.source)
-    if tree is None:
-        tree = as_tree(pts)
-    elif tree.n != len(pts):
+    if tree is not None and tree.n != len(pts):
         raise InputError(f"the tree holds {tree.n} points, the cloud {len(pts)}", cloud.source)
     k = min(config.k, len(pts))
+    # Without a tree, the search builds the index that suits it.
+    searched = pts if tree is None else tree
     if config.radius is None:
-        _, idx = knn(tree, None, k, workers=workers)
+        _, idx = knn(searched, None, k, workers=workers)
     else:
-        idx, _ = hybrid(tree, pts, config.radius, k, workers=workers)
+        idx, _ = hybrid(searched, pts, config.radius, k, workers=workers)
     normals = neighbourhood_normals(pts, idx, workers)
     # A k-nearest search always finds k >= 3 neighbours; a radius search may find fewer.
     sparse = None if config.radius is None else (idx >= 0).sum(axis=1) < 3
