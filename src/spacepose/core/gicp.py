@@ -10,16 +10,23 @@ correspondences are searched again at every iteration.
 
 from __future__ import annotations
 
-import numba
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, check_rows
-from spacepose.core.grid import numba_threads
+from spacepose.core.gicp_kernels import (
+    CHUNK,
+    gicp_pass_kernel,
+    gicp_sums_kernel,
+    system_kernel,
+    weights_kernel,
+)
+from spacepose.core.grid import VoxelIndex, numba_threads
 from spacepose.core.icp import (
-    CorrespondenceSearch,
     as_registration_cloud,
     solve_normal_equations,
     system_from_sums,
@@ -32,8 +39,6 @@ from spacepose.core.robust import RobustConfig, robust_weights
 from spacepose.errors import InputError, RegistrationError
 
 # Levenberg-Marquardt damping schedule (the values small_gicp uses).
-# Correspondences per chunk of the compiled normal equations (fixed: so is the sum order).
-_CHUNK = 512
 _LM_INIT_LAMBDA = 1e-3
 _LM_FACTOR = 10.0
 _LM_MAX_TRIALS = 10
@@ -202,7 +207,7 @@ def gicp_weight_matrices(
     W = np.empty((m, 3, 3))
     m2 = np.empty(m)
     with numba_threads(workers):
-        singular = _weights_kernel(
+        singular = weights_kernel(
             np.ascontiguousarray(points, dtype=np.float64),
             np.ascontiguousarray(target_points, dtype=np.float64),
             np.ascontiguousarray(R, dtype=np.float64),
@@ -236,9 +241,9 @@ def gicp_system(
         (6, 6), (6,) and the scalar cost; twist order (omega, v), left perturbation.
     """
     check_rows("gicp_system", points, target_points, W, shapes=((3,), (3,), (3, 3)))
-    partial = np.zeros((max(1, -(-len(points) // _CHUNK)), 28))
+    partial = np.zeros((max(1, -(-len(points) // CHUNK)), 28))
     with numba_threads(workers):
-        _system_kernel(
+        system_kernel(
             np.ascontiguousarray(points, dtype=np.float64),
             np.ascontiguousarray(target_points, dtype=np.float64),
             np.ascontiguousarray(W, dtype=np.float64),
@@ -247,86 +252,6 @@ def gicp_system(
     total = partial.sum(axis=0)
     H, g = system_from_sums(total)
     return H, g, float(total[27])
-
-
-@numba.njit(cache=True, parallel=True)
-def _weights_kernel(points, target_points, R, Cs, Ct, W, m2):
-    """Fill ``W`` and ``m2 = dᵀWd`` row by row; return how many rows had no positive definite
-    ``C_q + R C_p Rᵀ`` (their W and m2 are 0)."""
-    m = len(points)
-    singular = 0
-    for c in numba.prange(max(1, -(-m // _CHUNK))):
-        RC = np.empty((3, 3))
-        C = np.empty((3, 3))
-        for i in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
-            for a in range(3):
-                for b in range(3):
-                    RC[a, b] = R[a, 0] * Cs[i, 0, b] + R[a, 1] * Cs[i, 1, b] + R[a, 2] * Cs[i, 2, b]
-            for a in range(3):
-                for b in range(a, 3):
-                    C[a, b] = (
-                        Ct[i, a, b] + RC[a, 0] * R[b, 0] + RC[a, 1] * R[b, 1] + RC[a, 2] * R[b, 2]
-                    )
-            # Inverse from the adjugate; Sylvester's criterion for positive definiteness.
-            c00, c01, c02, c11, c12, c22 = C[0, 0], C[0, 1], C[0, 2], C[1, 1], C[1, 2], C[2, 2]
-            a00, a01, a02 = c11 * c22 - c12 * c12, c02 * c12 - c01 * c22, c01 * c12 - c02 * c11
-            det = c00 * a00 + c01 * a01 + c02 * a02
-            if not (det > 0 and c00 > 0 and c00 * c11 - c01 * c01 > 0):
-                singular += 1
-                W[i] = 0.0
-                m2[i] = 0.0
-                continue
-            inv = 1.0 / det
-            W[i, 0, 0], W[i, 0, 1], W[i, 0, 2] = a00 * inv, a01 * inv, a02 * inv
-            W[i, 1, 1] = (c00 * c22 - c02 * c02) * inv
-            W[i, 1, 2] = (c01 * c02 - c00 * c12) * inv
-            W[i, 2, 2] = (c00 * c11 - c01 * c01) * inv
-            W[i, 1, 0], W[i, 2, 0], W[i, 2, 1] = W[i, 0, 1], W[i, 0, 2], W[i, 1, 2]
-            m2[i] = 0.0
-            for a in range(3):
-                da = points[i, a] - target_points[i, a]
-                for b in range(3):
-                    m2[i] += da * W[i, a, b] * (points[i, b] - target_points[i, b])
-    return singular
-
-
-@numba.njit(cache=True, parallel=True)
-def _system_kernel(points, target_points, W, partial):
-    """Per chunk of rows: the upper triangle of Σ JᵀWJ (21), Σ JᵀWd (6) and Σ dᵀWd."""
-    m = len(points)
-    for c in numba.prange(len(partial)):
-        acc = partial[c]
-        J = np.zeros((3, 6))
-        WJ = np.empty((3, 6))
-        Wd = np.empty(3)
-        d = np.empty(3)
-        for a in range(3):
-            J[a, 3 + a] = 1.0
-        for i in range(c * _CHUNK, min(m, (c + 1) * _CHUNK)):
-            px, py, pz = points[i, 0], points[i, 1], points[i, 2]
-            # J = [−skew(p) I]: the derivative of exp(δ) p at δ = 0.
-            J[0, 1], J[0, 2] = pz, -py
-            J[1, 0], J[1, 2] = -pz, px
-            J[2, 0], J[2, 1] = py, -px
-            for a in range(3):
-                d[a] = points[i, a] - target_points[i, a]
-            for a in range(3):
-                Wd[a] = W[i, a, 0] * d[0] + W[i, a, 1] * d[1] + W[i, a, 2] * d[2]
-                for b in range(6):
-                    WJ[a, b] = W[i, a, 0] * J[0, b] + W[i, a, 1] * J[1, b] + W[i, a, 2] * J[2, b]
-            pos = 0
-            for a in range(6):
-                for b in range(a, 6):
-                    acc[pos] += J[0, a] * WJ[0, b] + J[1, a] * WJ[1, b] + J[2, a] * WJ[2, b]
-                    pos += 1
-            for a in range(6):
-                acc[21 + a] += J[0, a] * Wd[0] + J[1, a] * Wd[1] + J[2, a] * Wd[2]
-            acc[27] += d[0] * Wd[0] + d[1] * Wd[1] + d[2] * Wd[2]
-
-
-def mahalanobis_sum(d: NDArray[np.float64], W: NDArray[np.float64]) -> float:
-    """``Σ dᵢᵀ Wᵢ dᵢ`` over residuals d (M, 3) and weights W (M, 3, 3)."""
-    return float(np.einsum("na,na->", d, np.einsum("nab,nb->na", W, d)))
 
 
 def gicp(
@@ -391,52 +316,22 @@ def gicp(
         Cs = compute_covariances(src, config.k_covariance, config.epsilon, workers)
     if Ct is None:
         Ct = compute_covariances(tgt, config.k_covariance, config.epsilon, workers)
-    gate = config.max_correspondence_distance
-    search = CorrespondenceSearch(target_index(tgt, target_tree), gate, workers)
-
-    def correspond(
-        T_cur: NDArray[np.float64],
-    ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64], float]:
-        moved = se3.transform_points(T_cur, src.points)
-        s, t, d2 = search(moved)
-        if len(s) < 3:
-            raise RegistrationError(
-                f"GICP found {len(s)} correspondences within {gate} m (of {len(src)} source "
-                "points); the initial guess is too far off or the gate too small"
-            )
-        return s, t, moved[s], float(np.sqrt(d2.mean()))
-
-    robust = config.robust_kernel != "none"
-
-    def linearize(
-        T_cur: NDArray[np.float64], s: NDArray[np.intp], t: NDArray[np.intp], p: NDArray
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float, float]:
-        """Normal equations at T_cur (p: the matched source points already moved by it), with
-        the robust weights folded into W, and the a-posteriori variance factor."""
-        q = tgt.points[t]
-        W, m2 = gicp_weight_matrices(p, q, T_cur[:3, :3], Cs[s], Ct[t], workers)
-        w = None
-        if robust:
-            w = robust_weights(np.sqrt(m2), config.robust_kernel, config.robust_scale)
-            W *= w.weights[:, None, None]
-        H, g, cost = gicp_system(p, q, W, workers)
-        variance = cost / max(len(s) - 6, 1) if w is None else w.variance(np.sqrt(m2))
-        return H, g, cost, W, variance
+    index = target_index(tgt, target_tree)
+    if not isinstance(index, VoxelIndex):
+        index = VoxelIndex(tgt.points)
+    evaluate = _GICPPass(index, src.points, Cs, Ct, config, workers)
 
     lam = _LM_INIT_LAMBDA
     converged = False
     iterations = 0
     while iterations < config.max_iterations:
         iterations += 1
-        s, t, p, _ = correspond(T)
-        H, g, cost, W, _ = linearize(T, s, t, p)
+        lin = evaluate(T)
         if config.lm:
-            src_s, tgt_t = src.points[s], tgt.points[t]
             # Damped steps on fixed correspondences and weights until one lowers the cost.
             for _ in range(_LM_MAX_TRIALS):
-                delta = solve_normal_equations(H, g, damping=lam)
-                moved = se3.transform_points(se3.exp(delta) @ T, src_s)
-                if mahalanobis_sum(moved - tgt_t, W) <= cost:
+                delta = solve_normal_equations(lin.H, lin.g, damping=lam)
+                if evaluate.cost(se3.exp(delta) @ T) <= lin.cost:
                     lam /= _LM_FACTOR
                     break
                 lam *= _LM_FACTOR
@@ -444,7 +339,7 @@ def gicp(
                 converged = True  # no damped step improves: T is a minimum to working precision
                 break
         else:
-            delta = solve_normal_equations(H, g)
+            delta = solve_normal_equations(lin.H, lin.g)
         T = se3.exp(delta) @ T
         if (
             np.linalg.norm(delta[:3]) < config.rotation_tolerance
@@ -453,14 +348,127 @@ def gicp(
             converged = True
             break
 
-    s, t, p, rmse = correspond(T)
-    H, _, _, _, variance = linearize(T, s, t, p)
+    lin = evaluate(T)
     return RegistrationResult(
         T_target_source=T,
-        fitness=len(s) / len(src),
-        inlier_rmse=rmse,
+        fitness=lin.count / len(src),
+        inlier_rmse=lin.rmse,
         iterations=iterations,
         converged=converged,
-        information=H / max(variance, _MIN_VARIANCE_FACTOR),
-        n_correspondences=len(s),
+        information=lin.H / max(lin.variance, _MIN_VARIANCE_FACTOR),
+        n_correspondences=lin.count,
     )
+
+
+@dataclass(frozen=True)
+class _Linearization:
+    """GICP's normal equations at one transform: ``H`` (6, 6), ``g`` (6,), the cost Σ w dᵀWd,
+    the a-posteriori variance factor, the match count and the Euclidean inlier RMSE (m)."""
+
+    H: NDArray[np.float64]
+    g: NDArray[np.float64]
+    cost: float
+    variance: float
+    count: int
+    rmse: float
+
+
+class _GICPPass:
+    """GICP's correspondences, weights and normal equations at a transform in one compiled pass
+    over a :class:`VoxelIndex` (no moved copy of the cloud, no gathered rows). Each point's
+    search starts at its previous match and is skipped while the certificate of its last search
+    holds, as in ICP's point-to-plane pass. The pass keeps each match's weight ``W`` (times its
+    robust weight) for :meth:`cost`, Levenberg-Marquardt's trial steps on fixed matches."""
+
+    def __init__(
+        self,
+        index: VoxelIndex,
+        source_points: NDArray[np.float64],
+        Cs: NDArray[np.float64],
+        Ct: NDArray[np.float64],
+        config: GICPConfig,
+        workers: int,
+    ) -> None:
+        n = len(source_points)
+        self.index, self.config, self.workers = index, config, workers
+        self.gate = float(config.max_correspondence_distance)
+        self.rings = index.rings(self.gate)
+        self.source_points = np.ascontiguousarray(source_points, dtype=np.float64)
+        self.Cs = np.ascontiguousarray(Cs, dtype=np.float64)
+        self.Ct = np.ascontiguousarray(Ct, dtype=np.float64)
+        self.nearest = np.full(n, -1, dtype=np.int64)
+        # Each point's last search: where it was made and its certificate (0: none yet).
+        self.anchors = np.zeros((n, 3))
+        self.bounds = np.zeros(n)
+        self.W = np.zeros((n, 3, 3))
+        self.m2 = np.zeros(n)
+        self.chunks = max(1, -(-n // CHUNK))
+
+    def __call__(self, T: NDArray[np.float64]) -> _Linearization:
+        robust = self.config.robust_kernel != "none"
+        n = len(self.source_points)
+        partial = np.zeros((self.chunks, 2 if robust else 30))
+        nearest = np.empty(n, dtype=np.int64)
+        R, t = np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3])
+        with numba_threads(self.workers):
+            singular = gicp_pass_kernel(
+                self.index.kernel_grid,
+                self.rings,
+                self.index.data,
+                self.source_points,
+                self.Cs,
+                self.Ct,
+                R,
+                t,
+                self.gate,
+                self.nearest,
+                nearest,
+                self.anchors,
+                self.bounds,
+                self.W,
+                self.m2,
+                partial,
+            )
+        self.nearest = nearest
+        total = partial.sum(axis=0)
+        count = int(total[-2])
+        if count < 3:
+            raise RegistrationError(
+                f"GICP found {count} correspondences within {self.gate} m (of {n} source "
+                "points); the initial guess is too far off or the gate too small"
+            )
+        if singular:
+            raise InputError(
+                "GICP needs positive definite covariances: C_target + R C_source Rᵀ is singular "
+                f"or indefinite for {singular} correspondences (use compute_covariances)"
+            )
+        rmse = float(np.sqrt(total[-1] / count))
+        if not robust:
+            H, g = system_from_sums(total)
+            cost = float(total[27])
+            return _Linearization(H, g, cost, cost / max(count - 6, 1), count, rmse)
+        s = np.flatnonzero(nearest >= 0)
+        m = np.sqrt(self.m2[s])
+        w = robust_weights(m, self.config.robust_kernel, self.config.robust_scale)
+        self.W[s] *= w.weights[:, None, None]
+        partial = np.zeros((self.chunks, 28))
+        with numba_threads(self.workers):
+            gicp_sums_kernel(self.index.data, self.source_points, R, t, nearest, self.W, partial)
+        total = partial.sum(axis=0)
+        H, g = system_from_sums(total)
+        return _Linearization(H, g, float(total[27]), w.variance(m), count, rmse)
+
+    def cost(self, T: NDArray[np.float64]) -> float:
+        """Σ w dᵀWd at ``T`` over the last call's matches and weights."""
+        partial = np.zeros((self.chunks, 1))
+        with numba_threads(self.workers):
+            gicp_sums_kernel(
+                self.index.data,
+                self.source_points,
+                np.ascontiguousarray(T[:3, :3]),
+                np.ascontiguousarray(T[:3, 3]),
+                self.nearest,
+                self.W,
+                partial,
+            )
+        return float(partial.sum())
