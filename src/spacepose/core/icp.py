@@ -28,7 +28,15 @@ from spacepose.core.grid import VoxelIndex, certified_nearest, numba_threads
 from spacepose.core.neighbors import SearchIndex, hybrid
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.registration import RegistrationResult, kabsch
-from spacepose.core.robust import RobustConfig, RobustWeights, robust_weights
+from spacepose.core.robust import (
+    KERNEL_CODES,
+    RobustConfig,
+    RobustWeights,
+    kernel_width,
+    robust_weights,
+    sandwich_variance,
+    weight_and_slope,
+)
 from spacepose.errors import DegenerateGeometryError, InputError, RegistrationError
 
 # Smallest/largest eigenvalue ratio of a Gauss-Newton system below which a direction is
@@ -306,7 +314,7 @@ def _accumulate_plane(acc, p, q, n, w, h):
     h[1] = p[2] * n[0] - p[0] * n[2]
     h[2] = p[0] * n[1] - p[1] * n[0]
     h[3], h[4], h[5] = n[0], n[1], n[2]
-    r = n[0] * (p[0] - q[0]) + n[1] * (p[1] - q[1]) + n[2] * (p[2] - q[2])
+    r = _plane_residual(p, q, n)
     pos = 0
     for a in range(6):
         wa = w * h[a]
@@ -318,17 +326,37 @@ def _accumulate_plane(acc, p, q, n, w, h):
     acc[27] += w * r * r
 
 
+@numba.njit(cache=True, inline="always")
+def _plane_residual(p, q, n):
+    """Signed point-to-plane distance ``n·(p − q)``."""
+    return n[0] * (p[0] - q[0]) + n[1] * (p[1] - q[1]) + n[2] * (p[2] - q[2])
+
+
 @numba.njit(cache=True, parallel=True)
 def _plane_matches_kernel(
-    grid, rings, targets, normals, src, R, t, gate, hint, nearest, anchors, bounds, moved, partial
+    grid,
+    rings,
+    targets,
+    normals,
+    src,
+    R,
+    t,
+    gate,
+    hint,
+    nearest,
+    anchors,
+    bounds,
+    moved,
+    residuals,
+    partial,
 ):
     """Point-to-plane ICP's work at one transform, per chunk of source points: move each point
     (``R p + t``), find its nearest target within the gate (:func:`certified_nearest` from its
     last answer ``hint`` and the certificate ``anchors``/``bounds`` of its last search, both
     updated in place), count the match and Σ d² (sums 28, 29) and either accumulate
     :func:`_accumulate_plane` (sums 0..27) or, when ``moved`` has a row per point, store the
-    moved point there instead (a robust kernel weighs the rows once the residuals' scale is
-    known)."""
+    moved point there and its residual ``n·(p − q)`` in ``residuals`` instead (a robust kernel
+    weighs the rows once the residuals' scale is known: :func:`_robust_plane_kernel`)."""
     m = len(src)
     accumulate = len(moved) != m
     for c in numba.prange(len(partial)):
@@ -352,6 +380,29 @@ def _plane_matches_kernel(
                     _accumulate_plane(acc, q, targets[j], normals[j], 1.0, h)
                 else:
                     moved[i] = q
+                    residuals[i] = _plane_residual(q, targets[j], normals[j])
+
+
+@numba.njit(cache=True, parallel=True)
+def _robust_plane_kernel(moved, targets, normals, nearest, residuals, c, code, w, slopes, partial):
+    """The weighted sums of the matches (``nearest`` >= 0) that :func:`_plane_matches_kernel`
+    stored, per chunk of source points: each weight and slope of the kernel ``code`` at
+    ``residuals / c`` (:func:`~spacepose.core.robust.weight_and_slope`) into ``w`` and
+    ``slopes`` (code 0, c unused: all 1), :func:`_accumulate_plane` (sums 0..27), then
+    Σ (w r)² (28) and Σ ψ' (29)."""
+    m = len(moved)
+    for k in numba.prange(len(partial)):
+        acc = partial[k]
+        h = np.empty(6)
+        for i in range(k * _SYSTEM_CHUNK, min(m, (k + 1) * _SYSTEM_CHUNK)):
+            j = nearest[i]
+            if j < 0:
+                continue
+            r = residuals[i]
+            w[i], slopes[i] = weight_and_slope(r / c, code)
+            _accumulate_plane(acc, moved[i], targets[j], normals[j], w[i], h)
+            acc[28] += (w[i] * r) ** 2
+            acc[29] += slopes[i]
 
 
 def system_from_sums(total: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
@@ -636,6 +687,7 @@ class _FusedPlaneMatcher:
         partial = np.zeros((max(1, -(-n // _SYSTEM_CHUNK)), 30))
         nearest = np.empty(n, dtype=np.int64)
         moved = np.empty((n if robust else 0, 3))
+        residuals = np.empty(n if robust else 0)
         with numba_threads(self.workers):
             _plane_matches_kernel(
                 self.index.kernel_grid,
@@ -651,6 +703,7 @@ class _FusedPlaneMatcher:
                 self.anchors,
                 self.bounds,
                 moved,
+                residuals,
                 partial,
             )
         self.nearest = nearest
@@ -661,7 +714,41 @@ class _FusedPlaneMatcher:
         t = nearest[s]
         rmse = float(np.sqrt(total[29] / count))
         if robust:
-            q, normals = self.index.data[t], self.normals[t]
-            return _robust_matches(self.config, s, t, count / n, rmse, moved[s], q, normals)
+            return self._weighted(s, t, count / n, rmse, moved, residuals)
         H, g = system_from_sums(total)
         return Correspondences(s, t, count / n, rmse, system=(H, g, float(total[27])))
+
+    def _weighted(
+        self,
+        s: NDArray[np.intp],
+        t: NDArray[np.intp],
+        fitness: float,
+        rmse: float,
+        moved: NDArray[np.float64],
+        residuals: NDArray[np.float64],
+    ) -> Correspondences:
+        """:func:`_robust_matches` of the pass's stored matches, weighed and summed compiled."""
+        r = residuals[s]
+        sigma, c = kernel_width(r, self.config.robust_kernel, self.config.robust_scale)
+        n = len(moved)
+        w, slopes = np.empty(n), np.empty(n)
+        partial = np.zeros((max(1, -(-n // _SYSTEM_CHUNK)), 30))
+        with numba_threads(self.workers):
+            _robust_plane_kernel(
+                moved,
+                self.index.data,
+                self.normals,
+                self.nearest,
+                residuals,
+                c,
+                KERNEL_CODES[self.config.robust_kernel] if c > 0.0 else 0,
+                w,
+                slopes,
+                partial,
+            )
+        total = partial.sum(axis=0)
+        H, g = system_from_sums(total)
+        weights = RobustWeights(w[s], sigma, slopes[s])
+        variance = sandwich_variance(float(total[28]), weights.total, float(total[29]), len(s))
+        system = (H, g, float(total[27]))
+        return Correspondences(s, t, fitness, rmse, moved[s], system, weights, np.sqrt(variance))

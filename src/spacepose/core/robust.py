@@ -28,6 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
@@ -36,6 +37,8 @@ from spacepose.core.config import StageConfig
 
 RobustKernelName = Literal["none", "huber", "cauchy", "geman_mcclure"]
 
+# Kernel numbers of the compiled weight function (:func:`weight_and_slope`).
+KERNEL_CODES = {"none": 0, "huber": 1, "cauchy": 2, "geman_mcclure": 3}
 # Kernel width c as a multiple of σ giving 95 % asymptotic efficiency on Gaussian residuals
 # (E[ψ']² / E[ψ²] = 0.95, solved by quadrature).
 TUNING = {"huber": 1.345, "cauchy": 2.3849, "geman_mcclure": 3.7874}
@@ -104,13 +107,19 @@ class RobustWeights:
             Parameters estimated from them (6 for a pose).
         """
         r = np.asarray(residuals, dtype=np.float64)
-        m = len(r)
         psi = self.weights * r
-        slope = float(self.slopes.sum())
-        if slope <= 0:
-            # Most residuals beyond the kernel's fall-off: no sandwich; fixed weights instead.
-            slope = self.total
-        return float(psi @ psi) * self.total * m / (max(m - n_params, 1) * slope**2)
+        return sandwich_variance(
+            float(psi @ psi), self.total, float(self.slopes.sum()), len(r), n_params
+        )
+
+
+def sandwich_variance(psi2: float, total: float, slope: float, m: int, n_params: int = 6) -> float:
+    """:meth:`RobustWeights.variance` from its sums: ``Σ ψ²``, ``Σ w``, ``Σ ψ'`` over ``m``
+    residuals, ``n_params`` parameters (for a compiled pass that accumulates them)."""
+    if slope <= 0:
+        # Most residuals beyond the kernel's fall-off: no sandwich; fixed weights instead.
+        slope = total
+    return psi2 * total * m / (max(m - n_params, 1) * slope**2)
 
 
 def adaptive_scale(residuals: ArrayLike) -> float:
@@ -121,26 +130,48 @@ def adaptive_scale(residuals: ArrayLike) -> float:
 
 def kernel_weights(u: NDArray[np.float64], kernel: RobustKernelName) -> NDArray[np.float64]:
     """IRLS weight ``w(u) = ψ(u)/u`` of ``kernel`` at residuals ``u`` (M,) in units of c."""
-    if kernel == "none":
-        return np.ones(len(u))
-    a = np.abs(u)
-    if kernel == "huber":
-        return 1.0 / np.maximum(a, 1.0)
-    if kernel == "cauchy":
-        return 1.0 / (1.0 + a * a)
-    return 1.0 / (1.0 + a * a) ** 2
+    return _weights_slopes(np.asarray(u, dtype=np.float64), KERNEL_CODES[kernel])[0]
 
 
 def kernel_slopes(u: NDArray[np.float64], kernel: RobustKernelName) -> NDArray[np.float64]:
     """``ψ'(u) = d(u w(u))/du`` of ``kernel`` at residuals ``u`` (M,) in units of c."""
-    a2 = np.asarray(u, dtype=np.float64) ** 2
-    if kernel == "none":
-        return np.ones(len(a2))
-    if kernel == "huber":
-        return (a2 <= 1.0).astype(np.float64)
-    if kernel == "cauchy":
-        return (1.0 - a2) / (1.0 + a2) ** 2
-    return (1.0 - 3.0 * a2) / (1.0 + a2) ** 3
+    return _weights_slopes(np.asarray(u, dtype=np.float64), KERNEL_CODES[kernel])[1]
+
+
+@numba.njit(cache=True, inline="always")
+def weight_and_slope(u, code):
+    """``(w(u), ψ'(u))`` of the kernel numbered ``code`` (:data:`KERNEL_CODES`) at one residual
+    ``u`` in units of c: the formulas every weight here comes from, for compiled passes too."""
+    a2 = u * u
+    if code == 1:
+        return 1.0 / max(abs(u), 1.0), 1.0 if a2 <= 1.0 else 0.0
+    if code == 2:
+        return 1.0 / (1.0 + a2), (1.0 - a2) / ((1.0 + a2) * (1.0 + a2))
+    if code == 3:
+        b = 1.0 + a2
+        return 1.0 / (b * b), (1.0 - 3.0 * a2) / (b * b * b)
+    return 1.0, 1.0
+
+
+@numba.njit(cache=True)
+def _weights_slopes(u, code):
+    w, slope = np.empty(len(u)), np.empty(len(u))
+    for i in range(len(u)):
+        w[i], slope[i] = weight_and_slope(u[i], code)
+    return w, slope
+
+
+def kernel_width(
+    residuals: NDArray[np.float64], kernel: RobustKernelName, scale: float | None
+) -> tuple[float, float]:
+    """``(σ, c)`` of :func:`robust_weights` for residuals (M,): the fixed or adaptive σ and the
+    kernel width ``c = TUNING[kernel] · σ``, c = 0 when every weight is 1 (no kernel, or nearly
+    every residual zero: an exact fit, nothing to down-weight)."""
+    sigma = adaptive_scale(residuals) if scale is None else float(scale)
+    floor = _MIN_RELATIVE_SCALE * float(np.abs(residuals).max()) if len(residuals) else 0.0
+    if kernel == "none" or sigma <= floor:
+        return sigma, 0.0
+    return sigma, TUNING[kernel] * sigma
 
 
 def robust_weights(
@@ -164,10 +195,8 @@ def robust_weights(
         The (M,) weights and the σ used.
     """
     r = np.asarray(residuals, dtype=np.float64)
-    sigma = adaptive_scale(r) if scale is None else float(scale)
-    floor = _MIN_RELATIVE_SCALE * float(np.abs(r).max()) if len(r) else 0.0
-    if kernel == "none" or sigma <= floor:
-        # No kernel, or nearly every residual zero (an exact fit): nothing to down-weight.
+    sigma, c = kernel_width(r, kernel, scale)
+    if c == 0.0:
         return RobustWeights(np.ones(len(r)), sigma, np.ones(len(r)))
-    u = r / (TUNING[kernel] * sigma)
-    return RobustWeights(kernel_weights(u, kernel), sigma, kernel_slopes(u, kernel))
+    weights, slopes = _weights_slopes(r / c, KERNEL_CODES[kernel])
+    return RobustWeights(weights, sigma, slopes)
