@@ -257,9 +257,11 @@ class VoxelIndex:
 
     def rings(self, max_distance: float) -> NDArray[np.int64]:
         """(M, 4) cell offsets ``(dx, dy, dz, r)`` around a cell out to the ring ``r`` that
-        covers ``max_distance`` (at most :data:`_MAX_RINGS`), sorted by ring ``r`` (Chebyshev
-        distance) and then nearest first: the visiting order of :func:`nearest_point`."""
-        return _rings(int(min(np.ceil(max_distance / self.cell_size), _MAX_RINGS)))
+        covers ``max_distance`` and one ring more (at most :data:`_MAX_RINGS`), sorted by ring
+        ``r`` (Chebyshev distance) and then nearest first: the visiting order of
+        :func:`nearest_point`. The ring beyond gives a query with nothing within the gate a
+        certificate a cell wide (:func:`certified_nearest`)."""
+        return _rings(int(min(np.ceil(max_distance / self.cell_size) + 1, _MAX_RINGS)))
 
     def nearest_within(
         self,
@@ -483,7 +485,7 @@ def nearest_point(grid, rings, qx, qy, qz, gate, hint):
     cells.
     """
     best, found = _hinted(grid, qx, qy, qz, gate, hint)
-    j, d2, _ = _gated_search(grid, rings, qx, qy, qz, gate, best, found)
+    j, d2, _ = _gated_search(grid, rings, qx, qy, qz, gate, best, found, False)
     return j, d2
 
 
@@ -494,12 +496,13 @@ def certified_nearest(grid, rings, qx, qy, qz, gate, hint, anchor, bound):
 
     The certificate of a search at ``anchor`` is a lower bound ``b`` on the distance from there
     to every indexed point but the nearest found (the second nearest scanned, or the scanned
-    block's border when nearer): at a query ``δ`` from the anchor every other point is at least
-    ``b − δ`` away, so the previous nearest ``hint`` is still the nearest when it is strictly
-    within ``b − δ``. Without a nearest (none within the gate) ``b`` bounds every point, and
-    there is still none while ``b − δ`` reaches the gate. The answer is :func:`nearest_point`'s
-    to the bit (same distances, ties by index); a tie or a bound within rounding of the
-    distance is searched again.
+    block's border when nearer; with none, a ring search's skipped cells and rings): at a query
+    ``δ`` from the anchor every other point is at least ``b − δ`` away, so the previous
+    nearest ``hint`` is still the nearest when it is strictly within ``b − δ``. Without a
+    nearest (none within the gate) ``b`` bounds every point, and there is still none while
+    ``b − δ`` reaches the gate. The answer is :func:`nearest_point`'s to the bit (same
+    distances, ties by index); a tie or a bound within rounding of the distance is searched
+    again.
 
     Parameters
     ----------
@@ -514,7 +517,7 @@ def certified_nearest(grid, rings, qx, qy, qz, gate, hint, anchor, bound):
     -------
     (index, squared distance, certificate)
         As :func:`nearest_point`, and the certificate of a new search at this query (store it
-        with the query as the new anchor; 0 after a ring search) or NaN when the old one held
+        with the query as the new anchor) or NaN when the old one held
         (keep both).
     """
     best, found = _hinted(grid, qx, qy, qz, gate, hint)
@@ -525,7 +528,7 @@ def certified_nearest(grid, rings, qx, qy, qz, gate, hint, anchor, bound):
             return hint, best, np.nan
         if bound < 0.0 and -bound - delta >= gate:
             return -1, best, np.nan
-    return _gated_search(grid, rings, qx, qy, qz, gate, best, found)
+    return _gated_search(grid, rings, qx, qy, qz, gate, best, found, True)
 
 
 @numba.njit(cache=True, inline="always")
@@ -542,10 +545,10 @@ def _hinted(grid, qx, qy, qz, gate, hint):
 
 
 @numba.njit(cache=True, inline="always")
-def _gated_search(grid, rings, qx, qy, qz, gate, best, found):
+def _gated_search(grid, rings, qx, qy, qz, gate, best, found, certify):
     """The search of :func:`nearest_point` from ``(best, found)`` (:func:`_hinted`):
     ``(original index or -1, squared distance, certificate)``, the certificate as
-    :func:`certified_nearest` returns it (0 after a ring search)."""
+    :func:`certified_nearest` returns it (``certify``: worth a wider ring search)."""
     points, order, starts, cell_keys, table, bits, origin, h, dims, _ = grid
     second, own = np.inf, -1
     if found < 0 and gate > h:
@@ -553,23 +556,39 @@ def _gated_search(grid, rings, qx, qy, qz, gate, best, found):
         ox = int(np.floor((qx - origin[0]) / h))
         oy = int(np.floor((qy - origin[1]) / h))
         oz = int(np.floor((qz - origin[2]) / h))
+        # Every cell from the first ring not visited on is at least its ring less one cell away;
+        # a skipped cell at least its gap (squared: skipped). While nothing is within the gate,
+        # the cells up to a cell beyond it are scanned too (none can hold a match): their
+        # points bound how far the query may move and still have none (when the rings reach
+        # that far: else the block search below takes over).
+        reach, skipped = rings[-1, 3] + 1, np.inf
+        wide = (gate + h) ** 2 if certify and rings[-1, 3] * h >= gate + h else best
         for o in range(len(rings)):
+            limit = best if found >= 0 else wide
             # Ring r lies at least (r − 1) cells away; ">" keeps ties at the bound in play.
-            if rings[o, 3] > 1 and ((rings[o, 3] - 1) * h) ** 2 > best:
+            if rings[o, 3] > 1 and ((rings[o, 3] - 1) * h) ** 2 > limit:
+                reach = rings[o, 3]
                 break
             cx, cy, cz = ox + rings[o, 0], oy + rings[o, 1], oz + rings[o, 2]
             if not (0 <= cx < dims[0] and 0 <= cy < dims[1] and 0 <= cz < dims[2]):
                 continue
             gap2 = _gap(qx, cx, origin[0], h) ** 2 + _gap(qy, cy, origin[1], h) ** 2
             gap2 += _gap(qz, cz, origin[2], h) ** 2
-            if gap2 > best:
+            if gap2 > limit:
+                skipped = min(skipped, gap2)
                 continue
             cell = find_cell(table, cell_keys, bits, (cx * dims[1] + cy) * dims[2] + cz)
-            if cell >= 0:
+            if cell >= 0 and found >= 0:
                 best, found = _nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, found)
-        # Every cell beyond the rings is at least their count of cells away.
-        if best < (rings[-1, 3] * h) ** 2:
-            return (order[found] if found >= 0 else -1), best, 0.0
+            elif cell >= 0:
+                best, second, found = _two_nearest_in_cell(
+                    points, order, starts, cell, qx, qy, qz, best, second, found
+                )
+        if best < ((reach - 1) * h) ** 2 and found >= 0:
+            # A nearest found ring by ring has moved a query far: no certificate (0).
+            return order[found], best, 0.0
+        if best < ((reach - 1) * h) ** 2:
+            return _certified(found, order, best, (reach - 1) * h, second, skipped, qx, qy, qz)
     elif found < 0:
         # The own cell first: its nearest (if any) shrinks the box of the others.
         ox = int(np.floor((qx - origin[0]) / h))
@@ -612,12 +631,32 @@ def _gated_search(grid, rings, qx, qy, qz, gate, best, found):
         outside = min(outside, qz - (origin[2] + z0 * h))
     if z1 < dims[2] - 1:
         outside = min(outside, origin[2] + (z1 + 1) * h - qz)
+    return _certified(found, order, best, outside, second, np.inf, qx, qy, qz)
+
+
+@numba.njit(cache=True, inline="always")
+def _certified(found, order, best, outside, second, skipped, qx, qy, qz):
+    """``(original index or -1, best, certificate)`` of a search that scanned every point
+    nearer than ``outside`` but those in cells at least ``√skipped`` away, and whose second
+    smallest squared distance offered (with the gate² it started from) was ``second``."""
     # Rounding of the distances (relative to the coordinates) must not fake a certificate.
-    b = max(min(np.sqrt(second), outside) - 1e-12 * (1.0 + abs(qx) + abs(qy) + abs(qz)), 0.0)
+    limit = min(np.sqrt(min(second, skipped)), outside)
+    b = max(limit - 1e-12 * (1.0 + abs(qx) + abs(qy) + abs(qz)), 0.0)
     if found < 0:
         # Everything scanned is at the gate or beyond, and so is the block's border.
         return -1, best, -b
     return order[found], best, b
+
+
+@numba.njit(cache=True, inline="always")
+def _nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, found):
+    """(best squared distance, its sorted rank) after offering the points of ``cell``; ties go
+    to the smaller original index, as everywhere in this module."""
+    for j in range(starts[cell], starts[cell + 1]):
+        d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
+        if d2 < best or (d2 == best and found >= 0 and order[j] < order[found]):
+            best, found = d2, j
+    return best, found
 
 
 @numba.njit(cache=True, inline="always")
@@ -634,17 +673,6 @@ def _two_nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, second, 
         elif d2 < second:
             second = d2
     return best, second, found
-
-
-@numba.njit(cache=True, inline="always")
-def _nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, found):
-    """(best squared distance, its sorted rank) after offering the points of ``cell``; ties go
-    to the smaller original index, as everywhere in this module."""
-    for j in range(starts[cell], starts[cell + 1]):
-        d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
-        if d2 < best or (d2 == best and found >= 0 and order[j] < order[found]):
-            best, found = d2, j
-    return best, found
 
 
 @numba.njit(cache=True, parallel=True)
