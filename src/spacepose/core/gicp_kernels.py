@@ -11,7 +11,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from spacepose.core.grid import certified_nearest
+from spacepose.core.grid import move_and_match
 
 # Rows per chunk of the compiled sums (fixed: so is the sum order).
 CHUNK = 512
@@ -131,14 +131,7 @@ def gicp_pass_kernel(
         RC = np.empty((3, 3))
         p = np.empty(3)
         for i in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
-            for a in range(3):
-                p[a] = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
-            j, d2, bound = certified_nearest(
-                grid, rings, p[0], p[1], p[2], gate, hint[i], anchors[i], bounds[i]
-            )
-            if not np.isnan(bound):
-                bounds[i] = bound
-                anchors[i, 0], anchors[i, 1], anchors[i, 2] = p[0], p[1], p[2]
+            j, d2 = move_and_match(grid, rings, src, R, t, gate, hint, anchors, bounds, i, p)
             nearest[i] = j
             if j < 0:
                 continue

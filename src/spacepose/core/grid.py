@@ -532,6 +532,23 @@ def certified_nearest(grid, rings, qx, qy, qz, gate, hint, anchor, bound):
 
 
 @numba.njit(cache=True, inline="always")
+def move_and_match(grid, rings, src, R, t, gate, hint, anchors, bounds, i, q):
+    """Move source point ``i`` into ``q`` (3,) (``R p + t``) and find its nearest indexed point
+    within the gate by :func:`certified_nearest` from ``hint[i]`` and its certificate
+    (``anchors[i]``, ``bounds[i]``, renewed in place when it searched): ICP's and GICP's
+    compiled passes. Returns ``(original index or -1, squared distance)``."""
+    for a in range(3):
+        q[a] = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
+    j, d2, bound = certified_nearest(
+        grid, rings, q[0], q[1], q[2], gate, hint[i], anchors[i], bounds[i]
+    )
+    if not np.isnan(bound):
+        bounds[i] = bound
+        anchors[i, 0], anchors[i, 1], anchors[i, 2] = q[0], q[1], q[2]
+    return j, d2
+
+
+@numba.njit(cache=True, inline="always")
 def _hinted(grid, qx, qy, qz, gate, hint):
     """(squared distance, sorted rank) of the hint when it lies strictly within the gate, else
     (gate², -1)."""

@@ -24,7 +24,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, check_rows
-from spacepose.core.grid import VoxelIndex, certified_nearest, numba_threads
+from spacepose.core.grid import VoxelIndex, move_and_match, numba_threads
 from spacepose.core.neighbors import SearchIndex, hybrid
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.registration import RegistrationResult, kabsch
@@ -364,14 +364,7 @@ def _plane_matches_kernel(
         q = np.empty(3)
         h = np.empty(6)
         for i in range(c * _SYSTEM_CHUNK, min(m, (c + 1) * _SYSTEM_CHUNK)):
-            for a in range(3):
-                q[a] = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
-            j, d2, bound = certified_nearest(
-                grid, rings, q[0], q[1], q[2], gate, hint[i], anchors[i], bounds[i]
-            )
-            if not np.isnan(bound):
-                bounds[i] = bound
-                anchors[i, 0], anchors[i, 1], anchors[i, 2] = q[0], q[1], q[2]
+            j, d2 = move_and_match(grid, rings, src, R, t, gate, hint, anchors, bounds, i, q)
             nearest[i] = j
             if j >= 0:
                 acc[28] += 1.0
