@@ -26,8 +26,7 @@ from pydantic import Field, PositiveFloat
 
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
-from spacepose.core.grid import VoxelIndex, numba_threads
-from spacepose.core.voxel import find_cell
+from spacepose.core.grid import VoxelIndex, cell_candidates, numba_threads
 from spacepose.errors import InputError
 
 N_BINS = 11
@@ -269,37 +268,12 @@ def _search_spfh(grid, normals, offsets, radius, first, last, nbr, d2, counts, s
     neighbours' sorted ranks, ``d2`` with their squared distances, ``counts`` with how many, and
     ``spfh`` (rows by sorted rank) with each point's simplified histograms.
     """
-    points, order, starts, cell_keys, table, bits, _, _, dims, _ = grid
+    points, order, starts, _, _, _, _, _, _, _ = grid
     r2 = radius * radius
     base = starts[first]
     for c in numba.prange(first, last):
-        key = cell_keys[c]
-        cz = key % dims[2]
-        cy = (key // dims[2]) % dims[1]
-        cx = key // (dims[2] * dims[1])
-        total = 0
-        run_first = np.empty(len(offsets), dtype=np.int64)
-        run_last = np.empty(len(offsets), dtype=np.int64)
-        runs = 0
-        for o in range(len(offsets)):
-            x, y, z = cx + offsets[o, 0], cy + offsets[o, 1], cz + offsets[o, 2]
-            if not (0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]):
-                continue
-            rank = find_cell(table, cell_keys, bits, (x * dims[1] + y) * dims[2] + z)
-            if rank >= 0:
-                run_first[runs], run_last[runs] = starts[rank], starts[rank + 1]
-                total += starts[rank + 1] - starts[rank]
-                runs += 1
-        # The candidates copied once per cell, one array per axis: a query's distances to all
-        # of them then run as one vectorised loop.
-        cand = np.empty(total, dtype=np.int64)
-        cand_x, cand_y, cand_z = np.empty(total), np.empty(total), np.empty(total)
-        m = 0
-        for r in range(runs):
-            for j in range(run_first[r], run_last[r]):
-                cand[m] = j
-                cand_x[m], cand_y[m], cand_z[m] = points[j, 0], points[j, 1], points[j, 2]
-                m += 1
+        _, _, _, cand, cand_x, cand_y, cand_z = cell_candidates(grid, offsets, c)
+        total = len(cand)
         dd = np.empty(total)
         found = np.empty(total, dtype=np.int64)
         hist = np.empty(N_FEATURES)

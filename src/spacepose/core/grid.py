@@ -722,6 +722,43 @@ def _near_first(reach: int) -> NDArray[np.int64]:
     return offsets[np.argsort(np.abs(offsets).sum(axis=1), kind="stable")]
 
 
+@numba.njit(cache=True, inline="always")
+def cell_candidates(grid, offsets, c):
+    """The points of the cells at ``offsets`` (K, 3) from sorted cell ``c``, in cell order.
+
+    Returns ``c``'s cell coordinates and the candidates' sorted ranks and coordinates, one array
+    per axis, copied once per cell: a query's distances to all of them then run as one
+    vectorised loop (13 % faster than point by point).
+    """
+    points, _, starts, cell_keys, table, bits, _, _, dims, _ = grid
+    key = cell_keys[c]
+    cz = key % dims[2]
+    cy = (key // dims[2]) % dims[1]
+    cx = key // (dims[2] * dims[1])
+    first = np.empty(len(offsets), dtype=np.int64)
+    last = np.empty(len(offsets), dtype=np.int64)
+    runs = total = 0
+    for o in range(len(offsets)):
+        x, y, z = cx + offsets[o, 0], cy + offsets[o, 1], cz + offsets[o, 2]
+        if not (0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]):
+            continue
+        rank = find_cell(table, cell_keys, bits, (x * dims[1] + y) * dims[2] + z)
+        if rank >= 0:
+            first[runs] = starts[rank]
+            last[runs] = starts[rank + 1]
+            total += last[runs] - first[runs]
+            runs += 1
+    cand = np.empty(total, dtype=np.int64)
+    cand_x, cand_y, cand_z = np.empty(total), np.empty(total), np.empty(total)
+    m = 0
+    for r in range(runs):
+        for j in range(first[r], last[r]):
+            cand[m] = j
+            cand_x[m], cand_y[m], cand_z[m] = points[j, 0], points[j, 1], points[j, 2]
+            m += 1
+    return cx, cy, cz, cand, cand_x, cand_y, cand_z
+
+
 @numba.njit(cache=True, parallel=True)
 def _self_knn(grid, k, offsets, w, d2, idx, unsure):
     """k nearest of every indexed point among the cells at ``offsets`` (:func:`_near_first`,
@@ -732,35 +769,10 @@ def _self_knn(grid, k, offsets, w, d2, idx, unsure):
     than offered one by one to a sorted buffer (whose shifts took about 70 % of the time): the
     bands below the k-th's are taken whole and the k-th's band gives its best. The answer is
     the buffer's to the bit: sorted by (squared distance, index)."""
-    points, order, starts, cell_keys, table, bits, origin, h, dims, _ = grid
+    points, order, starts, cell_keys, _, _, origin, h, dims, _ = grid
     for c in numba.prange(len(cell_keys)):
-        key = cell_keys[c]
-        cz = key % dims[2]
-        cy = (key // dims[2]) % dims[1]
-        cx = key // (dims[2] * dims[1])
-        first = np.empty(len(offsets), dtype=np.int64)
-        last = np.empty(len(offsets), dtype=np.int64)
-        runs = total = 0
-        for o in range(len(offsets)):
-            x, y, z = cx + offsets[o, 0], cy + offsets[o, 1], cz + offsets[o, 2]
-            if not (0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]):
-                continue
-            rank = find_cell(table, cell_keys, bits, (x * dims[1] + y) * dims[2] + z)
-            if rank >= 0:
-                first[runs] = starts[rank]
-                last[runs] = starts[rank + 1]
-                total += last[runs] - first[runs]
-                runs += 1
-        # The candidates copied once per cell, one array per axis: the distances of a query to
-        # all of them then run as one vectorised loop (13 % faster than point by point).
-        cand = np.empty(total, dtype=np.int64)
-        cand_x, cand_y, cand_z = np.empty(total), np.empty(total), np.empty(total)
-        m = 0
-        for r in range(runs):
-            for j in range(first[r], last[r]):
-                cand[m] = j
-                cand_x[m], cand_y[m], cand_z[m] = points[j, 0], points[j, 1], points[j, 2]
-                m += 1
+        cx, cy, cz, cand, cand_x, cand_y, cand_z = cell_candidates(grid, offsets, c)
+        total = len(cand)
         dd = np.empty(total)
         band = np.empty(total, dtype=np.int64)
         counts = np.empty(_BANDS + 1, dtype=np.int64)
