@@ -31,14 +31,18 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from spacepose.core import se3
-from spacepose.core.ekf import N_FIXED
 from spacepose.core.fused_navigation import GATE_REASON, FusedNavigator, FusionConfig
 from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.navigation import scenario_geometry
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register
-from spacepose.tools.experiments.yu_nav import navigation_config, score, truth_state
+from spacepose.tools.experiments.yu_nav import (
+    nav_record,
+    navigation_config,
+    record_filter,
+    score,
+)
 
 _MODELS = Path(__file__).resolve().parents[4] / "data" / "models"
 # Target name -> (mesh file or None for the default target, scale, measurement kinds).
@@ -111,17 +115,7 @@ def navigate_fused_with_truth(
     nav = FusedNavigator(catalogue, n, R_O_C, fusion, None if model_free else sim.model_cloud())
     truth_rows = sim.truth
     N = len(sim)
-    out: dict[str, Any] = {
-        "t": sim.timestamps.copy(),
-        "errors": np.full((N, N_FIXED), np.nan),
-        "sigmas": np.full((N, N_FIXED), np.nan),
-        "nees": np.full(N, np.nan),
-        "coarse_att_deg": np.full(N, np.nan),
-        "raw_att_deg": np.full(N, np.nan),
-        "coarse_pos_mm": np.full((N, 3), np.nan),
-        "status": [],
-        "n_rect": np.zeros(N, dtype=int),
-        "truth": sim.truth,
+    out = nav_record(sim) | {
         "tracker_error": np.full((N, 6), np.nan),
         "tracker_sigma": np.full((N, 6), np.nan),
         "tracker_nees": np.full(N, np.nan),
@@ -146,10 +140,7 @@ def navigate_fused_with_truth(
         if ekf is not None:
             if model_free and truth_rows is sim.truth:
                 truth_rows = relabelled_truth(sim.truth, nav.T_F_B, sim.T_sensor_target[0])
-            truth = truth_state(truth_rows[k])
-            out["errors"][k] = ekf.error_state(truth)
-            out["sigmas"][k] = np.sqrt(np.diag(ekf.P)[:N_FIXED])
-            out["nees"][k] = ekf.nees(truth)
+            record_filter(out, k, ekf, truth_rows[k])
     out["ekf"] = nav.ekf
     out["truth"] = truth_rows
     return out

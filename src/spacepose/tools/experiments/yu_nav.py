@@ -33,9 +33,16 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from spacepose.core.ekf import INERTIA, N_FIXED, NavState, k_from_params, params_from_k
+from spacepose.core.ekf import (
+    INERTIA,
+    N_FIXED,
+    NavState,
+    RelativeNavEKF,
+    k_from_params,
+    params_from_k,
+)
 from spacepose.core.navigation import NavigationConfig, RelativeNavigator, scenario_geometry
-from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
+from spacepose.core.sim.scenarios import OrbitConfig, Simulation, simulate_orbit
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register
 from spacepose.tools.plots import error_with_envelope, figure_png
@@ -124,19 +131,7 @@ def navigate_with_truth(
     catalogue = parse_catalogue(scenario, nav_config.rectangle)
     nav = RelativeNavigator(catalogue, n, R_O_C, nav_config, sim.model_cloud())
     N = len(sim)
-    out: dict[str, Any] = {
-        "t": sim.timestamps.copy(),
-        "errors": np.full((N, N_FIXED), np.nan),
-        "sigmas": np.full((N, N_FIXED), np.nan),
-        "nees": np.full(N, np.nan),
-        "nees_terms": np.full((N, N_FIXED), np.nan),
-        "coarse_att_deg": np.full(N, np.nan),
-        "raw_att_deg": np.full(N, np.nan),
-        "coarse_pos_mm": np.full((N, 3), np.nan),
-        "status": [],
-        "n_rect": np.zeros(N, dtype=int),
-        "truth": sim.truth,
-    }
+    out = nav_record(sim)
     for k in range(N):
         frame = sim.frame(k)
         row = nav.step(frame.timestamp, frame.cloud)
@@ -150,15 +145,39 @@ def navigate_with_truth(
                 out[key][k] = np.rad2deg(dR.magnitude())
             out["coarse_pos_mm"][k] = 1e3 * (row.coarse_T_sensor_model[:3, 3] - T_true[:3, 3])
         if nav.ekf is not None:
-            truth = truth_state(sim.truth[k])
-            out["errors"][k] = nav.ekf.error_state(truth)
-            out["sigmas"][k] = np.sqrt(np.diag(nav.ekf.P)[:N_FIXED])
-            out["nees"][k] = nav.ekf.nees(truth)
-            e = out["errors"][k]
-            out["nees_terms"][k] = e * np.linalg.solve(nav.ekf.P[:N_FIXED, :N_FIXED], e)
+            record_filter(out, k, nav.ekf, sim.truth[k])
     out["ekf"] = nav.ekf
     out["process_noise"] = scenario.get("process_noise")
     return out
+
+
+def nav_record(sim: Simulation) -> dict[str, Any]:
+    """Per-frame arrays of a navigated run (NaN until filled): times, the filter's errors, σ,
+    NEES and its terms, the coarse pose's errors, statuses, rectangle counts, the truth."""
+    N = len(sim)
+    return {
+        "t": sim.timestamps.copy(),
+        "errors": np.full((N, N_FIXED), np.nan),
+        "sigmas": np.full((N, N_FIXED), np.nan),
+        "nees": np.full(N, np.nan),
+        "nees_terms": np.full((N, N_FIXED), np.nan),
+        "coarse_att_deg": np.full(N, np.nan),
+        "raw_att_deg": np.full(N, np.nan),
+        "coarse_pos_mm": np.full((N, 3), np.nan),
+        "status": [],
+        "n_rect": np.zeros(N, dtype=int),
+        "truth": sim.truth,
+    }
+
+
+def record_filter(out: dict[str, Any], k: int, ekf: RelativeNavEKF, truth_row: NDArray) -> None:
+    """Frame ``k``'s filter errors against one truth row, their σ, NEES and NEES terms."""
+    truth = truth_state(truth_row)
+    e = ekf.error_state(truth)
+    out["errors"][k] = e
+    out["sigmas"][k] = np.sqrt(np.diag(ekf.P)[:N_FIXED])
+    out["nees"][k] = ekf.nees(truth)
+    out["nees_terms"][k] = e * np.linalg.solve(ekf.P[:N_FIXED, :N_FIXED], e)
 
 
 def score(result: dict[str, Any]) -> dict[str, Any]:
