@@ -98,9 +98,10 @@ class NavigationConfig(StageConfig):
     )
     area_weighted_centroid: bool = Field(
         True,
-        description="Weight each point by the area its pixel covers (∝ range³ on a plane): a "
-        "range image samples a tilted face more densely where it is nearer, which pulls the "
-        "plain mean towards the sensor (about 2 cm at 25 m on the orbit run).",
+        description="Weight each point by the area its pinhole pixel covers (∝ depth³ on a "
+        "plane): a range image samples a tilted face more densely where it is nearer and more "
+        "sparsely off the axis, which pulls the plain mean (about 2 cm at 25 m on the orbit "
+        "run; weights ∝ range³ left 4 cm along the wing and a 5 mm bias of the CoM).",
     )
 
     def plane_config(self) -> PlaneConfig:
