@@ -197,6 +197,10 @@ class RelativeNavEKF:
         self.n_accepted = 0
         self.n_rejected = 0
         self.last_nis: float = float("nan")
+        # The last update's innovation (m,) and its prediction covariance H P Hᵀ (m, m), before
+        # the update: what an innovation-based noise estimate needs (innovation_scale).
+        self.last_innovation: NDArray[np.float64] = np.zeros(0)
+        self.last_HPHt: NDArray[np.float64] = np.zeros((0, 0))
 
     # ----------------------------------------------------------------- state access
     @property
@@ -439,9 +443,10 @@ class RelativeNavEKF:
     def _update(
         self, residual: NDArray[np.float64], H: NDArray[np.float64], Rm: NDArray[np.float64]
     ) -> bool:
-        S = H @ self.P @ H.T + Rm
+        HPHt = H @ self.P @ H.T
+        S = HPHt + Rm
         nis = float(residual @ np.linalg.solve(S, residual))
-        self.last_nis = nis
+        self.last_nis, self.last_innovation, self.last_HPHt = nis, residual, HPHt
         gate = self.config.gate_probability
         if gate < 1.0 and nis > chi2.ppf(gate, len(residual)):
             self.n_rejected += 1

@@ -38,6 +38,7 @@ from spacepose.core.attitude_fix import (
 )
 from spacepose.core.cloud import PointCloud
 from spacepose.core.ekf import NavState, RelativeNavEKF
+from spacepose.core.innovation_scale import InnovationScale
 from spacepose.core.lost_in_space import (
     FrameEvidence,
     ModelSurface,
@@ -183,6 +184,9 @@ class _Track:
     ekf: RelativeNavEKF
     deficits: list[float] = field(default_factory=list)
     explained: float = float("nan")
+    # Measured factors on the attitude and centroid covariance models (innovation_scale).
+    attitude_scale: InnovationScale = field(default_factory=InnovationScale)
+    centroid_scale: InnovationScale = field(default_factory=InnovationScale)
 
 
 class RelativeNavigator:
@@ -222,6 +226,7 @@ class RelativeNavigator:
         self.model = None if model is None else ModelSurface.from_cloud(model)
         self.tracks: list[_Track] = []
         self._confident = False
+        self._steps = 0  # frames seen, to pair a face's innovations in consecutive frames
 
     @property
     def ekf(self) -> RelativeNavEKF | None:
@@ -249,7 +254,8 @@ class RelativeNavigator:
             self.tracks = [_Track(self._start_filter(t, T)) for T in self._start(t, cloud, rects)]
             if not self.tracks:
                 return NavRow(t, None, None, 0, "waiting")
-        used = [self._update(track.ekf, self._assign(track.ekf, rects)) for track in self.tracks]
+        self._steps += 1
+        used = [self._update(track, self._assign(track.ekf, rects)) for track in self.tracks]
         if len(self.tracks) > 1 and cloud is not None:
             used = self._prune(cloud, rects, used)
         lead = self.tracks[0].ekf
@@ -371,20 +377,32 @@ class RelativeNavigator:
         return True
 
     def _update(
-        self, ekf: RelativeNavEKF, rects: list[tuple[RectangleMeasurement, CatalogueEntry]]
+        self, track: _Track, rects: list[tuple[RectangleMeasurement, CatalogueEntry]]
     ) -> int:
-        """Attitude then centroid updates of every rectangle; the number of rectangles used."""
-        used = 0
+        """Attitude then centroid updates of every rectangle; the number of rectangles used.
+
+        Each covariance is the measurement model's times the factor the track has measured on
+        its own innovations so far (:class:`InnovationScale`: noisier than modelled, or
+        correlated from frame to frame).
+        """
+        ekf, used = track.ekf, 0
+        att_factor, centroid_factor = track.attitude_scale.factor, track.centroid_scale.factor
         # Largest faces first: they constrain the attitude best before the others are gated.
         for m, e in sorted(rects, key=lambda p: -p[0].n_points):
             T = coarse_target_pose(m, e, ekf.predict_pose()[:3, :3])
             R_I_B = dynamics.R_I_O(self.n, ekf.t) @ self.R_O_C @ T[:3, :3]
-            ok_att = ekf.update_attitude(
-                Rotation.from_matrix(R_I_B).as_quat(), attitude_covariance(m, e, self.config)
-            )
-            ok_c = ekf.update_centroid(
-                e.name, e.centre, m.centroid, centroid_covariance(m, e, self.config)
-            )
+            C_att = attitude_covariance(m, e, self.config)
+            ok_att = ekf.update_attitude(Rotation.from_matrix(R_I_B).as_quat(), C_att * att_factor)
+            if ok_att:
+                track.attitude_scale.add(
+                    e.name, self._steps, ekf.last_innovation, C_att, ekf.last_HPHt
+                )
+            C_c = centroid_covariance(m, e, self.config)
+            ok_c = ekf.update_centroid(e.name, e.centre, m.centroid, C_c * centroid_factor)
+            if ok_c:
+                track.centroid_scale.add(
+                    e.name, self._steps, ekf.last_innovation, C_c, ekf.last_HPHt
+                )
             used += int(ok_att or ok_c)
         return used
 
