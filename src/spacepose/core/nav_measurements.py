@@ -20,6 +20,7 @@ __all__ = [
     "attitude_covariance",
     "centroid_covariance",
     "incidence_cosine",
+    "pixel_area_weights",
 ]
 
 
@@ -105,18 +106,26 @@ def centroid_covariance(
     return C + np.einsum("k,ki,kj->ij", var, axes, axes)
 
 
-def area_weighted_centroid(points: ArrayLike) -> NDArray[np.float64]:
-    """Centroid (3,) of a plane's points from a pinhole range image, each weighted by its
-    pixel's area on the face.
+def pixel_area_weights(points: ArrayLike) -> NDArray[np.float64]:
+    """Surface (N,), up to a common factor, that each point of a pinhole range image stands for
+    on the plane it lies on.
 
     Points in the sensor frame, z along the optical axis. A pinhole pixel at angle α off the
     axis sees the solid angle ``Ω₀ cos³α``; at range r on a plane at distance h from the
     sensor it covers ``Ω₀ cos³α r² / cos(incidence) = Ω₀ cos³α r³ / h = Ω₀ z³ / h`` (with
-    ``z = r cos α``), so weights ``∝ z³`` turn the image-uniform samples into surface-uniform
-    ones, whose mean is the face's centre (methods.md §2.2 assumes the latter). Weighting by
-    ``r³`` instead forgets the ``cos³α`` and pulls a long face towards the axis: 4 cm along the
-    6 m wing of the orbit run, the same way in every frame.
+    ``z = r cos α``), so weights ``∝ z³`` turn the image-uniform samples of one plane into
+    surface-uniform ones, whose mean is the face's centre and whose distribution matrix has
+    the face's axes (methods.md §2.2 assumes both). Weighting by ``r³`` instead forgets the
+    ``cos³α`` and pulls a long face towards the axis: 4 cm along the 6 m wing of the orbit
+    run, the same way in every frame.
     """
     p = np.asarray(points, dtype=np.float64)
-    w = np.abs(p[:, 2]) ** 3
+    return np.abs(p[:, 2]) ** 3
+
+
+def area_weighted_centroid(points: ArrayLike) -> NDArray[np.float64]:
+    """Centroid (3,) of a plane's points from a pinhole range image, each weighted by the
+    surface its pixel covers (:func:`pixel_area_weights`)."""
+    p = np.asarray(points, dtype=np.float64)
+    w = pixel_area_weights(p)
     return w @ p / w.sum()

@@ -22,7 +22,7 @@ stays so, never confidently wrong.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -52,6 +52,7 @@ from spacepose.core.nav_measurements import (
     attitude_covariance,
     centroid_covariance,
     incidence_cosine,
+    pixel_area_weights,
 )
 from spacepose.core.rectangle_search import measure_planes
 from spacepose.core.rectangles import (
@@ -281,19 +282,19 @@ class RelativeNavigator:
     def rectangles(self, cloud: PointCloud) -> Rects:
         """Whole rectangles of a frame (sensor frame) with the catalogue faces of their size.
 
-        The centroid is the area-weighted one when ``config.area_weighted_centroid`` is set.
+        Each face is measured as a surface (every point weighted by its pixel's footprint,
+        :func:`pixel_area_weights`) when ``config.area_weighted_centroid`` is set.
         """
         out = []
-        for found in measure_planes(cloud, self.config.plane_config(), self.config.rectangle):
+        weights = pixel_area_weights(cloud.points) if self.config.area_weighted_centroid else None
+        planes = measure_planes(cloud, self.config.plane_config(), self.config.rectangle, weights)
+        for found in planes:
             entries = candidates(
                 found.measurement, list(self.catalogue.values()), self.config.rectangle
             )
             if not entries:
                 continue
-            m = found.measurement
-            if self.config.area_weighted_centroid:
-                m = replace(m, centroid=area_weighted_centroid(cloud.points[found.support]))
-            out.append((m, entries))
+            out.append((found.measurement, entries))
         return out
 
     def recognise(

@@ -127,7 +127,7 @@ def as_points(cloud_or_points: PointCloud | ArrayLike, what: str = "points") -> 
 
 
 def distribution(
-    points: ArrayLike,
+    points: ArrayLike, weights: ArrayLike | None = None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """Centroid and eigen-decomposition of the distribution matrix (methods.md §2.2).
 
@@ -135,20 +135,28 @@ def distribution(
     ----------
     points
         (N, 3) points, N >= 3, finite.
+    weights
+        Optional (N,) non-negative weights (the surface each point stands for); uniform if None.
 
     Returns
     -------
     centroid
-        (3,) mean point.
+        (3,) mean point (weighted).
     eigenvalues
-        (3,) eigenvalues of ``M = (1/N) Σ (p − c)(p − c)ᵀ``, ascending (m²).
+        (3,) eigenvalues of ``M = Σ w (p − c)(p − c)ᵀ / Σ w``, ascending (m²).
     eigenvectors
         (3, 3) orthonormal eigenvectors as columns, in the same order.
     """
     pts = as_points(points)
-    centroid = pts.mean(axis=0)
-    centred = pts - centroid
-    M = centred.T @ centred / len(pts)
+    if weights is None:
+        centroid = pts.mean(axis=0)
+        centred = pts - centroid
+        M = centred.T @ centred / len(pts)
+    else:
+        w = np.asarray(weights, dtype=np.float64) / np.sum(weights)
+        centroid = w @ pts
+        centred = pts - centroid
+        M = (centred * w[:, None]).T @ centred
     eigenvalues, eigenvectors = np.linalg.eigh(M)
     return centroid, np.clip(eigenvalues, 0.0, None), eigenvectors
 

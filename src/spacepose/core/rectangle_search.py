@@ -61,6 +61,7 @@ def measure_planes(
     cloud_or_points: PointCloud | ArrayLike,
     plane_config: PlaneConfig = PlaneConfig(),
     config: RectangleConfig = RectangleConfig(),
+    weights: ArrayLike | None = None,
 ) -> list[MeasuredPlane]:
     """Extract the planes of a cloud and measure each one's support as a rectangle.
 
@@ -70,6 +71,8 @@ def measure_planes(
         (N, 3) points or a PointCloud in the sensor frame (m).
     plane_config, config
         RANSAC settings; the noise σ, sampling and support of the measurement.
+    weights
+        Optional (N,) surface each point stands for (see :func:`measure_rectangle`).
 
     Returns
     -------
@@ -83,7 +86,8 @@ def measure_planes(
             dense = plane.inliers[dense_support(pts[plane.inliers], plane.normal)]
             if len(dense) >= 3 and not is_collinear(distribution(pts[dense])[1]):
                 support = dense
-        m = measure_rectangle(pts[support], config.sigma, config.sampling)
+        w = None if weights is None else np.asarray(weights, np.float64)[support]
+        m = measure_rectangle(pts[support], config.sigma, config.sampling, w)
         out.append(MeasuredPlane(plane, support, m))
     return out
 

@@ -228,7 +228,10 @@ class RectangleMeasurement:
 
 
 def measure_rectangle(
-    points: ArrayLike, sigma: float = 0.0, sampling: Literal["grid", "random"] = "grid"
+    points: ArrayLike,
+    sigma: float = 0.0,
+    sampling: Literal["grid", "random"] = "grid",
+    weights: ArrayLike | None = None,
 ) -> RectangleMeasurement:
     """Centroid, sides, moment ratios and plane frame of the points of one plane.
 
@@ -246,6 +249,10 @@ def measure_rectangle(
         their edges are far sharper, so the sides and the centre come from the 0.5 % and 99.5 %
         quantiles along each in-plane axis, ``side = (hi − lo) / 0.99`` (scatter about
         ``s √(2·0.005/N)``). In-plane noise widens those edges: keep σ well below the spacing.
+    weights
+        Optional (N,) surface each point stands for (a range image's pixel footprint,
+        :func:`spacepose.core.nav_measurements.pixel_area_weights`): the centroid, the
+        distribution matrix and the moments are then those of the surface, not of the samples.
 
     Raises
     ------
@@ -255,7 +262,7 @@ def measure_rectangle(
         Collinear or coincident points (no plane, so no normal).
     """
     pts = np.asarray(points, dtype=np.float64)
-    centroid, eigenvalues, V = distribution(pts)
+    centroid, eigenvalues, V = distribution(pts, weights)
     if is_collinear(eigenvalues):
         raise DegenerateGeometryError("rectangle points are collinear or coincident: no plane")
     normal = V[:, 0]
@@ -269,8 +276,11 @@ def measure_rectangle(
     a, b = np.sqrt(12.0 * np.clip(var, 0.0, None))
     # In-plane coordinates along the short and long side.
     uv = (pts - centroid) @ R[:, :2]
-    m2 = np.mean(uv**2, axis=0)
-    m4 = np.mean(uv**4, axis=0)
+    if weights is None:
+        m2, m4 = np.mean(uv**2, axis=0), np.mean(uv**4, axis=0)
+    else:
+        w = np.asarray(weights, dtype=np.float64) / np.sum(weights)
+        m2, m4 = w @ uv**2, w @ uv**4
     # Remove Gaussian noise: E[(u+n)⁴] = E[u⁴] + 6 E[u²] σ² + 3σ⁴ with E[(u+n)²] = E[u²] + σ².
     m2c = m2 - s2
     m4c = m4 - 6.0 * m2c * s2 - 3.0 * s2**2
