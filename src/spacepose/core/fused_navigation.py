@@ -12,7 +12,10 @@ Per frame, with ``measurements``:
   prior: the tracker's first pose comes from coarse FPFH + RANSAC registration on the model);
   when the gate has rejected ``restart_after`` consecutive ``ok`` poses at least
   ``restart_deg`` from its prediction the filter restarts from the tracker (a start on a wrong
-  coarse pose is otherwise never undone);
+  coarse pose is otherwise never undone). The pose covariance is the tracker's times
+  ``pose_sigma_scale²``, times the factor measured on the pose innovations
+  (:class:`spacepose.core.innovation_scale.InnovationScale`; with rectangles beside them, the
+  tracker's slow errors show and the poses weigh less);
 * ``both``: the rectangle pipeline runs first (its lost-in-space start and its updates), then
   the registration pose updates the same filter; while no rectangle has started the filter, a
   registration pose starts it.
@@ -47,6 +50,7 @@ from spacepose.core import dynamics
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
 from spacepose.core.ekf import NavState, RelativeNavEKF
+from spacepose.core.innovation_scale import InnovationScale
 from spacepose.core.model_free_start import model_free_start
 from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.navigation import NavRow, RelativeNavigator, start_filter
@@ -213,6 +217,10 @@ class FusedNavigator:
         self._poses_used = 0
         self._rejected_ok = 0
         self._last_ok_used = False
+        # Measured factor on the scaled pose covariance (innovation_scale) and the frame count
+        # that pairs consecutive poses.
+        self._pose_noise = InnovationScale()
+        self._frames = 0
         # Model-free: the batch of (t, T_k0) before the start, then the body frame in F.
         self._batch: list[tuple[float, np.ndarray]] | None = [] if model is None else None
         self.T_F_B: np.ndarray | None = None
@@ -247,6 +255,7 @@ class FusedNavigator:
         if offered:
             if self.rectangles is None and self._rejected_ok >= c.restart_after:
                 ekf = self._ekf = None
+                self._pose_noise = InnovationScale()  # measured on the abandoned start
             T_meas = track.T_sensor_target
             if self.T_F_B is not None:
                 T_meas = T_meas @ self.T_F_B
@@ -255,8 +264,16 @@ class FusedNavigator:
             elif ekf is not None:
                 scale = c.pose_sigma_scale if self.T_F_B is None else c.model_free_sigma_scale
                 cov = scale**2 * track.covariance
-                used = ekf.update_pose(T_meas, cov)
+                used = ekf.update_pose(T_meas, cov * self._pose_noise.factor)
                 nis = ekf.last_nis
+                # With rectangles beside them every pose's innovation counts, the gated ones
+                # too (counting only those the gate let through understates the tracker's
+                # slow errors); alone, a rejected pose may be the filter's fault (a wrong
+                # start, which the restart below undoes) and must not widen the poses' σ.
+                if used or self.rectangles is not None:
+                    self._pose_noise.add(
+                        "pose", self._frames, ekf.last_innovation, cov, ekf.last_HPHt
+                    )
                 self._poses_used += int(used)
                 far = _angle_deg(track.T_sensor_target, T_pred) >= c.restart_deg
                 counts = not used and track.status == "ok" and far
@@ -265,6 +282,7 @@ class FusedNavigator:
                     reason = f"{GATE_REASON}: NIS {nis:.1f} > {self._gate:.1f}"
                     track = replace(track, status="degraded", reasons=(*track.reasons, reason))
         self._last_ok_used = bool(used) and track.status == "ok"
+        self._frames += 1
         return FusedRow(self._nav_row(t, row, bool(used), started), track, used, nis, seeded)
 
     def run(self, frames: Iterable[tuple[float, PointCloud | None]]) -> list[FusedRow]:
