@@ -411,3 +411,13 @@ def test_pixel_area_weights_measure_a_tilted_face_as_a_surface() -> None:
     assert errors["plain"][0] > 0.02 and errors["plain"][1] > 0.02 and errors["plain"][2] > 0.1
     assert errors["weighted"][0] < 0.005
     assert errors["weighted"][1] < 0.003 and errors["weighted"][2] < 0.002
+
+
+def test_pixel_area_weights_fall_back_to_range_cubed_off_a_pinhole_image() -> None:
+    from spacepose.core.nav_measurements import pixel_area_weights
+
+    pts = np.array([[3.0, 0.0, 4.0], [0.0, 1.0, 2.0]])
+    np.testing.assert_allclose(pixel_area_weights(pts), [64.0, 8.0])  # depth³
+    # A point behind the image plane: no pinhole image, so range³ (a scanner's solid angle).
+    behind = np.array([[3.0, 0.0, 4.0], [0.0, 2.0, -1.0]])
+    np.testing.assert_allclose(pixel_area_weights(behind), [125.0, 5.0**1.5])

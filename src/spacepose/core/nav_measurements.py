@@ -118,9 +118,15 @@ def pixel_area_weights(points: ArrayLike) -> NDArray[np.float64]:
     the face's axes (methods.md §2.2 assumes both). Weighting by ``r³`` instead forgets the
     ``cos³α`` and pulls a long face towards the axis: 4 cm along the 6 m wing of the orbit
     run, the same way in every frame.
+
+    A cloud with a point at or behind the image plane (z ≤ 0) is no pinhole image (a scanner
+    turning about its axis, or a cloud in another frame): each point then stands for a constant
+    solid angle, and the weights are ``r³``.
     """
     p = np.asarray(points, dtype=np.float64)
-    return np.abs(p[:, 2]) ** 3
+    if len(p) and np.all(p[:, 2] > 0.0):
+        return p[:, 2] ** 3
+    return np.linalg.norm(p, axis=1) ** 3
 
 
 def area_weighted_centroid(points: ArrayLike) -> NDArray[np.float64]:
