@@ -7,7 +7,8 @@ in nearly the same way, so its attitude error repeats. A Kalman filter that take
 independent averages them as if they were, and grows over-confident in what it learns slowly
 (rate, inertia ratios, centre of mass).
 
-:class:`InnovationScale` measures both effects on the innovations ``ν`` the filter has accepted:
+:class:`InnovationScale` measures both effects on the innovations ``ν`` it is given (those the
+filter accepted, or every one when another kind of measurement holds the prediction):
 
 - the variance ratio by covariance matching: ``E[νᵀ R⁻¹ ν] = m f + tr(R⁻¹ H P Hᵀ)`` when the
   true covariance is ``f R``, so ``f̂ = mean(νᵀ R⁻¹ ν − tr(R⁻¹ H P Hᵀ)) / m``;
@@ -37,12 +38,12 @@ _MAX_LAG = 50
 
 
 class InnovationScale:
-    """Running factor on one kind of measurement covariance, from the accepted innovations.
+    """Running factor on one kind of measurement covariance, from the filter's innovations.
 
     Parameters
     ----------
     window
-        Number of the latest accepted updates kept.
+        Number of the latest innovations kept.
     min_samples
         Updates needed before the factor leaves 1.
     """
@@ -60,7 +61,7 @@ class InnovationScale:
         R: ArrayLike,
         HPHt: ArrayLike,
     ) -> None:
-        """Record one accepted update.
+        """Record one update's innovation.
 
         Parameters
         ----------
@@ -89,10 +90,14 @@ class InnovationScale:
             return 1.0
         return float(np.mean([row[3] for row in self._rows]))
 
-    def correlation(self, lag: int) -> float:
+    def correlation(
+        self, lag: int, index: dict[tuple[str, int], NDArray[np.float64]] | None = None
+    ) -> float:
         """``ρ_lag``: correlation of a source's whitened innovations ``lag`` frames apart
-        (pooled over sources and components; 0 without a pair)."""
-        index = {(row[0], row[1]): row[2] for row in self._rows}
+        (pooled over sources and components; 0 without a pair). ``index`` is the rows keyed
+        by (source, step), built here when not given."""
+        if index is None:
+            index = {(row[0], row[1]): row[2] for row in self._rows}
         num = den_a = den_b = 0.0
         for (source, step), w in index.items():
             later = index.get((source, step + lag))
@@ -107,9 +112,10 @@ class InnovationScale:
         """``τ``, in frames (≥ 1): how many consecutive innovations count as one."""
         if len(self._rows) < self.min_samples:
             return 1.0
+        index = {(row[0], row[1]): row[2] for row in self._rows}
         tau = 1.0
         for lag in range(1, _MAX_LAG + 1):
-            tau += 2.0 * self.correlation(lag)
+            tau += 2.0 * self.correlation(lag, index)
             if lag >= _WINDOW_C * tau:
                 break
         return max(tau, 1.0)
