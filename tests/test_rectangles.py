@@ -421,3 +421,22 @@ def test_pixel_area_weights_fall_back_to_range_cubed_off_a_pinhole_image() -> No
     # A point behind the image plane: no pinhole image, so range³ (a scanner's solid angle).
     behind = np.array([[3.0, 0.0, 4.0], [0.0, 2.0, -1.0]])
     np.testing.assert_allclose(pixel_area_weights(behind), [125.0, 5.0**1.5])
+
+
+@pytest.mark.parametrize(
+    "weights, message",
+    [
+        (np.ones(3), r"weights must be \(4,\)"),
+        (np.array([1.0, -1.0, 1.0, 1.0]), "non-negative"),
+        (np.array([1.0, np.nan, 1.0, 1.0]), "finite"),
+        (np.zeros(4), "all 0"),
+    ],
+)
+def test_bad_weights_raise_input_errors(weights, message) -> None:
+    from spacepose.core.rectangle_search import measure_planes
+
+    square = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [0.0, 1.0, 1.0], [1.0, 1.0, 1.0]])
+    with pytest.raises(InputError, match=message):
+        measure_rectangle(square, weights=weights)
+    with pytest.raises(InputError, match=message):
+        measure_planes(square, weights=weights)

@@ -90,32 +90,48 @@ class InnovationScale:
             return 1.0
         return float(np.mean([row[3] for row in self._rows]))
 
-    def correlation(
-        self, lag: int, index: dict[tuple[str, int], NDArray[np.float64]] | None = None
-    ) -> float:
-        """``ρ_lag``: correlation of a source's whitened innovations ``lag`` frames apart
-        (pooled over sources and components; 0 without a pair). ``index`` is the rows keyed
-        by (source, step), built here when not given."""
-        if index is None:
-            index = {(row[0], row[1]): row[2] for row in self._rows}
-        num = den_a = den_b = 0.0
-        for (source, step), w in index.items():
-            later = index.get((source, step + lag))
-            if later is not None:
-                num += float(w @ later)
-                den_a += float(w @ w)
-                den_b += float(later @ later)
-        return num / np.sqrt(den_a * den_b) if den_a > 0.0 and den_b > 0.0 else 0.0
+    def correlations(self, max_lag: int = _MAX_LAG) -> NDArray[np.float64]:
+        """``ρ_1 … ρ_max_lag`` (max_lag,): correlation of a source's whitened innovations
+        ``lag`` frames apart, pooled over sources and components (0 for a lag without a pair).
+
+        Each source's rows are laid on a dense run of steps, so every lag is one product of
+        two shifted arrays.
+        """
+        num, den_a, den_b = np.zeros((3, max_lag))
+        sources: dict[str, list[tuple[int, NDArray[np.float64]]]] = {}
+        for source, step, w, _ in self._rows:
+            sources.setdefault(source, []).append((step, w))
+        for rows in sources.values():
+            steps = np.array([step for step, _ in rows])
+            first = int(steps.min())
+            dense = np.zeros((int(steps.max()) - first + 1, len(rows[0][1])))
+            dense[steps - first] = [w for _, w in rows]  # a repeated step keeps its last row
+            present = np.zeros(len(dense), dtype=bool)
+            present[steps - first] = True
+            for lag in range(1, min(max_lag, len(dense) - 1) + 1):
+                both = present[:-lag] & present[lag:]
+                a, b = dense[:-lag][both], dense[lag:][both]
+                num[lag - 1] += np.sum(a * b)
+                den_a[lag - 1] += np.sum(a * a)
+                den_b[lag - 1] += np.sum(b * b)
+        rho = np.zeros(max_lag)
+        ok = (den_a > 0.0) & (den_b > 0.0)
+        rho[ok] = num[ok] / np.sqrt(den_a[ok] * den_b[ok])
+        return rho
+
+    def correlation(self, lag: int) -> float:
+        """``ρ_lag`` alone (see :meth:`correlations`)."""
+        return float(self.correlations(lag)[lag - 1])
 
     @property
     def correlation_time(self) -> float:
         """``τ``, in frames (≥ 1): how many consecutive innovations count as one."""
         if len(self._rows) < self.min_samples:
             return 1.0
-        index = {(row[0], row[1]): row[2] for row in self._rows}
+        rho = self.correlations()
         tau = 1.0
         for lag in range(1, _MAX_LAG + 1):
-            tau += 2.0 * self.correlation(lag, index)
+            tau += 2.0 * rho[lag - 1]
             if lag >= _WINDOW_C * tau:
                 break
         return max(tau, 1.0)

@@ -126,6 +126,25 @@ def as_points(cloud_or_points: PointCloud | ArrayLike, what: str = "points") -> 
     return _finite_points(cloud_or_points, what, min_points=3)
 
 
+def normalised_weights(weights: ArrayLike, n: int) -> NDArray[np.float64]:
+    """Weights (n,) scaled to sum to 1.
+
+    Raises
+    ------
+    InputError
+        Not n finite non-negative numbers, or all of them 0.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (n,):
+        raise InputError(f"weights must be ({n},) (one per point), got shape {w.shape}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0.0):
+        raise InputError("weights must be finite and non-negative")
+    total = float(w.sum())
+    if total <= 0.0:
+        raise InputError("weights are all 0: no point counts")
+    return w / total
+
+
 def distribution(
     points: ArrayLike, weights: ArrayLike | None = None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
@@ -137,6 +156,11 @@ def distribution(
         (N, 3) points, N >= 3, finite.
     weights
         Optional (N,) non-negative weights (the surface each point stands for); uniform if None.
+
+    Raises
+    ------
+    InputError
+        Bad points, or bad weights (:func:`normalised_weights`).
 
     Returns
     -------
@@ -153,7 +177,7 @@ def distribution(
         centred = pts - centroid
         M = centred.T @ centred / len(pts)
     else:
-        w = np.asarray(weights, dtype=np.float64) / np.sum(weights)
+        w = normalised_weights(weights, len(pts))
         centroid = w @ pts
         centred = pts - centroid
         M = (centred * w[:, None]).T @ centred

@@ -25,6 +25,7 @@ from spacepose.core.planes import (
     distribution,
     extract_planes,
     is_collinear,
+    normalised_weights,
 )
 from spacepose.core.rectangles import (
     CatalogueEntry,
@@ -79,6 +80,7 @@ def measure_planes(
     One :class:`MeasuredPlane` per extracted plane, in extraction order.
     """
     pts = as_points(cloud_or_points)
+    all_weights = None if weights is None else normalised_weights(weights, len(pts))
     out = []
     for plane in extract_planes(pts, plane_config):
         support = plane.inliers
@@ -86,7 +88,7 @@ def measure_planes(
             dense = plane.inliers[dense_support(pts[plane.inliers], plane.normal)]
             if len(dense) >= 3 and not is_collinear(distribution(pts[dense])[1]):
                 support = dense
-        w = None if weights is None else np.asarray(weights, np.float64)[support]
+        w = None if all_weights is None else all_weights[support]
         m = measure_rectangle(pts[support], config.sigma, config.sampling, w)
         out.append(MeasuredPlane(plane, support, m))
     return out

@@ -43,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from spacepose.core.config import StageConfig
-from spacepose.core.planes import distribution, is_collinear
+from spacepose.core.planes import distribution, is_collinear, normalised_weights
 from spacepose.errors import DegenerateGeometryError
 
 __all__ = [
@@ -262,7 +262,8 @@ def measure_rectangle(
         Collinear or coincident points (no plane, so no normal).
     """
     pts = np.asarray(points, dtype=np.float64)
-    centroid, eigenvalues, V = distribution(pts, weights)
+    w = None if weights is None else normalised_weights(weights, len(pts))
+    centroid, eigenvalues, V = distribution(pts, w)
     if is_collinear(eigenvalues):
         raise DegenerateGeometryError("rectangle points are collinear or coincident: no plane")
     normal = V[:, 0]
@@ -276,10 +277,9 @@ def measure_rectangle(
     a, b = np.sqrt(12.0 * np.clip(var, 0.0, None))
     # In-plane coordinates along the short and long side.
     uv = (pts - centroid) @ R[:, :2]
-    if weights is None:
+    if w is None:
         m2, m4 = np.mean(uv**2, axis=0), np.mean(uv**4, axis=0)
     else:
-        w = np.asarray(weights, dtype=np.float64) / np.sum(weights)
         m2, m4 = w @ uv**2, w @ uv**4
     # Remove Gaussian noise: E[(u+n)⁴] = E[u⁴] + 6 E[u²] σ² + 3σ⁴ with E[(u+n)²] = E[u²] + σ².
     m2c = m2 - s2
