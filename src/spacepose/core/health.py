@@ -59,11 +59,14 @@ class HealthBounds:
         voxel: float,
         radius: float,
         model_error: tuple[float, float] | None = None,
+        model_reference: bool = False,
     ) -> HealthBounds:
         """Bounds for a voxel edge ``voxel`` (m) and a target radius ``radius`` (m).
 
         ``model_error`` is the motion model's observed RMS error (centroid displacement m,
         rotation rad); the prediction bounds widen to ``model_error_sigmas`` times it.
+        ``model_reference``: frames are registered onto a model, and the ok fitness is
+        ``model_fitness``.
         """
 
         def deg_at_radius(voxels: float) -> float:
@@ -77,7 +80,7 @@ class HealthBounds:
             ok_pred_r = max(ok_pred_r, math.degrees(n * model_error[1]))
         return cls(
             min_points=config.min_points,
-            ok_fitness=config.ok_fitness,
+            ok_fitness=config.model_fitness if model_reference else config.ok_fitness,
             lost_fitness=config.lost_fitness,
             ok_rmse=config.ok_rmse * voxel,
             lost_rmse=config.lost_rmse * voxel,

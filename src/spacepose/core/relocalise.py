@@ -4,9 +4,16 @@
 The sparse cloud is the frame at the coarse voxel (twice the tracker's), its normals use a radius
 of two coarse voxels, FPFH five and RANSAC's gate one and a half: every length follows from the
 frame's own scale, so the same settings re-initialise a 1 m mock-up and a 10 m satellite.
+
+:class:`Relocaliser` is the tracker's re-initialisation stage. Against a model it also retries a
+frame that fits poorly, registers each coarse pose's twins and carries an undecided twin along
+(:mod:`spacepose.core.twins`).
 """
 
 from __future__ import annotations
+
+import time
+from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,12 +21,24 @@ from numpy.typing import NDArray
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.fpfh import compute_fpfh
-from spacepose.core.keyframes import Keyframe, PreparedCloud
+from spacepose.core.frame_registration import FrameRegistrar
+from spacepose.core.health import HealthBounds, Status, pose_disagreement
+from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
+from spacepose.core.motion import Prediction
 from spacepose.core.normals import estimate_normals
 from spacepose.core.ransac import feature_ransac
 from spacepose.core.tracker_config import StageLengths
+from spacepose.core.twins import FitComparison, compare_fits, principal_turns
 from spacepose.core.voxel import voxel_downsample
 from spacepose.errors import SpaceposeError
+
+# A registered frame: the estimate (None when registration failed), its status and reasons.
+Checked = tuple[FineEstimate | None, Status, tuple[str, ...]]
+# Fine registration from an initial T_sensor_target, after a first pass at a wide gate (m), and
+# the health check against a prediction (None: unconfirmed).
+Register = Callable[[PreparedCloud, NDArray[np.float64], float, Prediction | None], Checked]
+# The health check of an estimate against a prediction.
+Confirm = Callable[[FineEstimate, PreparedCloud, Prediction], tuple[Status, tuple[str, ...]]]
 
 
 def coarse_features(
@@ -58,3 +77,181 @@ def coarse_pose(
     except SpaceposeError:
         return None
     return se3.invert(res.T_target_source) @ ref.T_ref_target
+
+
+class Relocaliser:
+    """The tracker's re-initialisation stage: a coarse pose when fine registration fails, and,
+    against a model, its twins, retries of poor fits and an undecided twin carried along.
+
+    Parameters
+    ----------
+    registrar
+        The tracker's registrar (lengths, fine gate).
+    reference
+        The current registration reference (the model, or the latest keyframe).
+    model
+        The prepared model, or None (model-free: no twins, no retries).
+    register, confirm
+        The tracker's fine registration with health check, and its health check alone.
+    workers
+        Threads of the searches.
+    """
+
+    def __init__(
+        self,
+        registrar: FrameRegistrar,
+        reference: Callable[[], Keyframe],
+        model: Keyframe | None,
+        register: Register,
+        confirm: Confirm,
+        workers: int = -1,
+    ) -> None:
+        self.registrar = registrar
+        self.reference = reference
+        self.model = model
+        self.register = register
+        self.confirm = confirm
+        self.workers = workers
+        # The model's half turns, and the twin the data cannot yet tell from the tracked pose
+        # (``T_target_twin``), if any.
+        self.turns = [] if model is None else principal_turns(model.prepared.cloud.points)
+        self.twin: NDArray[np.float64] | None = None
+
+    def coarse(self, prepared: PreparedCloud) -> NDArray[np.float64] | None:
+        """Initial ``T_sensor_target`` by FPFH + RANSAC against the reference, or None."""
+        is_model = self.model is not None
+        return coarse_pose(
+            prepared, self.reference(), self.registrar.lengths, is_model, self.workers
+        )
+
+    def poor_fit(self, checked: Checked, bounds: HealthBounds) -> bool:
+        """A model-based frame kept (not lost) whose fitness or RMSE is outside ``bounds``."""
+        estimate, status = checked[:2]
+        if self.model is None or status == "lost" or estimate is None:
+            return False
+        res = estimate.result
+        return res.fitness < bounds.ok_fitness or res.inlier_rmse > bounds.ok_rmse
+
+    def reinitialise(
+        self,
+        prepared: PreparedCloud,
+        prediction: Prediction | None,
+        failed: Checked,
+        times: dict[str, float],
+    ) -> Checked:
+        """Coarse registration, then fine registration from it and from its twins.
+
+        Returns ``failed`` itself when that does no better: a lost ``failed`` is replaced by
+        anything not lost, a kept one only by a clearly better fit (:func:`fits_better`).
+        ``times`` gains the ``coarse`` and ``fine`` milliseconds.
+        """
+        tic = time.perf_counter()
+        init = self.coarse(prepared)
+        times["coarse"] = _ms(tic)
+        if init is None and failed[1] != "lost":
+            return failed
+        if init is None:
+            return (*failed[:2], (*failed[2], "coarse registration found no consensus"))
+        tic = time.perf_counter()
+        # RANSAC is good to about its own gate: the first pass starts there.
+        wide = self.registrar.lengths.ransac.max_correspondence_distance
+        starts = [init] + [init @ turn for turn in self.turns]
+        ranked = sorted((self.register(prepared, T, wide, None) for T in starts), key=_fitness)
+        ranked.reverse()
+        estimate, status, reasons = ranked[0]
+        rival = self._rival(prepared, ranked)
+        times["fine"] += _ms(tic)
+        if prediction is not None and estimate is not None:
+            # A stale prediction confirms the re-initialised pose when it agrees; when it does
+            # not, the pose stands unconfirmed (degraded), not rejected.
+            confirmed = self.confirm(estimate, prepared, prediction)
+            if confirmed[0] != "lost":
+                status, reasons = confirmed
+        if status == "lost" and failed[0] is not None:
+            return failed
+        if failed[1] != "lost" and not fits_better(estimate, status, failed):
+            return failed
+        self.twin = None
+        if rival is not None:
+            self.twin, test = rival
+            status, reasons = "degraded", (*reasons, _ambiguous(test))
+        return estimate, status, reasons
+
+    def settle_twin(self, prepared: PreparedCloud, checked: Checked) -> tuple[Checked, bool]:
+        """Register the undecided twin of this frame's pose too and test which fits.
+
+        Returns the pose kept (flagged ambiguous while undecided) and whether it is the twin
+        (the motion model restarts from it).
+        """
+        estimate = checked[0]
+        wide = self.registrar.lengths.ransac.max_correspondence_distance
+        twin = self.register(prepared, estimate.T_sensor_target @ self.twin, wide, None)
+        self.twin = None
+        if twin[0] is None or twin[1] == "lost":
+            return checked, False
+        test = self._compare(prepared, estimate, twin[0])
+        if test.winner is not None:
+            return (twin, True) if test.winner == 1 else (checked, False)
+        self.twin = se3.invert(estimate.T_sensor_target) @ twin[0].T_sensor_target
+        return (estimate, "degraded", (*checked[2], _ambiguous(test))), False
+
+    def _rival(
+        self, prepared: PreparedCloud, ranked: list[Checked]
+    ) -> tuple[NDArray[np.float64], FitComparison] | None:
+        """The best-fitting candidate's twin that the data cannot tell from it, as
+        ``T_target_twin`` with the test, or None (decided, or no twin kept)."""
+        best = ranked[0][0]
+        if best is None or ranked[0][1] == "lost":
+            return None
+        c = prepared.centroid
+        for estimate, status, _ in ranked[1:]:
+            if estimate is None or status == "lost":
+                continue
+            if pose_disagreement(estimate.T_sensor_target, best.T_sensor_target, c)[1] < 90.0:
+                continue  # the same pose, reached from another start
+            test = self._compare(prepared, best, estimate)
+            if test.winner is None:
+                return se3.invert(best.T_sensor_target) @ estimate.T_sensor_target, test
+            return None
+        return None
+
+    def _compare(self, prepared: PreparedCloud, a: FineEstimate, b: FineEstimate) -> FitComparison:
+        return compare_fits(
+            self.model.prepared.tree,
+            prepared.cloud.points,
+            a.T_sensor_target,
+            b.T_sensor_target,
+            self.registrar.noise.gate,
+            workers=self.workers,
+        )
+
+
+def fits_better(estimate: FineEstimate | None, status: Status, kept: Checked) -> bool:
+    """Whether a re-initialised ``estimate`` replaces the ``kept`` one: not lost, and fitting
+    at least half of the share of points the kept one left off the reference.
+
+    Fitness, not status, decides: the kept pose agrees with its own prediction while the new
+    one, off that prediction, is at best unconfirmed. The half-gap margin keeps two poses that
+    fit alike (a frame with clutter the model lacks) from trading places frame after frame.
+    """
+    if status == "lost" or estimate is None:
+        return False
+    f_kept = kept[0].result.fitness
+    return estimate.result.fitness >= f_kept + 0.5 * (1.0 - f_kept)
+
+
+def _ambiguous(test: FitComparison) -> str:
+    return (
+        f"ambiguous: the model half a turn away fits alike ({test.only_first} / "
+        f"{test.only_second} points fit one pose only)"
+    )
+
+
+def _fitness(checked: Checked) -> float:
+    """The fitness of a kept registration; −1 for a lost one."""
+    estimate, status = checked[:2]
+    return -1.0 if estimate is None or status == "lost" else estimate.result.fitness
+
+
+def _ms(tic: float) -> float:
+    return 1e3 * (time.perf_counter() - tic)

@@ -10,7 +10,10 @@ Each frame goes through
    by more than the fine gate;
 4. a health check that labels the frame ``ok``, ``degraded`` or ``lost``
    (:mod:`spacepose.core.health`);
-5. coarse re-initialisation (FPFH + RANSAC at the derived scale) when the frame is lost;
+5. coarse re-initialisation (FPFH + RANSAC at the derived scale) when the frame is lost, and,
+   against a model, when it fits the model poorly; a coarse pose's twins (the model half a turn
+   about a principal axis) are registered too, and a twin the data cannot rule out is carried
+   along with the frames flagged ambiguous (:mod:`spacepose.core.relocalise`);
 6. a state update: the motion model and the keyframes (:mod:`spacepose.core.keyframes`).
 
 Two modes. *Model-based*: a reference model cloud (target frame) is given and every pose is
@@ -43,7 +46,7 @@ from spacepose.core.health import (
 )
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
 from spacepose.core.motion import MotionModel, Prediction
-from spacepose.core.relocalise import coarse_pose
+from spacepose.core.relocalise import Checked, Relocaliser
 from spacepose.core.scale import DataScale
 from spacepose.core.track_result import STAGES, TrackingOutput, TrackResult
 from spacepose.core.tracker_config import TrackerConfig
@@ -52,8 +55,6 @@ from spacepose.errors import InputError, SpaceposeError
 
 # Reason of a frame degraded only because its keyframe is far: it may become the new keyframe.
 _FAR_KEYFRAME = "keyframe"
-
-Checked = tuple[FineEstimate | None, Status, tuple[str, ...]]
 
 
 class Tracker:
@@ -87,6 +88,7 @@ class Tracker:
         self._t_start = 0.0
         self._model_cloud = None if model is None else self._check_model(model)
         self._model: Keyframe | None = None
+        self._relocaliser: Relocaliser | None = None
         self._frames = FramePreparer(config, self._model_cloud, workers)
 
     @property
@@ -150,9 +152,20 @@ class Tracker:
                 prepared, prediction.T_sensor_target, self._wide_gate(prediction), prediction
             )
             times["fine"] += _ms(tic)
+        relocaliser = self._relocaliser
         coarse = checked[1] == "lost"
         if coarse:
-            checked = self._reinitialise(prepared, prediction, checked, times)
+            checked = relocaliser.reinitialise(prepared, prediction, checked, times)
+        elif relocaliser.poor_fit(checked, self._bounds()):
+            # Against a model, a frame that leaves much of itself off the model's surface sits
+            # in a wrong but stable optimum (a twin turned half a turn, a slide along a wing):
+            # a coarse pose is tried, and kept only when it fits.
+            retried = relocaliser.reinitialise(prepared, prediction, checked, times)
+            coarse, checked = retried is not checked, retried
+        if not coarse and relocaliser.twin is not None and checked[0] is not None:
+            tic = time.perf_counter()
+            checked, coarse = relocaliser.settle_twin(prepared, checked)
+            times["fine"] += _ms(tic)
         estimate, status, reasons = checked
         if status == "lost" or estimate is None:
             return self._lost(index, timestamp, prediction, reasons, times, coarse)
@@ -179,7 +192,8 @@ class Tracker:
         """
         if not self.model_based and not self._keyframes:
             raise InputError("coarse registration needs a model or a first tracked frame")
-        return self._coarse(self._preprocess(cloud))
+        prepared = self._preprocess(cloud)
+        return self._relocaliser.coarse(prepared)
 
     # -- stages ------------------------------------------------------------------------------
 
@@ -209,6 +223,14 @@ class Tracker:
             )
             if self._model_cloud is not None:
                 self._model = self._frames.prepare_model(self._model_cloud)
+            self._relocaliser = Relocaliser(
+                self._registrar,
+                self._reference,
+                self._model,
+                self._fine_and_check,
+                self._check,
+                self.workers,
+            )
         return prepared
 
     def _check_model(self, model: PointCloud | ArrayLike) -> PointCloud:
@@ -221,40 +243,6 @@ class Tracker:
 
     def _reference(self) -> Keyframe:
         return self._model if self._model is not None else self._keyframes[-1]
-
-    def _coarse(self, prepared: PreparedCloud) -> NDArray[np.float64] | None:
-        """Initial ``T_sensor_target`` by FPFH + RANSAC against the reference, or None."""
-        ref = self._reference()
-        is_model = self._model is not None
-        return coarse_pose(prepared, ref, self._registrar.lengths, is_model, self.workers)
-
-    def _reinitialise(
-        self,
-        prepared: PreparedCloud,
-        prediction: Prediction | None,
-        failed: Checked,
-        times: dict[str, float],
-    ) -> Checked:
-        """Coarse registration, then fine registration from it; ``failed`` if that fails too."""
-        tic = time.perf_counter()
-        init = self._coarse(prepared)
-        times["coarse"] = _ms(tic)
-        if init is None:
-            return (*failed[:2], (*failed[2], "coarse registration found no consensus"))
-        tic = time.perf_counter()
-        # RANSAC is good to about its own gate: the first pass starts there.
-        wide = self._registrar.lengths.ransac.max_correspondence_distance
-        estimate, status, reasons = self._fine_and_check(prepared, init, wide, None)
-        times["fine"] += _ms(tic)
-        if prediction is not None and estimate is not None:
-            # A stale prediction confirms the re-initialised pose when it agrees; when it does
-            # not, the pose stands unconfirmed (degraded), not rejected.
-            confirmed = self._check(estimate, prepared, prediction)
-            if confirmed[0] != "lost":
-                status, reasons = confirmed
-        if status == "lost" and failed[0] is not None:
-            return failed
-        return estimate, status, reasons
 
     def _fine_and_check(
         self,
@@ -305,9 +293,7 @@ class Tracker:
                 estimate.T_sensor_target, prediction.T_sensor_target, c
             )
         scale = self._frames.scale
-        bounds = HealthBounds.from_scale(
-            self.config.health, scale.voxel, scale.radius, self._motion.model_error()
-        )
+        bounds = self._bounds()
         status, reasons = assess_health(
             res.fitness,
             res.inlier_rmse,
@@ -334,6 +320,16 @@ class Tracker:
                 status = "degraded"
                 reasons = (f"{_FAR_KEYFRAME} {1e3 * dt:.0f} mm / {dr:.1f} deg away",)
         return status, reasons
+
+    def _bounds(self) -> HealthBounds:
+        scale = self._frames.scale
+        return HealthBounds.from_scale(
+            self.config.health,
+            scale.voxel,
+            scale.radius,
+            self._motion.model_error(),
+            self.model_based,
+        )
 
     def _last_step(self, point: NDArray[np.float64]) -> tuple[float, float]:
         """(displacement of ``point`` m, rotation deg) between the last two accepted poses."""

@@ -1,0 +1,72 @@
+"""The model's half turns and the test between a pose and its twin, on closed-form clouds."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import se3
+from spacepose.core.grid import VoxelIndex
+from spacepose.core.twins import compare_fits, principal_turns
+
+
+def _box_surface(rng: np.random.Generator, sides: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3) points uniform on the faces of an axis-aligned box centred at the origin."""
+    p = rng.uniform(-0.5, 0.5, (n, 3)) * sides
+    axis = rng.integers(0, 3, n)
+    p[np.arange(n), axis] = np.sign(rng.uniform(-1, 1, n)) * sides[axis] / 2
+    return p
+
+
+def test_principal_turns_are_the_half_turns_about_the_axes_through_the_centroid():
+    rng = np.random.default_rng(0)
+    sides = np.array([2.4, 1.8, 1.0])
+    R = Rotation.from_euler("xyz", [20, -35, 50], degrees=True).as_matrix()
+    centre = np.array([0.3, -1.2, 4.0])
+    points = _box_surface(rng, sides, 20000) @ R.T + centre
+    turns = principal_turns(points)
+    assert len(turns) == 3
+    # Eigenvalues ascending: the shortest side's axis first.
+    for T, axis in zip(turns, (R[:, 2], R[:, 1], R[:, 0]), strict=True):
+        assert np.allclose(T @ T, np.eye(4), atol=1e-12)
+        assert np.allclose(T[:3, :3] @ axis, axis, atol=2e-2)
+        assert np.isclose(np.trace(T[:3, :3]), -1.0)
+        # The box maps onto itself, its centroid stays.
+        c = points.mean(axis=0)
+        assert np.allclose(se3.transform_points(T, c[None])[0], c)
+        d, _ = cKDTree(points).query(se3.transform_points(T, points))
+        assert np.quantile(d, 0.99) < 0.05
+
+
+def test_compare_fits_decides_on_an_appendage_and_not_on_a_symmetric_box():
+    rng = np.random.default_rng(1)
+    sides = np.array([2.4, 1.8, 1.4])
+
+    def antenna(n: int) -> np.ndarray:
+        # Off the symmetry: the twin puts it 1 m from any model point.
+        return rng.uniform([-0.1, -1.6, 0.3], [0.1, -1.2, 0.7], (n, 3))
+
+    turn = se3.make_transform(np.diag([-1.0, 1.0, -1.0]), np.zeros(3))  # half turn about y
+    T = se3.make_transform(Rotation.from_rotvec([0.2, -0.4, 0.1]).as_matrix(), [0.5, 0.2, 25.0])
+    # The model densely sampled, the frame sampled apart (3,000 box points).
+    cases = (
+        (_box_surface(rng, sides, 40000), _box_surface(rng, sides, 3000), None),
+        (
+            np.vstack([_box_surface(rng, sides, 40000), antenna(1000)]),
+            np.vstack([_box_surface(rng, sides, 3000), antenna(40)]),
+            0,
+        ),
+    )
+    for model, body, expected in cases:
+        frame = se3.transform_points(T, body)
+        test = compare_fits(VoxelIndex(model), frame, T, T @ turn, gate=0.08)
+        assert test.winner == expected
+        if expected is None:
+            # Box points land on the box again: few points tell the poses apart.
+            assert test.statistic < 10.8
+        else:
+            assert test.only_first >= 40 and test.only_second <= 3
+            # The twin first: the same test, the other winner.
+            swapped = compare_fits(VoxelIndex(model), frame, T @ turn, T, gate=0.08)
+            assert swapped.winner == 1 and swapped.statistic == test.statistic
