@@ -116,6 +116,8 @@ class Relocaliser:
         # (``T_target_twin``), if any.
         self.turns = [] if model is None else principal_turns(model.prepared.cloud.points)
         self.twin: NDArray[np.float64] | None = None
+        # Retries of poor fits that found nothing better, in a row, and poor frames to skip.
+        self._misses = self._skip = 0
 
     def coarse(self, prepared: PreparedCloud) -> NDArray[np.float64] | None:
         """Initial ``T_sensor_target`` by FPFH + RANSAC against the reference, or None."""
@@ -124,13 +126,26 @@ class Relocaliser:
             prepared, self.reference(), self.registrar.lengths, is_model, self.workers
         )
 
-    def poor_fit(self, checked: Checked, bounds: HealthBounds) -> bool:
-        """A model-based frame kept (not lost) whose fitness or RMSE is outside ``bounds``."""
+    def retry_due(self, checked: Checked, bounds: HealthBounds) -> bool:
+        """Whether to retry a model-based frame kept (not lost) whose fitness or RMSE is
+        outside ``bounds`` from a coarse pose.
+
+        After n retries in a row that found nothing better, the next n poor frames are not
+        retried: clutter the model lacks (the table under a mock-up) keeps the fit poor on the
+        true pose, and a retry (a coarse pose and four fine registrations) costs several
+        frames' time. Over N poor frames about √(2N) are retried.
+        """
         estimate, status = checked[:2]
         if self.model is None or status == "lost" or estimate is None:
             return False
         res = estimate.result
-        return res.fitness < bounds.ok_fitness or res.inlier_rmse > bounds.ok_rmse
+        if res.fitness >= bounds.ok_fitness and res.inlier_rmse <= bounds.ok_rmse:
+            self._misses = self._skip = 0
+            return False
+        if self._skip > 0:
+            self._skip -= 1
+            return False
+        return True
 
     def reinitialise(
         self,
@@ -149,15 +164,15 @@ class Relocaliser:
         init = self.coarse(prepared)
         times["coarse"] = _ms(tic)
         if init is None and failed[1] != "lost":
-            return failed
+            return self._missed(failed)
         if init is None:
             return (*failed[:2], (*failed[2], "coarse registration found no consensus"))
         tic = time.perf_counter()
         # RANSAC is good to about its own gate: the first pass starts there.
         wide = self.registrar.lengths.ransac.max_correspondence_distance
         starts = [init] + [init @ turn for turn in self.turns]
-        ranked = sorted((self.register(prepared, T, wide, None) for T in starts), key=_fitness)
-        ranked.reverse()
+        checked = [self.register(prepared, T, wide, None) for T in starts]
+        ranked = sorted(checked, key=_fitness, reverse=True)
         estimate, status, reasons = ranked[0]
         rival = self._rival(prepared, ranked)
         times["fine"] += _ms(tic)
@@ -167,15 +182,23 @@ class Relocaliser:
             confirmed = self.confirm(estimate, prepared, prediction)
             if confirmed[0] != "lost":
                 status, reasons = confirmed
-        if status == "lost" and failed[0] is not None:
-            return failed
-        if failed[1] != "lost" and not fits_better(estimate, status, failed):
+        if failed[1] != "lost":
+            if not fits_better(estimate, status, failed):
+                return self._missed(failed)
+        elif status == "lost" and failed[0] is not None:
             return failed
         self.twin = None
+        self._misses = self._skip = 0
         if rival is not None:
             self.twin, test = rival
             status, reasons = "degraded", (*reasons, _ambiguous(test))
         return estimate, status, reasons
+
+    def _missed(self, kept: Checked) -> Checked:
+        """A retry that found nothing better: skip as many poor frames as retries missed."""
+        self._misses += 1
+        self._skip = self._misses
+        return kept
 
     def settle_twin(self, prepared: PreparedCloud, checked: Checked) -> tuple[Checked, bool]:
         """Register the undecided twin of this frame's pose too and test which fits.

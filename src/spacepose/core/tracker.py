@@ -156,7 +156,7 @@ class Tracker:
         coarse = checked[1] == "lost"
         if coarse:
             checked = relocaliser.reinitialise(prepared, prediction, checked, times)
-        elif relocaliser.poor_fit(checked, self._bounds()):
+        elif relocaliser.retry_due(checked, self._bounds()):
             # Against a model, a frame that leaves much of itself off the model's surface sits
             # in a wrong but stable optimum (a twin turned half a turn, a slide along a wing):
             # a coarse pose is tried, and kept only when it fits.
@@ -223,6 +223,8 @@ class Tracker:
             )
             if self._model_cloud is not None:
                 self._model = self._frames.prepare_model(self._model_cloud)
+                # Its normals tell the faces a pose turns to the sensor (visible_model).
+                self._model_cloud = self._frames.outward_normals(self._model_cloud)
             self._relocaliser = Relocaliser(
                 self._registrar,
                 self._reference,
@@ -252,10 +254,18 @@ class Tracker:
         prediction: Prediction | None,
     ) -> Checked:
         """Fine registration from ``T_init`` (after a first pass at ``wide_gate`` m when that
-        is well above the fine gate), then the health check against ``prediction``."""
+        is well above the fine gate), then the health check against ``prediction``.
+
+        With a prediction, a model is registered onto by the faces it turns to the sensor at
+        ``T_init`` only (:meth:`FramePreparer.visible_model`); a pose without one (a coarse
+        pose, a twin) is tested against the whole model, whose hidden parts tell it wrong.
+        """
+        ref = self._reference()
+        if self._model is not None and prediction is not None:
+            ref = self._frames.visible_model(self._model_cloud, T_init)
         try:
-            T_init = self._registrar.approach(prepared, self._reference(), T_init, wide_gate)
-            estimate = self._fine(prepared, T_init)
+            T_init = self._registrar.approach(prepared, ref, T_init, wide_gate)
+            estimate = self._fine(prepared, ref, T_init)
         except SpaceposeError as exc:
             return None, "lost", (f"fine registration failed: {exc}",)
         return (estimate, *self._check(estimate, prepared, prediction))
@@ -270,11 +280,14 @@ class Tracker:
             return 0.0
         return h.model_error_sigmas * (error[0] + r * error[1])
 
-    def _fine(self, prepared: PreparedCloud, T_init: NDArray[np.float64]) -> FineEstimate:
-        """Fine registration of the frame from the initial ``T_sensor_target``."""
+    def _fine(
+        self, prepared: PreparedCloud, ref: Keyframe, T_init: NDArray[np.float64]
+    ) -> FineEstimate:
+        """Fine registration of the frame from the initial ``T_sensor_target`` onto ``ref``
+        (model-free J-ICP and keyframe graph: onto the keyframe window it ends)."""
         cfg = self.config
         if cfg.method not in ("jicp", "keyframe") or self.model_based:
-            return self._registrar.single(prepared, self._reference(), T_init)
+            return self._registrar.single(prepared, ref, T_init)
         if cfg.method == "jicp":
             return self._registrar.li_step(prepared, self._keyframes[-2:], T_init)
         graph = cfg.keyframe_graph
