@@ -60,21 +60,18 @@ class HealthBounds:
         radius: float,
         model_error: tuple[float, float] | None = None,
         model_reference: bool = False,
-        noise_sigma: float | None = None,
     ) -> HealthBounds:
         """Bounds for a voxel edge ``voxel`` (m) and a target radius ``radius`` (m).
 
         ``model_error`` is the motion model's observed RMS error (centroid displacement m,
         rotation rad); the prediction bounds widen to ``model_error_sigmas`` times it.
         ``model_reference``: frames are registered onto a model, and the ok fitness is
-        ``model_fitness``. ``noise_sigma``: the measured residual σ (m); the RMSE bounds widen
-        to ``ok_rmse_sigmas`` and ``lost_rmse_sigmas`` times it.
+        ``model_fitness``.
         """
 
         def deg_at_radius(voxels: float) -> float:
             return math.degrees(voxels * voxel / radius)
 
-        sigma = 0.0 if noise_sigma is None else noise_sigma
         ok_pred_t = config.ok_prediction_translation * voxel
         ok_pred_r = deg_at_radius(config.ok_prediction_rotation)
         if model_error is not None:
@@ -85,8 +82,8 @@ class HealthBounds:
             min_points=config.min_points,
             ok_fitness=config.model_fitness if model_reference else config.ok_fitness,
             lost_fitness=config.lost_fitness,
-            ok_rmse=max(config.ok_rmse * voxel, config.ok_rmse_sigmas * sigma),
-            lost_rmse=max(config.lost_rmse * voxel, config.lost_rmse_sigmas * sigma),
+            ok_rmse=config.ok_rmse * voxel,
+            lost_rmse=config.lost_rmse * voxel,
             ok_condition=config.ok_condition,
             lost_condition=config.lost_condition,
             ok_sigma_translation=config.ok_sigma_translation * voxel,

@@ -342,7 +342,6 @@ class Tracker:
             scale.radius,
             self._motion.model_error(),
             self.model_based,
-            self._registrar.noise.sigma,
         )
 
     def _last_step(self, point: NDArray[np.float64]) -> tuple[float, float]:

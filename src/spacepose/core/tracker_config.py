@@ -101,13 +101,6 @@ class HealthConfig(StageConfig):
         this, or above the ok RMSE, is degraded, and a coarse pose is tried as well.
     ok_rmse, lost_rmse
         Inlier RMSE of the fine registration (voxels).
-    ok_rmse_sigmas, lost_rmse_sigmas
-        The RMSE bounds in measured residual σ (point-to-plane), when wider than the voxel
-        ones. On a sensor noisier than the voxel (a ToF camera at 5 m: σ 11 mm, voxel 19 mm) the
-        inlier RMSE at the true pose is 1.25-1.9 σ (point-to-point distances add the model's
-        sampling to the noise), above the voxel bounds of 12.5 and 18.6 mm: every frame was
-        lost. There the RMSE no longer tells a wrong pose (residuals spread over the 3σ gate
-        give about 1.7 σ), and the other checks do.
     ok_condition, lost_condition
         Condition number of the registration information at the cloud centroid, rotations
         taken as displacements at the radius (unit-free). The lab mock-up gives 45-100 at 0.5,
@@ -139,8 +132,6 @@ class HealthConfig(StageConfig):
     model_fitness: float = Field(0.8, ge=0, le=1)
     ok_rmse: PositiveFloat = 0.67
     lost_rmse: PositiveFloat = 1.0
-    ok_rmse_sigmas: PositiveFloat = 2.0
-    lost_rmse_sigmas: PositiveFloat = 2.5
     ok_condition: PositiveFloat = 1e3
     lost_condition: PositiveFloat = 1e4
     ok_sigma_translation: PositiveFloat = 0.167
