@@ -11,7 +11,8 @@ and asks whether the data tell the best from the runner-up (:func:`compare_fits`
 that only one of the two poses fits are counted, and McNemar's test on those counts says
 whether one pose fits significantly more of them. While it cannot tell, the frame is flagged
 ambiguous and the twin is carried along and tested again on every frame, until a view shows
-what breaks the symmetry; a symmetric target stays ambiguous.
+what breaks the symmetry. A symmetric target should stay ambiguous; a frame whose registration
+slipped can still decide it (docs/methods.md §5.6).
 """
 
 from __future__ import annotations
