@@ -487,3 +487,24 @@ def test_model_based_sigma_holds_at_25_m():
     assert len(z) >= 55
     assert np.median(nees) < 12.0  # χ²(6) median 5.35
     assert np.all(np.mean(np.abs(z) < 3.0, axis=0) >= 0.9)
+
+
+def test_a_pose_that_shows_too_few_model_faces_is_lost_not_raised(lab, monkeypatch):
+    """The faces the sensor sees at a predicted pose may be too few to register onto: the
+    fine registration fails (no exception), and the frame is re-initialised against the
+    whole model."""
+    from spacepose.core.frame_preparation import FramePreparer
+
+    sim, frames = lab
+    tracker = Tracker(TrackerConfig(), sim.model_cloud())
+    first = tracker.track_frame(frames[0].cloud, frames[0].timestamp)
+    assert first.status != "lost"
+
+    def too_few(self, model, T):
+        raise InputError("12 model points face the sensor at the frame's voxel (< 100)")
+
+    monkeypatch.setattr(FramePreparer, "visible_model", too_few)
+    second = tracker.track_frame(frames[1].cloud, frames[1].timestamp)
+    assert second.coarse and second.status != "lost"
+    dt, de = pose_errors([second.T_sensor_target], [sim.T_sensor_target[1]])
+    assert np.linalg.norm(dt) < 2e-3 and np.degrees(np.linalg.norm(de)) < 0.2

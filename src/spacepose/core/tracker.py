@@ -260,10 +260,10 @@ class Tracker:
         ``T_init`` only (:meth:`FramePreparer.visible_model`); a pose without one (a coarse
         pose, a twin) is tested against the whole model, whose hidden parts tell it wrong.
         """
-        ref = self._reference()
-        if self._model is not None and prediction is not None:
-            ref = self._frames.visible_model(self._model_cloud, T_init)
         try:
+            ref = self._reference()
+            if self._model is not None and prediction is not None:
+                ref = self._frames.visible_model(self._model_cloud, T_init)
             T_init = self._registrar.approach(prepared, ref, T_init, wide_gate)
             estimate = self._fine(prepared, ref, T_init)
         except SpaceposeError as exc:
