@@ -457,11 +457,15 @@ def test_the_visible_model_is_the_faces_turned_to_the_sensor():
     T_sensor_target = se3.make_transform(np.eye(3), [0.0, 0.0, 4.0])
     preparer = FramePreparer(TrackerConfig(), model, workers=1)
     preparer.prepare(se3.transform_points(T_sensor_target, p[p[:, 2] < -0.49]), None)
-    visible = preparer.visible_model(model, T_sensor_target).prepared.cloud
-    assert np.allclose(visible.points[:, 2], -0.5)
-    assert len(visible) < len(voxel_downsample(model, preparer.lengths.voxel)) / 4
-    # Normals towards the sensor (at z = -4 m in the target frame).
-    assert np.all(visible.normals[:, 2] < -0.99)
+    # A mesh exported with inward normals is turned outwards first.
+    for given in (model, model.with_normals(-normals)):
+        sensed = preparer.sensor_model(given)
+        assert len(sensed) <= len(model)
+        visible = preparer.visible_model(sensed, T_sensor_target).prepared.cloud
+        assert np.allclose(visible.points[:, 2], -0.5)
+        assert len(visible) < len(voxel_downsample(model, preparer.lengths.voxel)) / 4
+        # Normals towards the sensor (at z = -4 m in the target frame).
+        assert np.all(visible.normals[:, 2] < -0.99)
 
 
 def test_model_based_sigma_holds_at_25_m():

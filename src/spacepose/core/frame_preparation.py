@@ -23,7 +23,7 @@ from spacepose.core.normals import estimate_normals
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
 from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_object, region_of
 from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
-from spacepose.core.voxel import voxel_downsample
+from spacepose.core.voxel import voxel_cells, voxel_downsample
 from spacepose.errors import InputError
 
 # A crop: center (3,) and radius (m), sensor frame.
@@ -143,15 +143,26 @@ class FramePreparer:
         return Keyframe(-1, self.with_covariances(pc), np.eye(4), np.zeros((6, 6)))
 
     def outward_normals(self, model: PointCloud) -> PointCloud:
-        """``model`` with normals: its own, or estimated and turned away from its centroid
-        (a closed model as a sensor sees it)."""
-        if model.has_normals:
-            return model
+        """``model`` with normals turned away from its centroid, as a sensor sees a closed
+        model: its own normals (all flipped when most point inwards, as some mesh exports
+        give them), or estimated ones."""
         centroid = model.points.mean(axis=0)
+        if model.has_normals:
+            inward = np.einsum("ij,ij->i", model.normals, model.points - centroid) < 0.0
+            return model.with_normals(-model.normals) if inward.mean() > 0.5 else model
         inward = estimate_normals(
             model, self.config.normals, viewpoint=centroid, workers=self.workers
         )
         return inward.with_normals(-inward.normals)
+
+    def sensor_model(self, model: PointCloud) -> PointCloud:
+        """The model :meth:`visible_model` culls at every pose: outward normals, and one point
+        (with its normal) per cell of a third of the frame's voxel, so that a dense model
+        (10⁶ points: 31 ms a call) costs what a sparse one does (2.5 ms at 2·10⁴)."""
+        model = self.outward_normals(model)
+        _, cell = voxel_cells(model.points, self.lengths.voxel / 3.0)
+        first = np.unique(cell, return_index=True)[1]
+        return model if len(first) == len(model) else model.select(np.sort(first))
 
     def with_covariances(self, pc: PointCloud) -> PreparedCloud:
         """``pc`` prepared; with its GICP covariances when the registration uses them (once

@@ -224,7 +224,7 @@ class Tracker:
             if self._model_cloud is not None:
                 self._model = self._frames.prepare_model(self._model_cloud)
                 # Its normals tell the faces a pose turns to the sensor (visible_model).
-                self._model_cloud = self._frames.outward_normals(self._model_cloud)
+                self._model_cloud = self._frames.sensor_model(self._model_cloud)
             self._relocaliser = Relocaliser(
                 self._registrar,
                 self._reference,
