@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from spacepose.core import se3
-from spacepose.core.posegraph import PoseGraphEdge, edge_residual, optimize_pose_graph
+from spacepose.core.posegraph import (
+    PoseGraphEdge,
+    _normal_equations,
+    edge_residual,
+    optimize_pose_graph,
+)
 from spacepose.errors import DegenerateGeometryError, InputError
 
 
@@ -25,6 +30,46 @@ def test_exact_measurements_recover_truth(rng: np.random.Generator) -> None:
     assert res.converged and res.cost < 1e-20
     for e in edges:
         np.testing.assert_allclose(edge_residual(e, res.poses), 0.0, atol=1e-10)
+
+
+def test_compiled_assembly_matches_the_edge_formula(rng: np.random.Generator) -> None:
+    """H, b and the cost against a per-edge assembly from se3's log and adjoint, on edges of
+    every size of rotation, those within 0.1 rad of a half turn included (the logarithm takes
+    the axis from the quaternion there)."""
+    X = np.stack([se3.exp(rng.normal(0, 1.0, 6)) for _ in range(4)])
+    edges = []
+    for n, (i, j) in enumerate([(0, 1), (1, 2), (2, 3), (3, 0), (0, 2), (1, 3)]):
+        A = rng.normal(size=(6, 6))
+        info = A @ A.T + np.eye(6)
+        axis = rng.normal(size=3)
+        angle = np.pi - 0.02 * n if n % 2 else 0.3 * n  # near a half turn, and small to 1.5 rad
+        miss = se3.exp(np.concatenate([angle * axis / np.linalg.norm(axis), rng.normal(size=3)]))
+        edges.append(PoseGraphEdge(i, j, miss @ X[j] @ se3.invert(X[i]), info))
+    slot = {1: 0, 2: 6, 3: 12}  # node 0 fixed
+    H = np.zeros((18, 18))
+    b = np.zeros(18)
+    cost = 0.0
+    for e in edges:
+        r = edge_residual(e, X)
+        cost += r @ e.information @ r
+        blocks = {e.j: -np.eye(6), e.i: se3.adjoint(X[e.j] @ se3.invert(X[e.i]))}
+        for n, Jn in blocks.items():
+            if n in slot:
+                b[slot[n] : slot[n] + 6] += Jn.T @ e.information @ r
+                for m, Jm in blocks.items():
+                    if m in slot:
+                        H[slot[n] : slot[n] + 6, slot[m] : slot[m] + 6] += Jn.T @ e.information @ Jm
+    arrays = (
+        np.array([e.T_j_i for e in edges]),
+        np.array([e.information for e in edges]),
+        np.array([e.i for e in edges]),
+        np.array([e.j for e in edges]),
+        np.array([-1, 0, 6, 12]),
+    )
+    H_c, b_c, cost_c = _normal_equations(X, *arrays, 18)
+    np.testing.assert_allclose(H_c, H, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(b_c, b, rtol=1e-9, atol=1e-9)
+    assert cost_c == pytest.approx(cost, rel=1e-10)
 
 
 def test_single_edge_covariance_is_inverse_information(rng: np.random.Generator) -> None:
