@@ -10,6 +10,8 @@ within reach of the fine gate (KISS-ICP's adaptive threshold, in two stages).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -30,6 +32,7 @@ from spacepose.core.normals import estimate_normals
 from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.residual_noise import ResidualNoise, point_to_plane_sigma
+from spacepose.core.residual_structure import residual_structure
 from spacepose.core.tracker_config import StageLengths, pairwise_kind
 from spacepose.errors import RegistrationError, SpaceposeError
 
@@ -39,6 +42,33 @@ from spacepose.errors import RegistrationError, SpaceposeError
 POSE_GRAPH_TOLERANCE = 1e-6
 # The wide first pass runs only when it is this much wider than the fine gate.
 _WIDE_PASS_RATIO = 1.5
+# Cells of the residual structure test, in fine gates: wide enough for a part's own residual to
+# add up (about 50 pairs of a voxelised surface), small enough to tell two lab parts apart.
+STRUCTURE_CELL_GATES = 8.0
+
+
+@dataclass(frozen=True)
+class PairRegistration:
+    """A frame registered onto one reference.
+
+    Attributes
+    ----------
+    result
+        The registration, ``T_target_source`` = ``T_ref_k``.
+    covariance
+        (6, 6) covariance of ``T_ref_k`` (left perturbation in the reference frame, scaled and
+        with the voxel floor; see :func:`plane_covariance`).
+    step
+        (6,) the point-to-plane Gauss-Newton step from the result (same frame).
+    structure
+        :func:`~spacepose.core.residual_structure.residual_structure` of its final pairs, when
+        measured.
+    """
+
+    result: RegistrationResult
+    covariance: NDArray[np.float64]
+    step: NDArray[np.float64]
+    structure: float | None = None
 
 
 def plane_covariance(
@@ -179,18 +209,16 @@ class FrameRegistrar:
         ref: Keyframe,
         T_init_sensor_target: NDArray[np.float64],
         measure: bool = True,
-    ) -> tuple[RegistrationResult, NDArray[np.float64], NDArray[np.float64]]:
+    ) -> PairRegistration:
         """Register the frame (source) onto a reference.
 
-        ``measure``: measure the residual noise after it (once a frame, on the latest
-        reference: the extra search costs about a fifth of a lab frame's step).
-
-        Returns the result, the covariance of ``T_ref_k`` and the point-to-plane step from it
-        (both left perturbations in the reference frame; see :func:`plane_covariance`).
+        ``measure``: measure the residual noise and structure after it (once a frame, on the
+        latest reference: the extra search costs about a fifth of a lab frame's step).
         """
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
         tgt = self.as_target(ref.prepared)
         res, matches = self._pairwise(prepared, tgt, init_T_ref_k)
+        structure = None
         if measure:
             sigma = point_to_plane_sigma(
                 res.T_target_source, prepared.cloud.points, tgt, self.noise.window, self.workers
@@ -198,6 +226,7 @@ class FrameRegistrar:
             if self.noise.add(sigma):
                 # The gate cut the residuals: again with the gate the noise asks for.
                 res, matches = self._pairwise(prepared, tgt, res.T_target_source)
+            structure = self._structure(prepared, tgt, res, matches)
         cov, step = plane_covariance(
             res.T_target_source,
             prepared.cloud.points,
@@ -206,7 +235,26 @@ class FrameRegistrar:
             self.workers,
             matches,
         )
-        return res, self.covariance_scale * cov + self._floor(prepared, res), step
+        cov = self.covariance_scale * cov + self._floor(prepared, res)
+        return PairRegistration(res, cov, step, structure)
+
+    def _structure(
+        self,
+        prepared: PreparedCloud,
+        tgt: PreparedCloud,
+        res: RegistrationResult,
+        matches: Correspondences | None,
+    ) -> float | None:
+        """:func:`residual_structure` of a registration's final pairs (searched for GICP),
+        in cells of :data:`STRUCTURE_CELL_GATES` fine gates."""
+        gate = self.noise.gate
+        moved = se3.transform_points(res.T_target_source, prepared.cloud.points)
+        if matches is None:
+            s, t, _ = find_correspondences(tgt.tree, moved, gate, self.workers)
+        else:
+            s, t = matches.src_idx, matches.tgt_idx
+        r = np.einsum("ij,ij->i", moved[s] - tgt.cloud.points[t], tgt.cloud.normals[t])
+        return residual_structure(moved[s], r, STRUCTURE_CELL_GATES * gate)
 
     def _pairwise(
         self, prepared: PreparedCloud, tgt: PreparedCloud, init_T_ref_k: NDArray[np.float64]
@@ -241,7 +289,8 @@ class FrameRegistrar:
         self, prepared: PreparedCloud, ref: Keyframe, T_init: NDArray[np.float64]
     ) -> FineEstimate:
         """One registration onto ``ref`` (ICP, GICP, or any method against a model)."""
-        res, cov_ref_k, step = self.register(prepared, ref, T_init)
+        pair = self.register(prepared, ref, T_init)
+        res, cov_ref_k = pair.result, pair.covariance
         T_k_ref = se3.invert(res.T_target_source)
         Ad = se3.adjoint(T_k_ref)
         own = Ad @ cov_ref_k @ Ad.T
@@ -249,7 +298,10 @@ class FrameRegistrar:
         T = rigid(T_k_ref @ ref.T_ref_target)
         bias = self._drift(prepared, res, ref)
         drift = shaped_drift(prepared, bias, own)
-        return FineEstimate(T, cov + drift, own, res, ref, step, bias=bias, drift=drift)
+        return FineEstimate(
+            T, cov + drift, own, res, ref, pair.step, bias=bias, drift=drift,
+            structure=pair.structure,
+        )
 
     def li_step(
         self, prepared: PreparedCloud, window: list[Keyframe], T_init: NDArray[np.float64]
@@ -264,7 +316,7 @@ class FrameRegistrar:
         """
         j = window[-1]
         latest = self.register(prepared, j, T_init)
-        res, cov_j_k, step = latest
+        res, cov_j_k = latest.result, latest.covariance
         T_kj = se3.invert(res.T_target_source)
         own = _moved(cov_j_k, T_kj)
         delta, cov_delta = T_kj, own
@@ -272,15 +324,15 @@ class FrameRegistrar:
         if through is not None:
             T_start = rigid(T_kj @ j.T_ref_target)
             try:
-                res_i, cov_i_k, _ = self.register(prepared, window[-2], T_start, measure=False)
+                onto_i = self.register(prepared, window[-2], T_start, measure=False)
             except SpaceposeError:
-                res_i = None
-            if res_i is not None:
+                onto_i = None
+            if onto_i is not None:
                 T_ji, cov_ji = through
-                T_ki = se3.invert(res_i.T_target_source)
+                T_ki = se3.invert(onto_i.result.T_target_source)
                 delta = average_three(T_kj, T_ki, T_ji)
                 cov_delta = average_three_covariance(
-                    T_ki, T_ji, own, _moved(cov_i_k, T_ki), cov_ji
+                    T_ki, T_ji, own, _moved(onto_i.covariance, T_ki), cov_ji
                 )
         T_k0 = rigid(delta @ j.T_ref_target)
         cov = cov_delta + _moved(j.covariance, delta)
@@ -288,7 +340,9 @@ class FrameRegistrar:
         drift = shaped_drift(prepared, bias, own)
         cov = cov + drift
         edge = (j.index, res.T_target_source, np.linalg.pinv(cov_j_k, hermitian=True))
-        return FineEstimate(T_k0, cov, own, res, j, step, (edge,), (), bias, drift)
+        return FineEstimate(
+            T_k0, cov, own, res, j, latest.step, (edge,), (), bias, drift, latest.structure
+        )
 
     def joint(
         self,
@@ -322,17 +376,18 @@ class FrameRegistrar:
         latest = self.register(prepared, window[-1], T_init)
         pairs = [(window[-1], latest)]
         # The latest registration is a better start for the older pairs than the prediction.
-        T_start = se3.invert(latest[0].T_target_source) @ window[-1].T_ref_target
+        T_start = se3.invert(latest.result.T_target_source) @ window[-1].T_ref_target
         poses = [kf.T_ref_target for kf in window] + [T_start]
         for kf in window[:-1]:
             try:
                 pairs.append((kf, self.register(prepared, kf, T_start, measure=False)))
             except SpaceposeError:
                 continue
-        for kf, (res, cov, _) in pairs:
-            info = np.eye(6) if equal_weights else np.linalg.pinv(cov, hermitian=True)
-            graph_edges.append(PoseGraphEdge(k, node[kf.index], res.T_target_source, info))
-            new_edges.append((kf.index, res.T_target_source, info))
+        for kf, pair in pairs:
+            T_kf_k = pair.result.T_target_source
+            info = np.eye(6) if equal_weights else np.linalg.pinv(pair.covariance, hermitian=True)
+            graph_edges.append(PoseGraphEdge(k, node[kf.index], T_kf_k, info))
+            new_edges.append((kf.index, T_kf_k, info))
         # Gauge: the oldest keyframe keeps its pose; its covariance is added to the result.
         graph = optimize_pose_graph(
             np.array(poses), graph_edges, fixed=(0,), tolerance=POSE_GRAPH_TOLERANCE
@@ -340,9 +395,9 @@ class FrameRegistrar:
         oldest = window[0]
         T_k0 = rigid(graph.poses[k])
         cov = graph.covariances[k] + moved_covariance(oldest, T_k0)
-        res, cov_ref_k, step = latest
+        res = latest.result
         Ad_own = se3.adjoint(se3.invert(res.T_target_source))
-        own = Ad_own @ cov_ref_k @ Ad_own.T
+        own = Ad_own @ latest.covariance @ Ad_own.T
         bias = self._drift(prepared, res, window[-1])
         drift = shaped_drift(prepared, bias, own)
         cov = cov + drift
@@ -356,7 +411,17 @@ class FrameRegistrar:
             for n in range(1, k)
         )
         return FineEstimate(
-            T_k0, cov, own, res, window[-1], step, tuple(new_edges), updated, bias, drift
+            T_k0,
+            cov,
+            own,
+            res,
+            window[-1],
+            latest.step,
+            tuple(new_edges),
+            updated,
+            bias,
+            drift,
+            latest.structure,
         )
 
     def _drift(

@@ -49,6 +49,7 @@ class HealthBounds:
     lost_prediction_factor: float
     ok_step_translation: float
     ok_step_rotation_deg: float
+    ok_structure: float
     max_motion_translation: float
     max_motion_rotation_deg: float
 
@@ -93,6 +94,7 @@ class HealthBounds:
             lost_prediction_factor=config.lost_prediction_factor,
             ok_step_translation=config.ok_step_translation * voxel,
             ok_step_rotation_deg=deg_at_radius(config.ok_step_rotation),
+            ok_structure=config.ok_structure,
             max_motion_translation=config.max_motion * radius,
             max_motion_rotation_deg=math.degrees(config.max_motion),
         )
@@ -155,6 +157,7 @@ def assess_health(
     velocity_known: bool = True,
     surface_step: tuple[float, float] = (0.0, 0.0),
     model_reference: bool = False,
+    structure: float | None = None,
 ) -> tuple[Status, tuple[str, ...]]:
     """Status and reasons of one registered frame.
 
@@ -179,6 +182,9 @@ def assess_health(
     model_reference
         The frame was registered onto a model: its fit to the model confirms it (two views of
         one sensor share a sampling and its noise; a model shares neither).
+    structure
+        :func:`~spacepose.core.residual_structure.residual_structure` of the registration
+        (None: not measured); not applied with ``model_reference``.
     """
     lost: list[str] = []
     weak: list[str] = []
@@ -207,6 +213,13 @@ def assess_health(
         lost.append(msg)
     elif st > b.ok_step_translation or sr > b.ok_step_rotation_deg:
         weak.append(msg)
+    # Against a model, a part moving otherwise finds no surface within the gate (the fitness
+    # bound sees it), and what structure is left is the sensor's own bias (edge pixels).
+    if structure is not None and not model_reference and structure > b.ok_structure:
+        weak.append(
+            f"residual structure {structure:.1f} > {b.ok_structure:g}: part of the cloud "
+            "fits another motion"
+        )
     if disagreement is None:
         weak.append("no prediction to confirm the pose")
     else:

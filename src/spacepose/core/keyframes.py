@@ -112,6 +112,9 @@ class FineEstimate:
     bias, drift
         1-σ (rad, m) of the keyframe chain's drift up to this frame, and the (6, 6)
         covariance it adds to ``covariance`` (None: none).
+    structure
+        :func:`~spacepose.core.residual_structure.residual_structure` of the registration onto
+        the latest reference (None: not measured).
     """
 
     T_sensor_target: NDArray[np.float64]
@@ -124,6 +127,7 @@ class FineEstimate:
     window_poses: tuple[tuple[Keyframe, NDArray[np.float64], NDArray[np.float64]], ...] = ()
     bias: tuple[float, float] = (0.0, 0.0)
     drift: NDArray[np.float64] | None = None
+    structure: float | None = None
 
     def in_reference(self, point_k: NDArray[np.float64]) -> NDArray[np.float64]:
         """A frame-k point (3,) expressed in the reference frame (where the information is)."""

@@ -318,6 +318,7 @@ class Tracker:
             velocity_known=prediction is not None and prediction.velocity_known,
             surface_step=step_size(estimate.surface_step, c_ref),
             model_reference=self.model_based,
+            structure=estimate.structure,
         )
         if status == "ok" and not self.model_based:
             # A keyframe far behind (none promoted for a while: the frames were degraded) is a

@@ -118,6 +118,16 @@ class HealthConfig(StageConfig):
     ok_step_translation, ok_step_rotation
         Largest point-to-plane Gauss-Newton step from the registered pose (voxels): a
         registration that stopped off the surface optimum is not ok.
+    ok_structure
+        Largest residual structure of the registration onto the latest reference
+        (:func:`~spacepose.core.residual_structure.residual_structure`, unit-free: 1 for white
+        residuals). Part of the cloud moving otherwise (the lab's turntable and plinth under a
+        turning target) leaves most of the surface a residual of its own sign: median 10 over
+        the frames of the robustness grid's wall-and-table cells at 0.5-3 m that were ok while
+        off by more than 5 σ (4.6 at 6 and 25 m), against at most 4.6 over its clean cells'
+        right ok frames (docs/methods.md §5.3). Model-free only: against a model such a part
+        has no surface within the gate (the fitness bound applies), and what is left is the
+        sensor's own bias (the flash LiDAR's edge pixels).
     max_motion
         Largest motion (radii; rotation: radians) of the target between two frames while its
         velocity is unknown (a single pose in the history).
@@ -143,6 +153,7 @@ class HealthConfig(StageConfig):
     lost_prediction_factor: float = Field(4.0, ge=1)
     ok_step_translation: PositiveFloat = 0.083
     ok_step_rotation: PositiveFloat = 0.073
+    ok_structure: float = Field(5.0, gt=1)
     max_motion: PositiveFloat = 0.5
     model_error_sigmas: PositiveFloat = 3.0
     max_reference_factor: float = Field(2.0, ge=1)

@@ -1,0 +1,68 @@
+"""The residual structure statistic (core/residual_structure.py) against closed forms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from spacepose.core.residual_structure import MIN_CELL_PAIRS, residual_structure
+from spacepose.errors import InputError
+
+
+def _plane(n_side: int, spacing: float) -> np.ndarray:
+    u, v = np.meshgrid(np.arange(n_side) * spacing, np.arange(n_side) * spacing)
+    return np.column_stack([u.ravel(), v.ravel(), np.zeros(u.size)])
+
+
+def test_white_residuals_give_one() -> None:
+    """Independent residuals: each cell's z-score is standard normal, so the median of the
+    squares over 400 cells is χ²₁'s (the statistic 1) within its sampling error (about ±0.15)."""
+    rng = np.random.default_rng(0)
+    points = _plane(100, 0.01)  # 10,000 pairs, 1 m square
+    values = [
+        residual_structure(points, rng.normal(0.0, 0.002, len(points)), 0.05) for _ in range(5)
+    ]
+    assert np.mean(values) == pytest.approx(1.0, abs=0.1)
+    assert max(values) < 1.35
+
+
+def test_a_bias_per_part_gives_a_noncentral_chi2_median() -> None:
+    """Two halves biased by ±b: a cell of n pairs has z = Σr / (√n σ̂) with σ̂ the MAD's σ of
+    the mixture, so z² σ̂² / σ² is a noncentral χ²₁ of λ = n b² / σ² (scipy's ncx2)."""
+    rng = np.random.default_rng(1)
+    points = _plane(100, 0.01)
+    sigma, b = 0.002, 0.0008
+    r = rng.normal(0.0, sigma, len(points)) + np.where(points[:, 0] < 0.5, b, -b)
+    value = residual_structure(points, r, 0.05)
+    s_hat = stats.median_abs_deviation(r, scale="normal")
+    expected = (sigma / s_hat) ** 2 * stats.ncx2.median(1, 25 * b**2 / sigma**2)
+    assert value == pytest.approx(expected / stats.chi2.median(1), rel=0.1)
+    assert value > 5.0
+    # The same residuals in a random order over the surface: white again.
+    assert residual_structure(points, rng.permutation(r), 0.05) < 1.35
+
+
+def test_a_few_structured_cells_do_not_move_the_median() -> None:
+    """A tenth of the surface biased by 2 σ (an edge two samplings see differently) leaves the
+    median where white noise has it: what counts is a bias over most of the surface."""
+    rng = np.random.default_rng(3)
+    points = _plane(100, 0.01)
+    r = rng.normal(0.0, 0.002, len(points)) + np.where(points[:, 0] < 0.1, 0.004, 0.0)
+    assert residual_structure(points, r, 0.05) < 1.5
+
+
+def test_cells_with_too_few_pairs_are_not_tested() -> None:
+    points = _plane(10, 0.1)  # one pair per 5 cm cell
+    r = np.random.default_rng(2).normal(0.0, 0.001, len(points))
+    assert residual_structure(points, r, 0.05) is None
+    assert residual_structure(points[: MIN_CELL_PAIRS - 1], r[: MIN_CELL_PAIRS - 1], 1.0) is None
+    assert residual_structure(points, np.zeros(len(points)), 1.0) is None  # no spread
+
+
+def test_bad_inputs_raise() -> None:
+    points = _plane(10, 0.01)
+    with pytest.raises(InputError, match="residuals"):
+        residual_structure(points, np.zeros(3), 0.05)
+    with pytest.raises(InputError, match="positive"):
+        residual_structure(points, np.zeros(len(points)), 0.0)
