@@ -15,6 +15,7 @@ covariance's σ, taken from the residuals within that gate, is then no longer tr
 
 from __future__ import annotations
 
+import statistics
 from collections import deque
 
 import numpy as np
@@ -91,7 +92,9 @@ class ResidualNoise:
     def sigma(self) -> float | None:
         """Median of the last measurements, this frame's included (m); None before any."""
         values = [*self._sigmas, *self._pending][-MEMORY:]
-        return float(np.median(values)) if values else None
+        # statistics.median: the same value as numpy's for these few floats, a twentieth of the
+        # time (the gate is read about ten times a frame).
+        return float(statistics.median(values)) if values else None
 
     @property
     def gate(self) -> float:
