@@ -66,3 +66,7 @@ def test_bad_inputs_raise() -> None:
         residual_structure(points, np.zeros(3), 0.05)
     with pytest.raises(InputError, match="positive"):
         residual_structure(points, np.zeros(len(points)), 0.0)
+    bad = points.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(InputError, match="finite"):
+        residual_structure(bad, np.zeros(len(points)), 0.05)

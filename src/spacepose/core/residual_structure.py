@@ -58,7 +58,8 @@ def residual_structure(
     Raises
     ------
     InputError
-        Shapes that do not match, or a cell that is not a positive length.
+        Shapes that do not match, values that are not finite, or a cell that is not a
+        positive length.
     """
     points = np.asarray(points, dtype=np.float64)
     residuals = np.asarray(residuals, dtype=np.float64)
@@ -67,6 +68,8 @@ def residual_structure(
             f"residual structure needs (M, 3) points and (M,) residuals, got {points.shape} "
             f"and {residuals.shape}"
         )
+    if not (np.isfinite(points).all() and np.isfinite(residuals).all()):
+        raise InputError("residual structure needs finite points and residuals")
     if not np.isfinite(cell) or cell <= 0:
         raise InputError(f"residual structure cell must be a positive length, got {cell}")
     if len(residuals) < MIN_CELL_PAIRS:
