@@ -134,6 +134,11 @@ def test_assess_health_bounds():
     status, reasons = assess_health(0.95, 0.002, 10.0, small, c, (0.2, 1.0), cfg, False)
     assert status == "degraded" and "off the prediction" in reasons[-1]
     assert assess_health(0.95, 0.002, 10.0, small, c, (2.0, 1.0), cfg, False)[0] == "lost"
+    # Residuals biased over most of the surface make an otherwise ok frame degraded, not lost.
+    ok = (0.95, 0.002, 10.0, small, c, (0.001, 0.1), cfg)
+    assert assess_health(*ok, structure=4.9) == ("ok", ())
+    status, reasons = assess_health(*ok, structure=12.0)
+    assert status == "degraded" and reasons[0].startswith("residual structure 12.0 > 5")
 
 
 def test_bad_inputs():

@@ -184,7 +184,7 @@ def assess_health(
         one sensor share a sampling and its noise; a model shares neither).
     structure
         :func:`~spacepose.core.residual_structure.residual_structure` of the registration
-        (None: not measured); not applied with ``model_reference``.
+        (None: not measured; the tracker measures it onto keyframes only).
     """
     lost: list[str] = []
     weak: list[str] = []
@@ -213,9 +213,7 @@ def assess_health(
         lost.append(msg)
     elif st > b.ok_step_translation or sr > b.ok_step_rotation_deg:
         weak.append(msg)
-    # Against a model, a part moving otherwise finds no surface within the gate (the fitness
-    # bound sees it), and what structure is left is the sensor's own bias (edge pixels).
-    if structure is not None and not model_reference and structure > b.ok_structure:
+    if structure is not None and structure > b.ok_structure:
         weak.append(
             f"residual structure {structure:.1f} > {b.ok_structure:g}: part of the cloud "
             "fits another motion"

@@ -25,8 +25,8 @@ from numpy.typing import ArrayLike, NDArray
 from spacepose.core import se3
 from spacepose.errors import DegenerateGeometryError, InputError
 
-# Rotation angle above which the logarithm takes the axis from the quaternion (se3.log's rule).
-_NEAR_PI = np.pi - 0.1
+# Rotation angle above which the logarithm takes the axis from the quaternion: se3.log's.
+_NEAR_PI = se3._NEAR_PI
 
 
 @dataclass(frozen=True)
