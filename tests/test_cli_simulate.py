@@ -95,6 +95,12 @@ def test_simulate_motion_range_and_grid_options(tmp_path, capsys) -> None:
     assert (cfg["motion"], cfg["tumble_deg"], cfg["range_m"]) == ("tumbling", 5.0, 3.0)
     assert cfg["wall_distance_m"] == 5.0 and cfg["target_size_m"] == 2.225
     assert cfg["sensor"]["amplitude_exponent"] == 0.5 and cfg["background"] is True
+    assert cfg["turntable"] is True
+    alone = tmp_path / "w"
+    args = ["simulate", "lab", "--out", str(alone), "--frames", "2", "--background"]
+    assert main([*args, "--no-turntable"]) == 0
+    cfg = read_run(alone).scenario["config"]
+    assert cfg["background"] is True and cfg["turntable"] is False
     plain = tmp_path / "p"
     args = ["simulate", "lab", "--out", str(plain), "--frames", "2", "--motion", "accelerating"]
     assert main([*args, "--range", "1.5", "--target-size", "0.5"]) == 0

@@ -121,3 +121,21 @@ def test_grid_errors_are_one_line() -> None:
         grid_scenario(motion="tumbling-120")
     with pytest.raises(ConfigError, match="range"):
         grid_scenario(range_m=-1.0)
+
+
+def test_the_wall_alone_leaves_out_the_turntable() -> None:
+    """``clutter="wall"``: the target floats before the wall; every return off the target
+    is the wall's, at its distance (the wall-and-table scene has nearer ones: the table)."""
+    wall = simulate_lab(
+        grid_scenario(clutter="wall", frames=1).model_copy(update={"sensor": SMALL_TOF})
+    )
+    table = simulate_lab(
+        grid_scenario(clutter="wall-table", frames=1).model_copy(update={"sensor": SMALL_TOF})
+    )
+    assert len(wall.background) == 1 and len(table.background) == 2
+    assert wall.albedo == table.albedo[:2]
+    off = wall.frame(0)
+    behind = off.cloud.points[~off.on_target & ~off.flying, 2]
+    assert len(behind) > 1000 and behind.min() > 2.0 - 0.03  # the wall at 2 m, noise ~3 mm
+    near = table.frame(0)
+    assert near.cloud.points[~near.on_target & ~near.flying, 2].min() < 1.6

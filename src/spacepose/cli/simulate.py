@@ -25,6 +25,9 @@ def simulate(
     model: Path | None = typer.Option(None, help="Mesh file (OBJ/STL/PLY/GLB) as the target."),
     model_scale: float = typer.Option(1.0, help="Scale applied to --model coordinates."),
     background: bool = typer.Option(False, help="lab: add a wall and the turntable."),
+    turntable: bool = typer.Option(
+        True, help="lab, with --background: the turntable under the target (off: the wall alone)."
+    ),
     motion: str | None = typer.Option(
         None, help="lab: constant (default), accelerating or tumbling-D (D degrees a frame)."
     ),
@@ -61,7 +64,7 @@ def simulate(
         }
         config = grid_scenario(
             seed=seed,
-            clutter="wall-table" if background else "none",
+            clutter=("wall-table" if turntable else "wall") if background else "none",
             **{name: value for name, value in given.items() if value is not None},
         )
     else:
@@ -72,7 +75,7 @@ def simulate(
             fields["model"] = str(model)
             fields["model_scale"] = model_scale
         if background:
-            fields["background"] = True
+            fields |= {"background": True, "turntable": turntable}
         if motion is not None:
             fields |= motion_fields(motion)
         if range_m is not None:

@@ -6,12 +6,14 @@ static wall, at identity), and every check then says ``ok``. Two scale-free step
 target alone:
 
 1. on the first frame, :func:`nearest_object`: the frame's points grouped into connected
-   clusters (grid cells of four point spacings, linked to their 26 neighbours); the object is
-   the cluster nearest the sensor (smallest median range) among those holding a real share of
-   the frame, grown by every cluster whose gap to it is below 3/4 of its size (a wing on a boom
-   the sensor does not see) unless it is the background: wholly behind the object and seen
-   past it on every side (the wall behind a big object, the Earth behind a satellite);
-   everything else (the wall behind, debris, stray pixels) is background;
+   clusters (grid cells of four point spacings holding a few points, linked to their 26
+   neighbours; a flying pixel alone in its cell links nothing, and joins the object only on
+   its rim); the object is the cluster nearest the sensor (smallest median range) among those
+   holding a real share of the frame's points or cells, grown by every cluster whose gap to
+   it is below 3/4 of its size (a wing on a boom the sensor does not see) unless it is the
+   background: wholly behind the object and seen past it on every side (the wall behind a big
+   object, the Earth behind a satellite); everything else (the wall behind, debris, stray
+   pixels) is background;
 2. on every later frame, :func:`crop_sphere`: the points within the object's bounding sphere,
    carried by the predicted pose and widened by the motion model's error.
 
@@ -36,8 +38,10 @@ from spacepose.core.voxel import voxel_cells
 # Cell edge of the clustering, in point spacings: coarse enough to be cheap on a cluttered VGA
 # frame (~40k cells), fine enough that a 5-spacing gap separates two objects.
 _CELL_SPACINGS = 4.0
-# A cluster holding less than this share of the frame's cells (of the object's, for a part of
-# it) is debris or flying pixels.
+# Fewest points of a cell that is surface, not flying pixels.
+_MIN_CELL_POINTS = 3
+# A cluster holding less than this share of the frame's points and of its cells (of the
+# object's cells, for a part of it) is debris or flying pixels.
 _MIN_SHARE = 0.02
 # A cluster whose gap to the object is below this share of the object's radius is part of it
 # (the lab mock-up's far wing hangs 8.4 cm from its 0.13 m bus, its boom unseen).
@@ -75,14 +79,28 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
     """
     pts = as_points(points)
     cell = _CELL_SPACINGS * spacing
-    centroids, of_point = voxel_cells(pts, cell)
+    all_centroids, all_of_point = voxel_cells(pts, cell)
     # A cell's centroid lies inside it: its floor is the cell's index.
-    cells = np.floor(centroids / cell).astype(np.int64)
+    all_cells = np.floor(all_centroids / cell).astype(np.int64)
+    # Cells of a surface hold a dozen points; a lone return in a cell is a flying pixel, whose
+    # trails from the silhouette to what lies behind would link the two: the clusters are of
+    # the solid cells, and the sparse ones join the object only beside it (its rim).
+    solid = np.bincount(all_of_point) >= _MIN_CELL_POINTS
+    if not solid.any():
+        solid[:] = True
+    index = np.cumsum(solid) - 1
+    of_point = np.where(solid[all_of_point], index[all_of_point], -1)
+    centroids, cells = all_centroids[solid], all_cells[solid]
     labels = _cluster_labels(cells)
     n_labels = int(labels.max()) + 1
     counts = np.bincount(labels, minlength=n_labels)
-    # The largest cluster always counts: a frame of many small equal pieces has one still.
-    real = counts >= min(max(_MIN_SHARE * len(cells), 1), counts.max())
+    # A real object fills a share of the view (its points: a camera samples solid angle) or of
+    # the scene's surface (its cells): a target at 3 m before a wall at 5 m holds 6 % of the
+    # points but 1 % of the cells, which the wall's coarser spacing sizes. The largest cluster
+    # always counts: a frame of many small equal pieces has one still.
+    points = np.bincount(labels[of_point[of_point >= 0]], minlength=n_labels)
+    real = (counts >= _MIN_SHARE * len(cells)) | (points >= _MIN_SHARE * len(pts))
+    real[np.argmax(counts)] = True
     ranges = np.linalg.norm(centroids, axis=1)
     big = np.flatnonzero(real)
     median_range = np.array([np.median(ranges[labels == c]) for c in big])
@@ -99,14 +117,18 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
         reach = _MERGE_RADII * radius
         # A part need only be a real share of the object, not of a frame full of wall; and it
         # is not the background: around the object in the view and wholly behind it (a wall
-        # behind a big object is near it, but the object hides a hole in it).
-        behind = nearest > ranges[keep].max()
+        # behind a big object is near it, but the object hides a hole in it). Behind its far
+        # side less the flying pixels dense enough to fill a cell (2 % of its cells at most).
+        behind = nearest > np.quantile(ranges[keep], 1.0 - _MIN_SHARE)
         background = behind & _surrounds(view, labels, n_labels, keep)
         part = (counts >= _MIN_SHARE * len(own)) & ~background
         near = part & (_gaps(own, centroids, labels, n_labels, reach) <= reach)
         grown = keep | near[labels]
         if grown.sum() == keep.sum():
-            return keep[of_point]
+            kept = np.zeros(len(all_cells), dtype=bool)
+            kept[solid] = keep
+            kept[~solid] = _beside(all_cells[~solid], cells[keep])
+            return kept[all_of_point]
         keep = grown
 
 
@@ -146,6 +168,25 @@ def _cluster_labels(cells: NDArray[np.int64]) -> NDArray[np.intp]:
     graph = coo_matrix((np.ones(len(r)), (r, c)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     return labels
+
+
+def _beside(cells: NDArray[np.int64], of: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """(M,) True for the grid cells (M, 3) that are one of the cells ``of`` (K, 3) or among
+    their 26 neighbours."""
+    if len(cells) == 0 or len(of) == 0:
+        return np.zeros(len(cells), dtype=bool)
+    low = np.minimum(cells.min(axis=0), of.min(axis=0)) - 1
+    span = np.maximum(cells.max(axis=0), of.max(axis=0)) - low + 2
+
+    def key(c: NDArray[np.int64]) -> NDArray[np.int64]:
+        c = c - low
+        return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+
+    occupied = np.unique(key(of))
+    near = np.zeros(len(cells), dtype=bool)
+    for d in np.argwhere(np.ones((3, 3, 3))) - 1:
+        near |= np.isin(key(cells + d), occupied, assume_unique=False)
+    return near
 
 
 def _surrounds(

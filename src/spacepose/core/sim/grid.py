@@ -22,7 +22,7 @@ from spacepose.core.sim.sensors import SENSOR_PRESETS, sensor_config
 from spacepose.errors import ConfigError
 
 MOTIONS = ("constant", "accelerating", "tumbling-2", "tumbling-5", "tumbling-10")
-CLUTTERS = ("none", "wall-table")
+CLUTTERS = ("none", "wall-table", "wall")
 LAB_RANGE_M = 1.2  # the lab run's range, where the grid's scene is the lab scene itself
 LAB_WALL_M = 2.0  # the lab's wall distance
 _TUMBLING = re.compile(r"tumbling-(\d+(?:\.\d+)?)")
@@ -79,7 +79,8 @@ def grid_scenario(
         One of :data:`MOTIONS`: ``constant`` (the lab's steps), ``accelerating`` or
         ``tumbling-D`` (D degrees a frame about a precessing axis; any D in (0, 90]).
     clutter
-        ``none`` or ``wall-table`` (the lab's wall and turntable).
+        ``none``, ``wall-table`` (the lab's wall and turntable) or ``wall`` (the wall alone:
+        the target floats in front of it).
     seed
         Seed of every random draw.
     frames
@@ -117,7 +118,8 @@ def grid_scenario(
         "range_m": range_m,
         "target_size_m": target_size_m,
         "step_m": LabConfig.model_fields["step_m"].default * scale,
-        "background": clutter == "wall-table",
+        "background": clutter != "none",
+        "turntable": clutter == "wall-table",
         "wall_distance_m": wall,
         "sensor": sensor_config(sensor, noise_scale=noise_scale),
     }

@@ -163,7 +163,8 @@ def sized_target(target: Target, size_m: float | None, align: bool = False) -> T
 def lab_background(
     config: LabConfig, target: Target, T_sensor_table: NDArray[np.float64]
 ) -> tuple[Background, tuple[float, ...]]:
-    """The wall (fixed) and the turntable (on the slide), and the albedo of target and parts.
+    """The wall (fixed) and the turntable (on the slide; left out with ``config.turntable``
+    False), and the albedo of target and parts.
 
     Returns
     -------
@@ -171,9 +172,12 @@ def lab_background(
         Each part with its (N, 4, 4) poses in the sensor frame; the reflectances of the target
         and of each part, in that order.
     """
-    s = table_scale(config)
     d = config.wall_distance_m
     wall = trimesh.creation.box(bounds=[(-1.5 * d, -1.0 * d, d), (1.5 * d, 1.0 * d, d + 0.05)])
+    fixed = np.tile(np.eye(4), (config.frames, 1, 1))
+    if not config.turntable:
+        return ((wall, fixed),), (config.target_albedo, WALL_ALBEDO)
+    s = table_scale(config)
     # Turning about the vertical keeps heights, so the lowest target point is the same in
     # every frame; the disc sits 5 cm below it (y is down). A tumbling target can turn any
     # point downwards: the disc then sits below its bounding sphere.
@@ -191,6 +195,5 @@ def lab_background(
         bounds=[(-0.2 * s, low + disc_t, -0.2 * s), (0.2 * s, low + disc_t + 1.0 * s, 0.2 * s)]
     )
     table = trimesh.util.concatenate([post, disc, plinth])
-    fixed = np.tile(np.eye(4), (config.frames, 1, 1))
     albedo = (config.target_albedo, WALL_ALBEDO, TABLE_ALBEDO)
     return ((wall, fixed), (table, T_sensor_table)), albedo

@@ -88,6 +88,9 @@ class LabConfig(_ScenarioConfig):
         20.0, description="Mock-up tilt on the table about its wing axis, so its top is seen."
     )
     background: bool = Field(False, description="Add a wall and the turntable to the scene.")
+    turntable: bool = Field(
+        True, description="With background: the turntable under the target (False: the wall alone)."
+    )
     wall_distance_m: float = Field(2.0, gt=0, description="Wall distance along the boresight.")
     motion: MotionProfile = Field(
         "constant", description="constant, accelerating or tumbling (see lab_scene)."
