@@ -90,7 +90,7 @@ def test_quick_run_has_every_stage_with_positive_times(quick_run: tuple[int, dic
         assert stage["n_points"] > (0 if name != "ekf_step" else -1), name
     # 160×120 ToF pixels on the mock-up: about a thousand points.
     assert 500 < result["stages"]["icp"]["n_points"] < 2000
-    # The raw frame is every pixel: the target, the turntable and the wall.
+    # The raw frame is every pixel: the target and the wall behind it.
     assert result["stages"]["raw_160x120"]["n_points"] > 0.95 * 160 * 120
 
 

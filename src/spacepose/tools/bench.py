@@ -29,7 +29,7 @@ the same scenario for ``tracking_step``):
   history yet, so the motion model's wide robust first pass runs), beside Open3D's core steps
   against frame 0 prepared as a keyframe.
 * ``ekf_step``: one predict + pose update of the orbit EKF, from the orbit truth.
-* ``raw_<W>x<H>``: the ``tracking_step`` on raw frames of the lab scene with its background at
+* ``raw_<W>x<H>``: the ``tracking_step`` on raw frames of the lab mock-up before its wall at
   the ToF camera's full resolution (:mod:`spacepose.tools.bench_fullres`, 300k points at 640×480,
   900k at 1280×720): two untimed frames (the first, the scale estimate, and the second, the cold
   start, are reported beside the row), then ``raw_frames`` timed frames per call.

@@ -1,11 +1,12 @@
 """Full-resolution inputs of ``spacepose bench``: raw ToF frames, the tracker's memory on a stream.
 
-The bench's stage frames are the lab target alone (about 18k points at 640×480). A real ToF
-camera returns a point for every pixel: the lab scene with its wall and turntable
-(``LabConfig(background=True)``) seen at the camera's full resolution gives about 300k points at
-640×480 and 900k at 1280×720. :func:`raw_frames` renders such frames (the focal length scaled
-with the width, so every resolution sees the same horizontal field of view); the bench times
-the default tracker's second frame on them beside Open3D's core steps.
+The bench's stage frames are the lab target alone (about 18k points at 640×480). A real ToF camera
+returns a point for every pixel: the lab mock-up before its wall (``LabConfig(background=True,
+turntable=False)``) seen at the camera's full resolution gives about 300k points at 640×480 and 900k
+at 1280×720. The turntable is left out: it moves otherwise than the target, so its frames would be
+``degraded`` and time a cheaper step than a healthy one. :func:`raw_frames` renders such frames (the
+focal length scaled with the width, so every resolution sees the same horizontal field of view); the
+bench times the default tracker's second frame on them beside Open3D's core steps.
 
 :func:`stream_peak_rss` tracks a stream of such frames in a fresh interpreter and reports its
 largest resident set, which is what a tracking process needs: the interpreter, numpy, scipy and
@@ -31,7 +32,7 @@ _FOCAL_PER_WIDTH = 483.6 / 640
 
 
 def raw_frames(width: int, height: int, count: int, seed: int) -> list[Frame]:
-    """The first ``count`` frames of the lab run with its background, every pixel a point.
+    """The first ``count`` frames of the lab run before its wall, every pixel a point.
 
     Parameters
     ----------
@@ -47,7 +48,8 @@ def raw_frames(width: int, height: int, count: int, seed: int) -> list[Frame]:
     The frames (sensor frame, m), rendered one by one as they are asked for.
     """
     sensor = sensor_config("tof", width=width, height=height, focal_px=_FOCAL_PER_WIDTH * width)
-    sim = simulate_lab(LabConfig(frames=count, seed=seed, sensor=sensor, background=True))
+    config = LabConfig(frames=count, seed=seed, sensor=sensor, background=True, turntable=False)
+    sim = simulate_lab(config)
     return [sim.frame(k) for k in range(count)]
 
 
