@@ -374,7 +374,9 @@ class Tracker:
     ) -> TrackResult:
         """Model-free: the first usable frame defines the target frame (pose identity)."""
         T, cov = np.eye(4), np.zeros((6, 6))
-        self._keyframes.append(Keyframe(index, prepared, T, cov))
+        # A keyframe's normals are estimated when it is made: it is the next frame's target,
+        # whose step should not pay for them.
+        self._keyframes.append(Keyframe(index, self._registrar.as_target(prepared), T, cov))
         self._motion.accept(timestamp, T, cov, None, restart=True)
         _close_times(times, self._t_start)
         return TrackResult(
@@ -480,7 +482,7 @@ class Tracker:
         # The keyframe keeps the noise covariance; its drift is carried apart.
         kf = Keyframe(
             index,
-            prepared,
+            self._registrar.as_target(prepared),  # its normals now, as in _start
             estimate.T_sensor_target,
             estimate.covariance - (0.0 if estimate.drift is None else estimate.drift),
             list(estimate.edges),
