@@ -239,11 +239,21 @@ def register(
         np.eye(4) if init_T_target_source is None else init_T_target_source,
         "init_T_target_source",
     ).copy()
+    for cloud in (source, target):
+        if len(cloud) < 3:
+            raise InputError(f"{len(cloud)} point(s): a rigid fit needs 3", cloud.source)
     scales = [cloud_scale(c.points, config.seed) for c in (source, target)]
     voxel = config.voxel_size or derived_voxel(scales, config)
     src, tgt = (
         PointCloud(voxel_cells(c.points, voxel)[0], source=c.source) for c in (source, target)
     )
+    for cloud in (src, tgt):
+        if len(cloud) < 3:
+            raise InputError(
+                f"{len(cloud)} distinct point(s) at the {voxel:.4g} m voxel: a rigid fit needs 3 "
+                "(do its points all coincide?)",
+                cloud.source,
+            )
     coarse = None
     fine_gate = config.gate_voxels * voxel
     start = config.start_radius_fraction * max(s.radius for s in scales)
