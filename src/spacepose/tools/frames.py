@@ -34,7 +34,7 @@ from spacepose.core.config import dump_config, load_config, validate_config
 from spacepose.core.depth import DepthCamera
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import InputError
+from spacepose.errors import InputError, SpaceposeError
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.trajectory_io import tum_lines
@@ -203,12 +203,27 @@ def _open_depth_folder(root: Path, camera: DepthCamera | None) -> FrameSequence:
                 root,
             )
         camera = depth_io.read_intrinsics(found)
-    loader = partial(depth_io.read_depth_cloud, camera=camera)
     if (root / depth_io.TUM_DEPTH_LIST).is_file():
         paths, timestamps = depth_io.read_tum_depth_list(root / depth_io.TUM_DEPTH_LIST)
-        return FrameSequence(paths, timestamps, loader=loader)
-    paths = depth_io.depth_files(root)
-    return FrameSequence(paths, _folder_timestamps(root, len(paths)), loader=loader)
+    else:
+        paths = depth_io.depth_files(root)
+        timestamps = _folder_timestamps(root, len(paths))
+    loader = partial(depth_io.read_depth_cloud, camera=_sized(camera, paths))
+    return FrameSequence(paths, timestamps, loader=loader)
+
+
+def _sized(camera: DepthCamera, paths: Sequence[Path]) -> DepthCamera:
+    """``camera`` with the first image's size where its intrinsics give none: one camera makes
+    every frame of a sequence, and an image of another size (a frame of another stream) would
+    be back-projected with the wrong principal point without a word."""
+    if not paths or (camera.width is not None and camera.height is not None):
+        return camera
+    try:
+        height, width = depth_io.read_depth_image(paths[0]).shape
+    except SpaceposeError:
+        return camera  # the first frame's own error is reported when it is read
+    size = {"width": width, "height": height}
+    return camera.model_copy(update={k: v for k, v in size.items() if getattr(camera, k) is None})
 
 
 def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
