@@ -23,18 +23,18 @@ from spacepose.core.icp import (
     find_correspondences,
     icp,
     icp_correspondences,
-    point_to_plane_system,
 )
 from spacepose.core.jicp import average_three, average_three_covariance
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, moved_covariance
 from spacepose.core.motion import rigid
 from spacepose.core.normals import estimate_normals
+from spacepose.core.pose_covariance import isotropic_about, plane_covariance, shaped_drift
 from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.residual_noise import ResidualNoise, point_to_plane_sigma
 from spacepose.core.residual_structure import residual_structure
 from spacepose.core.tracker_config import StageLengths, pairwise_kind
-from spacepose.errors import RegistrationError, SpaceposeError
+from spacepose.errors import SpaceposeError
 
 # Largest pose-graph update (rad, m) at which J-ICP stops iterating. Its Gauss-Newton shrinks the
 # update about 1000× per iteration on the lab run: after a 1e-6 step the poses are within ~1e-9
@@ -56,8 +56,9 @@ class PairRegistration:
     result
         The registration, ``T_target_source`` = ``T_ref_k``.
     covariance
-        (6, 6) covariance of ``T_ref_k`` (left perturbation in the reference frame, scaled and
-        with the voxel floor; see :func:`plane_covariance`).
+        (6, 6) covariance of ``T_ref_k`` (left perturbation in the reference frame, scaled, times
+        the frame's residual structure when above 1, and with the voxel floor; see
+        :func:`plane_covariance`).
     step
         (6,) the point-to-plane Gauss-Newton step from the result (same frame).
     structure
@@ -69,60 +70,6 @@ class PairRegistration:
     covariance: NDArray[np.float64]
     step: NDArray[np.float64]
     structure: float | None = None
-
-
-def plane_covariance(
-    T_target_source: NDArray[np.float64],
-    source_points: NDArray[np.float64],
-    target: PreparedCloud,
-    max_distance: float,
-    workers: int = -1,
-    correspondences: Correspondences | None = None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Covariance of a registration from its point-to-plane residuals at the solution.
-
-    ``σ² (Σ h hᵀ)⁻¹`` with ``h = (p × n, n)`` over the final correspondences (target normals)
-    and ``σ²`` the variance of the normal distances: the same noise model whichever method
-    produced ``T_target_source``, so ICP, GICP and J-ICP report comparable uncertainties.
-
-    ``correspondences`` are the matches at ``T_target_source`` when the registration already
-    has them (:func:`~spacepose.core.icp.icp_correspondences`; its point-to-plane sums are used
-    as they are); otherwise they are searched within ``max_distance``.
-
-    Returns
-    -------
-    covariance
-        (6, 6) covariance of ``T_target_source``, left perturbation in the target frame.
-    step
-        (6,) the Gauss-Newton point-to-plane step from ``T_target_source`` (same frame): about
-        zero at the surface optimum, large when a registration stopped elsewhere.
-
-    Raises
-    ------
-    RegistrationError
-        Fewer than 7 correspondences within ``max_distance``.
-    """
-    sigma2 = None
-    if correspondences is not None and correspondences.system is not None:
-        n_matches = len(correspondences.src_idx)
-        H, g, sse = correspondences.system
-        if correspondences.weights is not None:
-            # Robust sums: the M-estimator's own variance, not the weighted Σ r².
-            sigma2 = correspondences.residual_sigma**2
-    else:
-        moved = se3.transform_points(T_target_source, source_points)
-        if correspondences is None:
-            s, t, _ = find_correspondences(target.tree, moved, max_distance, workers)
-        else:
-            s, t = correspondences.src_idx, correspondences.tgt_idx
-        n_matches = len(s)
-        H, g, sse = point_to_plane_system(moved[s], target.cloud.points[t], target.cloud.normals[t])
-    if n_matches < 7:
-        raise RegistrationError(f"{n_matches} correspondences are too few for a covariance")
-    if sigma2 is None:
-        sigma2 = sse / (n_matches - 6)
-    H_inv = np.linalg.pinv(H, hermitian=True)
-    return sigma2 * H_inv, -H_inv @ g
 
 
 class FrameRegistrar:
@@ -149,6 +96,8 @@ class FrameRegistrar:
         # The fine gate widens to three measured residual σ on a sensor noisier than the voxel.
         self.noise = ResidualNoise(lengths.gate)
         self.covariance_scale = covariance_scale
+        # Design effect of the frame being registered (set by its measured registration).
+        self._design = 1.0
         self.workers = workers
         L = lengths
         self._icp: ICPConfig = L.icp
@@ -231,6 +180,10 @@ class FrameRegistrar:
                 # Against a model a part moving otherwise finds no surface within the gate
                 # (the fitness bound sees it); the test is for two views of one sensor.
                 structure = self._structure(prepared, tgt, res, matches)
+            # Residuals correlated over the surface carry less information than their count
+            # says: the variance of their cell means over white noise's (the design effect)
+            # scales this frame's covariances, onto every reference.
+            self._design = 1.0 if structure is None else max(1.0, structure)
         cov, step = plane_covariance(
             res.T_target_source,
             prepared.cloud.points,
@@ -239,7 +192,7 @@ class FrameRegistrar:
             self.workers,
             matches,
         )
-        cov = self.covariance_scale * cov + self._floor(prepared, res)
+        cov = self.covariance_scale * self._design * cov + self._floor(prepared, res)
         return PairRegistration(res, cov, step, structure)
 
     def _structure(
@@ -303,7 +256,14 @@ class FrameRegistrar:
         bias = self._drift(prepared, res, ref)
         drift = shaped_drift(prepared, bias, own)
         return FineEstimate(
-            T, cov + drift, own, res, ref, pair.step, bias=bias, drift=drift,
+            T,
+            cov + drift,
+            own,
+            res,
+            ref,
+            pair.step,
+            bias=bias,
+            drift=drift,
             structure=pair.structure,
         )
 
@@ -469,42 +429,3 @@ def _edge_onto(
             T = se3.invert(T_earlier_frame)
             return T, _moved(np.linalg.pinv(info, hermitian=True), T)
     return None
-
-
-def isotropic_about(
-    point: NDArray[np.float64], sigma: tuple[float, float]
-) -> NDArray[np.float64]:
-    """(6, 6) covariance of an isotropic ``sigma`` = (rad, m) twist about ``point`` (3,),
-    expressed about the origin of the same frame."""
-    s_r, s_t = sigma
-    cov_c = np.diag([s_r**2] * 3 + [s_t**2] * 3)
-    # A twist about the point c is (ω, v + skew(c) ω) about the origin.
-    M = np.eye(6)
-    M[3:, :3] = se3.skew(point)
-    return M @ cov_c @ M.T
-
-
-def shaped_drift(
-    prepared: PreparedCloud, drift: tuple[float, float], own: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """(6, 6) covariance (frame k, about the origin) of a keyframe chain's drift.
-
-    ``drift`` (rad, m) is the chain's 1-σ (:meth:`FrameRegistrar._drift`) as a displacement at
-    the target's radius; it is spread over the directions in proportion to the frame's own
-    registration covariance ``own`` (about the centroid, rotations scaled by the radius): a
-    bias builds up where the registration is least constrained (across the line of sight on
-    the lab run, not in depth).
-    """
-    c, r = prepared.centroid, prepared.radius
-    s = drift[1] + r * drift[0]
-    if s <= 0:
-        return np.zeros((6, 6))
-    # Twist about the origin -> about the centroid, rotations in metres at the radius.
-    to_c = np.eye(6)
-    to_c[3:, :3] = -se3.skew(c)
-    N = np.diag([r] * 3 + [1.0] * 3) @ to_c
-    own_n = N @ own @ N.T
-    top = float(np.linalg.eigvalsh(0.5 * (own_n + own_n.T))[-1])
-    shape = own_n / top if top > 0 else np.eye(6)
-    N_inv = np.linalg.inv(N)
-    return N_inv @ (s**2 * shape) @ N_inv.T

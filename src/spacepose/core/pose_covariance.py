@@ -1,0 +1,108 @@
+"""Covariances of registrations (docs/methods.md §5.3, §5.5): σ² H⁻¹ from the point-to-plane
+residuals, an isotropic floor about a point, and a keyframe chain's drift shaped like the
+registration's own uncertainty.
+
+All are (6, 6), left perturbations with the twist ordered (ω, v), about the origin of the frame
+they are expressed in.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.core import se3
+from spacepose.core.icp import Correspondences, find_correspondences, point_to_plane_system
+from spacepose.core.keyframes import PreparedCloud
+from spacepose.errors import RegistrationError
+
+
+def plane_covariance(
+    T_target_source: NDArray[np.float64],
+    source_points: NDArray[np.float64],
+    target: PreparedCloud,
+    max_distance: float,
+    workers: int = -1,
+    correspondences: Correspondences | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Covariance of a registration from its point-to-plane residuals at the solution.
+
+    ``σ² (Σ h hᵀ)⁻¹`` with ``h = (p × n, n)`` over the final correspondences (target normals)
+    and ``σ²`` the variance of the normal distances: the same noise model whichever method
+    produced ``T_target_source``, so ICP, GICP and J-ICP report comparable uncertainties.
+
+    ``correspondences`` are the matches at ``T_target_source`` when the registration already
+    has them (:func:`~spacepose.core.icp.icp_correspondences`; its point-to-plane sums are used
+    as they are); otherwise they are searched within ``max_distance``.
+
+    Returns
+    -------
+    covariance
+        (6, 6) covariance of ``T_target_source``, left perturbation in the target frame.
+    step
+        (6,) the Gauss-Newton point-to-plane step from ``T_target_source`` (same frame): about
+        zero at the surface optimum, large when a registration stopped elsewhere.
+
+    Raises
+    ------
+    RegistrationError
+        Fewer than 7 correspondences within ``max_distance``.
+    """
+    sigma2 = None
+    if correspondences is not None and correspondences.system is not None:
+        n_matches = len(correspondences.src_idx)
+        H, g, sse = correspondences.system
+        if correspondences.weights is not None:
+            # Robust sums: the M-estimator's own variance, not the weighted Σ r².
+            sigma2 = correspondences.residual_sigma**2
+    else:
+        moved = se3.transform_points(T_target_source, source_points)
+        if correspondences is None:
+            s, t, _ = find_correspondences(target.tree, moved, max_distance, workers)
+        else:
+            s, t = correspondences.src_idx, correspondences.tgt_idx
+        n_matches = len(s)
+        H, g, sse = point_to_plane_system(moved[s], target.cloud.points[t], target.cloud.normals[t])
+    if n_matches < 7:
+        raise RegistrationError(f"{n_matches} correspondences are too few for a covariance")
+    if sigma2 is None:
+        sigma2 = sse / (n_matches - 6)
+    H_inv = np.linalg.pinv(H, hermitian=True)
+    return sigma2 * H_inv, -H_inv @ g
+
+
+def isotropic_about(point: NDArray[np.float64], sigma: tuple[float, float]) -> NDArray[np.float64]:
+    """(6, 6) covariance of an isotropic ``sigma`` = (rad, m) twist about ``point`` (3,),
+    expressed about the origin of the same frame."""
+    s_r, s_t = sigma
+    cov_c = np.diag([s_r**2] * 3 + [s_t**2] * 3)
+    # A twist about the point c is (ω, v + skew(c) ω) about the origin.
+    M = np.eye(6)
+    M[3:, :3] = se3.skew(point)
+    return M @ cov_c @ M.T
+
+
+def shaped_drift(
+    prepared: PreparedCloud, drift: tuple[float, float], own: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(6, 6) covariance (frame k, about the origin) of a keyframe chain's drift.
+
+    ``drift`` (rad, m) is the chain's 1-σ (:meth:`FrameRegistrar._drift`) as a displacement at
+    the target's radius; it is spread over the directions in proportion to the frame's own
+    registration covariance ``own`` (about the centroid, rotations scaled by the radius): a
+    bias builds up where the registration is least constrained (across the line of sight on
+    the lab run, not in depth).
+    """
+    c, r = prepared.centroid, prepared.radius
+    s = drift[1] + r * drift[0]
+    if s <= 0:
+        return np.zeros((6, 6))
+    # Twist about the origin -> about the centroid, rotations in metres at the radius.
+    to_c = np.eye(6)
+    to_c[3:, :3] = -se3.skew(c)
+    N = np.diag([r] * 3 + [1.0] * 3) @ to_c
+    own_n = N @ own @ N.T
+    top = float(np.linalg.eigvalsh(0.5 * (own_n + own_n.T))[-1])
+    shape = own_n / top if top > 0 else np.eye(6)
+    N_inv = np.linalg.inv(N)
+    return N_inv @ (s**2 * shape) @ N_inv.T
