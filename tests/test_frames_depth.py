@@ -127,24 +127,26 @@ def test_bad_depth_image_is_lost_with_its_reason(folders, tmp_path):
     assert "0002.png" in frames[2].error and "cannot decode" in frames[2].error
 
 
-def test_an_image_of_another_size_is_lost_when_the_intrinsics_give_none(folders, tmp_path):
-    """Intrinsics without width and height: the first image sets the sequence's size, and a
-    frame of another size (another stream's) is lost with its reason, not back-projected with
-    the wrong principal point."""
+@pytest.mark.parametrize("odd", [0, 3])
+def test_an_image_of_another_size_is_lost_when_the_intrinsics_give_none(folders, tmp_path, odd):
+    """Intrinsics without width and height: the size most of the sequence's images have is
+    the camera's, and a frame of another size (another stream's), first or not, is lost with
+    its reason, not back-projected with the wrong principal point."""
     mixed = tmp_path / "mixed"
     mixed.mkdir()
     for p in folders["depth"].glob("*.png"):
         (mixed / p.name).write_bytes(p.read_bytes())
-    half = read_depth_image(mixed / "0003.png")[::2, ::2]
-    write_depth_image(mixed / "0003.png", half * DEPTH_SCALE, DEPTH_SCALE)
+    name = f"{odd:04d}.png"
+    half = read_depth_image(mixed / name)[::2, ::2]
+    write_depth_image(mixed / name, half * DEPTH_SCALE, DEPTH_SCALE)
     lines = (folders["depth"] / "intrinsics.yaml").read_text().splitlines()
     sizeless = [line for line in lines if not line.startswith(("width", "height"))]
     assert len(sizeless) == len(lines) - 2
     (mixed / "intrinsics.yaml").write_text("\n".join(sizeless) + "\n")
     frames = list(open_frames(mixed))
-    assert [f.cloud is None for f in frames] == [k == 3 for k in range(N_FRAMES)]
+    assert [f.cloud is None for f in frames] == [k == odd for k in range(N_FRAMES)]
     h, w = half.shape
-    assert f"image is {w}x{h}, the intrinsics say {2 * w}x{2 * h}" in frames[3].error
+    assert f"image is {w}x{h}, the intrinsics say {2 * w}x{2 * h}" in frames[odd].error
 
 
 def test_depth_folder_without_intrinsics(folders, tmp_path):

@@ -58,6 +58,15 @@ def read_depth_image(path: str | Path) -> NDArray:
     return values
 
 
+def image_size(path: str | Path) -> tuple[int, int] | None:
+    """(width, height) of an image from its header (nothing decoded), None if unreadable."""
+    try:
+        with Image.open(path) as image:
+            return image.size
+    except (OSError, SyntaxError, ValueError):
+        return None
+
+
 def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float = 0.001) -> Path:
     """Write a depth image (metres, 0 = no return) as 16-bit units of ``depth_scale`` metres
     (PNG or TIFF by suffix), or as 32-bit float metres for a ``.tif``/``.tiff`` when

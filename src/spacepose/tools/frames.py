@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import os
+from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -34,7 +35,7 @@ from spacepose.core.config import dump_config, load_config, validate_config
 from spacepose.core.depth import DepthCamera
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import InputError, SpaceposeError
+from spacepose.errors import InputError
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.trajectory_io import tum_lines
@@ -213,15 +214,16 @@ def _open_depth_folder(root: Path, camera: DepthCamera | None) -> FrameSequence:
 
 
 def _sized(camera: DepthCamera, paths: Sequence[Path]) -> DepthCamera:
-    """``camera`` with the first image's size where its intrinsics give none: one camera makes
-    every frame of a sequence, and an image of another size (a frame of another stream) would
-    be back-projected with the wrong principal point without a word."""
-    if not paths or (camera.width is not None and camera.height is not None):
+    """``camera`` with the sequence's image size where its intrinsics give none: the size most
+    of its images have (read from their headers). One camera makes every frame, and an image
+    of another size (a frame of another stream) would be back-projected with the wrong
+    principal point without a word."""
+    if camera.width is not None and camera.height is not None:
         return camera
-    try:
-        height, width = depth_io.read_depth_image(paths[0]).shape
-    except SpaceposeError:
-        return camera  # the first frame's own error is reported when it is read
+    sizes = Counter(size for size in map(depth_io.image_size, paths) if size is not None)
+    if not sizes:
+        return camera  # each frame's own error is reported when it is read
+    (width, height), _ = sizes.most_common(1)[0]
     size = {"width": width, "height": height}
     return camera.model_copy(update={k: v for k, v in size.items() if getattr(camera, k) is None})
 
