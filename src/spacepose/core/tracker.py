@@ -34,15 +34,19 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, as_cloud
+from spacepose.core.frame_check import (
+    FAR_KEYFRAME,
+    CheckContext,
+    check_frame,
+    health_bounds,
+    wide_gate,
+)
 from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.health import (
-    HealthBounds,
     Status,
-    assess_health,
     normalised_condition,
     pose_disagreement,
-    step_size,
 )
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
 from spacepose.core.motion import MotionModel, Prediction
@@ -52,9 +56,6 @@ from spacepose.core.track_result import STAGES, TrackingOutput, TrackResult
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeError
-
-# Reason of a frame degraded only because its keyframe is far: it may become the new keyframe.
-_FAR_KEYFRAME = "keyframe"
 
 
 class Tracker:
@@ -149,14 +150,17 @@ class Tracker:
         if prediction is not None:
             tic = time.perf_counter()
             checked = self._fine_and_check(
-                prepared, prediction.T_sensor_target, self._wide_gate(prediction), prediction
+                prepared,
+                prediction.T_sensor_target,
+                wide_gate(self._context(), prediction),
+                prediction,
             )
             times["fine"] += _ms(tic)
         relocaliser = self._relocaliser
         coarse = checked[1] == "lost"
         if coarse:
             checked = relocaliser.reinitialise(prepared, prediction, checked, times)
-        elif relocaliser.retry_due(checked, self._bounds()):
+        elif relocaliser.retry_due(checked, health_bounds(self._context(), self.model_based)):
             # Against a model, a frame that leaves much of itself off the model's surface sits
             # in a wrong but stable optimum (a twin turned half a turn, a slide along a wing):
             # a coarse pose is tried, and kept only when it fits.
@@ -211,7 +215,7 @@ class Tracker:
         if prediction is not None and self._frames.scale is not None:
             # The prediction's own uncertainty at the object's edge (3 σ), or the wide gate's
             # reach while the motion model has no error to show yet.
-            slack = self._wide_gate(prediction)
+            slack = wide_gate(self._context(), prediction)
         T = None if prediction is None else prediction.T_sensor_target
         prepared = self._frames.prepare(cloud, T, slack)
         if self._registrar is None:
@@ -270,16 +274,6 @@ class Tracker:
             return None, "lost", (f"fine registration failed: {exc}",)
         return (estimate, *self._check(estimate, prepared, prediction))
 
-    def _wide_gate(self, prediction: Prediction) -> float:
-        """Gate (m) of the first pass: three model-error σ at the radius (KISS-ICP-like)."""
-        h, r = self.config.health, self._frames.scale.radius
-        if not prediction.velocity_known:
-            return h.max_motion * r
-        error = self._motion.model_error()
-        if error is None:
-            return 0.0
-        return h.model_error_sigmas * (error[0] + r * error[1])
-
     def _fine(
         self, prepared: PreparedCloud, ref: Keyframe, T_init: NDArray[np.float64]
     ) -> FineEstimate:
@@ -297,60 +291,10 @@ class Tracker:
     def _check(
         self, estimate: FineEstimate, prepared: PreparedCloud, prediction: Prediction | None
     ) -> tuple[Status, tuple[str, ...]]:
-        c = prepared.centroid
-        res = estimate.result
-        c_ref = estimate.in_reference(c)
-        disagreement = None
-        if prediction is not None:
-            disagreement = pose_disagreement(
-                estimate.T_sensor_target, prediction.T_sensor_target, c
-            )
-        scale = self._frames.scale
-        bounds = self._bounds()
-        status, reasons = assess_health(
-            res.fitness,
-            res.inlier_rmse,
-            normalised_condition(res.information, c_ref, prepared.radius),
-            estimate.own_covariance,
-            c,
-            disagreement,
-            bounds,
-            velocity_known=prediction is not None and prediction.velocity_known,
-            surface_step=step_size(estimate.surface_step, c_ref),
-            model_reference=self.model_based,
-            structure=estimate.structure,
-        )
-        if status == "ok" and not self.model_based:
-            # A keyframe far behind (none promoted for a while: the frames were degraded) is a
-            # reference whose registration can lock onto a wrong but plausible overlap.
-            kc, f = self.config.keyframe, self.config.health.max_reference_factor
-            dt, dr = pose_disagreement(estimate.T_sensor_target, estimate.reference.T_ref_target, c)
-            # Far beyond the promotion thresholds, or beyond the target's own last step when it
-            # moves more than those in one frame (a 10°-a-frame tumble: every frame promoted).
-            step_t, step_r = self._last_step(c)
-            far_t = f * max(kc.max_translation * scale.radius, step_t)
-            far_r = f * max(kc.max_rotation_deg, step_r)
-            if dt > far_t or dr > far_r:
-                status = "degraded"
-                reasons = (f"{_FAR_KEYFRAME} {1e3 * dt:.0f} mm / {dr:.1f} deg away",)
-        return status, reasons
+        return check_frame(estimate, prepared, prediction, self._context(), self.model_based)
 
-    def _bounds(self) -> HealthBounds:
-        scale = self._frames.scale
-        return HealthBounds.from_scale(
-            self.config.health,
-            scale.voxel,
-            scale.radius,
-            self._motion.model_error(),
-            self.model_based,
-        )
-
-    def _last_step(self, point: NDArray[np.float64]) -> tuple[float, float]:
-        """(displacement of ``point`` m, rotation deg) between the last two accepted poses."""
-        history = self._motion.history
-        if len(history) < 2:
-            return 0.0, 0.0
-        return pose_disagreement(history[-1][1], history[-2][1], point)
+    def _context(self) -> CheckContext:
+        return CheckContext(self.config, self._frames.scale, self._motion)
 
     # -- state -------------------------------------------------------------------------------
 
@@ -468,7 +412,7 @@ class Tracker:
         """Refresh the window's poses and promote the frame if the policy says so."""
         # A frame degraded only by the distance to its keyframe passed every check of its own
         # registration: promoting it is how the tracker gets back to ok after a re-initialisation.
-        far_only = bool(reasons) and all(r.startswith(_FAR_KEYFRAME) for r in reasons)
+        far_only = bool(reasons) and all(r.startswith(FAR_KEYFRAME) for r in reasons)
         trusted = status == "ok" or far_only
         if trusted:
             for kf, T_kf, cov_kf in estimate.window_poses:

@@ -1,0 +1,115 @@
+"""The health check of a tracked frame, in the tracker's context (docs/methods.md §5.3, §5.4).
+
+:func:`~spacepose.core.health.assess_health` judges one registration against bounds. Here the
+bounds follow the data's scale and the motion model's observed error (:func:`health_bounds`),
+the first pass's gate follows that error too (:func:`wide_gate`), and a model-free frame
+registered onto a keyframe far behind is held back (:func:`check_frame`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.core.health import (
+    HealthBounds,
+    Status,
+    assess_health,
+    normalised_condition,
+    pose_disagreement,
+    step_size,
+)
+from spacepose.core.keyframes import FineEstimate, PreparedCloud
+from spacepose.core.motion import MotionModel, Prediction
+from spacepose.core.scale import DataScale
+from spacepose.core.tracker_config import TrackerConfig
+
+# Reason of a frame degraded only because its keyframe is far: it may become the new keyframe.
+FAR_KEYFRAME = "keyframe"
+
+
+@dataclass(frozen=True)
+class CheckContext:
+    """What a frame is checked against: the tracker's config, the lengths derived from the
+    first usable frame, and the motion model (its observed error and last poses)."""
+
+    config: TrackerConfig
+    scale: DataScale
+    motion: MotionModel
+
+
+def health_bounds(context: CheckContext, model_based: bool) -> HealthBounds:
+    """The health bounds at the data's scale, widened by the motion model's observed error."""
+    return HealthBounds.from_scale(
+        context.config.health,
+        context.scale.voxel,
+        context.scale.radius,
+        context.motion.model_error(),
+        model_based,
+    )
+
+
+def wide_gate(context: CheckContext, prediction: Prediction) -> float:
+    """Gate (m) of the first pass: three model-error σ at the radius (KISS-ICP-like); the
+    largest motion allowed while the velocity is unknown."""
+    h, r = context.config.health, context.scale.radius
+    if not prediction.velocity_known:
+        return h.max_motion * r
+    error = context.motion.model_error()
+    if error is None:
+        return 0.0
+    return h.model_error_sigmas * (error[0] + r * error[1])
+
+
+def check_frame(
+    estimate: FineEstimate,
+    prepared: PreparedCloud,
+    prediction: Prediction | None,
+    context: CheckContext,
+    model_based: bool,
+) -> tuple[Status, tuple[str, ...]]:
+    """Status and reasons of a frame's fine estimate (``prepared`` is the frame, ``prediction``
+    the motion model's or a prior; None when there is none)."""
+    c = prepared.centroid
+    res = estimate.result
+    c_ref = estimate.in_reference(c)
+    disagreement = None
+    if prediction is not None:
+        disagreement = pose_disagreement(estimate.T_sensor_target, prediction.T_sensor_target, c)
+    status, reasons = assess_health(
+        res.fitness,
+        res.inlier_rmse,
+        normalised_condition(res.information, c_ref, prepared.radius),
+        estimate.own_covariance,
+        c,
+        disagreement,
+        health_bounds(context, model_based),
+        velocity_known=prediction is not None and prediction.velocity_known,
+        surface_step=step_size(estimate.surface_step, c_ref),
+        model_reference=model_based,
+        structure=estimate.structure,
+    )
+    if status == "ok" and not model_based:
+        # A keyframe far behind (none promoted for a while: the frames were degraded) is a
+        # reference whose registration can lock onto a wrong but plausible overlap.
+        kc, f = context.config.keyframe, context.config.health.max_reference_factor
+        dt, dr = pose_disagreement(estimate.T_sensor_target, estimate.reference.T_ref_target, c)
+        # Far beyond the promotion thresholds, or beyond the target's own last step when it
+        # moves more than those in one frame (a 10°-a-frame tumble: every frame promoted).
+        step_t, step_r = _last_step(context.motion, c)
+        far_t = f * max(kc.max_translation * context.scale.radius, step_t)
+        far_r = f * max(kc.max_rotation_deg, step_r)
+        if dt > far_t or dr > far_r:
+            status = "degraded"
+            reasons = (f"{FAR_KEYFRAME} {1e3 * dt:.0f} mm / {dr:.1f} deg away",)
+    return status, reasons
+
+
+def _last_step(motion: MotionModel, point: NDArray[np.float64]) -> tuple[float, float]:
+    """(displacement of ``point`` m, rotation deg) between the last two accepted poses."""
+    history = motion.history
+    if len(history) < 2:
+        return 0.0, 0.0
+    return pose_disagreement(history[-1][1], history[-2][1], point)
