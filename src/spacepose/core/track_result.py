@@ -7,7 +7,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from spacepose.core.health import Status
+from spacepose.core.health import Status, normalised_condition
+from spacepose.core.keyframes import FineEstimate, PreparedCloud
+from spacepose.core.motion import Prediction
 from spacepose.core.trajectory import Trajectory
 
 # Timed parts of a step; "other" is the health checks and state bookkeeping, so that the first
@@ -67,10 +69,58 @@ class TrackResult:
         return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
 
 
-
 @dataclass(frozen=True)
 class TrackingOutput:
     """A tracked sequence: the trajectory (one pose per frame) and the per-frame results."""
 
     trajectory: Trajectory
     results: list[TrackResult]
+
+
+def lost_result(
+    index: int,
+    timestamp: float,
+    prediction: Prediction | None,
+    reasons: tuple[str, ...],
+    times: dict[str, float],
+    coarse: bool = False,
+) -> TrackResult:
+    """A lost frame's result: the predicted pose and covariance, or, with nothing known, the
+    identity with infinite uncertainty."""
+    if prediction is None:
+        T, cov = np.eye(4), np.diag(np.full(6, np.inf))
+    else:
+        T, cov = prediction.T_sensor_target, prediction.covariance
+    return TrackResult(index, timestamp, T, cov, "lost", reasons, time_ms=times, coarse=coarse)
+
+
+def accepted_result(
+    index: int,
+    timestamp: float,
+    estimate: FineEstimate,
+    prepared: PreparedCloud,
+    health: tuple[Status, tuple[str, ...]],
+    times: dict[str, float],
+    coarse: bool,
+    keyframe: bool,
+) -> TrackResult:
+    """An accepted frame's result (``ok`` or ``degraded``): its fine estimate, the fit of its
+    registration and its health."""
+    res = estimate.result
+    return TrackResult(
+        index,
+        timestamp,
+        estimate.T_sensor_target,
+        estimate.covariance,
+        *health,
+        fitness=res.fitness,
+        rmse=res.inlier_rmse,
+        iterations=res.iterations,
+        condition_number=normalised_condition(
+            res.information, estimate.in_reference(prepared.centroid), prepared.radius
+        ),
+        time_ms=times,
+        reference_index=estimate.reference.index,
+        coarse=coarse,
+        keyframe=keyframe,
+    )

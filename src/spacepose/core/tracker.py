@@ -45,14 +45,19 @@ from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.health import (
     Status,
-    normalised_condition,
     pose_disagreement,
 )
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
 from spacepose.core.motion import MotionModel, Prediction
 from spacepose.core.relocalise import Checked, Relocaliser
 from spacepose.core.scale import DataScale
-from spacepose.core.track_result import STAGES, TrackingOutput, TrackResult
+from spacepose.core.track_result import (
+    STAGES,
+    TrackingOutput,
+    TrackResult,
+    accepted_result,
+    lost_result,
+)
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeError
@@ -348,13 +353,8 @@ class Tracker:
         self._lost_streak += 1
         if self._registrar is not None:
             self._registrar.noise.discard()
-        if prediction is None:
-            # Nothing known: an identity pose with infinite uncertainty, flagged lost.
-            T, cov = np.eye(4), np.diag(np.full(6, np.inf))
-        else:
-            T, cov = prediction.T_sensor_target, prediction.covariance
         _close_times(times, self._t_start)
-        return TrackResult(index, timestamp, T, cov, "lost", reasons, time_ms=times, coarse=coarse)
+        return lost_result(index, timestamp, prediction, reasons, times, coarse)
 
     def _accept(
         self,
@@ -380,25 +380,9 @@ class Tracker:
         promoted = False
         if not self.model_based:
             promoted = self._update_keyframes(index, prepared, estimate, status, reasons)
-        res = estimate.result
         _close_times(times, self._t_start)
-        return TrackResult(
-            index,
-            timestamp,
-            T,
-            cov,
-            status,
-            reasons,
-            fitness=res.fitness,
-            rmse=res.inlier_rmse,
-            iterations=res.iterations,
-            condition_number=normalised_condition(
-                res.information, estimate.in_reference(prepared.centroid), prepared.radius
-            ),
-            time_ms=times,
-            reference_index=estimate.reference.index,
-            coarse=coarse,
-            keyframe=promoted,
+        return accepted_result(
+            index, timestamp, estimate, prepared, health, times, coarse, promoted
         )
 
     def _update_keyframes(
