@@ -128,3 +128,29 @@ def test_a_target_alone_before_a_wall_is_found_in_a_simulated_frame(target, rang
     own = pts[frame.on_target & ~frame.flying]
     extent = region_of(own).radius
     assert region_of(pts[mask]).radius < 1.05 * extent
+
+
+def test_no_returns_at_the_sensor_are_never_the_object():
+    """Drivers write a pixel with no return as a point at the origin: 5,107 of the 69,792
+    points of the real LiDAR scan in data/real. Before, they passed the share of points and,
+    nearest the sensor, were taken for the object (and the tracker lost every frame with
+    "every point is at the same place")."""
+    from pathlib import Path
+
+    from spacepose.core.scale import point_spacing
+    from spacepose.core.segmentation import returns
+    from spacepose.tools.cloud_io import read_cloud
+
+    rng = np.random.default_rng(3)
+    target = _view(3.0, 0.3, 0.3, 0.002, rng)
+    wall = _view(5.0, 3.0, 2.0, 0.002, rng)
+    clean = np.r_[target, wall]
+    zeros = np.zeros((len(clean) // 10, 3))
+    mask = nearest_object(np.r_[clean, zeros], 0.002 * 5.0)
+    np.testing.assert_array_equal(mask[: len(clean)], nearest_object(clean, 0.002 * 5.0))
+    assert not mask[len(clean) :].any() and mask[: len(target)].all()
+    scan = read_cloud(Path(__file__).resolve().parents[1] / "data/real/small_gicp/source.ply")
+    at_sensor = ~returns(scan.points)
+    assert at_sensor.sum() == 5107
+    kept = nearest_object(scan.points, point_spacing(scan.points))
+    assert kept.sum() > 1000 and not (kept & at_sensor).any()

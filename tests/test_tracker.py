@@ -546,3 +546,14 @@ def test_correlated_residuals_widen_the_covariance(lab, monkeypatch):
             nees[kind].append(float(e @ np.linalg.solve(pair.covariance, e)))
     scaled, plain = np.mean(nees["scaled"]), np.mean(nees["plain"])
     assert plain > 15.0 and scaled < 10.0 and scaled < 0.5 * plain, (scaled, plain)
+
+
+def test_no_returns_at_the_sensor_change_nothing(lab):
+    """60 % of each frame's points at the origin (no returns, as drivers write them): the
+    same poses, to the bit, as without them (before, every frame was lost)."""
+    sim, frames = lab
+    clean = track_sequence([f.cloud for f in frames[:4]], sim.timestamps[:4], workers=1)
+    padded = [np.r_[f.cloud.points, np.zeros((int(1.5 * len(f.cloud)), 3))] for f in frames[:4]]
+    zeros = track_sequence(padded, sim.timestamps[:4], workers=1)
+    assert [r.status for r in zeros.results] == [r.status for r in clean.results]
+    np.testing.assert_array_equal(zeros.trajectory.poses, clean.trajectory.poses)

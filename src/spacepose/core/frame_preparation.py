@@ -21,7 +21,13 @@ from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
 from spacepose.core.normals import estimate_normals
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
-from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_object, region_of
+from spacepose.core.segmentation import (
+    TargetRegion,
+    crop_sphere,
+    nearest_object,
+    region_of,
+    returns,
+)
 from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
 from spacepose.core.voxel import voxel_cells, voxel_downsample
 from spacepose.errors import InputError
@@ -80,6 +86,11 @@ class FramePreparer:
         if cloud is None:
             raise InputError("no points")
         pc = as_cloud(cloud, "frame")
+        # No-returns written as points at the sensor would be a dense object there, and set
+        # the spacing and scale.
+        valid = returns(pc.points)
+        if not valid.all():
+            pc = pc.select(np.flatnonzero(valid))
         if cfg.use_background_removal:
             pc, _ = remove_background(pc, cfg.background)
         sphere = None

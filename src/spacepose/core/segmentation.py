@@ -67,8 +67,15 @@ class TargetRegion:
     kept: float
 
 
+def returns(points: ArrayLike) -> NDArray[np.bool_]:
+    """(N,) False for the points at the sensor's origin: the value many drivers write for a
+    pixel or beam with no return (the real LiDAR pair of data/real holds 5,107 of 69,792)."""
+    return np.any(as_points(points) != 0.0, axis=1)
+
+
 def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
-    """(N,) mask of the points of the nearest object of a frame (see the module docstring).
+    """(N,) mask of the points of the nearest object of a frame (see the module docstring);
+    points at the sensor's origin (no returns, :func:`returns`) are never in it.
 
     Parameters
     ----------
@@ -78,6 +85,12 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
         Median point spacing (m), :func:`spacepose.core.scale.point_spacing`.
     """
     pts = as_points(points)
+    valid = returns(pts)
+    if not valid.all():
+        mask = np.zeros(len(pts), dtype=bool)
+        if valid.any():
+            mask[valid] = nearest_object(pts[valid], spacing)
+        return mask
     cell = _CELL_SPACINGS * spacing
     all_centroids, all_of_point = voxel_cells(pts, cell)
     # A cell's centroid lies inside it: its floor is the cell's index.
