@@ -161,9 +161,9 @@ def crop_sphere(points: ArrayLike, center: ArrayLike, radius: float) -> NDArray[
 
 def _cluster_labels(cells: NDArray[np.int64]) -> NDArray[np.intp]:
     """Connected components of occupied grid cells (M, 3), linked to their 26 neighbours."""
-    span = cells.max(axis=0) - cells.min(axis=0) + 3
-    base = cells - cells.min(axis=0) + 1
-    key = (base[:, 0] * span[1] + base[:, 1]) * span[2] + base[:, 2]
+    low = cells.min(axis=0) - 1
+    span = cells.max(axis=0) - low + 2
+    key = _keys(cells, low, span)
     order = np.argsort(key)
     sorted_keys = key[order]
     rows, cols = [], []
@@ -190,16 +190,20 @@ def _beside(cells: NDArray[np.int64], of: NDArray[np.int64]) -> NDArray[np.bool_
         return np.zeros(len(cells), dtype=bool)
     low = np.minimum(cells.min(axis=0), of.min(axis=0)) - 1
     span = np.maximum(cells.max(axis=0), of.max(axis=0)) - low + 2
-
-    def key(c: NDArray[np.int64]) -> NDArray[np.int64]:
-        c = c - low
-        return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
-
-    occupied = np.unique(key(of))
+    occupied = np.unique(_keys(of, low, span))
     near = np.zeros(len(cells), dtype=bool)
     for d in np.argwhere(np.ones((3, 3, 3))) - 1:
-        near |= np.isin(key(cells + d), occupied, assume_unique=False)
+        near |= np.isin(_keys(cells + d, low, span), occupied)
     return near
+
+
+def _keys(
+    cells: NDArray[np.int64], low: NDArray[np.int64], span: NDArray[np.int64]
+) -> NDArray[np.int64]:
+    """One integer per grid cell (M, 3) of a box from ``low`` spanning ``span`` cells a side
+    (the box holds a cell's neighbours too, so neighbours' keys never collide)."""
+    c = cells - low
+    return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
 
 
 def _surrounds(
