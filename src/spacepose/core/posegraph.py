@@ -26,7 +26,7 @@ from spacepose.core import se3
 from spacepose.errors import DegenerateGeometryError, InputError
 
 # Rotation angle above which the logarithm takes the axis from the quaternion: se3.log's.
-_NEAR_PI = se3._NEAR_PI
+_NEAR_PI = se3.NEAR_PI
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ from spacepose.errors import InputError
 _SMALL_ANGLE = 1e-8
 _I3 = np.eye(3)
 # Rotation angle beyond which log() takes scipy's route (the axis is ill-conditioned there).
-_NEAR_PI = np.pi - 0.1
+NEAR_PI = np.pi - 0.1
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
 
@@ -143,7 +143,7 @@ def log(T: ArrayLike) -> NDArray[np.float64]:
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     sin = 0.5 * math.sqrt(w @ w)
     theta = math.atan2(sin, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
-    if theta > _NEAR_PI:
+    if theta > NEAR_PI:
         omega = Rotation.from_matrix(R).as_rotvec()
     else:
         omega = 0.5 * w * (theta / sin if sin > 0.0 else 1.0)
