@@ -15,6 +15,7 @@ from spacepose.core.health import HealthBounds, assess_health, covariance_at, po
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.metrics import pose_errors
 from spacepose.core.motion import predict_pose
+from spacepose.core.part_influence import PartInfluence
 from spacepose.core.pose_covariance import plane_covariance
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.tracker import Tracker, track_sequence
@@ -135,11 +136,12 @@ def test_assess_health_bounds():
     status, reasons = assess_health(0.95, 0.002, 10.0, small, c, (0.2, 1.0), cfg, False)
     assert status == "degraded" and "off the prediction" in reasons[-1]
     assert assess_health(0.95, 0.002, 10.0, small, c, (2.0, 1.0), cfg, False)[0] == "lost"
-    # Residuals biased over most of the surface make an otherwise ok frame degraded, not lost.
+    # A part that moves the pose beyond its bound makes an otherwise ok frame degraded, not
+    # lost; one within it changes nothing.
     ok = (0.95, 0.002, 10.0, small, c, (0.001, 0.1), cfg)
-    assert assess_health(*ok, structure=4.9) == ("ok", ())
-    status, reasons = assess_health(*ok, structure=12.0)
-    assert status == "degraded" and reasons[0].startswith("residual structure 12.0 > 5")
+    assert assess_health(*ok, influence=PartInfluence(8.9, 9.0, 0.2, 12)) == ("ok", ())
+    status, reasons = assess_health(*ok, influence=PartInfluence(40.0, 12.5, 0.3, 12))
+    assert status == "degraded" and reasons[0].startswith("part influence 40.0 > 12.5")
 
 
 def test_bad_inputs():
@@ -557,3 +559,42 @@ def test_no_returns_at_the_sensor_change_nothing(lab):
     zeros = track_sequence(padded, sim.timestamps[:4], workers=1)
     assert [r.status for r in zeros.results] == [r.status for r in clean.results]
     np.testing.assert_array_equal(zeros.trajectory.poses, clean.trajectory.poses)
+
+
+def test_noise_correlated_over_patches_is_not_a_part_moving_otherwise():
+    """Range noise shared over 3 cm patches of the sensor's view (1 mm per patch, drawn anew
+    each frame, plus 0.5 mm white), as a real ToF camera's or LiDAR's is: its residuals' cell
+    means reach 5-8 times white noise's (the structure bound of 5 degrades 25 of frames 2-11
+    over seeds 0-4, all within 3σ). Leaving out one part moves the pose by at most 0.87 of its
+    bound over those seeds, in the σ that carries that correlation: the part influence test
+    flags none (seed 0 here), and every frame after the second is within 3σ."""
+    from spacepose.core.voxel import voxel_cells
+    from spacepose.tools.experiments.robustness_scores import FrameTruth
+
+    sim = simulate_lab(LabConfig(frames=12))
+    rng = np.random.default_rng(0)
+    measured: list[float] = []
+    unscaled = frame_registration.residual_structure
+
+    def spy(*args):
+        measured.append(unscaled(*args))
+        return measured[-1]
+
+    tracker = Tracker(TrackerConfig(), workers=1)
+    reasons, nsigma = [], []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(frame_registration, "residual_structure", spy)
+        for k in range(12):
+            frame = sim.frame(k)
+            p = frame.cloud.points
+            _, patch = voxel_cells(p, 0.03)
+            off = rng.normal(0.0, 1e-3, patch.max() + 1)[patch] + rng.normal(0.0, 5e-4, len(p))
+            noisy = p * (1.0 + off / np.linalg.norm(p, axis=1))[:, None]
+            result = tracker.track_frame(noisy, frame.timestamp)
+            truth = FrameTruth.from_frame(frame, sim.T_sensor_target[0])
+            e = se3.log(result.T_sensor_target @ se3.invert(truth.T_true_k0))
+            reasons.extend(result.reasons)
+            nsigma.append(np.max(np.abs(e) / np.where(result.sigma > 0, result.sigma, np.inf)))
+    assert max(v for v in measured if v is not None) > 5.0
+    assert not any(r.startswith("part influence") for r in reasons)
+    assert max(nsigma[2:]) < 3.0

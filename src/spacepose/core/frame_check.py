@@ -90,6 +90,7 @@ def check_frame(
         surface_step=step_size(estimate.surface_step, c_ref),
         model_reference=model_based,
         structure=estimate.structure,
+        influence=estimate.influence,
     )
     if status == "ok" and not model_based:
         # A keyframe far behind (none promoted for a while: the frames were degraded) is a

@@ -28,6 +28,7 @@ from spacepose.core.jicp import average_three, average_three_covariance
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, moved_covariance
 from spacepose.core.motion import rigid
 from spacepose.core.normals import estimate_normals
+from spacepose.core.part_influence import PartInfluence, part_influence
 from spacepose.core.pose_covariance import isotropic_about, plane_covariance, shaped_drift
 from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
 from spacepose.core.registration import RegistrationResult
@@ -64,12 +65,27 @@ class PairRegistration:
     structure
         :func:`~spacepose.core.residual_structure.residual_structure` of its final pairs, when
         measured.
+    influence
+        :func:`~spacepose.core.part_influence.part_influence` of its final pairs, when measured.
     """
 
     result: RegistrationResult
     covariance: NDArray[np.float64]
     step: NDArray[np.float64]
     structure: float | None = None
+    influence: PartInfluence | None = None
+
+
+@dataclass(frozen=True)
+class _FinalPairs:
+    """A registration's final pairs: (M, 3) source points moved into the reference frame, the
+    (M, 3) reference normals, the (M,) signed point-to-plane residuals (m), and the robust
+    kernel's (M,) weights (None: all 1)."""
+
+    points: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    residuals: NDArray[np.float64]
+    weights: NDArray[np.float64] | None
 
 
 class FrameRegistrar:
@@ -86,13 +102,22 @@ class FrameRegistrar:
         Factor on every registration covariance.
     workers
         Threads of the searches.
+    influence_sigmas
+        The shift, in σ, beyond which a part's influence on a registration is reported
+        (:func:`~spacepose.core.part_influence.part_influence`).
     """
 
     def __init__(
-        self, method: str, lengths: StageLengths, covariance_scale: float, workers: int
+        self,
+        method: str,
+        lengths: StageLengths,
+        covariance_scale: float,
+        workers: int,
+        influence_sigmas: float = 3.0,
     ) -> None:
         self.method = method
         self.lengths = lengths
+        self.influence_sigmas = influence_sigmas
         # The fine gate widens to three measured residual σ on a sensor noisier than the voxel.
         self.noise = ResidualNoise(lengths.gate)
         self.covariance_scale = covariance_scale
@@ -161,14 +186,14 @@ class FrameRegistrar:
     ) -> PairRegistration:
         """Register the frame (source) onto a reference.
 
-        ``measure``: measure the residual noise after it, and onto a keyframe its structure
-        (once a frame, on the latest reference: the extra search costs about a fifth of a lab
-        frame's step).
+        ``measure``: measure the residual noise after it, and onto a keyframe its structure (the
+        design effect of its covariances) and the influence of its parts (once a frame, on the
+        latest reference: the extra search costs about a fifth of a lab frame's step).
         """
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
         tgt = self.as_target(ref.prepared)
         res, matches = self._pairwise(prepared, tgt, init_T_ref_k)
-        structure = None
+        pairs = None
         if measure:
             sigma = point_to_plane_sigma(
                 res.T_target_source, prepared.cloud.points, tgt, self.noise.window, self.workers
@@ -178,8 +203,13 @@ class FrameRegistrar:
                 res, matches = self._pairwise(prepared, tgt, res.T_target_source)
             if ref.index >= 0:
                 # Against a model a part moving otherwise finds no surface within the gate
-                # (the fitness bound sees it); the test is for two views of one sensor.
-                structure = self._structure(prepared, tgt, res, matches)
+                # (the fitness bound sees it); the tests are for two views of one sensor.
+                pairs = self._final_pairs(prepared, tgt, res, matches)
+        structure = None
+        if pairs is not None:
+            cell = STRUCTURE_CELL_GATES * self.noise.gate
+            structure = residual_structure(pairs.points, pairs.residuals, cell)
+        if measure:
             # Residuals correlated over the surface carry less information than their count
             # says: the variance of their cell means over white noise's (the design effect)
             # scales this frame's covariances, onto every reference.
@@ -193,25 +223,38 @@ class FrameRegistrar:
             matches,
         )
         cov = self.covariance_scale * self._design * cov + self._floor(prepared, res)
-        return PairRegistration(res, cov, step, structure)
+        influence = None
+        if pairs is not None:
+            # Parts of the object's RMS radius: a few across it, each a surface of its own.
+            influence = part_influence(
+                pairs.points,
+                pairs.normals,
+                pairs.residuals,
+                cov,
+                prepared.radius,
+                pairs.weights,
+                self.influence_sigmas,
+            )
+        return PairRegistration(res, cov, step, structure, influence)
 
-    def _structure(
+    def _final_pairs(
         self,
         prepared: PreparedCloud,
         tgt: PreparedCloud,
         res: RegistrationResult,
         matches: Correspondences | None,
-    ) -> float | None:
-        """:func:`residual_structure` of a registration's final pairs (searched for GICP),
-        in cells of :data:`STRUCTURE_CELL_GATES` fine gates."""
-        gate = self.noise.gate
+    ) -> _FinalPairs:
+        """A registration's final pairs (searched within the fine gate for GICP)."""
         moved = se3.transform_points(res.T_target_source, prepared.cloud.points)
+        weights = None
         if matches is None:
-            s, t, _ = find_correspondences(tgt.tree, moved, gate, self.workers)
+            s, t, _ = find_correspondences(tgt.tree, moved, self.noise.gate, self.workers)
         else:
             s, t = matches.src_idx, matches.tgt_idx
-        r = np.einsum("ij,ij->i", moved[s] - tgt.cloud.points[t], tgt.cloud.normals[t])
-        return residual_structure(moved[s], r, STRUCTURE_CELL_GATES * gate)
+            weights = None if matches.weights is None else matches.weights.weights
+        normals = tgt.cloud.normals[t]
+        r = np.einsum("ij,ij->i", moved[s] - tgt.cloud.points[t], normals)
+        return _FinalPairs(moved[s], normals, r, weights)
 
     def _pairwise(
         self, prepared: PreparedCloud, tgt: PreparedCloud, init_T_ref_k: NDArray[np.float64]
@@ -265,6 +308,7 @@ class FrameRegistrar:
             bias=bias,
             drift=drift,
             structure=pair.structure,
+            influence=pair.influence,
         )
 
     def li_step(
@@ -305,7 +349,18 @@ class FrameRegistrar:
         cov = cov + drift
         edge = (j.index, res.T_target_source, np.linalg.pinv(cov_j_k, hermitian=True))
         return FineEstimate(
-            T_k0, cov, own, res, j, latest.step, (edge,), (), bias, drift, latest.structure
+            T_k0,
+            cov,
+            own,
+            res,
+            j,
+            latest.step,
+            (edge,),
+            (),
+            bias,
+            drift,
+            latest.structure,
+            latest.influence,
         )
 
     def joint(
@@ -386,6 +441,7 @@ class FrameRegistrar:
             bias,
             drift,
             latest.structure,
+            latest.influence,
         )
 
     def _drift(

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
+from spacepose.core.part_influence import PartInfluence
 from spacepose.core.tracker_config import HealthConfig
 
 Status = Literal["ok", "degraded", "lost"]
@@ -158,6 +159,7 @@ def assess_health(
     surface_step: tuple[float, float] = (0.0, 0.0),
     model_reference: bool = False,
     structure: float | None = None,
+    influence: PartInfluence | None = None,
 ) -> tuple[Status, tuple[str, ...]]:
     """Status and reasons of one registered frame.
 
@@ -185,6 +187,9 @@ def assess_health(
     structure
         :func:`~spacepose.core.residual_structure.residual_structure` of the registration
         (None: not measured; the tracker measures it onto keyframes only).
+    influence
+        :func:`~spacepose.core.part_influence.part_influence` of the registration (None: not
+        measured; likewise onto keyframes only).
     """
     lost: list[str] = []
     weak: list[str] = []
@@ -217,6 +222,11 @@ def assess_health(
         weak.append(
             f"residual structure {structure:.1f} > {b.ok_structure:g}: part of the cloud "
             "fits another motion"
+        )
+    if influence is not None and influence.excessive:
+        weak.append(
+            f"part influence {influence.largest:.1f} > {influence.bound:.1f}: leaving one part "
+            "out moves the pose beyond its sigma"
         )
     if disagreement is None:
         weak.append("no prediction to confirm the pose")

@@ -20,6 +20,7 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.health import pose_disagreement
+from spacepose.core.part_influence import PartInfluence
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.scale import rms_radius
 from spacepose.core.tracker_config import KeyframeConfig
@@ -115,6 +116,9 @@ class FineEstimate:
     structure
         :func:`~spacepose.core.residual_structure.residual_structure` of the registration onto
         the latest reference (None: not measured).
+    influence
+        :func:`~spacepose.core.part_influence.part_influence` of that registration (None: not
+        measured).
     """
 
     T_sensor_target: NDArray[np.float64]
@@ -128,6 +132,7 @@ class FineEstimate:
     bias: tuple[float, float] = (0.0, 0.0)
     drift: NDArray[np.float64] | None = None
     structure: float | None = None
+    influence: PartInfluence | None = None
 
     def in_reference(self, point_k: NDArray[np.float64]) -> NDArray[np.float64]:
         """A frame-k point (3,) expressed in the reference frame (where the information is)."""

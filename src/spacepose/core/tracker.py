@@ -228,7 +228,7 @@ class Tracker:
             cfg = self.config
             lengths = self._frames.lengths
             self._registrar = FrameRegistrar(
-                cfg.method, lengths, cfg.covariance_scale, self.workers
+                cfg.method, lengths, cfg.covariance_scale, self.workers, cfg.health.ok_influence
             )
             if self._model_cloud is not None:
                 self._model = self._frames.prepare_model(self._model_cloud)

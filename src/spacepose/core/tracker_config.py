@@ -130,6 +130,14 @@ class HealthConfig(StageConfig):
         sensor's own bias (the flash LiDAR's edge pixels). Set on simulated sensors: the real
         LiDAR pair of data/real gives 5.8-9.3 at its ICP optimum, so raise it for a real
         scanner whose errors are correlated over the surface.
+    ok_influence
+        Largest shift of the pose, in σ of its own covariance, when one part of the surface
+        (a cube of the object's RMS radius) is left out of the registration onto the latest
+        reference (:func:`~spacepose.core.part_influence.part_influence`); the bound also
+        grows with the part's leverage, so that white noise alone passes it with probability
+        0.999. A part that moves otherwise pulls the pose by many σ, while noise correlated
+        over the surface widens the shift and the covariance together (docs/methods.md §5.3).
+        Model-free only, as the structure.
     max_motion
         Largest motion (radii; rotation: radians) of the target between two frames while its
         velocity is unknown (a single pose in the history).
@@ -156,6 +164,7 @@ class HealthConfig(StageConfig):
     ok_step_translation: PositiveFloat = 0.083
     ok_step_rotation: PositiveFloat = 0.073
     ok_structure: float = Field(5.0, gt=1)
+    ok_influence: PositiveFloat = 3.0
     max_motion: PositiveFloat = 0.5
     model_error_sigmas: PositiveFloat = 3.0
     max_reference_factor: float = Field(2.0, ge=1)
