@@ -164,11 +164,11 @@ def test_agrees_with_small_gicp(pair) -> None:
 
 def test_real_scanner_noise_is_correlated_but_no_part_pulls_the_pose(pair) -> None:
     """At our point-to-plane optimum on the real pair (0.2 m voxels, 7,305 pairs), the
-    residuals' cell means vary 50 times more than white noise's (the structure statistic S;
-    the tracker used to take anything above 5 for a second motion), yet leaving out any one
-    part of the scene moves the pose by at most 2.8 squared σ against a bound of 13.5, once
-    the covariance carries S (the design effect): the scene is rigid. With σ² H⁻¹ alone the
-    same part would move it by 142."""
+    residuals' cell means vary 50 times more than white noise's (the structure statistic S, in
+    cells of 8 of the tool's 3-voxel gates; the tracker's structure bound is 5), yet leaving
+    out any one part of the scene moves the pose by at most 2.8 squared σ against a bound of
+    13.5, once the covariance carries S (the design effect): the scene is rigid. With σ² H⁻¹
+    alone the same part would move it by 142."""
     from spacepose.core.grid import VoxelIndex
     from spacepose.core.icp import find_correspondences
     from spacepose.core.normals import NormalsConfig, estimate_normals
