@@ -87,12 +87,12 @@ def test_a_second_motion_moves_the_pose_by_many_sigma() -> None:
 def test_a_part_with_half_the_information_has_a_higher_bound() -> None:
     """Parts of 10 m cut the two bodies into four large parts: noise alone moves the pose by
     up to 15 squared σ when one is left out, and the bound follows their leverage (25-161);
-    the turned body still exceeds it on 7 of 10 seeds."""
+    the turned body still exceeds it on 9 of 10 seeds."""
     rigid = [part_influence(*_two_bodies(s, 0.0), 10.0) for s in range(10)]
     turned = [part_influence(*_two_bodies(s, 0.5), 10.0) for s in range(10)]
     assert max(r.largest for r in rigid) > 9.0 and not any(r.excessive for r in rigid)
     assert min(r.bound for r in rigid) > 20.0
-    assert sum(t.excessive for t in turned) >= 7
+    assert sum(t.excessive for t in turned) >= 9
 
 
 def test_weights_take_a_pair_out() -> None:
