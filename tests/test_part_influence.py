@@ -143,5 +143,7 @@ def test_bad_inputs_raise() -> None:
     bad[3] = np.nan
     with pytest.raises(InputError, match="finite"):
         part_influence(points, normals, bad, cov, 0.25)
+    with pytest.raises(InputError, match="weights >= 0"):
+        part_influence(points, normals, r, cov, 0.25, -np.ones(len(r)))
     with pytest.raises(InputError, match="covariance"):
         part_influence(points, normals, r, cov[:3, :3], 0.25)

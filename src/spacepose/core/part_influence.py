@@ -135,6 +135,8 @@ def part_influence(
     arrays = (points, normals, residuals, w, covariance)
     if not all(np.isfinite(a).all() for a in arrays):
         raise InputError("part influence needs finite points, normals, residuals and weights")
+    if (w < 0).any():
+        raise InputError("part influence needs weights >= 0")
     if not np.isfinite(part_size) or part_size <= 0:
         raise InputError(f"part influence part size must be a positive length, got {part_size}")
     if m == 0:
