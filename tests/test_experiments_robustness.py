@@ -96,18 +96,21 @@ def test_noisy_cell_has_no_false_ok(quick) -> None:
     assert noisy["degraded"] >= 1 and noisy["coverage_3sigma"] == 1.0
 
 
-def test_clutter_that_moves_otherwise_is_not_ok(quick) -> None:
-    """The turntable and plinth, carried by the slide under the turning mock-up, stay in the
-    target's crop: the registration is a compromise of two motions. Before the residual
-    structure test, frames 2-4 of this cell were ok while 9-21 σ off; their residuals' cell
-    means are now 28-62 times white noise's."""
+def test_clutter_that_moves_otherwise_is_split_off_and_never_ok_while_wrong(quick) -> None:
+    """The turntable and plinth, carried by the slide under the turning mock-up, are part of the
+    first frame's object. Frame 1's registration is a compromise of the two motions and its
+    residuals show it (structure 13.7 against 5); on frame 2 the turntable is split off
+    (methods.md §5.8). Measured: frames 2-4 are 0.27-0.31 mm and 0.08-0.11° off, all still
+    `degraded` by a part's influence; before the split (commit fccced8) they were 2.3-4.4 mm and
+    0.86-1.62° off, 8-14 σ."""
     table, out = quick
     (cell,) = [r for r in table["table"] if r["clutter"] == "wall-table"]
     assert cell["false_ok"] == 0 and cell["tracked_share"] == 1.0
     with (out / "robustness_frames.csv").open() as fh:
         frames = [f for f in csv.DictReader(fh) if f["clutter"] == "wall-table"]
-    flagged = [f for f in frames[1:] if "residual structure" in f["reasons"]]
-    assert len(flagged) == 4 and all(f["status"] == "degraded" for f in flagged)
+    assert frames[1]["status"] == "degraded" and "residual structure" in frames[1]["reasons"]
+    assert max(float(f["err_t_mm"]) for f in frames[2:]) < 0.5
+    assert max(float(f["err_r_deg"]) for f in frames[2:]) < 0.15
 
 
 def test_a_target_alone_before_a_wall_is_tracked(quick) -> None:

@@ -82,6 +82,8 @@ class Keyframe:
     drift
         1-σ (rad, m) of the drift the keyframe chain has built up to this keyframe, kept apart
         from ``covariance`` (see :meth:`FrameRegistrar._drift`).
+    timestamp
+        Time of the frame (s); NaN for the model.
     """
 
     index: int
@@ -90,6 +92,7 @@ class Keyframe:
     covariance: NDArray[np.float64]
     edges: list[Edge] = field(default_factory=list)
     drift: tuple[float, float] = (0.0, 0.0)
+    timestamp: float = float("nan")
 
 
 @dataclass(frozen=True)

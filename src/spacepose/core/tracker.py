@@ -29,10 +29,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.frame_check import (
     FAR_KEYFRAME,
@@ -51,6 +53,8 @@ from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, need
 from spacepose.core.motion import MotionModel, Prediction
 from spacepose.core.relocalise import Checked, Relocaliser
 from spacepose.core.scale import DataScale
+from spacepose.core.segmentation import region_of
+from spacepose.core.support import SupportSeparation
 from spacepose.core.track_result import (
     STAGES,
     TrackingOutput,
@@ -96,10 +100,18 @@ class Tracker:
         self._model: Keyframe | None = None
         self._relocaliser: Relocaliser | None = None
         self._frames = FramePreparer(config, self._model_cloud, workers)
+        # Model-free: a support moving otherwise, split off the object (core.support).
+        self._support: SupportSeparation | None = None
 
     @property
     def model_based(self) -> bool:
         return self._model_cloud is not None
+
+    @property
+    def support_found_at(self) -> float | None:
+        """Time (s) of the frame on which a support moving otherwise was split off the target
+        (model-free, methods.md §5.8); None while there is none."""
+        return None if self._support is None else self._support.found_at
 
     @property
     def scale(self) -> DataScale | None:
@@ -154,12 +166,11 @@ class Tracker:
         checked: Checked = (None, "lost", ("no prior pose",))
         if prediction is not None:
             tic = time.perf_counter()
-            checked = self._fine_and_check(
-                prepared,
-                prediction.T_sensor_target,
-                wide_gate(self._context(), prediction),
-                prediction,
-            )
+            T, reach = prediction.T_sensor_target, wide_gate(self._context(), prediction)
+            if self._support is not None:
+                prepared = self._support.remove(prepared, self._reference(), T, timestamp, reach)
+            checked = self._fine_and_check(prepared, T, reach, prediction)
+            prepared, checked = self._split_off_support(prepared, checked, timestamp, reach)
             times["fine"] += _ms(tic)
         relocaliser = self._relocaliser
         coarse = checked[1] == "lost"
@@ -178,9 +189,8 @@ class Tracker:
         estimate, status, reasons = checked
         if status == "lost" or estimate is None:
             return self._lost(index, timestamp, prediction, reasons, times, coarse)
-        return self._accept(
-            index, timestamp, prepared, estimate, prediction, (status, reasons), coarse, times
-        )
+        health = (status, reasons)
+        return self._accept(index, timestamp, prepared, estimate, prediction, health, coarse, times)
 
     def track(
         self, frames: Iterable[tuple[PointCloud | ArrayLike | None, float]]
@@ -234,6 +244,10 @@ class Tracker:
                 self._model = self._frames.prepare_model(self._model_cloud)
                 # Its normals tell the faces a pose turns to the sensor (visible_model).
                 self._model_cloud = self._frames.sensor_model(self._model_cloud)
+            if self._model_cloud is None:
+                self._support = SupportSeparation(
+                    self._registrar, cfg.health.min_points, self.workers
+                )
             self._relocaliser = Relocaliser(
                 self._registrar,
                 self._reference,
@@ -301,6 +315,31 @@ class Tracker:
     def _context(self) -> CheckContext:
         return CheckContext(self.config, self._frames.scale, self._motion)
 
+    def _split_off_support(
+        self, prepared: PreparedCloud, checked: Checked, timestamp: float, reach: float
+    ) -> tuple[PreparedCloud, Checked]:
+        """Model-free, on a frame showing a second motion: a support moving otherwise split off
+        (:mod:`spacepose.core.support`), the target's part of the frame registered onto the
+        target's part of the first keyframe."""
+        estimate, support = checked[0], self._support
+        if support is None or estimate is None:
+            return prepared, checked
+        if not support.signalled(estimate, health_bounds(self._context(), False).ok_structure):
+            return prepared, checked
+        found = support.split(prepared, estimate, timestamp, reach)
+        if found is None:
+            return prepared, checked
+        prepared, T_init = found
+        # The window's later keyframes hold the support and the compromise's error; the crop
+        # follows the target alone (within the object's sphere: the target is part of it,
+        # stray points labelled so are not).
+        first = support.first
+        self._keyframes = [first]
+        T_target_first = se3.invert(first.T_ref_target)
+        own = region_of(se3.transform_points(T_target_first, first.prepared.cloud.points))
+        self._frames.region = replace(own, radius=min(own.radius, self._frames.region.radius))
+        return prepared, self._fine_and_check(prepared, T_init, 0.0, None)
+
     # -- state -------------------------------------------------------------------------------
 
     def _next_timestamp(self, timestamp: float) -> float:
@@ -325,7 +364,9 @@ class Tracker:
         T, cov = np.eye(4), np.zeros((6, 6))
         # A keyframe's normals are estimated when it is made: it is the next frame's target,
         # whose step should not pay for them.
-        self._keyframes.append(Keyframe(index, self._registrar.as_target(prepared), T, cov))
+        first = Keyframe(index, self._registrar.as_target(prepared), T, cov, timestamp=timestamp)
+        self._keyframes.append(first)
+        self._support.first = first
         self._motion.accept(timestamp, T, cov, None, restart=True)
         _close_times(times, self._t_start)
         return TrackResult(
@@ -367,7 +408,6 @@ class Tracker:
         coarse: bool,
         times: dict[str, float],
     ) -> TrackResult:
-        status, reasons = health
         self._lost_streak = 0
         self._registrar.noise.commit()
         T, cov = estimate.T_sensor_target, estimate.covariance
@@ -379,7 +419,7 @@ class Tracker:
         self._motion.accept(timestamp, T, cov, error, restart=coarse)
         promoted = False
         if not self.model_based:
-            promoted = self._update_keyframes(index, prepared, estimate, status, reasons)
+            promoted = self._update_keyframes(index, timestamp, prepared, estimate, health)
         _close_times(times, self._t_start)
         return accepted_result(
             index, timestamp, estimate, prepared, health, times, coarse, promoted
@@ -388,12 +428,13 @@ class Tracker:
     def _update_keyframes(
         self,
         index: int,
+        timestamp: float,
         prepared: PreparedCloud,
         estimate: FineEstimate,
-        status: Status,
-        reasons: tuple[str, ...],
+        health: tuple[Status, tuple[str, ...]],
     ) -> bool:
         """Refresh the window's poses and promote the frame if the policy says so."""
+        status, reasons = health
         # A frame degraded only by the distance to its keyframe passed every check of its own
         # registration: promoting it is how the tracker gets back to ok after a re-initialisation.
         far_only = bool(reasons) and all(r.startswith(FAR_KEYFRAME) for r in reasons)
@@ -415,6 +456,7 @@ class Tracker:
             estimate.covariance - (0.0 if estimate.drift is None else estimate.drift),
             list(estimate.edges),
             estimate.bias,
+            timestamp,
         )
         keep = 1 if li else self.config.keyframe_graph.window
         self._keyframes = [*self._keyframes[-keep:], kf]

@@ -1,0 +1,411 @@
+"""Two rigid bodies in one object: a support moving otherwise, split off by motion (§5.8).
+
+The first frame's object is everything connected to the nearest cluster
+(:mod:`spacepose.core.segmentation`). A support touching the target (a turntable's post, disc and
+plinth; a docking fixture) is part of it, and when it moves otherwise (a slide carries it while
+the target turns or tumbles) no single rigid motion fits both: registration settles on a
+compromise that point-to-plane residuals barely reject, because each surface slides along
+itself. The residuals then carry structure or a part pulls the pose, which the health check sees
+(:mod:`spacepose.core.residual_structure`, :mod:`spacepose.core.part_influence`). On such a frame
+:func:`split_motion` looks for a second rigid motion:
+
+1. the points the compromise leaves unexplained (point-to-plane residual beyond three residual
+   σ, or no surface within reach) are registered alone from it, with a redescending kernel of
+   adaptive scale (a wide basin);
+2. a two-model EM over parts of the frame (cubes of a quarter of its RMS radius): each motion is
+   refitted, with the kernel at the sensor's σ, on the parts it explains clearly better than the
+   other (capped squared residuals below :data:`FIT_RATIO` of the other's). Parts both explain
+   (a surface sliding along itself) are left out of both fits, or they would hold the compromise
+   in place;
+3. each part goes to the motion that explains it better. The split stands when each body holds
+   :data:`MIN_BODY_SHARE` of the points and fits its own motion clearly better than the other's.
+   A frame of one rigid body, even with noise correlated over patches, has one motion that
+   explains nearly every part.
+
+Which body is the target: the one that turns, i.e. the one a pure shift in the sensor frame
+explains worse (capped residuals, so that a turn its surfaces cannot show counts for nothing).
+A support carried by a slide, a wall, a fixture translate or stand still in the sensor frame
+while the target turns or tumbles; surfaces symmetric about the turn (a turntable's disc and
+post) fit both motions and stay with the target. :class:`ClutterBody` then follows the support
+with its own constant-velocity motion, so that its points can be left out of every later frame.
+
+Frames: a *reference* is a keyframe's sensor frame; ``T_ref_frame`` maps the current frame's
+sensor coordinates into it (``T_target_source`` of a registration onto the keyframe).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from spacepose.core import se3
+from spacepose.core.cloud import PointCloud, as_points
+from spacepose.core.icp import ICPConfig, find_correspondences, icp
+from spacepose.core.keyframes import PreparedCloud
+from spacepose.core.scale import rms_radius
+from spacepose.core.voxel import voxel_cells
+from spacepose.errors import InputError, SpaceposeError
+
+# Each body must hold at least this share of the frame's points.
+MIN_BODY_SHARE = 0.2
+# Residuals are capped at this many σ: beyond, a point is unexplained, however far.
+EXPLAINED_SIGMAS = 3.0
+# A part belongs to a motion's fit when its capped squared residuals under it are below this
+# share of those under the other; a split stands when each body fits its own motion so.
+FIT_RATIO = 0.5
+# Parts of the assignment: cubes of this fraction of the frame's RMS radius, each part a
+# surface patch large enough to tell two motions apart, small enough to lie on one body.
+CELLS_PER_RADIUS = 4.0
+# Points the support is followed with, at most: its pose needs the accuracy of the separation's
+# reach (a few gates), not the target's.
+FOLLOW_POINTS = 1000
+_TINY = 1e-300
+# Gauss-Newton steps of the pure-shift fit (linear in the shift: two or three settle it).
+_SHIFT_ITERATIONS = 5
+# Rounds of the two-model EM (assignment, then both refits); the labels settle in two or three.
+_EM_ROUNDS = 4
+
+
+@dataclass(frozen=True)
+class MotionSplit:
+    """A frame whose points follow two rigid motions relative to a reference.
+
+    Attributes
+    ----------
+    T_ref_frame
+        (4, 4) the target body's motion: frame sensor coordinates into the reference's.
+    T_ref_frame_support
+        (4, 4) the other body's motion.
+    frame_target
+        (N,) True for the frame points that follow the target's motion.
+    ref_target, ref_support
+        (M,) True for the reference points on the target body, and on the support (a point
+        the frame does not come near is on neither).
+    shares
+        Shares of the frame's points assigned to the target and to the support.
+    """
+
+    T_ref_frame: NDArray[np.float64]
+    T_ref_frame_support: NDArray[np.float64]
+    frame_target: NDArray[np.bool_]
+    ref_target: NDArray[np.bool_]
+    ref_support: NDArray[np.bool_]
+    shares: tuple[float, float]
+
+
+def plane_residuals(
+    ref: PreparedCloud,
+    points: NDArray[np.float64],
+    T_ref_frame: NDArray[np.float64],
+    gate: float,
+    workers: int = -1,
+) -> NDArray[np.float64]:
+    """(N,) absolute point-to-plane residual of each frame point onto its nearest reference
+    point within ``gate`` (m); inf where none is. ``ref`` needs normals."""
+    moved = se3.transform_points(T_ref_frame, points)
+    s, t, _ = find_correspondences(ref.tree, moved, gate, workers)
+    r = np.full(len(points), np.inf)
+    q = ref.cloud
+    r[s] = np.abs(np.einsum("ij,ij->i", moved[s] - q.points[t], q.normals[t]))
+    return r
+
+
+def split_motion(
+    points: PointCloud | ArrayLike,
+    ref: PreparedCloud | PointCloud,
+    T_ref_frame: ArrayLike,
+    sigma: float,
+    reach: float,
+    near: float,
+    workers: int = -1,
+) -> MotionSplit | None:
+    """Look for a second rigid motion among a frame's points (module docstring).
+
+    Parameters
+    ----------
+    points
+        (N, 3) the frame's prepared points (array or cloud), its sensor frame.
+    ref
+        The reference with normals (a keyframe's prepared cloud, or a cloud), its own sensor
+        frame.
+    T_ref_frame
+        (4, 4) the one-motion registration of the frame onto the reference.
+    sigma
+        Point-to-plane residual σ of the sensor at this scale (m).
+    reach
+        Farthest a point may sit from the reference surface and still pair (m): the reach of
+        the motion the split may find.
+    near
+        Distance (m) within which a moved frame point shows a reference point seen: about the
+        point spacing.
+    workers
+        Threads of the searches.
+
+    Returns
+    -------
+    MotionSplit or None
+        None when one motion explains the frame (or a second cannot be fitted).
+
+    Raises
+    ------
+    InputError
+        A reference without normals, non-finite points, or a length that is not positive.
+    """
+    points = as_points(points, "frame points")
+    if isinstance(ref, PointCloud):
+        ref = PreparedCloud(ref)
+    if not ref.cloud.has_normals:
+        raise InputError("the reference of a motion split needs normals", ref.cloud.source)
+    T_ref_frame = se3.as_transform(T_ref_frame, "T_ref_frame")
+    for name, value in (("sigma", sigma), ("reach", reach), ("near", near)):
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(f"{name} must be a positive length in metres, got {value}")
+    cap = EXPLAINED_SIGMAS * sigma
+    # The kernel's scale is the sensor's σ, not the residuals' spread: a compromise between two
+    # motions has a wide spread, and an adaptive scale would keep it.
+    config = ICPConfig(
+        method="point_to_plane",
+        max_correspondence_distance=reach,
+        robust_kernel="geman_mcclure",
+        robust_scale=sigma,
+    )
+    _, cell = voxel_cells(points, rms_radius(points) / CELLS_PER_RADIUS)
+
+    def cell_costs(T: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        r2 = np.minimum(plane_residuals(ref, points, T, reach, workers), cap) ** 2
+        return r2, np.bincount(cell, r2)
+
+    T_a = T_ref_frame
+    unexplained = cell_costs(T_a)[0] >= cap**2
+    # A body may be half explained by the compromise: half its share is enough to start from.
+    if unexplained.sum() < 0.5 * MIN_BODY_SHARE * len(points):
+        return None
+    # The second motion may lie far from the compromise: its first fit takes the adaptive scale
+    # (wide basin), the rounds after it the sensor's.
+    T_b = _fit(
+        points[unexplained], ref, T_a, config.model_copy(update={"robust_scale": None}), workers
+    )
+    for _ in range(_EM_ROUNDS):
+        (_, c_a), (_, c_b) = cell_costs(T_a), cell_costs(T_b)
+        # Each motion is refitted on the parts it explains clearly better: parts both explain
+        # (a surface sliding along itself) would hold a compromise in place.
+        T_a = _fit(points[(c_a < FIT_RATIO * c_b)[cell]], ref, T_a, config, workers)
+        T_b = _fit(points[(c_b < FIT_RATIO * c_a)[cell]], ref, T_b, config, workers)
+    (r_a, c_a), (r_b, c_b) = cell_costs(T_a), cell_costs(T_b)
+    on_b = (c_b < c_a)[cell]
+    share_b = float(on_b.mean())
+    if min(share_b, 1.0 - share_b) < MIN_BODY_SHARE:
+        return None
+    # Each body's points must fit its own motion clearly better than the other's.
+    fit_a = r_a[~on_b].sum() / max(r_b[~on_b].sum(), _TINY)
+    fit_b = r_b[on_b].sum() / max(r_a[on_b].sum(), _TINY)
+    if max(fit_a, fit_b) > FIT_RATIO:
+        return None
+    frame_target, shares = ~on_b, (1.0 - share_b, share_b)
+    # The points each body's motion explains: what shows the reference's points seen.
+    shown = (~on_b & (r_a < cap**2), on_b & (r_b < cap**2))
+    # The target is the body that turns: the one a pure shift explains worse (in its capped
+    # residuals, so that a turn the surfaces cannot show, a plane spinning in itself, counts
+    # for nothing).
+    turned_a = _shift_cost(ref, points[~on_b], T_a, cap, reach, workers) - r_a[~on_b].mean()
+    turned_b = _shift_cost(ref, points[on_b], T_b, cap, reach, workers) - r_b[on_b].mean()
+    if turned_b > turned_a:
+        T_a, T_b, frame_target, shares, shown = T_b, T_a, on_b, shares[::-1], shown[::-1]
+    return MotionSplit(
+        T_a,
+        T_b,
+        frame_target,
+        *_reference_labels(ref, points, shown, (T_a, T_b), near, workers),
+        shares,
+    )
+
+
+def _fit(
+    points: NDArray[np.float64],
+    ref: PreparedCloud,
+    T_init: NDArray[np.float64],
+    config: ICPConfig,
+    workers: int = -1,
+) -> NDArray[np.float64]:
+    """``T_ref_frame`` of ``points`` registered from ``T_init``; ``T_init`` itself when they do
+    not constrain a motion (too few, or one plane)."""
+    try:
+        result = icp(points, ref.cloud, T_init, config, workers=workers, target_tree=ref.tree)
+    except SpaceposeError:
+        return T_init
+    return result.T_target_source
+
+
+def _shift_cost(
+    ref: PreparedCloud,
+    points: NDArray[np.float64],
+    T_ref_frame: NDArray[np.float64],
+    cap: float,
+    reach: float,
+    workers: int,
+) -> float:
+    """Mean capped squared point-to-plane residual of ``points`` under the best pure shift
+    (no turn in the sensor frame), found by Gauss-Newton from the shift of ``T_ref_frame``."""
+    t = T_ref_frame[:3, 3].copy()
+    q = ref.cloud
+    for _ in range(_SHIFT_ITERATIONS):
+        moved = points + t
+        s, j, _ = find_correspondences(ref.tree, moved, reach, workers)
+        n = q.normals[j]
+        r = np.einsum("ij,ij->i", moved[s] - q.points[j], n)
+        # Pairs beyond the cap do not pull (a redescending kernel at its simplest).
+        w = (np.abs(r) < cap).astype(np.float64)
+        A = np.einsum("i,ij,ik->jk", w, n, n)
+        if np.linalg.matrix_rank(A) < 3:
+            break
+        t -= np.linalg.solve(A, n.T @ (w * r))
+    T = np.eye(4)
+    T[:3, 3] = t
+    r = np.minimum(plane_residuals(ref, points, T, reach, workers), cap)
+    return float(np.mean(r**2))
+
+
+def rotation_angle(T: NDArray[np.float64]) -> float:
+    """Rotation angle of a rigid transform (rad)."""
+    return float(np.linalg.norm(se3.log(T)[:3]))
+
+
+def _reference_labels(
+    ref: PreparedCloud,
+    points: NDArray[np.float64],
+    shown: tuple[NDArray[np.bool_], NDArray[np.bool_]],
+    motions: tuple[NDArray[np.float64], NDArray[np.float64]],
+    near: float,
+    workers: int,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """(M,) masks of the reference points on the target and on the support: each goes with
+    the body whose explained frame points (``shown``, moved by its motion) lie nearer, if
+    within ``near`` (m); a reference point neither comes near (the wall, stray pixels, a face
+    turned away since) goes with neither."""
+    q = ref.cloud.points
+    d_target, d_support = (
+        _nearest_distance(se3.transform_points(T, points[mask]), q, workers)
+        for T, mask in zip(motions, shown, strict=True)
+    )
+    target = (d_target <= d_support) & (d_target <= near)
+    return target, ~target & (d_support <= near)
+
+
+def _nearest_distance(
+    points: NDArray[np.float64], queries: NDArray[np.float64], workers: int
+) -> NDArray[np.float64]:
+    """(M,) distance of each query to the nearest of ``points`` (inf when there are none)."""
+    if len(points) == 0:
+        return np.full(len(queries), np.inf)
+    d, _ = cKDTree(points).query(queries, workers=workers)
+    return d
+
+
+class ClutterBody:
+    """The support split off the object, followed with its own constant-velocity motion so
+    that its points can be left out of every later frame.
+
+    Parameters
+    ----------
+    ref
+        The support's points of the reference (with normals), the reference's sensor frame.
+    poses
+        ``(time s, T_ref_frame (4, 4))`` of the support at one or two frames, oldest first:
+        the reference's own (the identity) when its time is known, and the frame the split was
+        found on.
+    """
+
+    def __init__(self, ref: PreparedCloud, poses: list[tuple[float, NDArray[np.float64]]]) -> None:
+        self.ref = ref
+        self._poses = [(t, T) for t, T in poses if np.isfinite(t)][-2:]
+        # RMS error of the last prediction (m); None before the first follow.
+        self.error: float | None = None
+
+    def predict(self, timestamp: float) -> NDArray[np.float64]:
+        """(4, 4) predicted ``T_ref_frame`` of the support at ``timestamp``."""
+        t1, T1 = self._poses[-1]
+        if len(self._poses) < 2:
+            return T1
+        t0, T0 = self._poses[-2]
+        if t1 <= t0:
+            return T1
+        # Constant velocity in the frame's sensor coordinates: the last step, scaled in time.
+        step = se3.log(se3.invert(T0) @ T1) * ((timestamp - t1) / (t1 - t0))
+        return T1 @ se3.exp(step)
+
+    def separate(
+        self,
+        points: NDArray[np.float64],
+        timestamp: float,
+        target_ref: PreparedCloud,
+        T_ref_frame_target: NDArray[np.float64],
+        gate: float,
+        workers: int = -1,
+    ) -> NDArray[np.bool_]:
+        """(N,) True for the frame points that are not the support's: a point within ``gate``
+        (m) of the support where its motion puts it, and nearer to it than to the target's
+        reference (at ``T_ref_frame_target``), is the support's."""
+        T_support = self.predict(timestamp)
+        d_support = _gated_distance(self.ref, points, T_support, gate, workers)
+        near = np.flatnonzero(np.isfinite(d_support))
+        # The target's distance only where the support is near (a search of a third of them).
+        d_target = _gated_distance(target_ref, points[near], T_ref_frame_target, gate, workers)
+        keep = np.ones(len(points), dtype=bool)
+        keep[near[d_support[near] < d_target]] = False
+        return keep
+
+    def follow(
+        self, points: NDArray[np.float64], timestamp: float, gate: float, workers: int = -1
+    ) -> bool:
+        """Register the support's points of a frame from the prediction and record the pose
+        and the prediction's error; False when they no longer register (the support has left
+        the view)."""
+        T_predicted = self.predict(timestamp)
+        points = points[:: max(1, len(points) // FOLLOW_POINTS)]
+        config = ICPConfig(
+            method="point_to_plane", max_correspondence_distance=gate, robust_kernel="geman_mcclure"
+        )
+        try:
+            result = icp(points, self.ref.cloud, T_predicted, config, workers, self.ref.tree)
+        except SpaceposeError:
+            return False
+        # The prediction's error off the surface (a support seen by few faces slides along them
+        # unseen, and that costs the separation nothing); a point beyond the gate counts it.
+        off = np.minimum(plane_residuals(self.ref, points, T_predicted, gate, workers), gate)
+        self.error = float(np.sqrt(np.mean(off**2)))
+        self._poses = [*self._poses[-1:], (timestamp, result.T_target_source)]
+        return True
+
+    def gate(self, fallback: float, floor: float) -> float:
+        """Reach (m) of the separation: three times the last prediction error (RMS distance
+        of the support's points from its surface at the predicted pose), at least ``floor``;
+        ``fallback`` before the support was first followed."""
+        return fallback if self.error is None else max(floor, 3.0 * self.error)
+
+
+def _gated_distance(
+    ref: PreparedCloud,
+    points: NDArray[np.float64],
+    T_ref_frame: NDArray[np.float64],
+    gate: float,
+    workers: int,
+) -> NDArray[np.float64]:
+    """(N,) distance of each frame point to the nearest reference point within ``gate``; inf
+    beyond."""
+    moved = se3.transform_points(T_ref_frame, points)
+    s, _, d2 = find_correspondences(ref.tree, moved, gate, workers)
+    d = np.full(len(points), np.inf)
+    d[s] = np.sqrt(d2)
+    return d
+
+
+def subset(prepared: PreparedCloud, keep: NDArray[np.bool_]) -> PreparedCloud:
+    """The prepared cloud's points where ``keep``; GICP covariances follow, the index is
+    rebuilt when next asked for."""
+    index = np.flatnonzero(keep)
+    cov = None if prepared.covariances is None else prepared.covariances[index]
+    cloud: PointCloud = prepared.cloud.select(index)
+    return PreparedCloud(cloud, cov)

@@ -1,0 +1,136 @@
+"""The tracker's side of a support moving otherwise (methods.md §5.8): when to look for one, and
+leaving it out of every frame once found (the geometry is :mod:`spacepose.core.bodies`)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.core import se3
+from spacepose.core.bodies import ClutterBody, rotation_angle, split_motion, subset
+from spacepose.core.frame_registration import FrameRegistrar
+from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
+
+
+class SupportSeparation:
+    """Finds a support split off a model-free target, then takes it out of every frame.
+
+    Parameters
+    ----------
+    registrar
+        The tracker's registrar: its measured residual noise sets the split's σ.
+    min_points
+        Fewest points a body must keep (the tracker's health bound).
+    workers
+        Threads of the searches.
+    """
+
+    def __init__(self, registrar: FrameRegistrar, min_points: int, workers: int) -> None:
+        self.registrar = registrar
+        self.min_points = min_points
+        self.workers = workers
+        self.support: ClutterBody | None = None
+        # Time of the frame the support was split off on (s).
+        self.found_at: float | None = None
+        # The first keyframe: the split's reference, the one pose no compromise has touched
+        # (the target frame itself); and the turn from it at the last look.
+        self.first: Keyframe | None = None
+        self._tried = 0.0
+
+    def signalled(self, estimate: FineEstimate, ok_structure: float) -> bool:
+        """No support known yet, and the frame's registration shows the signs of a second
+        motion: residual structure above ``ok_structure`` or a part that pulls the pose. Looked
+        for again only once the turn from the first keyframe has doubled since the last look
+        (two slow motions part as they go)."""
+        if self.support is not None or self.first is None:
+            return False
+        if rotation_angle(self._T_first_frame(estimate)) < 2.0 * self._tried:
+            return False
+        structured = estimate.structure is not None and estimate.structure > ok_structure
+        pulled = estimate.influence is not None and estimate.influence.excessive
+        return structured or pulled
+
+    def split(
+        self, prepared: PreparedCloud, estimate: FineEstimate, timestamp: float, reach: float
+    ) -> tuple[PreparedCloud, NDArray[np.float64]] | None:
+        """Split the frame and the first keyframe into the target and a support moving
+        otherwise.
+
+        The first keyframe, not the latest: the keyframes made while the compromise was
+        followed carry its error in their poses, and a split against one of them would keep
+        it. On success the first keyframe keeps its target points only, and the support is
+        followed from now on.
+
+        Parameters
+        ----------
+        prepared, estimate
+            The frame and its one-motion registration.
+        timestamp
+            The frame's time (s).
+        reach
+            Farthest a point may pair (m): the motion model's wide gate.
+
+        Returns
+        -------
+        (target's part of the frame, initial T_sensor_target) or None
+            None when one motion explains the frame.
+        """
+        ref = self.first
+        T_ref_frame = self._T_first_frame(estimate)
+        self._tried = rotation_angle(T_ref_frame)
+        noise = self.registrar.noise
+        sigma = noise.sigma if noise.sigma is not None else noise.gate / 3.0
+        found = split_motion(
+            prepared.cloud.points,
+            self.registrar.as_target(ref.prepared),
+            T_ref_frame,
+            sigma,
+            max(reach, noise.window),
+            noise.window,
+            self.workers,
+        )
+        if found is None:
+            return None
+        # Its velocity from the start: the reference's pose and this frame's.
+        poses = [(ref.timestamp, np.eye(4)), (timestamp, found.T_ref_frame_support)]
+        self.support = ClutterBody(subset(ref.prepared, found.ref_support), poses)
+        self.found_at = timestamp
+        ref.prepared = subset(ref.prepared, found.ref_target)
+        T_init = se3.invert(found.T_ref_frame) @ ref.T_ref_target
+        return subset(prepared, found.frame_target), T_init
+
+    def _T_first_frame(self, estimate: FineEstimate) -> NDArray[np.float64]:
+        """(4, 4) the frame's estimated motion from the first keyframe (``T_ref_frame``)."""
+        return self.first.T_ref_target @ se3.invert(estimate.T_sensor_target)
+
+    def remove(
+        self,
+        prepared: PreparedCloud,
+        reference: Keyframe,
+        T_sensor_target: NDArray[np.float64],
+        timestamp: float,
+        gate: float,
+    ) -> PreparedCloud:
+        """The frame without the support's points, the support followed to it (and forgotten
+        once it no longer registers).
+
+        ``T_sensor_target`` is the target's predicted pose, ``reference`` its latest keyframe
+        and ``gate`` (m) the target prediction's reach, which the separation takes until the
+        support's own prediction has shown its error.
+        """
+        if self.support is None:
+            return prepared
+        T_ref_frame = reference.T_ref_target @ se3.invert(T_sensor_target)
+        window = self.registrar.noise.window
+        gate = self.support.gate(max(gate, window), window)
+        points = prepared.cloud.points
+        target_ref = self.registrar.as_target(reference.prepared)
+        keep = self.support.separate(points, timestamp, target_ref, T_ref_frame, gate, self.workers)
+        others = points[~keep]
+        if len(others) < self.min_points or not self.support.follow(
+            others, timestamp, gate, self.workers
+        ):
+            self.support = None
+        if np.count_nonzero(keep) < self.min_points:
+            return prepared
+        return subset(prepared, keep)
