@@ -25,9 +25,10 @@ itself. The residuals then carry structure or a part pulls the pose, which the h
 Which body is the target: the one that turns, i.e. the one a pure shift in the sensor frame
 explains worse (capped residuals, so that a turn its surfaces cannot show counts for nothing).
 A support carried by a slide, a wall, a fixture translate or stand still in the sensor frame
-while the target turns or tumbles; surfaces symmetric about the turn (a turntable's disc and
-post) fit both motions and stay with the target. :class:`ClutterBody` then follows the support
-with its own constant-velocity motion, so that its points can be left out of every later frame.
+while the target turns or tumbles, so a split whose support turns is not one. Surfaces
+symmetric about the turn (a turntable's disc and post) fit both motions and stay with the
+target. :class:`ClutterBody` then follows the support with its own constant-velocity motion, so
+that its points can be left out of every later frame.
 
 Frames: a *reference* is a keyframe's sensor frame; ``T_ref_frame`` maps the current frame's
 sensor coordinates into it (``T_target_source`` of a registration onto the keyframe).
@@ -49,8 +50,10 @@ from spacepose.core.scale import rms_radius
 from spacepose.core.voxel import voxel_cells
 from spacepose.errors import InputError, SpaceposeError
 
-# Each body must hold at least this share of the frame's points.
-MIN_BODY_SHARE = 0.2
+# Each body must hold at least this share of the frame's points (a turntable's post and disc
+# under a large target: 14 %), and the target twice it: on noisy frames a small patch that a
+# second motion fits by chance turns as a target would.
+MIN_BODY_SHARE = 0.1
 # Residuals are capped at this many σ: beyond, a point is unexplained, however far.
 EXPLAINED_SIGMAS = 3.0
 # A part belongs to a motion's fit when its capped squared residuals under it are below this
@@ -210,10 +213,19 @@ def split_motion(
     # The target is the body that turns: the one a pure shift explains worse (in its capped
     # residuals, so that a turn the surfaces cannot show, a plane spinning in itself, counts
     # for nothing).
-    turned_a = _shift_cost(ref, points[~on_b], T_a, cap, reach, workers) - r_a[~on_b].mean()
-    turned_b = _shift_cost(ref, points[on_b], T_b, cap, reach, workers) - r_b[on_b].mean()
-    if turned_b > turned_a:
+    rigid = (r_a[~on_b].mean(), r_b[on_b].mean())
+    shift = (
+        _shift_cost(ref, points[~on_b], T_a, cap, reach, workers),
+        _shift_cost(ref, points[on_b], T_b, cap, reach, workers),
+    )
+    if shift[1] - rigid[1] > shift[0] - rigid[0]:
         T_a, T_b, frame_target, shares, shown = T_b, T_a, on_b, shares[::-1], shown[::-1]
+        rigid, shift = rigid[::-1], shift[::-1]
+    # The support moves without turning (a slide carries it, or it stands still): a pure shift
+    # explains it nearly as well as a rigid motion. A part of a tumbling target that the
+    # frame's new views set apart does not.
+    if rigid[1] < FIT_RATIO * shift[1] or shares[0] < 2.0 * MIN_BODY_SHARE:
+        return None
     return MotionSplit(
         T_a,
         T_b,

@@ -7,7 +7,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
-from spacepose.core.bodies import ClutterBody, rotation_angle, split_motion, subset
+from spacepose.core.bodies import ClutterBody, split_motion, subset
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 
@@ -33,18 +33,19 @@ class SupportSeparation:
         # Time of the frame the support was split off on (s).
         self.found_at: float | None = None
         # The first keyframe: the split's reference, the one pose no compromise has touched
-        # (the target frame itself); and the turn from it at the last look.
+        # (the target frame itself); and the time from it to the last look (s).
         self.first: Keyframe | None = None
         self._tried = 0.0
 
-    def signalled(self, estimate: FineEstimate, ok_structure: float) -> bool:
+    def signalled(self, estimate: FineEstimate, ok_structure: float, timestamp: float) -> bool:
         """No support known yet, and the frame's registration shows the signs of a second
         motion: residual structure above ``ok_structure`` or a part that pulls the pose. Looked
-        for again only once the turn from the first keyframe has doubled since the last look
-        (two slow motions part as they go)."""
+        for again only once the time from the first keyframe has doubled since the last look:
+        two motions part as they go, and a run has a few looks, not one a frame. (Time, not the
+        estimated turn: a tracker that follows the support sees no turn.)"""
         if self.support is not None or self.first is None:
             return False
-        if rotation_angle(self._T_first_frame(estimate)) < 2.0 * self._tried:
+        if timestamp - self.first.timestamp < 2.0 * self._tried:
             return False
         structured = estimate.structure is not None and estimate.structure > ok_structure
         pulled = estimate.influence is not None and estimate.influence.excessive
@@ -77,7 +78,7 @@ class SupportSeparation:
         """
         ref = self.first
         T_ref_frame = self._T_first_frame(estimate)
-        self._tried = rotation_angle(T_ref_frame)
+        self._tried = timestamp - ref.timestamp
         noise = self.registrar.noise
         sigma = noise.sigma if noise.sigma is not None else noise.gate / 3.0
         found = split_motion(

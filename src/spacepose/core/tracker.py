@@ -324,7 +324,8 @@ class Tracker:
         estimate, support = checked[0], self._support
         if support is None or estimate is None:
             return prepared, checked
-        if not support.signalled(estimate, health_bounds(self._context(), False).ok_structure):
+        bound = health_bounds(self._context(), False).ok_structure
+        if not support.signalled(estimate, bound, timestamp):
             return prepared, checked
         found = support.split(prepared, estimate, timestamp, reach)
         if found is None:
