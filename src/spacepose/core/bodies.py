@@ -280,11 +280,6 @@ def _shift_cost(
     return float(np.mean(r**2))
 
 
-def rotation_angle(T: NDArray[np.float64]) -> float:
-    """Rotation angle of a rigid transform (rad)."""
-    return float(np.linalg.norm(se3.log(T)[:3]))
-
-
 def _reference_labels(
     ref: PreparedCloud,
     points: NDArray[np.float64],
