@@ -188,3 +188,5 @@ def test_arrays_and_clouds_alike_and_bad_inputs():
     bad[3] = np.nan
     with pytest.raises(InputError):
         split_motion(bad, ref, T, SIGMA, REACH, NEAR)
+    with pytest.raises(InputError, match="finite time"):
+        ClutterBody(ref, [(np.nan, np.eye(4))])

@@ -108,12 +108,24 @@ def plane_residuals(
 ) -> NDArray[np.float64]:
     """(N,) absolute point-to-plane residual of each frame point onto its nearest reference
     point within ``gate`` (m); inf where none is. ``ref`` needs normals."""
-    moved = se3.transform_points(T_ref_frame, points)
-    s, t, _ = find_correspondences(ref.tree, moved, gate, workers)
+    moved, s, t, _ = _nearest_within(ref, points, T_ref_frame, gate, workers)
     r = np.full(len(points), np.inf)
     q = ref.cloud
     r[s] = np.abs(np.einsum("ij,ij->i", moved[s] - q.points[t], q.normals[t]))
     return r
+
+
+def _nearest_within(
+    ref: PreparedCloud,
+    points: NDArray[np.float64],
+    T_ref_frame: NDArray[np.float64],
+    gate: float,
+    workers: int,
+) -> tuple[NDArray[np.float64], NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+    """The frame points moved into the reference, and the pairs within ``gate`` (m) of their
+    nearest reference point: frame indices, reference indices, squared distances."""
+    moved = se3.transform_points(T_ref_frame, points)
+    return moved, *find_correspondences(ref.tree, moved, gate, workers)
 
 
 def split_motion(
@@ -294,7 +306,7 @@ def _reference_labels(
     turned away since) goes with neither."""
     q = ref.cloud.points
     d_target, d_support = (
-        _nearest_distance(se3.transform_points(T, points[mask]), q, workers)
+        _nearest_distance(se3.transform_points(T, points[mask]), q, near, workers)
         for T, mask in zip(motions, shown, strict=True)
     )
     target = (d_target <= d_support) & (d_target <= near)
@@ -302,12 +314,13 @@ def _reference_labels(
 
 
 def _nearest_distance(
-    points: NDArray[np.float64], queries: NDArray[np.float64], workers: int
+    points: NDArray[np.float64], queries: NDArray[np.float64], bound: float, workers: int
 ) -> NDArray[np.float64]:
-    """(M,) distance of each query to the nearest of ``points`` (inf when there are none)."""
+    """(M,) distance of each query to the nearest of ``points`` within ``bound`` (m); inf
+    beyond, or when there are no points."""
     if len(points) == 0:
         return np.full(len(queries), np.inf)
-    d, _ = cKDTree(points).query(queries, workers=workers)
+    d, _ = cKDTree(points).query(queries, distance_upper_bound=bound, workers=workers)
     return d
 
 
@@ -328,6 +341,8 @@ class ClutterBody:
     def __init__(self, ref: PreparedCloud, poses: list[tuple[float, NDArray[np.float64]]]) -> None:
         self.ref = ref
         self._poses = [(t, T) for t, T in poses if np.isfinite(t)][-2:]
+        if not self._poses:
+            raise InputError("a followed support needs a pose at a finite time")
         # RMS error of the last prediction (m); None before the first follow.
         self.error: float | None = None
 
@@ -402,8 +417,7 @@ def _gated_distance(
 ) -> NDArray[np.float64]:
     """(N,) distance of each frame point to the nearest reference point within ``gate``; inf
     beyond."""
-    moved = se3.transform_points(T_ref_frame, points)
-    s, _, d2 = find_correspondences(ref.tree, moved, gate, workers)
+    _, s, _, d2 = _nearest_within(ref, points, T_ref_frame, gate, workers)
     d = np.full(len(points), np.inf)
     d[s] = np.sqrt(d2)
     return d
