@@ -23,6 +23,27 @@ from spacepose.errors import InputError
 _ERROR_WINDOW = 20
 
 
+def next_timestamp(timestamp: float, last: float) -> float:
+    """``timestamp`` as seconds, checked to come after ``last`` (s).
+
+    Raises
+    ------
+    InputError
+        Not a number, not finite, or before ``last``.
+    """
+    try:
+        t = float(timestamp)
+    except (TypeError, ValueError):
+        raise InputError(
+            f"frame timestamp must be a number of seconds, got {timestamp!r}"
+        ) from None
+    if not np.isfinite(t) or t < last:
+        raise InputError(
+            f"frame timestamps must be finite and non-decreasing, got {t} after {last}"
+        )
+    return t
+
+
 def predict_pose(
     history: list[tuple[float, NDArray[np.float64]]], timestamp: float
 ) -> NDArray[np.float64] | None:

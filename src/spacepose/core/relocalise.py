@@ -27,6 +27,7 @@ from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 from spacepose.core.motion import Prediction
 from spacepose.core.normals import estimate_normals
 from spacepose.core.ransac import feature_ransac
+from spacepose.core.track_result import elapsed_ms
 from spacepose.core.tracker_config import StageLengths
 from spacepose.core.twins import FitComparison, compare_fits, principal_turns
 from spacepose.core.voxel import voxel_downsample
@@ -162,7 +163,7 @@ class Relocaliser:
         """
         tic = time.perf_counter()
         init = self.coarse(prepared)
-        times["coarse"] = _ms(tic)
+        times["coarse"] = elapsed_ms(tic)
         if init is None and failed[1] != "lost":
             return self._missed(failed)
         if init is None:
@@ -175,7 +176,7 @@ class Relocaliser:
         ranked = sorted(checked, key=_fitness, reverse=True)
         estimate, status, reasons = ranked[0]
         rival = self._rival(prepared, ranked)
-        times["fine"] += _ms(tic)
+        times["fine"] += elapsed_ms(tic)
         if prediction is not None and estimate is not None:
             # A stale prediction confirms the re-initialised pose when it agrees; when it does
             # not, the pose stands unconfirmed (degraded), not rejected.
@@ -274,7 +275,3 @@ def _fitness(checked: Checked) -> float:
     """The fitness of a kept registration; −1 for a lost one."""
     estimate, status = checked[:2]
     return -1.0 if estimate is None or status == "lost" else estimate.result.fitness
-
-
-def _ms(tic: float) -> float:
-    return 1e3 * (time.perf_counter() - tic)

@@ -3,6 +3,8 @@ leaving it out of every frame once found (the geometry is :mod:`spacepose.core.b
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -10,6 +12,7 @@ from spacepose.core import se3
 from spacepose.core.bodies import ClutterBody, split_motion, subset
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
+from spacepose.core.segmentation import TargetRegion, region_of
 
 
 class SupportSeparation:
@@ -99,6 +102,16 @@ class SupportSeparation:
         ref.prepared = subset(ref.prepared, found.ref_target)
         T_init = se3.invert(found.T_ref_frame) @ ref.T_ref_target
         return subset(prepared, found.frame_target), T_init
+
+    def target_region(self, region: TargetRegion) -> TargetRegion:
+        """After a split, the crop region cut to the target: the sphere of the first
+        keyframe's target points (target frame), no larger than ``region`` (the object's:
+        the target is part of it, stray points labelled so are not)."""
+        first = self.first
+        own = region_of(
+            se3.transform_points(se3.invert(first.T_ref_target), first.prepared.cloud.points)
+        )
+        return replace(own, radius=min(own.radius, region.radius))
 
     def _T_first_frame(self, estimate: FineEstimate) -> NDArray[np.float64]:
         """(4, 4) the frame's estimated motion from the first keyframe (``T_ref_frame``)."""

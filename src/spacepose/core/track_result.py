@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -15,6 +16,18 @@ from spacepose.core.trajectory import Trajectory
 # Timed parts of a step; "other" is the health checks and state bookkeeping, so that the first
 # four add up to "total".
 STAGES: tuple[str, ...] = ("preprocess", "coarse", "fine", "other", "total")
+
+
+def elapsed_ms(tic: float) -> float:
+    """Milliseconds since ``tic`` (a :func:`time.perf_counter` reading)."""
+    return 1e3 * (time.perf_counter() - tic)
+
+
+def close_times(times: dict[str, float], t_start: float) -> None:
+    """Set ``total`` and ``other`` (the time no named stage took) of a step's timings (ms)."""
+    times["total"] = elapsed_ms(t_start)
+    named = sum(times.get(s, 0.0) for s in ("preprocess", "coarse", "fine"))
+    times["other"] = max(times["total"] - named, 0.0)
 
 
 @dataclass(frozen=True)

@@ -29,15 +29,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterable
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.frame_check import (
-    FAR_KEYFRAME,
     CheckContext,
     check_frame,
     health_bounds,
@@ -49,17 +46,19 @@ from spacepose.core.health import (
     Status,
     pose_disagreement,
 )
-from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
-from spacepose.core.motion import MotionModel, Prediction
+from spacepose.core.keyframe_window import KeyframeWindow
+from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
+from spacepose.core.motion import MotionModel, Prediction, next_timestamp
 from spacepose.core.relocalise import Checked, Relocaliser
 from spacepose.core.scale import DataScale
-from spacepose.core.segmentation import region_of
 from spacepose.core.support import SupportSeparation
 from spacepose.core.track_result import (
     STAGES,
     TrackingOutput,
     TrackResult,
     accepted_result,
+    close_times,
+    elapsed_ms,
     lost_result,
 )
 from spacepose.core.tracker_config import TrackerConfig
@@ -93,7 +92,7 @@ class Tracker:
         self._last_timestamp = -np.inf
         self._motion = MotionModel()
         self._lost_streak = 0
-        self._keyframes: list[Keyframe] = []
+        self._window = KeyframeWindow(config)
         self._registrar: FrameRegistrar | None = None
         self._t_start = 0.0
         self._model_cloud = None if model is None else self._check_model(model)
@@ -146,7 +145,7 @@ class Tracker:
             Always one per call: a frame that cannot be tracked is reported ``lost`` with the
             predicted pose, never dropped.
         """
-        timestamp = self._next_timestamp(timestamp)
+        timestamp = self._last_timestamp = next_timestamp(timestamp, self._last_timestamp)
         self._t_start = time.perf_counter()
         index = self._index
         self._index += 1
@@ -157,10 +156,10 @@ class Tracker:
         try:
             prepared = self._preprocess(cloud, prediction)
         except SpaceposeError as exc:
-            times["preprocess"] = _ms(tic)
+            times["preprocess"] = elapsed_ms(tic)
             return self._lost(index, timestamp, prediction, (f"unusable frame: {exc}",), times)
-        times["preprocess"] = _ms(tic)
-        if not self.model_based and not self._keyframes:
+        times["preprocess"] = elapsed_ms(tic)
+        if not self.model_based and not self._window:
             return self._start(index, timestamp, prepared, times)
 
         checked: Checked = (None, "lost", ("no prior pose",))
@@ -171,7 +170,7 @@ class Tracker:
                 prepared = self._support.remove(prepared, self._reference(), T, timestamp, reach)
             checked = self._fine_and_check(prepared, T, reach, prediction)
             prepared, checked = self._split_off_support(prepared, checked, timestamp, reach)
-            times["fine"] += _ms(tic)
+            times["fine"] += elapsed_ms(tic)
         relocaliser = self._relocaliser
         coarse = checked[1] == "lost"
         if coarse:
@@ -185,7 +184,7 @@ class Tracker:
         if not coarse and relocaliser.twin is not None and checked[0] is not None:
             tic = time.perf_counter()
             checked, coarse = relocaliser.settle_twin(prepared, checked)
-            times["fine"] += _ms(tic)
+            times["fine"] += elapsed_ms(tic)
         estimate, status, reasons = checked
         if status == "lost" or estimate is None:
             return self._lost(index, timestamp, prediction, reasons, times, coarse)
@@ -209,7 +208,7 @@ class Tracker:
         InputError
             No reference yet (model-free before the first frame) or an unusable frame.
         """
-        if not self.model_based and not self._keyframes:
+        if not self.model_based and not self._window:
             raise InputError("coarse registration needs a model or a first tracked frame")
         prepared = self._preprocess(cloud)
         return self._relocaliser.coarse(prepared)
@@ -267,7 +266,7 @@ class Tracker:
         return pc
 
     def _reference(self) -> Keyframe:
-        return self._model if self._model is not None else self._keyframes[-1]
+        return self._model if self._model is not None else self._window.latest
 
     def _fine_and_check(
         self,
@@ -301,11 +300,11 @@ class Tracker:
         cfg = self.config
         if cfg.method not in ("jicp", "keyframe") or self.model_based:
             return self._registrar.single(prepared, ref, T_init)
+        references = self._window.references()
         if cfg.method == "jicp":
-            return self._registrar.li_step(prepared, self._keyframes[-2:], T_init)
-        graph = cfg.keyframe_graph
-        window = self._keyframes[-(graph.window - 1) :]
-        return self._registrar.joint(prepared, window, T_init, graph.weighting == "equal")
+            return self._registrar.li_step(prepared, references, T_init)
+        equal = cfg.keyframe_graph.weighting == "equal"
+        return self._registrar.joint(prepared, references, T_init, equal)
 
     def _check(
         self, estimate: FineEstimate, prepared: PreparedCloud, prediction: Prediction | None
@@ -332,44 +331,24 @@ class Tracker:
             return prepared, checked
         prepared, T_init = found
         # The window's later keyframes hold the support and the compromise's error; the crop
-        # follows the target alone (within the object's sphere: the target is part of it,
-        # stray points labelled so are not).
-        first = support.first
-        self._keyframes = [first]
-        T_target_first = se3.invert(first.T_ref_target)
-        own = region_of(se3.transform_points(T_target_first, first.prepared.cloud.points))
-        self._frames.region = replace(own, radius=min(own.radius, self._frames.region.radius))
+        # follows the target alone.
+        self._window.restart(support.first)
+        self._frames.region = support.target_region(self._frames.region)
         return prepared, self._fine_and_check(prepared, T_init, 0.0, None)
 
     # -- state -------------------------------------------------------------------------------
-
-    def _next_timestamp(self, timestamp: float) -> float:
-        try:
-            t = float(timestamp)
-        except (TypeError, ValueError):
-            raise InputError(
-                f"frame timestamp must be a number of seconds, got {timestamp!r}"
-            ) from None
-        if not np.isfinite(t) or t < self._last_timestamp:
-            raise InputError(
-                f"frame timestamps must be finite and non-decreasing, got {t} after "
-                f"{self._last_timestamp}"
-            )
-        self._last_timestamp = t
-        return t
 
     def _start(
         self, index: int, timestamp: float, prepared: PreparedCloud, times: dict[str, float]
     ) -> TrackResult:
         """Model-free: the first usable frame defines the target frame (pose identity)."""
         T, cov = np.eye(4), np.zeros((6, 6))
-        # A keyframe's normals are estimated when it is made: it is the next frame's target,
-        # whose step should not pay for them.
+        # A keyframe's normals are estimated when it is made (KeyframeWindow.update).
         first = Keyframe(index, self._registrar.as_target(prepared), T, cov, timestamp=timestamp)
-        self._keyframes.append(first)
+        self._window.restart(first)
         self._support.first = first
         self._motion.accept(timestamp, T, cov, None, restart=True)
-        _close_times(times, self._t_start)
+        close_times(times, self._t_start)
         return TrackResult(
             index,
             timestamp,
@@ -395,7 +374,7 @@ class Tracker:
         self._lost_streak += 1
         if self._registrar is not None:
             self._registrar.noise.discard()
-        _close_times(times, self._t_start)
+        close_times(times, self._t_start)
         return lost_result(index, timestamp, prediction, reasons, times, coarse)
 
     def _accept(
@@ -420,59 +399,14 @@ class Tracker:
         self._motion.accept(timestamp, T, cov, error, restart=coarse)
         promoted = False
         if not self.model_based:
-            promoted = self._update_keyframes(index, timestamp, prepared, estimate, health)
-        _close_times(times, self._t_start)
+            radius = self._frames.scale.radius
+            promoted = self._window.update(
+                index, timestamp, prepared, estimate, health, radius, self._registrar.as_target
+            )
+        close_times(times, self._t_start)
         return accepted_result(
             index, timestamp, estimate, prepared, health, times, coarse, promoted
         )
-
-    def _update_keyframes(
-        self,
-        index: int,
-        timestamp: float,
-        prepared: PreparedCloud,
-        estimate: FineEstimate,
-        health: tuple[Status, tuple[str, ...]],
-    ) -> bool:
-        """Refresh the window's poses and promote the frame if the policy says so."""
-        status, reasons = health
-        # A frame degraded only by the distance to its keyframe passed every check of its own
-        # registration: promoting it is how the tracker gets back to ok after a re-initialisation.
-        far_only = bool(reasons) and all(r.startswith(FAR_KEYFRAME) for r in reasons)
-        trusted = status == "ok" or far_only
-        if trusted:
-            for kf, T_kf, cov_kf in estimate.window_poses:
-                kf.T_ref_target, kf.covariance = T_kf, cov_kf
-        # Li's J-ICP registers every frame to the two accepted frames before it.
-        li = self.config.method == "jicp"
-        if not li and not needs_keyframe(
-            estimate, prepared, self.config.keyframe, self._frames.scale.radius, not trusted
-        ):
-            return False
-        # The keyframe keeps the noise covariance; its drift is carried apart.
-        kf = Keyframe(
-            index,
-            self._registrar.as_target(prepared),  # its normals now, as in _start
-            estimate.T_sensor_target,
-            estimate.covariance - (0.0 if estimate.drift is None else estimate.drift),
-            list(estimate.edges),
-            estimate.bias,
-            timestamp,
-        )
-        keep = 1 if li else self.config.keyframe_graph.window
-        self._keyframes = [*self._keyframes[-keep:], kf]
-        return True
-
-
-def _ms(tic: float) -> float:
-    return 1e3 * (time.perf_counter() - tic)
-
-
-def _close_times(times: dict[str, float], t_start: float) -> None:
-    """Set ``total`` and ``other`` (the time no named stage took) of a step's timings (ms)."""
-    times["total"] = _ms(t_start)
-    named = sum(times.get(s, 0.0) for s in ("preprocess", "coarse", "fine"))
-    times["other"] = max(times["total"] - named, 0.0)
 
 
 # --------------------------------------------------------------------------------------------

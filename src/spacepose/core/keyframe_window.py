@@ -1,0 +1,109 @@
+"""The model-free tracker's references: a window of keyframes and its policy (methods.md §5.4).
+
+Li's J-ICP registers each frame onto the two accepted frames before it; our keyframe graph onto
+a window of keyframes, promoting a frame when :func:`~spacepose.core.keyframes.needs_keyframe`
+says so. A trusted frame (``ok``, or degraded only by its distance from the keyframe) also
+refreshes the window's poses that its registration re-estimated.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from spacepose.core.frame_check import FAR_KEYFRAME
+from spacepose.core.health import Status
+from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
+from spacepose.core.tracker_config import TrackerConfig
+
+
+class KeyframeWindow:
+    """The keyframes a model-free frame is registered onto, oldest first.
+
+    Parameters
+    ----------
+    config
+        The tracker's config: its method (``"jicp"`` keeps the last two accepted frames), the
+        keyframe graph's window and the promotion thresholds.
+    """
+
+    def __init__(self, config: TrackerConfig) -> None:
+        self.config = config
+        self.keyframes: list[Keyframe] = []
+
+    def __bool__(self) -> bool:
+        return bool(self.keyframes)
+
+    @property
+    def latest(self) -> Keyframe:
+        return self.keyframes[-1]
+
+    @property
+    def li(self) -> bool:
+        """Li's J-ICP: every accepted frame becomes the next frame's reference."""
+        return self.config.method == "jicp"
+
+    def references(self) -> list[Keyframe]:
+        """What a frame's joint registration uses: J-ICP the two latest accepted frames, the
+        keyframe graph the window it is about to end."""
+        if self.li:
+            return self.keyframes[-2:]
+        return self.keyframes[-(self.config.keyframe_graph.window - 1) :]
+
+    def restart(self, first: Keyframe) -> None:
+        """Only ``first`` is kept (a new start, or the first keyframe cut to the target)."""
+        self.keyframes = [first]
+
+    def update(
+        self,
+        index: int,
+        timestamp: float,
+        prepared: PreparedCloud,
+        estimate: FineEstimate,
+        health: tuple[Status, tuple[str, ...]],
+        radius: float,
+        reference_cloud: Callable[[PreparedCloud], PreparedCloud],
+    ) -> bool:
+        """Refresh the window's poses and promote the frame if the policy says so.
+
+        Parameters
+        ----------
+        index, timestamp, prepared, estimate
+            The accepted frame: its index, time (s), cloud and fine registration.
+        health
+            Its status and reasons.
+        radius
+            The target's RMS radius (m) that scales the promotion distance.
+        reference_cloud
+            Makes the frame's cloud a registration reference (with normals, estimated now: it
+            is the next frame's target, whose step should not pay for them).
+
+        Returns
+        -------
+        bool
+            Whether the frame became a keyframe.
+        """
+        status, reasons = health
+        # A frame degraded only by the distance to its keyframe passed every check of its own
+        # registration: promoting it is how the tracker gets back to ok after a re-initialisation.
+        far_only = bool(reasons) and all(r.startswith(FAR_KEYFRAME) for r in reasons)
+        trusted = status == "ok" or far_only
+        if trusted:
+            for kf, T_kf, cov_kf in estimate.window_poses:
+                kf.T_ref_target, kf.covariance = T_kf, cov_kf
+        if not self.li and not needs_keyframe(
+            estimate, prepared, self.config.keyframe, radius, not trusted
+        ):
+            return False
+        # The keyframe keeps the noise covariance; its drift is carried apart.
+        kf = Keyframe(
+            index,
+            reference_cloud(prepared),
+            estimate.T_sensor_target,
+            estimate.covariance - (0.0 if estimate.drift is None else estimate.drift),
+            list(estimate.edges),
+            estimate.bias,
+            timestamp,
+        )
+        keep = 1 if self.li else self.config.keyframe_graph.window
+        self.keyframes = [*self.keyframes[-keep:], kf]
+        return True
