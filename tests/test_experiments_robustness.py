@@ -219,3 +219,17 @@ def test_cli_runs_one_cell_with_its_frames(tmp_path) -> None:
     table = json.loads((tmp_path / "robustness" / "robustness.json").read_text())
     assert [r["range"] for r in table["table"]] == [25.0]
     assert [f["frame"] for f in table["frames"]] == [0, 1, 2]
+
+
+def test_cli_tracks_the_grid_with_a_tracker_config_file(tmp_path) -> None:
+    """``--tracker FILE``: the cells are tracked with that config, and the outputs say so."""
+    config = tmp_path / "tracker.yaml"
+    config.write_text("keyframe_density: 3\n")
+    args = ["experiment", "robustness", "--cells", "target=lab,range=1.2,seed=0", "--frames", "3"]
+    out = tmp_path / "dense"
+    assert main([*args, "--tracker", str(config), "--out", str(out)]) == 0
+    table = json.loads((out / "robustness" / "robustness.json").read_text())
+    assert table["tracker_config"]["keyframe_density"] == 3.0
+    assert "'keyframe_density': 3.0" in table["tracker"]
+    config.write_text("keyframe_density: 0.5\n")
+    assert main([*args, "--tracker", str(config), "--out", str(out)]) == 1

@@ -29,6 +29,9 @@ def experiment(
     frames: int = typer.Option(None, min=2, help="robustness: frames per run."),
     frames_csv: bool = typer.Option(False, help="robustness: write every frame's scores."),
     jobs: int = typer.Option(1, min=1, help="robustness: processes running cells."),
+    tracker: Path = typer.Option(
+        None, help="robustness: a tracker config file (YAML/JSON) instead of the defaults."
+    ),
 ) -> None:
     """Run one experiment; tables (JSON) and figures (PNG) go to OUT/NAME/, listed at the end."""
     from spacepose.tools.experiments import ExperimentOptions, run_experiment
@@ -42,6 +45,7 @@ def experiment(
         frames=frames,
         frames_csv=frames_csv,
         jobs=jobs,
+        tracker=None if tracker is None else str(tracker),
     )
     start = time.time()
     with working(f"experiment {name}"):

@@ -10,6 +10,8 @@ reference model at the frame's voxel. Every length it uses is derived on the fir
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -19,6 +21,7 @@ from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.gicp import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
+from spacepose.core.neighbors import knn
 from spacepose.core.normals import estimate_normals
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
 from spacepose.core.segmentation import (
@@ -101,6 +104,7 @@ class FramePreparer:
         if self.scale is None:
             self._set_scale(pc)
         L = self.lengths
+        raw = pc
         if cfg.use_mls:
             pc = mpp_mls(pc, L.mls, workers=self.workers)
         else:
@@ -110,6 +114,40 @@ class FramePreparer:
             raise InputError(
                 f"{len(pc)} points after preprocessing (< {cfg.health.min_points})", pc.source
             )
+        prepared = self.with_covariances(pc)
+        if not cfg.use_mls and cfg.keyframe_density > 1.0:
+            prepared.raw, prepared.crop = raw, sphere
+        return prepared
+
+    def keyframe_cloud(self, prepared: PreparedCloud) -> PreparedCloud | None:
+        """The frame as a finer registration reference, with normals: downsampled again from
+        its raw points at the voxel over ``keyframe_density`` (not below the point spacing),
+        each point moved onto the plane of its neighbourhood when the noise explains its
+        offset from it. None after mpp-MLS, at a density of 1, or when the frame has nothing
+        finer to give (its voxel within twice its spacing: a sparse flash-LiDAR frame).
+
+        A source registered onto a reference as coarse as itself pairs each point with a
+        centroid up to half a voxel away, whose tangent plane misses a curved or edged surface
+        under it; and voxel centroids cut corners, differently as the object moves through the
+        sensor's grid: both become a pose bias (methods.md §5.4). A finer reference has noisier
+        points, and a nearest neighbour picked among them leans towards the source (the pose
+        the registration starts from); on the neighbourhood's plane that noise is averaged out.
+        The source keeps the voxel: its count sets the step's cost.
+        """
+        L = self.lengths
+        voxel = max(L.voxel / self.config.keyframe_density, self.scale.spacing)
+        if prepared.raw is None or voxel > L.voxel / 2.0:
+            return None
+        pc = voxel_downsample(prepared.raw, voxel, prepared.crop)
+        pc = estimate_normals(pc, L.normals, workers=self.workers)
+        pts, n = pc.points, pc.normals
+        _, idx = knn(pts, None, min(L.normals.k, len(pts)), workers=self.workers)
+        off = np.einsum("ij,ij->i", pts - pts[idx].mean(axis=1), n)
+        # Offsets the noise explains are removed; a larger one is shape (an edge, a corner)
+        # that the plane would cut.
+        noise = 1.4826 * np.median(np.abs(off))
+        off[np.abs(off) > 3.0 * noise] = 0.0
+        pc = replace(pc, points=pts - off[:, None] * n)
         return self.with_covariances(pc)
 
     def prepare_model(self, model: PointCloud) -> Keyframe:

@@ -158,7 +158,7 @@ class FrameRegistrar:
         cfg = self.lengths.icp
         if wide_gate <= _WIDE_PASS_RATIO * self.noise.gate:
             return T_init_sensor_target
-        tgt = self.as_target(ref.prepared)
+        tgt = self.as_target(ref.registration_target)
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
         # A wide gate takes in wrong surfaces too: a redescending kernel keeps them out.
         wide = cfg.model_copy(
@@ -191,7 +191,7 @@ class FrameRegistrar:
         latest reference: the extra search costs about a fifth of a lab frame's step).
         """
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
-        tgt = self.as_target(ref.prepared)
+        tgt = self.as_target(ref.registration_target)
         res, matches = self._pairwise(prepared, tgt, init_T_ref_k)
         pairs = None
         if measure:

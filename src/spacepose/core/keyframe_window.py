@@ -61,7 +61,7 @@ class KeyframeWindow:
         estimate: FineEstimate,
         health: tuple[Status, tuple[str, ...]],
         radius: float,
-        reference_cloud: Callable[[PreparedCloud], PreparedCloud],
+        dense_cloud: Callable[[PreparedCloud], PreparedCloud | None],
     ) -> bool:
         """Refresh the window's poses and promote the frame if the policy says so.
 
@@ -73,9 +73,9 @@ class KeyframeWindow:
             Its status and reasons.
         radius
             The target's RMS radius (m) that scales the promotion distance.
-        reference_cloud
-            Makes the frame's cloud a registration reference (with normals, estimated now: it
-            is the next frame's target, whose step should not pay for them).
+        dense_cloud
+            Makes the frame a registration reference and returns its finer cloud (None: the
+            frame's own is the reference); called only when the frame is promoted.
 
         Returns
         -------
@@ -97,12 +97,13 @@ class KeyframeWindow:
         # The keyframe keeps the noise covariance; its drift is carried apart.
         kf = Keyframe(
             index,
-            reference_cloud(prepared),
+            prepared,
             estimate.T_sensor_target,
             estimate.covariance - (0.0 if estimate.drift is None else estimate.drift),
             list(estimate.edges),
             estimate.bias,
             timestamp,
+            dense_cloud(prepared),
         )
         keep = 1 if self.li else self.config.keyframe_graph.window
         self.keyframes = [*self.keyframes[-keep:], kf]

@@ -36,12 +36,16 @@ class PreparedCloud:
 
     ``covariances`` (GICP) is filled once per frame; the normals of ``cloud``, the index and
     ``coarse`` (sparse cloud + FPFH) lazily, when the frame is a registration target or coarse
-    registration needs it.
+    registration needs it. ``raw`` and ``crop`` (center (3,), radius m) are the points ``cloud``
+    was downsampled from and the sphere it kept, from which a keyframe's finer cloud is made
+    (:meth:`~spacepose.core.frame_preparation.FramePreparer.keyframe_cloud`).
     """
 
     cloud: PointCloud
     covariances: NDArray[np.float64] | None = None
     coarse: tuple[PointCloud, NDArray[np.float64]] | None = None
+    raw: PointCloud | None = None
+    crop: tuple[NDArray[np.float64], float] | None = None
     _tree: VoxelIndex | None = None
 
     @property
@@ -73,6 +77,10 @@ class Keyframe:
         Frame index (-1 for the model).
     prepared
         The preprocessed cloud, in its own sensor frame (or the target frame for the model).
+    dense
+        The same frame downsampled finer and smoothed onto its surface, what frames are
+        registered onto (None: ``prepared`` is; see
+        :meth:`~spacepose.core.frame_preparation.FramePreparer.keyframe_cloud`).
     T_ref_target
         Pose of the reference frame: ``T_sensor_target`` at that frame (identity for the model).
     covariance
@@ -93,6 +101,12 @@ class Keyframe:
     edges: list[Edge] = field(default_factory=list)
     drift: tuple[float, float] = (0.0, 0.0)
     timestamp: float = float("nan")
+    dense: PreparedCloud | None = None
+
+    @property
+    def registration_target(self) -> PreparedCloud:
+        """The cloud frames are registered onto."""
+        return self.prepared if self.dense is None else self.dense
 
 
 @dataclass(frozen=True)
@@ -142,9 +156,7 @@ class FineEstimate:
         return se3.transform_points(self.result.T_target_source, point_k[None])[0]
 
 
-def moved_covariance(
-    anchor: Keyframe, T_sensor_target: NDArray[np.float64]
-) -> NDArray[np.float64]:
+def moved_covariance(anchor: Keyframe, T_sensor_target: NDArray[np.float64]) -> NDArray[np.float64]:
     """The anchor keyframe's pose covariance carried into the frame of ``T_sensor_target``."""
     Ad = se3.adjoint(T_sensor_target @ se3.invert(anchor.T_ref_target))
     return Ad @ anchor.covariance @ Ad.T

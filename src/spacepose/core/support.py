@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from spacepose.core import se3
 from spacepose.core.bodies import ClutterBody, split_motion, subset
 from spacepose.core.frame_registration import FrameRegistrar
+from spacepose.core.icp import find_correspondences
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 from spacepose.core.segmentation import TargetRegion, region_of
 
@@ -99,9 +100,22 @@ class SupportSeparation:
         poses = [(ref.timestamp, np.eye(4)), (timestamp, found.T_ref_frame_support)]
         self.support = ClutterBody(subset(ref.prepared, found.ref_support), poses)
         self.found_at = timestamp
+        if ref.dense is not None:
+            ref.dense = subset(ref.dense, self._carried(ref, found.ref_target))
         ref.prepared = subset(ref.prepared, found.ref_target)
         T_init = se3.invert(found.T_ref_frame) @ ref.T_ref_target
         return subset(prepared, found.frame_target), T_init
+
+    def _carried(self, ref: Keyframe, labels: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """The labels of the keyframe's points carried to its dense cloud: each dense point
+        takes its nearest point's, within the noise window (farther: neither body's)."""
+        points = ref.dense.cloud.points
+        near, nearest, _ = find_correspondences(
+            ref.prepared.tree, points, self.registrar.noise.window, self.workers
+        )
+        carried = np.zeros(len(points), dtype=bool)
+        carried[near] = labels[nearest]
+        return carried
 
     def target_region(self, region: TargetRegion) -> TargetRegion:
         """After a split, the crop region cut to the target: the sphere of the first

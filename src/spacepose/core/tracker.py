@@ -343,8 +343,7 @@ class Tracker:
     ) -> TrackResult:
         """Model-free: the first usable frame defines the target frame (pose identity)."""
         T, cov = np.eye(4), np.zeros((6, 6))
-        # A keyframe's normals are estimated when it is made (KeyframeWindow.update).
-        first = Keyframe(index, self._registrar.as_target(prepared), T, cov, timestamp=timestamp)
+        first = Keyframe(index, prepared, T, cov, timestamp=timestamp, dense=self._dense(prepared))
         self._window.restart(first)
         self._support.first = first
         self._motion.accept(timestamp, T, cov, None, restart=True)
@@ -361,6 +360,17 @@ class Tracker:
             fitness=1.0,
             rmse=0.0,
         )
+
+    def _dense(self, prepared: PreparedCloud) -> PreparedCloud | None:
+        """A new keyframe's finer registration target (:meth:`FramePreparer.keyframe_cloud`;
+        None: the frame's own cloud is), with normals now: it is the next frame's target,
+        whose step should not pay for them."""
+        dense = self._frames.keyframe_cloud(prepared)
+        prepared.raw = prepared.crop = None  # the raw frame is not kept with the keyframe
+        if dense is None:
+            self._registrar.as_target(prepared)
+            return None
+        return self._registrar.as_target(dense)
 
     def _lost(
         self,
@@ -401,7 +411,7 @@ class Tracker:
         if not self.model_based:
             radius = self._frames.scale.radius
             promoted = self._window.update(
-                index, timestamp, prepared, estimate, health, radius, self._registrar.as_target
+                index, timestamp, prepared, estimate, health, radius, self._dense
             )
         close_times(times, self._t_start)
         return accepted_result(

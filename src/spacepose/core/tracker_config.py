@@ -188,6 +188,12 @@ class TrackerConfig(StageConfig):
         run at 1.2 m.
     voxel_size
         Voxel edge (m) to use instead of the derived one.
+    keyframe_density
+        A keyframe is downsampled this many times finer than the frames registered onto it
+        (never finer than the point spacing) and smoothed onto its surface (methods.md §5.4);
+        1 (the default) keeps the frame's own cloud. 3 took the clean robustness grid's false
+        ``ok`` frames from 89 to 16 but doubled the lab run's centroid drift (README), so it is
+        not yet the default.
     gate
         Correspondence gate of the fine registration (voxels). After the motion model's
         prediction the misalignment is well below a voxel; a wider gate lets silhouette points
@@ -227,6 +233,7 @@ class TrackerConfig(StageConfig):
     method: Method = "keyframe"
     points_per_frame: PositiveInt = 3000
     voxel_size: PositiveFloat | None = None
+    keyframe_density: float = Field(1.0, ge=1.0)
     gate: PositiveFloat = 0.83
     coarse_voxel: PositiveFloat = 2.0
     isolate_target: bool = True

@@ -41,10 +41,11 @@ class ExperimentOptions:
         Threads for neighbour searches (-1: all cores).
     seeds
         li-l1 and li-l3: number of seeds, from ``seed`` on (None: the experiment's default).
-    cells, frames, frames_csv, jobs
+    cells, frames, frames_csv, jobs, tracker
         ``robustness`` only (the others ignore them): the grid cells to run (selection string
         or config file, None: the whole grid), frames per run (None: the experiment's
-        default), whether to write every frame's scores, and the processes running cells.
+        default), whether to write every frame's scores, the processes running cells, and a
+        tracker config file (YAML or JSON; None: the defaults).
     """
 
     seed: int = 0
@@ -55,6 +56,7 @@ class ExperimentOptions:
     frames: int | None = None
     frames_csv: bool = False
     jobs: int = 1
+    tracker: str | None = None
 
 
 Experiment = Callable[[Path, ExperimentOptions], dict[str, Any]]

@@ -6,8 +6,9 @@ range (0.5, 1.2, 3, 6 m with the ToF camera; 25 m with the flash LiDAR, chosen b
 :func:`~spacepose.core.sim.grid.grid_scenario`), noise (×1, ×3), motion (constant, accelerating,
 tumbling at 2, 5 and 10° a frame), clutter (none, wall and table; the wall alone, ``wall``, only
 when named) and 5 seeds, 30 frames a run. Every run is tracked model-free by
-``Tracker(TrackerConfig())``: no flag, no model, no prior from the truth. A cell's metrics are the
-mean ± std over its seeds.
+``Tracker(TrackerConfig())``: no flag, no model, no prior from the truth (``tracker``: a config
+file's settings instead, written into the outputs). A cell's metrics are the mean ± std over its
+seeds.
 
 Selecting cells (``ExperimentOptions.cells``): ``"target=lab,range=1.2+25,seed=0"`` (``+`` separates
 values; an axis not named spans the grid, or with ``quick`` takes the default cell's value), or a
@@ -153,8 +154,11 @@ def select_cells(
     return runs, frames or grid.frames
 
 
-def run_cell(cell: Cell, frames: int, workers: int = 1) -> dict[str, Any]:
-    """Simulate and track one run; its coordinates, metrics and frame rows.
+def run_cell(
+    cell: Cell, frames: int, workers: int = 1, tracker: TrackerConfig = TrackerConfig()
+) -> dict[str, Any]:
+    """Simulate and track one run with a ``tracker`` config; its coordinates, metrics and frame
+    rows.
 
     An invalid cell (unknown motion, missing mesh) gives a record with ``error`` and no metrics,
     so that one bad cell does not end a grid.
@@ -173,11 +177,11 @@ def run_cell(cell: Cell, frames: int, workers: int = 1) -> dict[str, Any]:
     except SpaceposeError as exc:
         return record | {"error": str(exc)}
     sim = simulate(config)
-    tracker = Tracker(TrackerConfig(), workers=workers)
+    tracking = Tracker(tracker, workers=workers)
     results, truths = [], []
     for k in range(len(sim)):
         frame = sim.frame(k)
-        results.append(tracker.track_frame(frame.cloud, frame.timestamp))
+        results.append(tracking.track_frame(frame.cloud, frame.timestamp))
         truths.append(FrameTruth.from_frame(frame, sim.T_sensor_target[0]))
     chains = chain_bound(results, truths)
     rows = [
@@ -186,7 +190,7 @@ def run_cell(cell: Cell, frames: int, workers: int = 1) -> dict[str, Any]:
     return record | {"sensor": config.sensor.model, "metrics": summarise_cell(rows), "frames": rows}
 
 
-def _run_cell_task(args: tuple[Cell, int]) -> dict[str, Any]:
+def _run_cell_task(args: tuple[Cell, int, int, TrackerConfig]) -> dict[str, Any]:
     return run_cell(*args)
 
 
@@ -200,9 +204,15 @@ def warm_up(workers: int = 1) -> None:
 
 
 def run_cells(
-    runs: Sequence[Cell], frames: int, jobs: int, workers: int, log: Path | None = None
+    runs: Sequence[Cell],
+    frames: int,
+    jobs: int,
+    workers: int,
+    log: Path | None = None,
+    tracker: TrackerConfig = TrackerConfig(),
 ) -> list[dict[str, Any]]:
-    """Every run, in order; in ``jobs`` processes (one search thread each) when ``jobs > 1``.
+    """Every run, in order, tracked with ``tracker``; in ``jobs`` processes (one search thread
+    each) when ``jobs > 1``.
 
     Each finished run is appended to ``log`` (JSON lines, frame rows left out) as it comes.
     """
@@ -217,11 +227,12 @@ def run_cells(
 
     if jobs <= 1 or len(runs) <= 1:
         warm_up(workers)
-        return [logged(run_cell(c, frames, workers)) for c in runs]
+        return [logged(run_cell(c, frames, workers, tracker)) for c in runs]
     # spawn: a forked child of a process that already started OpenMP threads can hang.
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(jobs, mp_context=context, initializer=warm_up) as pool:
-        return [logged(r) for r in pool.map(_run_cell_task, [(c, frames) for c in runs])]
+        tasks = [(c, frames, 1, tracker) for c in runs]
+        return [logged(r) for r in pool.map(_run_cell_task, tasks)]
 
 
 def cell_table(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -351,14 +362,20 @@ def summary_figure(table: Sequence[dict[str, Any]]) -> Figure:
 
 
 def write_outputs(
-    out_dir: Path, records: Sequence[dict[str, Any]], frames: int, frames_csv: bool
+    out_dir: Path,
+    records: Sequence[dict[str, Any]],
+    frames: int,
+    frames_csv: bool,
+    tracker: TrackerConfig = TrackerConfig(),
 ) -> dict[str, Any]:
     """Write robustness.json / .md / .png (and the frames CSV); return the JSON table."""
     table = cell_table(records)
+    changed = tracker.model_dump(exclude_defaults=True)
     result: dict[str, Any] = {
         "experiment": "robustness",
         "frames_per_run": frames,
-        "tracker": "Tracker(TrackerConfig()): model-free, defaults, no prior",
+        "tracker": f"Tracker(TrackerConfig({changed or ''})): model-free, no prior",
+        "tracker_config": tracker.model_dump(mode="json"),
         "definitions": {
             "tracked": f"status ok or degraded and the target points within "
             f"{100 * TRACKED_RANGE_FRACTION:g} % of the range (RMS) of the truth",
@@ -393,7 +410,9 @@ def write_outputs(
 def robustness_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
     """The default tracker over the robustness grid (module notes)."""
     runs, frames = select_cells(options.cells, options.quick, options.frames, options.seed)
-    records = run_cells(
-        runs, frames, options.jobs, options.workers, out_dir / "robustness_runs.jsonl"
-    )
-    return write_outputs(out_dir, records, frames, options.frames_csv)
+    tracker = TrackerConfig()
+    if options.tracker is not None:
+        tracker = load_config(TrackerConfig, options.tracker)
+    log = out_dir / "robustness_runs.jsonl"
+    records = run_cells(runs, frames, options.jobs, options.workers, log, tracker)
+    return write_outputs(out_dir, records, frames, options.frames_csv, tracker)

@@ -1,0 +1,91 @@
+"""Frame preparation: the finer, surface-smoothed keyframe cloud (methods.md §5.4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spacepose.core import se3
+from spacepose.core.frame_preparation import FramePreparer
+from spacepose.core.sim.grid import grid_scenario
+from spacepose.core.sim.scenarios import simulate
+from spacepose.core.tracker import Tracker
+from spacepose.core.tracker_config import TrackerConfig
+from spacepose.tools.experiments.robustness import mesh_path
+
+
+def _noisy_plane(seed: int, sigma: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """A 0.6 m square tilted 30° at 1.2 m, 2.5 mm grid, noise ``sigma`` m along its normal."""
+    rng = np.random.default_rng(seed)
+    u = np.arange(-0.3, 0.3, 0.0025)
+    g = np.stack(np.meshgrid(u, u), -1).reshape(-1, 2)
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    R = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    normal = R[:, 2]
+    pts = np.c_[g, np.zeros(len(g))] @ R.T + [0.0, 0.0, 1.2]
+    pts += rng.normal(0.0, sigma, len(pts))[:, None] * normal
+    return pts, normal, float(normal @ [0.0, 0.0, 1.2])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_keyframe_cloud_is_finer_and_nearer_the_surface(seed):
+    sigma = 0.002
+    pts, normal, offset = _noisy_plane(seed, sigma)
+    frames = FramePreparer(TrackerConfig(keyframe_density=3.0), None, workers=1)
+    prepared = frames.prepare(pts, None)
+    dense = frames.keyframe_cloud(prepared)
+    assert dense is not None and dense.cloud.has_normals
+    # Finer than the frame's voxel cloud (about 3,000 points), never finer than the spacing.
+    assert len(dense.cloud) > 2 * len(prepared.cloud)
+    assert len(dense.cloud) <= len(pts)
+    # Each point moved onto its neighbourhood's plane. Measured (seed 0): 0.38 σ from the true
+    # plane; the frame's voxel centroids 1.04 σ, no nearer than a raw point: which voxel a point
+    # falls in depends on its noise, so a centroid averages a selection, not the noise.
+    dist = dense.cloud.points @ normal - offset
+    rms_voxel = np.sqrt(np.mean((prepared.cloud.points @ normal - offset) ** 2))
+    rms = np.sqrt(np.mean(dist**2))
+    assert rms < 0.45 * sigma and rms < 0.5 * rms_voxel
+
+
+def test_keyframe_cloud_needs_a_density_and_a_frame_finer_than_its_voxel():
+    pts, _, _ = _noisy_plane(0, 0.002)
+    default = FramePreparer(TrackerConfig(), None, workers=1)
+    assert default.keyframe_cloud(default.prepare(pts, None)) is None
+    # A voxel at the spacing (a sparse flash-LiDAR frame): nothing finer to give.
+    sparse = FramePreparer(
+        TrackerConfig(keyframe_density=3.0, points_per_frame=len(pts)), None, workers=1
+    )
+    prepared = sparse.prepare(pts, None)
+    assert sparse.scale.voxel <= 2.0 * sparse.scale.spacing
+    assert sparse.keyframe_cloud(prepared) is None
+
+
+def test_finer_keyframes_follow_the_panel_satellite_at_6_m_and_noise_x3():
+    """The solar-panel satellite at 6 m, noise ×3, sliding 155 mm a frame: onto keyframes at
+    its own voxel the registration stops short of every step and the run drifts off while
+    flagged ok (the robustness grid's worst clean cell); onto finer keyframes it follows."""
+    cell = grid_scenario(
+        target=mesh_path("panels"),
+        range_m=6.0,
+        noise_scale=3.0,
+        seed=0,
+        frames=5,
+    )
+    sim = simulate(cell)
+    frames = list(sim.frames())
+    T0 = frames[0].T_sensor_target
+    centroid = frames[0].cloud.points[frames[0].on_target].mean(axis=0)
+
+    def errors(config: TrackerConfig) -> list[float]:
+        tracker = Tracker(config, workers=1)
+        out = []
+        for f in frames:
+            r = tracker.track_frame(f.cloud, f.timestamp)
+            D = r.T_sensor_target @ se3.invert(f.T_sensor_target @ se3.invert(T0))
+            out.append(float(np.linalg.norm(se3.transform_points(D, centroid[None])[0] - centroid)))
+        return out
+
+    # Measured: 38, 90, 136 and 183 mm off on frames 1-4 by default; 1.6-4.2 mm here.
+    coarse = errors(TrackerConfig())
+    fine = errors(TrackerConfig(keyframe_density=3.0))
+    assert max(fine) < 0.008 and min(coarse[1:]) > 0.03
