@@ -14,7 +14,9 @@ Each frame goes through
    against a model, when it fits the model poorly; a coarse pose's twins (the model half a turn
    about a principal axis) are registered too, and a twin the data cannot rule out is carried
    along with the frames flagged ambiguous (:mod:`spacepose.core.relocalise`);
-6. a state update: the motion model and the keyframes (:mod:`spacepose.core.keyframes`).
+6. a state update: the motion model and the keyframe window
+   (:mod:`spacepose.core.keyframe_window`; a keyframe's finer cloud, opt-in,
+   :meth:`~spacepose.core.frame_preparation.FramePreparer.keyframe_cloud`).
 
 Two modes. *Model-based*: a reference model cloud (target frame) is given and every pose is
 ``T_sensor_target`` directly. *Model-free*: the first usable frame defines the target frame, its
