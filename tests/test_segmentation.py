@@ -154,3 +154,17 @@ def test_no_returns_at_the_sensor_are_never_the_object():
     assert at_sensor.sum() == 5107
     kept = nearest_object(scan.points, point_spacing(scan.points))
     assert kept.sum() > 1000 and not (kept & at_sensor).any()
+
+
+def test_a_return_is_any_point_with_a_nonzero_coordinate():
+    """Only (0, 0, 0), either sign of zero, is no return; a point on an axis is one. A
+    non-finite point is an input error, not a missing return."""
+    from spacepose.core.segmentation import returns
+    from spacepose.errors import InputError
+
+    pts = np.array(
+        [[0.0, 0.0, 0.0], [-0.0, 0.0, -0.0], [0.0, 0.0, 1.5], [0.0, -2.0, 0.0], [1e-300, 0, 0]]
+    )
+    np.testing.assert_array_equal(returns(pts), [False, False, True, True, True])
+    with pytest.raises(InputError, match="non-finite"):
+        returns(np.array([[np.nan, 0.0, 0.0]]))

