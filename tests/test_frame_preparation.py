@@ -38,9 +38,11 @@ def test_keyframe_cloud_is_finer_and_nearer_the_surface(seed):
     # Finer than the frame's voxel cloud (about 3,000 points), never finer than the spacing.
     assert len(dense.cloud) > 2 * len(prepared.cloud)
     assert len(dense.cloud) <= len(pts)
-    # Each point moved onto its neighbourhood's plane. Measured (seed 0): 0.38 σ from the true
-    # plane; the frame's voxel centroids 1.04 σ, no nearer than a raw point: which voxel a point
-    # falls in depends on its noise, so a centroid averages a selection, not the noise.
+    # Each point moved onto its neighbourhood's plane. Measured (seeds 0-2): 0.38 σ from the
+    # true plane; the frame's voxel centroids 1.00-1.04 σ, no nearer than a raw point: which
+    # voxel a point falls in depends on its noise, so a centroid averages a selection, not the
+    # noise. The bound is the measured 0.38 σ with a margin; what the test guards is that the
+    # finer cloud stays well below both the raw noise and the voxel centroids.
     dist = dense.cloud.points @ normal - offset
     rms_voxel = np.sqrt(np.mean((prepared.cloud.points @ normal - offset) ** 2))
     rms = np.sqrt(np.mean(dist**2))
@@ -89,3 +91,29 @@ def test_finer_keyframes_follow_the_panel_satellite_at_6_m_and_noise_x3():
     coarse = errors(TrackerConfig())
     fine = errors(TrackerConfig(keyframe_density=3.0))
     assert max(fine) < 0.008 and min(coarse[1:]) > 0.03
+
+
+def test_finer_keyframes_on_the_real_lidar_pair():
+    """The real LiDAR pair of data/real (a room, 57 mm voxels, 12 mm spacing): the source
+    tracked after the target, model-free, with the whole frame (no target to isolate), against
+    small_gicp's reference transform. Measured: 11.3 mm / 0.158° with finer keyframes, 15.5 mm
+    / 0.369° without; small_gicp's own test asks for 0.05 m and 0.05 rad."""
+    from pathlib import Path
+
+    from scipy.spatial.transform import Rotation
+
+    from spacepose.tools.cloud_io import read_cloud
+
+    pair = Path(__file__).resolve().parents[1] / "data" / "real" / "small_gicp"
+    T_ref = np.loadtxt(pair / "T_target_source.txt")
+
+    def error(density: float) -> tuple[float, float]:
+        tracker = Tracker(TrackerConfig(keyframe_density=density, isolate_target=False), workers=1)
+        tracker.track_frame(read_cloud(pair / "target.ply"), 0.0)
+        result = tracker.track_frame(read_cloud(pair / "source.ply"), 1.0)
+        D = se3.invert(result.T_sensor_target) @ se3.invert(T_ref)
+        return float(np.linalg.norm(D[:3, 3])), float(Rotation.from_matrix(D[:3, :3]).magnitude())
+
+    fine, coarse = error(3.0), error(1.0)
+    assert fine[0] < 0.02 and np.degrees(fine[1]) < 0.25
+    assert fine[0] < coarse[0] and fine[1] < coarse[1]

@@ -22,7 +22,7 @@ from spacepose.core.gicp import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
 from spacepose.core.neighbors import knn
-from spacepose.core.normals import estimate_normals
+from spacepose.core.normals import estimate_normals, neighbourhood_normals, orient_towards
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
 from spacepose.core.segmentation import (
     TargetRegion,
@@ -139,15 +139,17 @@ class FramePreparer:
         if prepared.raw is None or voxel > L.voxel / 2.0:
             return None
         pc = voxel_downsample(prepared.raw, voxel, prepared.crop)
-        pc = estimate_normals(pc, L.normals, workers=self.workers)
-        pts, n = pc.points, pc.normals
+        pts = pc.points
+        # One search of the normals' k nearest gives both the normal and the plane's centroid
+        # (a normals radius, if set, is for the frame clouds).
         _, idx = knn(pts, None, min(L.normals.k, len(pts)), workers=self.workers)
+        n = orient_towards(pts, neighbourhood_normals(pts, idx, self.workers))
         off = np.einsum("ij,ij->i", pts - pts[idx].mean(axis=1), n)
         # Offsets the noise explains are removed; a larger one is shape (an edge, a corner)
         # that the plane would cut.
         noise = 1.4826 * np.median(np.abs(off))
         off[np.abs(off) > 3.0 * noise] = 0.0
-        pc = replace(pc, points=pts - off[:, None] * n)
+        pc = replace(pc, points=pts - off[:, None] * n, normals=n)
         return self.with_covariances(pc)
 
     def prepare_model(self, model: PointCloud) -> Keyframe:
