@@ -100,17 +100,18 @@ def test_clutter_that_moves_otherwise_is_split_off_and_never_ok_while_wrong(quic
     """The turntable and plinth, carried by the slide under the turning mock-up, are part of the
     first frame's object. Frame 1's registration is a compromise of the two motions and its
     residuals show it (structure 13.7 against 5); on frame 2 the turntable is split off
-    (methods.md §5.8). Measured: frames 2-4 are 0.27-0.31 mm and 0.08-0.11° off, all still
-    `degraded` by a part's influence; before the split (commit fccced8) they were 2.3-4.4 mm and
-    0.86-1.62° off, 8-14 σ."""
+    (methods.md §5.8). Measured: frames 2-4 are 0.33-0.52 mm and 0.23-0.26° off (0.27-0.31 mm
+    and 0.08-0.11° with keyframes at the frame's voxel), all still `degraded` by a part's
+    influence; before the split (commit fccced8) they were 2.3-4.4 mm and 0.86-1.62° off,
+    8-14 σ."""
     table, out = quick
     (cell,) = [r for r in table["table"] if r["clutter"] == "wall-table"]
     assert cell["false_ok"] == 0 and cell["tracked_share"] == 1.0
     with (out / "robustness_frames.csv").open() as fh:
         frames = [f for f in csv.DictReader(fh) if f["clutter"] == "wall-table"]
     assert frames[1]["status"] == "degraded" and "residual structure" in frames[1]["reasons"]
-    assert max(float(f["err_t_mm"]) for f in frames[2:]) < 0.5
-    assert max(float(f["err_r_deg"]) for f in frames[2:]) < 0.15
+    assert max(float(f["err_t_mm"]) for f in frames[2:]) < 1.0
+    assert max(float(f["err_r_deg"]) for f in frames[2:]) < 0.4
 
 
 def test_a_target_alone_before_a_wall_is_tracked(quick) -> None:
@@ -224,12 +225,12 @@ def test_cli_runs_one_cell_with_its_frames(tmp_path) -> None:
 def test_cli_tracks_the_grid_with_a_tracker_config_file(tmp_path) -> None:
     """``--tracker FILE``: the cells are tracked with that config, and the outputs say so."""
     config = tmp_path / "tracker.yaml"
-    config.write_text("keyframe_density: 3\n")
+    config.write_text("keyframe_density: 1\n")
     args = ["experiment", "robustness", "--cells", "target=lab,range=1.2,seed=0", "--frames", "3"]
-    out = tmp_path / "dense"
+    out = tmp_path / "own_voxel"
     assert main([*args, "--tracker", str(config), "--out", str(out)]) == 0
     table = json.loads((out / "robustness" / "robustness.json").read_text())
-    assert table["tracker_config"]["keyframe_density"] == 3.0
-    assert "'keyframe_density': 3.0" in table["tracker"]
+    assert table["tracker_config"]["keyframe_density"] == 1.0
+    assert "'keyframe_density': 1.0" in table["tracker"]
     config.write_text("keyframe_density: 0.5\n")
     assert main([*args, "--tracker", str(config), "--out", str(out)]) == 1

@@ -51,8 +51,8 @@ def test_keyframe_cloud_is_finer_and_nearer_the_surface(seed):
 
 def test_keyframe_cloud_needs_a_density_and_a_frame_finer_than_its_voxel():
     pts, _, _ = _noisy_plane(0, 0.002)
-    default = FramePreparer(TrackerConfig(), None, workers=1)
-    assert default.keyframe_cloud(default.prepare(pts, None)) is None
+    own = FramePreparer(TrackerConfig(keyframe_density=1.0), None, workers=1)
+    assert own.keyframe_cloud(own.prepare(pts, None)) is None
     # A voxel at the spacing (a sparse flash-LiDAR frame): nothing finer to give.
     sparse = FramePreparer(
         TrackerConfig(keyframe_density=3.0, points_per_frame=len(pts)), None, workers=1
@@ -65,7 +65,8 @@ def test_keyframe_cloud_needs_a_density_and_a_frame_finer_than_its_voxel():
 def test_finer_keyframes_follow_the_panel_satellite_at_6_m_and_noise_x3():
     """The solar-panel satellite at 6 m, noise ×3, sliding 155 mm a frame: onto keyframes at
     its own voxel the registration stops short of every step and the run drifts off while
-    flagged ok (the robustness grid's worst clean cell); onto finer keyframes it follows."""
+    flagged ok (the robustness grid's worst clean cell before finer keyframes were the
+    default); onto finer keyframes it follows."""
     cell = grid_scenario(
         target=mesh_path("panels"),
         range_m=6.0,
@@ -87,17 +88,18 @@ def test_finer_keyframes_follow_the_panel_satellite_at_6_m_and_noise_x3():
             out.append(float(np.linalg.norm(se3.transform_points(D, centroid[None])[0] - centroid)))
         return out
 
-    # Measured: 38, 90, 136 and 183 mm off on frames 1-4 by default; 1.6-4.2 mm here.
-    coarse = errors(TrackerConfig())
-    fine = errors(TrackerConfig(keyframe_density=3.0))
+    # Measured: 38, 90, 136 and 183 mm off on frames 1-4 at density 1; 1.6-4.2 mm at 3.
+    coarse = errors(TrackerConfig(keyframe_density=1.0))
+    fine = errors(TrackerConfig())
     assert max(fine) < 0.008 and min(coarse[1:]) > 0.03
 
 
 def test_finer_keyframes_on_the_real_lidar_pair():
     """The real LiDAR pair of data/real (a room, 57 mm voxels, 12 mm spacing): the source
     tracked after the target, model-free, with the whole frame (no target to isolate), against
-    small_gicp's reference transform. Measured: 11.3 mm / 0.158° with finer keyframes, 15.5 mm
-    / 0.369° without; small_gicp's own test asks for 0.05 m and 0.05 rad."""
+    small_gicp's reference transform. Measured: 15.2 mm / 0.365° with finer keyframes (the
+    default), 15.5 mm / 0.369° without; small_gicp's own test asks for 0.05 m and 0.05 rad.
+    (With the finer cloud's own normals, 11.3 mm / 0.158°: methods.md §5.4 says why not.)"""
     from pathlib import Path
 
     from scipy.spatial.transform import Rotation
@@ -115,5 +117,6 @@ def test_finer_keyframes_on_the_real_lidar_pair():
         return float(np.linalg.norm(D[:3, 3])), float(Rotation.from_matrix(D[:3, :3]).magnitude())
 
     fine, coarse = error(3.0), error(1.0)
-    assert fine[0] < 0.02 and np.degrees(fine[1]) < 0.25
-    assert fine[0] < coarse[0] and fine[1] < coarse[1]
+    assert fine[0] < 0.02 and np.degrees(fine[1]) < 0.4
+    # Finer keyframes cost no accuracy on a real scanner's frames.
+    assert fine[0] <= coarse[0] and fine[1] <= coarse[1]

@@ -119,3 +119,27 @@ def test_bad_input(rng: np.random.Generator) -> None:
     # Node 2 has no edge: its pose is not determined.
     with pytest.raises(DegenerateGeometryError, match="unconstrained"):
         optimize_pose_graph(X, [e01])
+
+
+def test_a_tolerance_per_part_stops_a_graph_in_other_units_alike(rng: np.random.Generator) -> None:
+    """The same noisy graph in metres and in millimetres: with a (rotation, translation)
+    tolerance whose translation follows the unit, both stop after the same iterations at the
+    same poses (× 1000); one scalar tolerance lets the graph in millimetres run longer."""
+    truth = np.stack([np.eye(4)] + [se3.exp(rng.normal(0, 0.3, 6)) for _ in range(3)])
+    noise = [rng.normal(0, 0.01, 6) for _ in range(6)]
+    pairs = [(i, j) for i in range(4) for j in range(i + 1, 4)]
+    start = np.stack([truth[0]] + [se3.exp(rng.normal(0, 0.05, 6)) @ T for T in truth[1:]])
+
+    def in_mm(T: np.ndarray) -> np.ndarray:
+        T = T.copy()
+        T[..., :3, 3] *= 1000.0
+        return T
+
+    info = np.diag([1.0, 1.0, 1.0, 1e-6, 1e-6, 1e-6])  # the same weights per mm²
+    m_edges = [_edge(i, j, truth, np.eye(6), n) for (i, j), n in zip(pairs, noise, strict=True)]
+    mm_edges = [PoseGraphEdge(e.i, e.j, in_mm(e.T_j_i), info) for e in m_edges]
+    m = optimize_pose_graph(start, m_edges, tolerance=(1e-9, 1e-9))
+    mm = optimize_pose_graph(in_mm(start), mm_edges, tolerance=(1e-9, 1e-6))
+    assert m.converged and mm.converged and m.iterations == mm.iterations
+    np.testing.assert_allclose(mm.poses, in_mm(m.poses), atol=1e-9)
+    assert optimize_pose_graph(in_mm(start), mm_edges, tolerance=1e-9).iterations > m.iterations

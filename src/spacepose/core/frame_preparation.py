@@ -22,7 +22,7 @@ from spacepose.core.gicp import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
 from spacepose.core.neighbors import knn
-from spacepose.core.normals import estimate_normals, neighbourhood_normals, orient_towards
+from spacepose.core.normals import estimate_normals
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
 from spacepose.core.segmentation import (
     TargetRegion,
@@ -122,7 +122,8 @@ class FramePreparer:
     def keyframe_cloud(self, prepared: PreparedCloud) -> PreparedCloud | None:
         """The frame as a finer registration reference, with normals: downsampled again from
         its raw points at the voxel over ``keyframe_density`` (not below the point spacing),
-        each point moved onto the plane of its neighbourhood when the noise explains its
+        each point given the normal of its nearest point of ``prepared`` (estimated on it if
+        it has none) and moved onto the plane of its neighbourhood when the noise explains its
         offset from it. None after mpp-MLS, at a density of 1, or when the frame has nothing
         finer to give (its voxel within twice its spacing: a sparse flash-LiDAR frame).
 
@@ -140,10 +141,13 @@ class FramePreparer:
             return None
         pc = voxel_downsample(prepared.raw, voxel, prepared.crop)
         pts = pc.points
-        # One search of the normals' k nearest gives both the normal and the plane's centroid
-        # (a normals radius, if set, is for the frame clouds).
+        # Each point takes the normal of its nearest frame-voxel point: the finer cloud's own
+        # neighbourhoods are D² times smaller, and their noisy normals gave a plane sliding in
+        # itself in-plane information it does not have (condition number 180 instead of 1.6e4).
+        frame = prepared.with_normals(L.normals, self.workers).cloud
+        _, nearest = knn(prepared.tree, pts, 1, workers=self.workers)
+        n = frame.normals[nearest[:, 0]]
         _, idx = knn(pts, None, min(L.normals.k, len(pts)), workers=self.workers)
-        n = orient_towards(pts, neighbourhood_normals(pts, idx, self.workers))
         off = np.einsum("ij,ij->i", pts - pts[idx].mean(axis=1), n)
         # Offsets the noise explains are removed; a larger one is shape (an edge, a corner)
         # that the plane would cut.

@@ -27,7 +27,6 @@ from spacepose.core.icp import (
 from spacepose.core.jicp import average_three, average_three_covariance
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, moved_covariance
 from spacepose.core.motion import rigid
-from spacepose.core.normals import estimate_normals
 from spacepose.core.part_influence import PartInfluence, part_influence
 from spacepose.core.pose_covariance import isotropic_about, plane_covariance, shaped_drift
 from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
@@ -37,10 +36,11 @@ from spacepose.core.residual_structure import residual_structure
 from spacepose.core.tracker_config import StageLengths, pairwise_kind
 from spacepose.errors import SpaceposeError
 
-# Largest pose-graph update (rad, m) at which J-ICP stops iterating. Its Gauss-Newton shrinks the
-# update about 1000× per iteration on the lab run: after a 1e-6 step the poses are within ~1e-9
-# of the optimum, and the default 1e-12 cost two more iterations (~1 ms per frame).
-POSE_GRAPH_TOLERANCE = 1e-6
+# Largest pose-graph update (rad, and voxels for the translation: about 1e-6 m at the lab's 6 mm)
+# at which the keyframe graph and J-ICP stop iterating. Its Gauss-Newton shrinks the update
+# about 1000× per iteration on the lab run: after a 1e-6 step the poses are within ~1e-9 of the
+# optimum, and 1e-12 cost two more iterations (~1 ms per frame).
+POSE_GRAPH_TOLERANCE = (1e-6, 1.6e-4)
 # The wide first pass runs only when it is this much wider than the fine gate.
 _WIDE_PASS_RATIO = 1.5
 # Cells of the residual structure test, in fine gates: wide enough for a part's own residual to
@@ -120,6 +120,8 @@ class FrameRegistrar:
         self.influence_sigmas = influence_sigmas
         # The fine gate widens to three measured residual σ on a sensor noisier than the voxel.
         self.noise = ResidualNoise(lengths.gate)
+        rotation, translation = POSE_GRAPH_TOLERANCE
+        self._graph_tolerance = (rotation, translation * lengths.voxel)
         self.covariance_scale = covariance_scale
         # Design effect of the frame being registered (set by its measured registration).
         self._design = 1.0
@@ -138,11 +140,7 @@ class FrameRegistrar:
     def as_target(self, prepared: PreparedCloud) -> PreparedCloud:
         """The prepared cloud with normals, estimated the first time it is a registration
         target (a keyframe): most frames never are, and sources need none."""
-        if not prepared.cloud.has_normals:
-            prepared.cloud = estimate_normals(
-                prepared.cloud, self.lengths.normals, workers=self.workers, tree=prepared.tree
-            )
-        return prepared
+        return prepared.with_normals(self.lengths.normals, self.workers)
 
     def approach(
         self,
@@ -409,7 +407,7 @@ class FrameRegistrar:
             new_edges.append((kf.index, T_kf_k, info))
         # Gauge: the oldest keyframe keeps its pose; its covariance is added to the result.
         graph = optimize_pose_graph(
-            np.array(poses), graph_edges, fixed=(0,), tolerance=POSE_GRAPH_TOLERANCE
+            np.array(poses), graph_edges, fixed=(0,), tolerance=self._graph_tolerance
         )
         oldest = window[0]
         T_k0 = rigid(graph.poses[k])

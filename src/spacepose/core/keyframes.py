@@ -20,6 +20,7 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.health import pose_disagreement
+from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.part_influence import PartInfluence
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.scale import rms_radius
@@ -54,6 +55,12 @@ class PreparedCloud:
         if self._tree is None:
             self._tree = VoxelIndex(self.cloud.points)
         return self._tree
+
+    def with_normals(self, config: NormalsConfig, workers: int) -> PreparedCloud:
+        """This cloud, its normals estimated (towards the sensor) if it has none yet."""
+        if not self.cloud.has_normals:
+            self.cloud = estimate_normals(self.cloud, config, workers=workers, tree=self.tree)
+        return self
 
     # Cached: the points never change (``cloud`` is only replaced by itself with normals), and
     # the health check, the floor and the keyframe test ask for these several times per frame.

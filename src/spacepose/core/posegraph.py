@@ -85,7 +85,7 @@ def optimize_pose_graph(
     edges: Sequence[PoseGraphEdge],
     fixed: Sequence[int] = (0,),
     max_iterations: int = 20,
-    tolerance: float = 1e-12,
+    tolerance: float | tuple[float, float] = 1e-12,
 ) -> PoseGraphResult:
     """Gauss-Newton on SE(3) over the nodes not in ``fixed``.
 
@@ -100,7 +100,8 @@ def optimize_pose_graph(
     max_iterations
         Largest number of Gauss-Newton steps.
     tolerance
-        Stop when the largest entry of the update is below this.
+        Stop when the largest entry of the update is below this; a pair ``(rotation rad,
+        translation m)`` sets each part's own, so that a run in other units stops alike.
 
     Returns
     -------
@@ -159,7 +160,8 @@ def optimize_pose_graph(
         delta = solve(H, -b)
         for n in free:
             X[n] = se3.exp(delta[slot[n] : slot[n] + 6]) @ X[n]
-        if np.abs(delta).max() < tolerance:
+        step = np.abs(delta).reshape(-1, 2, 3).max(axis=(0, 2))
+        if np.all(step < tolerance):
             converged = True
             break
 

@@ -367,12 +367,9 @@ class Tracker:
         """A new keyframe's finer registration target (:meth:`FramePreparer.keyframe_cloud`;
         None: the frame's own cloud is), with normals now: it is the next frame's target,
         whose step should not pay for them."""
-        dense = self._frames.keyframe_cloud(prepared)
+        dense = self._frames.keyframe_cloud(self._registrar.as_target(prepared))
         prepared.raw = prepared.crop = None  # the raw frame is not kept with the keyframe
-        if dense is None:
-            self._registrar.as_target(prepared)
-            return None
-        return self._registrar.as_target(dense)
+        return dense
 
     def _lost(
         self,

@@ -27,6 +27,14 @@ from spacepose.core.mls import MLSConfig
 from spacepose.core.normals import NormalsConfig
 from spacepose.core.ransac import RansacConfig
 
+# Stopping tolerances of the fine registrations, in voxels: ICP's change of inlier RMSE and
+# GICP's translation step (about 1 µm and 10 µm at the lab's 6 mm voxel, their defaults in
+# metres). In metres they made a run in millimetres, or ten times the size, stop elsewhere
+# (2.7e-4 rad apart on the lab run at ×10 with finer keyframes, whose slower convergence the
+# RMSE test cut short).
+_ICP_RMSE_TOLERANCE = 1.6e-4
+_GICP_STEP_TOLERANCE = 1.6e-3
+
 
 class KeyframeConfig(StageConfig):
     """When a model-free tracker promotes the current frame to a keyframe.
@@ -191,9 +199,10 @@ class TrackerConfig(StageConfig):
     keyframe_density
         A keyframe is downsampled this many times finer than the frames registered onto it
         (never finer than the point spacing) and smoothed onto its surface (methods.md §5.4);
-        1 (the default) keeps the frame's own cloud. 3 took the clean robustness grid's false
-        ``ok`` frames from 89 to 16 but doubled the lab run's centroid drift (README), so it is
-        not yet the default.
+        1 keeps the frame's own cloud. 3 (against 1) took the robustness grid's false ``ok``
+        frames from 89 to 20 (clean cells) and 216 to 101 (wall and table), and the lab run's
+        rotation error about 45 % down, while the centroid's drift along the keyframe chain
+        doubles (README).
     gate
         Correspondence gate of the fine registration (voxels). After the motion model's
         prediction the misalignment is well below a voxel; a wider gate lets silhouette points
@@ -233,7 +242,7 @@ class TrackerConfig(StageConfig):
     method: Method = "keyframe"
     points_per_frame: PositiveInt = 3000
     voxel_size: PositiveFloat | None = None
-    keyframe_density: float = Field(1.0, ge=1.0)
+    keyframe_density: float = Field(3.0, ge=1.0)
     gate: PositiveFloat = 0.83
     coarse_voxel: PositiveFloat = 2.0
     isolate_target: bool = True
@@ -306,7 +315,12 @@ def stage_lengths(config: TrackerConfig, voxel: float, radius: float) -> StageLe
     coarse = config.coarse_voxel * voxel
 
     def gated(stage: ICPConfig | GICPConfig) -> ICPConfig | GICPConfig:
-        return stage.model_copy(update={"max_correspondence_distance": gate})
+        update = {"max_correspondence_distance": gate}
+        if isinstance(stage, ICPConfig):
+            update["relative_rmse"] = _ICP_RMSE_TOLERANCE * voxel
+        else:
+            update["translation_tolerance"] = _GICP_STEP_TOLERANCE * voxel
+        return stage.model_copy(update=update)
 
     def pairs_gated(stage: JICPConfig | KeyframeGraphConfig) -> JICPConfig | KeyframeGraphConfig:
         return stage.model_copy(update={"icp": gated(stage.icp), "gicp": gated(stage.gicp)})
