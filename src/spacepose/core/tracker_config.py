@@ -200,9 +200,9 @@ class TrackerConfig(StageConfig):
         A keyframe is downsampled this many times finer than the frames registered onto it
         (never finer than the point spacing) and smoothed onto its surface (methods.md §5.4);
         1 keeps the frame's own cloud. 3 (against 1) took the robustness grid's false ``ok``
-        frames from 89 to 20 (clean cells) and 216 to 101 (wall and table), and the lab run's
-        rotation error about 45 % down, while the centroid's drift along the keyframe chain
-        doubles (README).
+        frames from 92 to 20 (clean cells) and 218 to 101 (wall and table), and the lab run's
+        pitch and yaw errors about 45 % down, while the centroid's drift along the keyframe
+        chain doubles and a full-resolution frame's step costs 2.6 times as much (README).
     gate
         Correspondence gate of the fine registration (voxels). After the motion model's
         prediction the misalignment is well below a voxel; a wider gate lets silhouette points
