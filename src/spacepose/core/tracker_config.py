@@ -298,16 +298,6 @@ class StageLengths:
     ransac: RansacConfig
     mls: MLSConfig
 
-    def to_dict(self) -> dict[str, float]:
-        """The derived lengths (m, rad) for a run's effective config."""
-        return {
-            "voxel_m": self.voxel,
-            "gate_m": self.gate,
-            "coarse_voxel_m": self.coarse_voxel,
-            "floor_translation_m": self.floor_translation,
-            "floor_rotation_rad": self.floor_rotation,
-        }
-
 
 def stage_lengths(config: TrackerConfig, voxel: float, radius: float) -> StageLengths:
     """Every length of the tracker for a voxel edge ``voxel`` and target radius ``radius`` (m)."""
