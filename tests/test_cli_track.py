@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from spacepose.cli import main
+from spacepose.core.config import load_config
 from spacepose.core.metrics import evaluate
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import ConfigError, InputError
 from spacepose.tools.cloud_io import write_cloud
@@ -75,6 +77,17 @@ def test_track_writes_tum_health_and_config(frame_dir, lab, tmp_path, capsys):
     config = json.loads((tmp_path / "est.config.json").read_text())
     assert config["method"] == "point_to_plane" and config["use_mls"] is False
     assert "jicp" in config and "health" in config  # every value, defaults included
+    # The effective config reads back as the config the run had.
+    assert load_config(TrackerConfig, tmp_path / "est.config.json") == TrackerConfig(
+        method="point_to_plane", use_mls=False
+    )
+    # The lengths the run derived, each by its rule from the voxel (gate 0.83 v, coarse 2 v).
+    scale = json.loads((tmp_path / "est.scale.json").read_text())
+    v = scale["voxel_m"]
+    assert 0.004 < v < 0.008 and scale["spacing_m"] < v  # the lab at 1.2 m: about 6 mm
+    assert scale["gate_m"] == pytest.approx(0.83 * v, rel=1e-12)
+    assert scale["coarse_voxel_m"] == pytest.approx(2.0 * v, rel=1e-12)
+    assert scale["icp_rmse_tolerance_m"] == pytest.approx(1.6e-4 * v, rel=1e-12)
 
 
 def test_track_run_folder_model_based(tmp_path, capsys):

@@ -46,7 +46,7 @@ def track(
     ),
     topic: str | None = typer.Option(None, help="Bag topic (PointCloud2 or depth Image)."),
 ) -> None:
-    """Track every frame; writes EST.tum, EST.health.csv and EST.config.json.
+    """Track every frame; writes EST.tum, EST.health.csv, EST.config.json and EST.scale.json.
 
     Without --model the first frame defines the target frame (its pose is the identity).
     """

@@ -63,7 +63,7 @@ from spacepose.core.track_result import (
     elapsed_ms,
     lost_result,
 )
-from spacepose.core.tracker_config import TrackerConfig
+from spacepose.core.tracker_config import StageLengths, TrackerConfig
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeError
 
@@ -118,6 +118,11 @@ class Tracker:
     def scale(self) -> DataScale | None:
         """The lengths derived from the first usable frame (None before it)."""
         return self._frames.scale
+
+    @property
+    def lengths(self) -> StageLengths | None:
+        """Every stage's lengths, set from :attr:`scale` (None before the first usable frame)."""
+        return self._frames.lengths
 
     # -- the algorithm -----------------------------------------------------------------------
 

@@ -6,8 +6,8 @@ frame (:mod:`spacepose.core.scale`) or of the target's RMS radius ``R``; a rotat
 The factors reproduce the lab run's former metre values at 1.2 m (v ≈ 6 mm, R ≈ 0.25 m), which a
 grid over range, target, noise and motion then checked (README, robustness table). The lengths
 inside the nested stage configs (ICP and GICP gates, normal and FPFH radii, RANSAC gate, MLS
-support) are replaced by the derived ones when the tracker runs; ``EST.config.json`` records the
-derived values under ``scale``.
+support) are replaced by the derived ones when the tracker runs; ``spacepose track`` writes them
+beside its output, in ``EST.scale.json``.
 """
 
 from __future__ import annotations
@@ -297,6 +297,17 @@ class StageLengths:
     fpfh: FPFHConfig
     ransac: RansacConfig
     mls: MLSConfig
+
+    def to_dict(self) -> dict[str, float]:
+        """The derived lengths (m, rad) a run used, for its folder (``EST.scale.json``)."""
+        return {
+            "voxel_m": self.voxel,
+            "gate_m": self.gate,
+            "coarse_voxel_m": self.coarse_voxel,
+            "floor_translation_m": self.floor_translation,
+            "floor_rotation_rad": self.floor_rotation,
+            "icp_rmse_tolerance_m": self.icp.relative_rmse,
+        }
 
 
 def stage_lengths(config: TrackerConfig, voxel: float, radius: float) -> StageLengths:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import os
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
@@ -329,17 +330,23 @@ def write_health_csv(path: str | Path, results: Sequence[TrackResult]) -> Path:
     return path
 
 
-def output_paths(out: str | Path) -> tuple[Path, Path, Path]:
-    """``EST.tum`` -> (``EST.tum``, ``EST.health.csv``, ``EST.config.json``)."""
+def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path]:
+    """``EST.tum`` -> (``EST.tum``, ``EST.health.csv``, ``EST.config.json``,
+    ``EST.scale.json``)."""
     out = Path(out)
     stem = out.with_suffix("")
-    return out, Path(f"{stem}.health.csv"), Path(f"{stem}.config.json")
+    return (
+        out,
+        Path(f"{stem}.health.csv"),
+        Path(f"{stem}.config.json"),
+        Path(f"{stem}.scale.json"),
+    )
 
 
 def check_output(out: str | Path) -> None:
     """Refuse an output location that cannot be written, before any work is done.
 
-    Each of the three output files must be a regular file or not exist yet, and the nearest
+    Each of the four output files must be a regular file or not exist yet, and the nearest
     existing folder above them must be a writable folder (not a regular file).
 
     Raises
@@ -371,7 +378,7 @@ def track_folder(
     intrinsics: str | Path | None = None,
     topic: str | None = None,
 ) -> dict[str, Any]:
-    """Track every frame of an input and write the trajectory, health table and config.
+    """Track every frame of an input and write the trajectory, health table, config and scale.
 
     The output location is checked and the input opened before tracking starts; the
     trajectory and health rows are written (and flushed) frame by frame, so an interrupted run
@@ -383,8 +390,9 @@ def track_folder(
         A bag, run folder, depth image folder or folder of frame files (see
         :func:`open_frames`).
     out
-        The TUM trajectory to write (one line per input frame, methods.md §0); ``.health.csv``
-        and ``.config.json`` are written beside it with the same stem.
+        The TUM trajectory to write (one line per input frame, methods.md §0); ``.health.csv``,
+        ``.config.json`` and (once a frame has set the scale) ``.scale.json``, the lengths
+        derived from the first frame, are written beside it with the same stem.
     config
         Tracker config (written out as the effective config).
     model
@@ -403,7 +411,7 @@ def track_folder(
     check_output(out)
     frames = open_frames(input, intrinsics=intrinsics, topic=topic)
     model_cloud = None if model is None else read_cloud(model)
-    tum, health, config_path = output_paths(out)
+    tum, health, config_path, scale_path = output_paths(out)
     tracker = Tracker(config, model_cloud, workers)
     dump_config(config, config_path)  # creates the folder
     statuses: list[str] = []
@@ -423,6 +431,11 @@ def track_folder(
             times.append(result.time_ms["total"])
             if progress is not None:
                 progress(len(statuses), len(frames), result.status)
+    if tracker.scale is not None:
+        # The lengths the run derived from its first frame: what a new sensor's user checks.
+        scale_path.write_text(
+            json.dumps(tracker.scale.to_dict() | tracker.lengths.to_dict(), indent=2) + "\n"
+        )
     return {
         "frames": len(statuses),
         "ok": statuses.count("ok"),
@@ -432,4 +445,5 @@ def track_folder(
         "trajectory": str(tum),
         "health": str(health),
         "config": str(config_path),
+        "scale": str(scale_path) if tracker.scale is not None else None,
     }
