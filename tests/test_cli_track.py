@@ -118,9 +118,11 @@ def test_config_file_is_applied(frame_dir, tmp_path, capsys):
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("method: gicp\nuse_mls: false\nhealth:\n  min_points: 50\n")
     out = tmp_path / "est.tum"
+    (tmp_path / "est.scale.json").write_text('{"voxel_m": 1.0}\n')  # a former run's
     assert main(["track", str(frame_dir), "--out", str(out), "--config", str(cfg)]) == 0
     written = json.loads((tmp_path / "est.config.json").read_text())
     assert written["method"] == "gicp" and written["health"]["min_points"] == 50
+    assert json.loads((tmp_path / "est.scale.json").read_text())["voxel_m"] < 0.01
 
 
 def test_empty_folder_exits_1(tmp_path, capsys):

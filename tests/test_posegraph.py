@@ -114,6 +114,9 @@ def test_bad_input(rng: np.random.Generator) -> None:
         optimize_pose_graph(X, [PoseGraphEdge(0, 1, X[1], np.full((6, 6), np.nan))])
     with pytest.raises(InputError, match="node 1"):
         optimize_pose_graph(np.stack([np.eye(4), 2 * np.eye(4)]), [])
+    for bad in ((1e-6, 1e-6, 1e-6), 0.0, (1e-6, -1.0), "tight", None):
+        with pytest.raises(InputError, match="tolerance"):
+            optimize_pose_graph(X, [e01], tolerance=bad)
     with pytest.raises(InputError, match="measurement"):
         optimize_pose_graph(X, [PoseGraphEdge(0, 1, np.diag([1, 1, -1, 1.0]), np.eye(6))])
     # Node 2 has no edge: its pose is not determined.

@@ -115,6 +115,15 @@ def optimize_pose_graph(
     DegenerateGeometryError
         When the edges do not constrain every free node in all 6 degrees of freedom.
     """
+    try:
+        tol = np.asarray(tolerance, dtype=np.float64)
+    except (TypeError, ValueError):
+        tol = np.full(3, np.nan)  # refused below
+    if tol.shape not in ((), (2,)) or not np.all(tol > 0):
+        raise InputError(
+            f"pose graph tolerance must be a positive number or a (rotation, translation) pair, "
+            f"got {tolerance!r}"
+        )
     X = np.array(poses, dtype=np.float64)
     if X.ndim != 3 or X.shape[1:] != (4, 4) or len(X) == 0:
         raise InputError(f"pose graph poses must be a (W, 4, 4) stack, got shape {X.shape}")
@@ -161,7 +170,7 @@ def optimize_pose_graph(
         for n in free:
             X[n] = se3.exp(delta[slot[n] : slot[n] + 6]) @ X[n]
         step = np.abs(delta).reshape(-1, 2, 3).max(axis=(0, 2))
-        if np.all(step < tolerance):
+        if np.all(step < tol):
             converged = True
             break
 

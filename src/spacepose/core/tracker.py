@@ -15,7 +15,7 @@ Each frame goes through
    about a principal axis) are registered too, and a twin the data cannot rule out is carried
    along with the frames flagged ambiguous (:mod:`spacepose.core.relocalise`);
 6. a state update: the motion model and the keyframe window
-   (:mod:`spacepose.core.keyframe_window`; a keyframe's finer cloud, opt-in,
+   (:mod:`spacepose.core.keyframe_window`; a keyframe's finer cloud,
    :meth:`~spacepose.core.frame_preparation.FramePreparer.keyframe_cloud`).
 
 Two modes. *Model-based*: a reference model cloud (target frame) is given and every pose is

@@ -414,6 +414,7 @@ def track_folder(
     tum, health, config_path, scale_path = output_paths(out)
     tracker = Tracker(config, model_cloud, workers)
     dump_config(config, config_path)  # creates the folder
+    scale_path.unlink(missing_ok=True)  # a former run's lengths are not this run's
     statuses: list[str] = []
     times: list[float] = []
     with tum.open("w") as tum_fh, health.open("w", newline="") as health_fh:
@@ -427,15 +428,15 @@ def track_folder(
             writer.writerow(health_row(result))
             tum_fh.flush()
             health_fh.flush()
+            if tracker.scale is not None and not scale_path.exists():
+                # The lengths derived from the first usable frame, as soon as it sets them (an
+                # interrupted run keeps them): what a new sensor's user checks.
+                lengths = tracker.scale.to_dict() | tracker.lengths.to_dict()
+                scale_path.write_text(json.dumps(lengths, indent=2) + "\n")
             statuses.append(result.status)
             times.append(result.time_ms["total"])
             if progress is not None:
                 progress(len(statuses), len(frames), result.status)
-    if tracker.scale is not None:
-        # The lengths the run derived from its first frame: what a new sensor's user checks.
-        scale_path.write_text(
-            json.dumps(tracker.scale.to_dict() | tracker.lengths.to_dict(), indent=2) + "\n"
-        )
     return {
         "frames": len(statuses),
         "ok": statuses.count("ok"),
