@@ -49,6 +49,24 @@ def test_keyframe_cloud_is_finer_and_nearer_the_surface(seed):
     assert rms < 0.45 * sigma and rms < 0.5 * rms_voxel
 
 
+def test_keyframe_cloud_leaves_flying_pixels_where_they_are():
+    # Points 5-20 cm in front of the plane, far from each other: no neighbourhood within the
+    # search's bound, so no plane to move onto; the plane's points are smoothed as without them.
+    pts, normal, offset = _noisy_plane(0, 0.002)
+    rng = np.random.default_rng(5)
+    stray = pts[rng.choice(len(pts), 40, replace=False)] - rng.uniform(0.05, 0.2, (40, 1)) * normal
+    frames = FramePreparer(
+        TrackerConfig(keyframe_density=3.0, isolate_target=False), None, workers=1
+    )
+    dense = frames.keyframe_cloud(frames.prepare(np.vstack([pts, stray]), None))
+    d = dense.cloud.points @ normal - offset
+    on_plane = np.abs(d) < 0.02
+    assert np.count_nonzero(~on_plane) == len(stray)
+    kept = {tuple(p) for p in dense.cloud.points[~on_plane]}
+    assert kept == {tuple(p) for p in stray}
+    assert np.sqrt(np.mean(d[on_plane] ** 2)) < 0.45 * 0.002
+
+
 def test_keyframe_cloud_needs_a_density_and_a_frame_finer_than_its_voxel():
     pts, _, _ = _noisy_plane(0, 0.002)
     own = FramePreparer(TrackerConfig(keyframe_density=1.0), None, workers=1)

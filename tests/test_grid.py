@@ -107,6 +107,24 @@ def test_query_self_equals_query_of_the_points(k):
         index.query_self(len(pts) + 1)
 
 
+@pytest.mark.parametrize("k", [2, 15])
+def test_query_self_within_a_bound_equals_brute_force(k):
+    # The fringe's points have nothing within the bound: their rows come back missing
+    # (inf, n) instead of reaching across the empty cells; the sheet's rows are exact.
+    rng = np.random.default_rng(13)
+    fringe = rng.uniform(-1, 1, (40, 3)) + np.array([0.0, 0.0, 1.2])
+    pts = np.vstack([_surface(3000, seed=14), fringe])
+    index, bound = VoxelIndex(pts), 0.05
+    dist, idx = index.query_self(k, workers=2, distance_upper_bound=bound)
+    ref_d2, ref_idx = _brute(pts, pts, k, bound)
+    np.testing.assert_array_equal(idx, np.where(ref_idx < 0, len(pts), ref_idx))
+    np.testing.assert_allclose(dist**2, ref_d2, rtol=1e-12)
+    # Most fringe points are alone within 5 cm; every sheet point has its k there.
+    assert np.isinf(dist[3000:, -1]).mean() > 0.9 and np.isfinite(dist[:3000]).all()
+    with pytest.raises(InputError, match="distance_upper_bound"):
+        index.query_self(k, distance_upper_bound=-1.0)
+
+
 @pytest.mark.parametrize("k", [8, 30])
 def test_query_self_breaks_ties_by_index_on_a_lattice_and_duplicates(k):
     # Equal distances everywhere: the squared-distance bands the search sorts into hold many

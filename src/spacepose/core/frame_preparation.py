@@ -147,11 +147,21 @@ class FramePreparer:
         frame = prepared.with_normals(L.normals, self.workers).cloud
         _, nearest = knn(prepared.tree, pts, 1, workers=self.workers)
         n = frame.normals[nearest[:, 0]]
-        _, idx = knn(pts, None, min(L.normals.k, len(pts)), workers=self.workers)
-        off = np.einsum("ij,ij->i", pts - pts[idx].mean(axis=1), n)
+        # Neighbourhoods within four frame voxels (a surface seen at 80° from its normal
+        # spreads k points that far): a point without one is off any surface (a flying pixel),
+        # keeps its place, and costs nothing to search; unbounded, a thousand such points took
+        # this search from 21 to 130 ms on a 1280×720 frame. (Within two voxels some surface
+        # points went unprojected: lab run yaw 0.029 -> 0.044°, 10 seeds.)
+        k = min(L.normals.k, len(pts))
+        _, idx = knn(pts, None, k, self.workers, distance_upper_bound=4.0 * L.voxel)
+        local = idx[:, -1] < len(pts)
+        # Gathered a coordinate at a time: a quarter of the time of ``pts[idx].mean(axis=1)``.
+        centre = np.stack([pts[:, a][idx[local]].mean(axis=1) for a in range(3)], axis=1)
+        off = np.zeros(len(pts))
+        off[local] = np.einsum("ij,ij->i", pts[local] - centre, n[local])
         # Offsets the noise explains are removed; a larger one is shape (an edge, a corner)
         # that the plane would cut.
-        noise = 1.4826 * np.median(np.abs(off))
+        noise = 1.4826 * np.median(np.abs(off[local]))
         off[np.abs(off) > 3.0 * noise] = 0.0
         pc = replace(pc, points=pts - off[:, None] * n, normals=n)
         return self.with_covariances(pc)

@@ -210,7 +210,9 @@ class VoxelIndex:
             return dist[:, 0], idx[:, 0]
         return dist, idx
 
-    def query_self(self, k: int, workers: int = 1) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    def query_self(
+        self, k: int, workers: int = 1, distance_upper_bound: float = np.inf
+    ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
         """The ``k`` nearest indexed points of every indexed point (itself included): the
         answer of ``query(data, k)``, about twice as fast.
 
@@ -218,7 +220,10 @@ class VoxelIndex:
         for a large k) are the candidates of all its points, visited nearest first, so the cell
         lookups are shared, and a point whose k-th distance stays within those cells needs
         nothing else (every point outside them is farther). The few others (sparse borders)
-        are searched one by one.
+        are searched one by one, within ``distance_upper_bound`` when it is finite: an isolated
+        point (a flying pixel far from any surface) otherwise scans every cell out to its k-th
+        neighbour, and a thousand of them took a 1280×720 frame's 47k-point keyframe from
+        22 ms to 130.
 
         Parameters
         ----------
@@ -226,15 +231,21 @@ class VoxelIndex:
             Number of neighbours, 1 <= k <= n.
         workers
             Threads (-1: all cores); the result does not depend on it.
+        distance_upper_bound
+            Only neighbours strictly nearer than this (m) are returned, as :meth:`query`.
 
         Returns
         -------
         dist, idx
-            (n, k) distances ascending and indices into ``data`` (ties by index).
+            (n, k) distances ascending and indices into ``data`` (ties by index); a missing
+            neighbour has distance ``inf`` and index ``n``.
         """
         k = int(k)
         if not 1 <= k <= self.n:
             raise InputError(f"k must be in 1..{self.n} (number of points), got {k}")
+        bound = float(distance_upper_bound)
+        if np.isnan(bound) or bound <= 0:
+            raise InputError(f"distance_upper_bound must be positive, got {distance_upper_bound}")
         # Zeros: the rows left unsure are filled below, not read before.
         d2 = np.zeros((self.n, k))
         idx = np.empty((self.n, k), dtype=np.int64)
@@ -252,7 +263,11 @@ class VoxelIndex:
         if unsure.any():
             rows = np.flatnonzero(unsure)
             # A few per cent of the rows: one thread, as waking a second costs more.
-            dist[rows], idx[rows] = self.query(self.data[rows], k=k, workers=1)
+            d, i = self.query(self.data[rows], k=k, distance_upper_bound=bound, workers=1)
+            dist[rows], idx[rows] = d.reshape(len(rows), k), i.reshape(len(rows), k)
+        if np.isfinite(bound):
+            far = dist >= bound
+            dist[far], idx[far] = np.inf, self.n
         return dist, idx
 
     def rings(self, max_distance: float) -> NDArray[np.int64]:

@@ -35,7 +35,11 @@ def as_tree(tree_or_points: TreeOrPoints) -> SearchIndex:
 
 
 def knn(
-    tree_or_points: TreeOrPoints, queries: ArrayLike | None, k: int, workers: int = -1
+    tree_or_points: TreeOrPoints,
+    queries: ArrayLike | None,
+    k: int,
+    workers: int = -1,
+    distance_upper_bound: float = np.inf,
 ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
     """The k nearest neighbours of each query point.
 
@@ -53,11 +57,15 @@ def knn(
         itself as its first neighbour.
     workers
         Threads for the search (-1: all cores).
+    distance_upper_bound
+        Only neighbours strictly nearer than this (m) are returned (a local neighbourhood:
+        a point far from every other then costs nothing to search).
 
     Returns
     -------
     dist, idx
-        (M, k) Euclidean distances, ascending, and the (M, k) indices into the searched points.
+        (M, k) Euclidean distances, ascending, and the (M, k) indices into the searched points;
+        a missing neighbour has distance ``inf`` and index N.
     """
     k = int(k)
     if queries is None and not isinstance(tree_or_points, cKDTree | VoxelIndex):
@@ -68,9 +76,9 @@ def knn(
     if not 1 <= k <= tree.n:
         raise InputError(f"knn: k must be in 1..{tree.n} (number of points), got {k}")
     if queries is None and isinstance(tree, VoxelIndex):
-        return tree.query_self(k, workers)
+        return tree.query_self(k, workers, distance_upper_bound)
     q = tree.data if queries is None else as_points(queries, "queries")
-    dist, idx = tree.query(q, k=k, workers=workers)
+    dist, idx = tree.query(q, k=k, distance_upper_bound=distance_upper_bound, workers=workers)
     # The indices drop the k axis for k = 1; keep (M, k) whatever k is.
     return dist.reshape(len(q), k), idx.reshape(len(q), k)
 
