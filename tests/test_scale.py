@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spacepose.core.scale import derive_scale, point_spacing, rms_radius, voxel_for
+from spacepose.core.scale import (
+    NOISE_VOXELS,
+    derive_scale,
+    point_spacing,
+    range_noise,
+    rms_radius,
+    voxel_for,
+)
 from spacepose.errors import InputError
 
 
@@ -51,3 +58,39 @@ def test_scale_is_proportional_to_the_data():
     assert b.voxel == pytest.approx(10 * a.voxel, rel=1e-9)
     assert b.radius == pytest.approx(10 * a.radius, rel=1e-6)
     assert rms_radius(pts) == pytest.approx(np.sqrt(((pts - pts.mean(0)) ** 2).sum(1).mean()))
+
+
+def _tilted_plane_frame(sigma: float, seed: int, pixels: int = 160) -> np.ndarray:
+    """A pinhole sensor's frame (focal 480 px) of a plane 2 m ahead tilted 25°, each range
+    drawn with noise ``sigma`` along its ray: (pixels², 3) points in the sensor frame."""
+    rng = np.random.default_rng(seed)
+    c = (np.arange(pixels) - pixels / 2) / 480.0
+    x, y = np.meshgrid(c, c)
+    rays = np.c_[x.ravel(), y.ravel(), np.ones(x.size)]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    normal = np.array([np.sin(np.radians(25.0)), 0.0, -np.cos(np.radians(25.0))])
+    ranges = -2.0 * normal[2] / -(rays @ normal)
+    return rays * (ranges + rng.normal(0.0, sigma, len(rays)))[:, None]
+
+
+@pytest.mark.parametrize("sigma", [0.001, 0.01, 0.05])
+def test_range_noise_recovers_the_noise_along_the_rays(sigma):
+    # From 1 mm (below the 4 mm spacing) to 50 mm (12 spacings, where neighbourhoods in space
+    # are thicker than wide): the median of a χ with 13 degrees of freedom is 0.974 σ.
+    for seed in (0, 1):
+        est = range_noise(_tilted_plane_frame(sigma, seed))
+        assert 0.93 * sigma < est < 1.03 * sigma
+
+
+def test_noise_grows_the_voxel_of_a_dense_frame_at_most_twice():
+    quiet, loud, louder = (derive_scale(_tilted_plane_frame(s, 0), 3000) for s in (1e-3, 0.02, 0.1))
+    # 25,600 points for 3,000: the spacing gives a voxel of about three spacings (12 mm at 1 mm
+    # of noise, 18 mm at 20 mm, which 1.5 σ takes to 29 mm; 100 mm of noise: twice 30 mm).
+    assert quiet.voxel == pytest.approx(voxel_for(quiet.spacing, quiet.points, 3000))
+    assert loud.voxel == pytest.approx(NOISE_VOXELS * loud.noise, rel=1e-12)
+    assert loud.voxel > 1.5 * voxel_for(loud.spacing, loud.points, 3000)
+    assert louder.voxel == pytest.approx(2.0 * voxel_for(louder.spacing, louder.points, 3000))
+    # A frame sparser than the target count keeps its spacing, however noisy.
+    sparse = derive_scale(_tilted_plane_frame(0.01, 0, pixels=40), 3000)
+    assert sparse.voxel == sparse.spacing
+    assert derive_scale(_tilted_plane_frame(0.01, 0), 3000, voxel_size=0.005).voxel == 0.005

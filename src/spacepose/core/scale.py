@@ -1,16 +1,25 @@
 """Lengths from the data: the scale every tracker length is a multiple of (docs/methods.md §5.1).
 
-A tracker tuned in metres works at one range with one sensor. Here the only length read from a
-frame is its *point spacing* ``s`` (median nearest-neighbour distance of the raw points) and,
-with the number of points N, the visible area ``A ≈ N s²`` it implies. The voxel edge is then
+A tracker tuned in metres works at one range with one sensor. Here the lengths read from a
+frame are its *point spacing* ``s`` (median nearest-neighbour distance of the raw points), with
+the number of points N the visible area ``A ≈ N s²`` it implies, and its *range noise* σ_r
+(:func:`range_noise`). The voxel edge is then
 
-    v = max(s, sqrt(A / n_target))
+    v = min(max(v_s, 1.5 σ_r), 2 v_s),   v_s = max(s, sqrt(A / n_target))
 
 so that a frame keeps about ``n_target`` points after downsampling whatever its range or
-resolution (the time per frame stays bounded), but never a voxel finer than the sensor's own
-sampling. Gates, health bounds, keyframe thresholds and the σ floor are multiples of ``v`` or of
-the target's RMS radius ``R`` (:class:`spacepose.core.tracker_config.TrackerConfig`). On the lab
-run at 1.2 m (s = 2.46 mm, N = 18,277) this gives v = 6.07 mm; at 2 m 6.1 mm, at 0.6 m 5.6 mm;
+resolution (the time per frame stays bounded), never a voxel finer than the sensor's own
+sampling, and none much thinner than the noise. A voxel thinner than the noise slices the noisy
+surface instead of averaging it: each centroid's depth is held inside its cell, and two frames'
+centroids then match best at zero motion (lab mock-up and satellite_panels at 6 m with three
+times the ToF noise, constant and accelerating motion, seeds 0-2: σ_r 52-60 mm against voxels
+of 44-60 mm; a fixed 80 mm voxel took the mean rotation error from 0.53 to 0.34° and the frames
+beyond 5σ flagged ``ok`` from 34 to 15 of 132). The noise may at most double the voxel (a
+quarter of the points kept), and only on a frame denser than ``n_target`` (v_s > s). Gates,
+health bounds, keyframe thresholds and the σ floor are multiples of ``v`` or of the target's
+RMS radius ``R``
+(:class:`spacepose.core.tracker_config.TrackerConfig`). On the lab run at 1.2 m (s = 2.46 mm,
+N = 18,277, σ_r = 1.2 mm) this gives v = 6.07 mm; at 2 m 6.1 mm, at 0.6 m 5.6 mm;
 on the orbit run's flash-LiDAR frames at 25 m (s = 105 mm, N = 1,025), v = s.
 """
 
@@ -29,6 +38,13 @@ from spacepose.errors import InputError
 # Query points of the spacing estimate: the median of 2,000 nearest-neighbour distances is
 # within about 2 % of the full median (its standard error is ~1.25 σ/√n of a narrow spread).
 _SPACING_SAMPLES = 2000
+# Neighbours in direction of the range-noise estimate: a plane in three unknowns leaves 13
+# degrees of freedom per point.
+_NOISE_NEIGHBOURS = 16
+# The voxel spans at least this many range-noise σ, and the noise grows it by at most this
+# factor (a quarter of the points kept: a registration still has hundreds).
+NOISE_VOXELS = 1.5
+_MAX_NOISE_GROWTH = 2.0
 
 
 @dataclass(frozen=True)
@@ -45,12 +61,15 @@ class DataScale:
         Voxel edge of the downsampling (m).
     radius
         RMS distance of the downsampled points from their centroid (m): the target's size.
+    noise
+        Range noise σ of the raw points (m, :func:`range_noise`).
     """
 
     spacing: float
     points: int
     voxel: float
     radius: float
+    noise: float = 0.0
 
     def to_dict(self) -> dict[str, float]:
         return {
@@ -58,6 +77,7 @@ class DataScale:
             "points": self.points,
             "voxel_m": self.voxel,
             "radius_m": self.radius,
+            "range_noise_m": self.noise,
         }
 
 
@@ -101,6 +121,79 @@ def point_spacing(points: ArrayLike, samples: int = _SPACING_SAMPLES, seed: int 
     return spacing
 
 
+def range_noise(
+    points: ArrayLike, samples: int = _SPACING_SAMPLES, k: int = _NOISE_NEIGHBOURS, seed: int = 0
+) -> float:
+    """Robust σ (m) of the range noise of a frame in its sensor frame (the sensor at the origin).
+
+    Each sampled point's neighbours are taken *in direction* (the adjacent pixels or beams), and
+    a plane is fitted to their ranges over the two angles: the residuals' spread is the noise
+    along the rays. Neighbours in space would not do: once the noise is wider than the spacing,
+    a neighbourhood is thicker than it is wide and its flattest direction is no longer the
+    surface's normal (the lab at 6 m, three times the ToF noise: 16 mm from 16 neighbours in
+    space, 52 mm in direction, the simulator's σ 55 mm). Edges and silhouettes give large
+    spreads; the median over the samples leaves them out.
+
+    A cloud not seen from its origin (points sampled all over a closed model, a cloud moved into
+    another frame) has direction neighbours on several surfaces, and the spread is theirs, not
+    the noise's (130 mm for 3 mm of noise on the tests' tumbling model):
+    :func:`derive_scale` bounds what the estimate can do to the voxel.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points in the sensor frame; points at the origin (no return) are left out.
+    samples, seed
+        Points sampled (seeded, without replacement) when there are more.
+    k
+        Neighbours in direction of each sample (>= 4).
+
+    Returns
+    -------
+    float
+        The median over the samples of ``sqrt(Σ e² / (k − 3))`` (the median of a χ with 13
+        degrees of freedom is 0.97 of its σ); 0 with fewer than ``k`` points.
+    """
+    pts = as_points(points)
+    ranges = np.linalg.norm(pts, axis=1)
+    keep = ranges > 0
+    pts, ranges = pts[keep], ranges[keep]
+    if len(pts) < k:
+        return 0.0
+    u = pts / ranges[:, None]
+    query = np.arange(len(pts))
+    if len(pts) > samples:
+        query = np.sort(np.random.default_rng(seed).choice(len(pts), samples, replace=False))
+    return _ray_spread(u, ranges, query, k)
+
+
+def _ray_spread(
+    u: NDArray[np.float64], ranges: NDArray[np.float64], query: NDArray[np.intp], k: int
+) -> float:
+    """Median σ (m) of the ranges about a plane over the two angles, k neighbours in direction
+    (``u``: unit directions of the points) of each query point."""
+    _, idx = cKDTree(u).query(u[query], k=k)
+    # Angular offsets in a tangent basis of each sample's direction: range = a + b·x + c·y.
+    u0 = u[query]
+    e1 = np.cross(u0, np.where(np.abs(u0[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(u0, e1)
+    du = u[idx] - u0[:, None, :]
+    X = np.stack(
+        [np.ones(idx.shape), np.einsum("skj,sj->sk", du, e1), np.einsum("skj,sj->sk", du, e2)],
+        axis=2,
+    )
+    y = ranges[idx]
+    XtX = np.einsum("ski,skj->sij", X, X)
+    Xty = np.einsum("ski,sk->si", X, y)
+    solvable = np.linalg.cond(XtX) < 1e12
+    coef = np.linalg.solve(XtX[solvable], Xty[solvable][..., None])[..., 0]
+    e = y[solvable] - np.einsum("ski,si->sk", X[solvable], coef)
+    if not len(e):
+        return 0.0
+    return float(np.median(np.sqrt(np.einsum("sk,sk->s", e, e) / (k - 3))))
+
+
 def voxel_for(spacing: float, n_points: int, target_points: int) -> float:
     """Voxel edge (m) that leaves about ``target_points`` of a surface sampled at ``spacing``."""
     area = n_points * spacing**2
@@ -131,6 +224,13 @@ def derive_scale(
 
     pts = as_points(points)
     spacing = point_spacing(pts)
-    voxel = voxel_size if voxel_size is not None else voxel_for(spacing, len(pts), target_points)
+    noise = range_noise(pts)
+    voxel = voxel_size
+    if voxel is None:
+        voxel = voxel_for(spacing, len(pts), target_points)
+        if voxel > spacing:
+            # Only where voxels average several points: a frame sparser than ``target_points``
+            # keeps its spacing (and a voxel grown there would leave too few points).
+            voxel = min(max(voxel, NOISE_VOXELS * noise), _MAX_NOISE_GROWTH * voxel)
     centroids, _ = voxel_cells(pts, voxel)
-    return DataScale(spacing, len(pts), voxel, rms_radius(centroids))
+    return DataScale(spacing, len(pts), voxel, rms_radius(centroids), noise)
