@@ -80,6 +80,11 @@ def test_range_noise_recovers_the_noise_along_the_rays(sigma):
     for seed in (0, 1):
         est = range_noise(_tilted_plane_frame(sigma, seed))
         assert 0.93 * sigma < est < 1.03 * sigma
+    # 160,000 points: a seeded subset of 100,000 is indexed, neighbours a pixel or two apart.
+    est = range_noise(_tilted_plane_frame(sigma, 2, pixels=400))
+    assert 0.93 * sigma < est < 1.03 * sigma
+    with pytest.raises(InputError, match="k >= 4"):
+        range_noise(_tilted_plane_frame(sigma, 0), k=3)
 
 
 def test_noise_grows_the_voxel_of_a_dense_frame_at_most_twice():

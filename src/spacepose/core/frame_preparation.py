@@ -161,8 +161,9 @@ class FramePreparer:
         off[local] = np.einsum("ij,ij->i", pts[local] - centre, n[local])
         # Offsets the noise explains are removed; a larger one is shape (an edge, a corner)
         # that the plane would cut.
-        noise = 1.4826 * np.median(np.abs(off[local]))
-        off[np.abs(off) > 3.0 * noise] = 0.0
+        if local.any():
+            noise = 1.4826 * np.median(np.abs(off[local]))
+            off[np.abs(off) > 3.0 * noise] = 0.0
         pc = replace(pc, points=pts - off[:, None] * n, normals=n)
         return self.with_covariances(pc)
 
