@@ -219,7 +219,8 @@ def rms_radius(points: NDArray[np.float64]) -> float:
 def derive_scale(
     points: ArrayLike, target_points: int, voxel_size: float | None = None
 ) -> DataScale:
-    """The scale of a frame: its spacing, the voxel edge and (after downsampling) its radius.
+    """The scale of a frame: its spacing, range noise, the voxel edge (the module's rule) and
+    (after downsampling) its radius.
 
     Parameters
     ----------
