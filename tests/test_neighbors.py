@@ -36,6 +36,13 @@ def test_knn_matches_brute_force(clouds):
         dist, idx = knn(index, None, k=5, workers=2)
         np.testing.assert_array_equal(idx, self_order)
         np.testing.assert_allclose(dist, np.take_along_axis(d_self, self_order, axis=1), atol=1e-12)
+    # Within a bound: the neighbours beyond it missing (inf, N), on either kind of index.
+    within = np.take_along_axis(d_self, self_order, axis=1) < 0.3
+    assert 0.2 < within.mean() < 0.9
+    for index in (as_tree(pts), cKDTree(pts)):
+        dist, idx = knn(index, None, k=5, workers=2, distance_upper_bound=0.3)
+        np.testing.assert_array_equal(idx, np.where(within, self_order, len(pts)))
+        assert np.isinf(dist[~within]).all() and np.isfinite(dist[within]).all()
 
 
 def test_hybrid_matches_brute_force(clouds):
@@ -106,6 +113,8 @@ def test_weighted_moments_far_from_origin():
         (lambda p: hybrid(p, p, radius=float("nan"), max_nn=3), "radius"),
         (lambda p: hybrid(p, p, radius=1.0, max_nn=0), "max_nn"),
         (lambda p: knn(np.zeros((0, 3)), p, k=1), "non-empty"),
+        (lambda p: knn(cKDTree(p), p, k=2, distance_upper_bound=float("nan")), "upper_bound"),
+        (lambda p: knn(p, None, k=2, distance_upper_bound=0.0), "upper_bound"),
     ],
 )
 def test_bad_input_raises(call, message):

@@ -68,6 +68,9 @@ def knn(
         a missing neighbour has distance ``inf`` and index N.
     """
     k = int(k)
+    if not distance_upper_bound > 0:
+        # cKDTree takes a NaN bound and finds nothing: refused here for every index alike.
+        raise InputError(f"distance_upper_bound must be positive, got {distance_upper_bound}")
     if queries is None and not isinstance(tree_or_points, cKDTree | VoxelIndex):
         # Its own index, with cells sized for this k (the same answer, sooner).
         tree = VoxelIndex(as_points(tree_or_points, "points"), occupancy=self_knn_occupancy(k))
