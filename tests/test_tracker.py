@@ -425,29 +425,33 @@ def test_a_coarse_twin_gives_way_to_the_pose_that_fits(monkeypatch):
         assert np.linalg.norm(dt) < 0.05 and np.degrees(np.linalg.norm(de)) < 0.5
 
 
-def test_a_symmetric_target_is_ambiguous_never_ok():
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_symmetric_target_is_ambiguous_never_ok(seed):
     """The box-and-wing satellite maps onto itself half a turn about y: no frame can say which
-    pose it is, so its frames are flagged ambiguous (degraded), on one of the two poses (on
-    seed 0, the first 39; docs/methods.md §5.6 says why the 40th decides)."""
+    pose it is, so its frames are flagged ambiguous (degraded), on one of the two poses. Before
+    a pose that lost the test was registered afresh from the winner's twin, one slipped
+    registration decided it: on frame 39 (seed 0, onto the true pose) and 38 (seed 1, onto the
+    twin, then flagged ``ok`` 180° off); docs/methods.md §5.6."""
     import dataclasses
 
     from spacepose.core import sim as sim_mod
 
-    sim = sim_mod.simulate_orbit(sim_mod.OrbitConfig(frames=8, seed=0))
+    frames = 45
+    sim = sim_mod.simulate_orbit(sim_mod.OrbitConfig(frames=frames, seed=seed))
     sim = dataclasses.replace(sim, target=sim_mod.symmetric_orbit_target())
     turn = se3.make_transform(np.diag([-1.0, 1.0, -1.0]), np.zeros(3))
     tracker = Tracker(TrackerConfig(), sim.model_cloud())
-    for k in range(8):
+    for k in range(frames):
         frame = sim.frame(k)
         result = tracker.track_frame(frame.cloud, frame.timestamp)
-        assert result.status == "degraded"
-        assert any(r.startswith("ambiguous") for r in result.reasons)
+        assert result.status == "degraded", k
+        assert any(r.startswith("ambiguous") for r in result.reasons), k
         T_true = sim.T_sensor_target[k]
         angles = [
             np.degrees(np.linalg.norm(pose_errors([result.T_sensor_target], [T])[1]))
             for T in (T_true, T_true @ turn)
         ]
-        assert min(angles) < 1.0
+        assert min(angles) < 1.0, k
 
 
 def test_the_visible_model_is_the_faces_turned_to_the_sensor():

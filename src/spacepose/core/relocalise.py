@@ -213,17 +213,50 @@ class Relocaliser:
         self.twin = None
         if twin[0] is None or twin[1] == "lost":
             return checked, False
-        test = self._compare(prepared, estimate, twin[0])
+        (checked, twin), test = self._rematch(prepared, (checked, twin))
         if test.winner is not None:
             return (twin, True) if test.winner == 1 else (checked, False)
+        estimate = checked[0]
         self.twin = se3.invert(estimate.T_sensor_target) @ twin[0].T_sensor_target
         return (estimate, "degraded", (*checked[2], _ambiguous(test))), False
+
+    def _rematch(
+        self, prepared: PreparedCloud, pair: tuple[Checked, Checked]
+    ) -> tuple[tuple[Checked, Checked], FitComparison]:
+        """Test which of two kept poses half a turn apart fits the frame; when one wins, test
+        again with the loser registered afresh from the winner half a turn away.
+
+        A pose that lost because its own registration slipped fits as well from there (a
+        symmetric target: the pair stays undecided); one that lost to what the target's twin
+        lacks does not. The refit replaces the loser either way, being the better-started of
+        the two registrations of it.
+        """
+        first, second = pair[0][0], pair[1][0]
+        test = self._compare(prepared, first, second)
+        if test.winner is None:
+            return pair, test
+        won = test.winner
+        winner, loser = (first, second) if won == 0 else (second, first)
+        relative = se3.invert(winner.T_sensor_target) @ loser.T_sensor_target
+        origin = np.zeros(3)
+        turn = min(self.turns, key=lambda T: pose_disagreement(T, relative, origin)[1])
+        wide = self.registrar.lengths.ransac.max_correspondence_distance
+        refit = self.register(prepared, winner.T_sensor_target @ turn, wide, None)
+        if refit[0] is None or refit[1] == "lost":
+            return pair, test
+        again = self._compare(prepared, winner, refit[0])
+        counts = (again.only_first, again.only_second)
+        b, c = counts if won == 0 else counts[::-1]
+        # The loser refitted and winning is a contradiction: undecided too.
+        retest = FitComparison(b, c, again.statistic, won if again.winner == 0 else None)
+        return ((pair[0], refit) if won == 0 else (refit, pair[1])), retest
 
     def _rival(
         self, prepared: PreparedCloud, ranked: list[Checked]
     ) -> tuple[NDArray[np.float64], FitComparison] | None:
         """The best-fitting candidate's twin that the data cannot tell from it, as
-        ``T_target_twin`` with the test, or None (decided, or no twin kept)."""
+        ``T_target_twin`` with the test, or None (decided, or no twin kept). Both were
+        registered from the same coarse pose: neither has slipped along a track."""
         best = ranked[0][0]
         if best is None or ranked[0][1] == "lost":
             return None

@@ -11,8 +11,9 @@ and asks whether the data tell the best from the runner-up (:func:`compare_fits`
 that only one of the two poses fits are counted, and McNemar's test on those counts says
 whether one pose fits significantly more of them. While it cannot tell, the frame is flagged
 ambiguous and the twin is carried along and tested again on every frame, until a view shows
-what breaks the symmetry. A symmetric target should stay ambiguous; a frame whose registration
-slipped can still decide it (docs/methods.md §5.6).
+what breaks the symmetry. A win is taken only when it survives the loser registered afresh
+from the winner half a turn away, so a registration that slipped does not decide a symmetric
+target (docs/methods.md §5.6).
 """
 
 from __future__ import annotations
