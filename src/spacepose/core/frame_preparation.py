@@ -37,6 +37,9 @@ from spacepose.errors import InputError
 
 # A crop: center (3,) and radius (m), sensor frame.
 Sphere = tuple[NDArray[np.float64], float]
+# The model culled at every pose keeps one point per cell of the frame's voxel over this (or
+# over ``keyframe_density`` when larger): its points stay on the mesh, with the mesh's normals.
+_MODEL_THINNING = 3.0
 
 
 class FramePreparer:
@@ -185,20 +188,25 @@ class FramePreparer:
 
     def visible_model(self, model: PointCloud, T_sensor_target: NDArray[np.float64]) -> Keyframe:
         """The model's faces turned to the sensor at ``T_sensor_target`` (4, 4), as a fixed
-        reference at the frame's voxel, normals towards the sensor as a frame's.
+        reference as fine as a keyframe (the voxel over ``keyframe_density``), normals towards
+        the sensor as a frame's.
 
         A sensor sees only those. Against the whole model a frame point may pair with the
         back of a part thinner than the noise (the lab's 5 mm wings under 5 mm of noise at
         3 m, a 4 cm panel under 2 cm at 25 m): registration then pulls along the line of sight
         by a bias that grows with the noise (lab, 3 m: 1.6 mm against a σ of 0.1 mm), and
-        voxel centroids of a thin part sit between its faces. ``model`` needs normals (the
-        tracker gives it outward ones).
+        voxel centroids of a thin part sit between its faces. At the frame's voxel the model's
+        own centroids cut its edges and corners as a coarse keyframe does (methods.md §5.4):
+        the Hubble kit at 5 m with the ToF camera (flying pixels off, seed 0, 40 frames) was
+        0.16-0.27° off with a σ of 0.03-0.04° (NEES median 193 of 6), as fine as a keyframe
+        0.04-0.07° (NEES 9). ``model`` needs normals (the tracker gives it outward ones).
         """
         o = se3.invert(T_sensor_target)[:3, 3]
         facing = np.einsum("ij,ij->i", model.normals, o - model.points) > 0.0
         pc = model.select(np.flatnonzero(facing))
-        if not self.config.use_mls:
-            pc = voxel_downsample(pc, self.lengths.voxel)
+        density = self.config.keyframe_density
+        if not self.config.use_mls and density < _MODEL_THINNING:
+            pc = voxel_downsample(pc, self.lengths.voxel / density)
         if len(pc) < self.config.health.min_points:
             raise InputError(
                 f"{len(pc)} model points face the sensor at the frame's voxel "
@@ -223,10 +231,12 @@ class FramePreparer:
 
     def sensor_model(self, model: PointCloud) -> PointCloud:
         """The model :meth:`visible_model` culls at every pose: outward normals, and one point
-        (with its normal) per cell of a third of the frame's voxel, so that a dense model
-        (10⁶ points: 31 ms a call) costs what a sparse one does (2.5 ms at 2·10⁴)."""
+        (with its normal) per cell of a third of the frame's voxel (or the keyframes' finer
+        voxel), so that a dense model (10⁶ points: 31 ms a call) costs what a sparse one does
+        (2.5 ms at 2·10⁴)."""
         model = self.outward_normals(model)
-        _, cell = voxel_cells(model.points, self.lengths.voxel / 3.0)
+        thinning = max(_MODEL_THINNING, self.config.keyframe_density)
+        _, cell = voxel_cells(model.points, self.lengths.voxel / thinning)
         first = np.unique(cell, return_index=True)[1]
         return model if len(first) == len(model) else model.select(np.sort(first))
 
