@@ -181,16 +181,18 @@ class FrameRegistrar:
         ref: Keyframe,
         T_init_sensor_target: NDArray[np.float64],
         measure: bool = True,
+        robust: bool = False,
     ) -> PairRegistration:
         """Register the frame (source) onto a reference.
 
         ``measure``: measure the residual noise after it, and onto a keyframe its structure (the
         design effect of its covariances) and the influence of its parts (once a frame, on the
         latest reference: the extra search costs about a fifth of a lab frame's step).
+        ``robust``: weigh the residuals by a redescending kernel (:meth:`_pairwise`).
         """
         init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
         tgt = self.as_target(ref.registration_target)
-        res, matches = self._pairwise(prepared, tgt, init_T_ref_k)
+        res, matches = self._pairwise(prepared, tgt, init_T_ref_k, robust)
         pairs = None
         if measure:
             sigma = point_to_plane_sigma(
@@ -198,7 +200,7 @@ class FrameRegistrar:
             )
             if self.noise.add(sigma):
                 # The gate cut the residuals: again with the gate the noise asks for.
-                res, matches = self._pairwise(prepared, tgt, res.T_target_source)
+                res, matches = self._pairwise(prepared, tgt, res.T_target_source, robust)
             if ref.index >= 0:
                 # Against a model a part moving otherwise finds no surface within the gate
                 # (the fitness bound sees it); the tests are for two views of one sensor.
@@ -255,11 +257,18 @@ class FrameRegistrar:
         return _FinalPairs(moved[s], normals, r, weights)
 
     def _pairwise(
-        self, prepared: PreparedCloud, tgt: PreparedCloud, init_T_ref_k: NDArray[np.float64]
+        self,
+        prepared: PreparedCloud,
+        tgt: PreparedCloud,
+        init_T_ref_k: NDArray[np.float64],
+        robust: bool = False,
     ) -> tuple[RegistrationResult, Correspondences | None]:
         """The pairwise registration at the current gate, with ICP's final correspondences
-        (None for GICP)."""
-        gated = {"max_correspondence_distance": self.noise.gate}
+        (None for GICP); ``robust``: the residuals weighed by a Geman-McClure kernel at their
+        own scale."""
+        gated: dict[str, object] = {"max_correspondence_distance": self.noise.gate}
+        if robust:
+            gated["robust_kernel"] = "geman_mcclure"
         if self.pairwise == "gicp":
             res = gicp(
                 prepared.cloud,
@@ -284,10 +293,15 @@ class FrameRegistrar:
         )
 
     def single(
-        self, prepared: PreparedCloud, ref: Keyframe, T_init: NDArray[np.float64]
+        self,
+        prepared: PreparedCloud,
+        ref: Keyframe,
+        T_init: NDArray[np.float64],
+        robust: bool = False,
     ) -> FineEstimate:
-        """One registration onto ``ref`` (ICP, GICP, or any method against a model)."""
-        pair = self.register(prepared, ref, T_init)
+        """One registration onto ``ref`` (ICP, GICP, or any method against a model);
+        ``robust``: :meth:`register`'s."""
+        pair = self.register(prepared, ref, T_init, robust=robust)
         res, cov_ref_k = pair.result, pair.covariance
         T_k_ref = se3.invert(res.T_target_source)
         Ad = se3.adjoint(T_k_ref)

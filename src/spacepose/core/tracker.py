@@ -286,27 +286,37 @@ class Tracker:
         is well above the fine gate), then the health check against ``prediction``.
 
         With a prediction, a model is registered onto by the faces it turns to the sensor at
-        ``T_init`` only (:meth:`FramePreparer.visible_model`); a pose without one (a coarse
-        pose, a twin) is tested against the whole model, whose hidden parts tell it wrong.
+        ``T_init`` only (:meth:`FramePreparer.visible_model`), its residuals weighed by a
+        redescending kernel: the frame holds returns the model lacks (flying pixels between
+        parts, a one-sided panel seen from behind), which within the gate pull the pose. A pose
+        without a prediction (a coarse pose, a twin) is tested against the whole model, whose
+        hidden parts tell it wrong, without the kernel: from a coarse pose it settled on a
+        wrong pose that fitted 0.46 of the points (orbit run, seed 2).
         """
         try:
             ref = self._reference()
-            if self._model is not None and prediction is not None:
+            tracking_model = self._model is not None and prediction is not None
+            if tracking_model:
                 ref = self._frames.visible_model(self._model_cloud, T_init)
             T_init = self._registrar.approach(prepared, ref, T_init, wide_gate)
-            estimate = self._fine(prepared, ref, T_init)
+            estimate = self._fine(prepared, ref, T_init, tracking_model)
         except SpaceposeError as exc:
             return None, "lost", (f"fine registration failed: {exc}",)
         return (estimate, *self._check(estimate, prepared, prediction))
 
     def _fine(
-        self, prepared: PreparedCloud, ref: Keyframe, T_init: NDArray[np.float64]
+        self,
+        prepared: PreparedCloud,
+        ref: Keyframe,
+        T_init: NDArray[np.float64],
+        robust: bool = False,
     ) -> FineEstimate:
         """Fine registration of the frame from the initial ``T_sensor_target`` onto ``ref``
-        (model-free J-ICP and keyframe graph: onto the keyframe window it ends)."""
+        (model-free J-ICP and keyframe graph: onto the keyframe window it ends); ``robust``:
+        a model's, weighed by a redescending kernel."""
         cfg = self.config
         if cfg.method not in ("jicp", "keyframe") or self.model_based:
-            return self._registrar.single(prepared, ref, T_init)
+            return self._registrar.single(prepared, ref, T_init, robust)
         references = self._window.references()
         if cfg.method == "jicp":
             return self._registrar.li_step(prepared, references, T_init)
