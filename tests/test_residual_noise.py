@@ -51,3 +51,19 @@ def test_gate_widens_to_three_sigma_and_forgets_lost_frames():
     assert noise.sigma == pytest.approx(0.004)
     assert noise.gate == pytest.approx(GATE_SIGMAS * 0.004)
     assert noise.add(None) is False
+
+
+def test_a_candidates_measurements_are_set_aside_until_it_is_kept():
+    """The relocaliser registers several candidate poses of one frame; only the kept one's
+    residual noise may widen the gate (wrong candidates' residuals are not the sensor's)."""
+    noise = ResidualNoise(voxel_gate=0.005)
+    noise.add(0.004)
+    kept = noise.take()
+    assert kept == [0.004] and noise.sigma is None and noise.gate == 0.005
+    noise.add(0.05)  # a wrong candidate
+    assert noise.gate == pytest.approx(GATE_SIGMAS * 0.05)
+    assert noise.take() == [0.05]
+    noise.restore(kept)
+    noise.commit()
+    assert noise.sigma == pytest.approx(0.004)
+    assert noise.gate == pytest.approx(GATE_SIGMAS * 0.004)

@@ -425,13 +425,15 @@ def test_a_coarse_twin_gives_way_to_the_pose_that_fits(monkeypatch):
         assert np.linalg.norm(dt) < 0.05 and np.degrees(np.linalg.norm(de)) < 0.5
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_symmetric_target_is_ambiguous_never_ok(seed):
     """The box-and-wing satellite maps onto itself half a turn about y: no frame can say which
     pose it is, so its frames are flagged ambiguous (degraded), on one of the two poses. Before
     a pose that lost the test was registered afresh from the winner's twin, one slipped
     registration decided it: on frame 39 (seed 0, onto the true pose) and 38 (seed 1, onto the
-    twin, then flagged ``ok`` 180° off); docs/methods.md §5.6."""
+    twin, then flagged ``ok`` 180° off). On seed 2 the first coarse pose's twin had not
+    converged and was lost, so no twin was carried (``ok`` from frame 2, 180° off) until the
+    best pose's twins were registered afresh; docs/methods.md §5.6."""
     import dataclasses
 
     from spacepose.core import sim as sim_mod
@@ -639,3 +641,63 @@ def test_a_turntable_moving_otherwise_is_split_off_and_the_target_tracked(densit
     assert np.linalg.norm(errors[split:, 3:], axis=1).max() < 3e-3
     z = errors / np.array([np.where(r.sigma > 0, r.sigma, np.inf) for r in results])
     assert (np.abs(z[statuses == "ok"]) <= 3).all()
+
+
+def test_the_default_orbit_target_starts_on_its_true_pose():
+    """The default orbit target's twin fits 0.95 of a frame's points at 25 m. On seed 4 the
+    true pose, registered from the coarse pose's turn, stopped 27 mm short of its optimum
+    (fitness 0.76), its twin won the test and was tracked ``ok`` 180° off for 39 frames, until
+    a candidate losing the test was registered afresh from the winner's twin (docs/methods.md
+    §5.6). Measured on seeds 0-4 (300 frames each): 296-299 ``ok`` frames a run, none more than
+    1° off."""
+    from spacepose.core import sim as sim_mod
+
+    for seed in range(5):
+        sim = sim_mod.simulate_orbit(sim_mod.OrbitConfig(frames=8, seed=seed))
+        tracker = Tracker(TrackerConfig(), sim.model_cloud())
+        ok = 0
+        for k in range(8):
+            frame = sim.frame(k)
+            result = tracker.track_frame(frame.cloud, frame.timestamp)
+            if result.status == "lost":
+                continue
+            _, rot = pose_errors([result.T_sensor_target], [sim.T_sensor_target[k]])
+            assert np.degrees(np.linalg.norm(rot)) < 90.0 or result.status != "ok", (seed, k)
+            ok += result.status == "ok"
+        # Seed 2's first frame is lost and its second fits 0.46 (degraded): 5 of 8 are ok.
+        assert ok >= 5, seed
+
+
+def test_model_based_tracking_of_a_mesh_at_close_range_with_the_tof_camera():
+    """The Hubble kit scaled to 2 m, 5 m from the ToF camera (σ 13 mm, flying pixels between
+    its parts). Registered onto its model at the frame's voxel, with every candidate's noise
+    in the gate, 28-34 of 40 frames were ok, 0.11-0.13° off in roll with a σ of 0.045°
+    (tracker NEES median 24-30). Measured now (seeds 0-2, 40 frames): 39 ok, rotation RMS
+    0.04-0.09°, position RMS 0.4-1.2 mm, NEES median 15-16, 0-2 ok frames beyond 5σ."""
+    from spacepose.core.sim import OrbitConfig, sensor_config, simulate_orbit
+    from spacepose.tools.experiments.fusion import _MODELS, tracker_errors
+
+    config = OrbitConfig(
+        frames=20,
+        seed=0,
+        model=str(_MODELS / "hubble_model_kit.obj"),
+        model_scale=0.02,
+        standoff_m=5.0,
+        sensor=sensor_config("tof"),
+    )
+    sim = simulate_orbit(config)
+    tracker = Tracker(TrackerConfig(), sim.model_cloud())
+    errors = []
+    for k in range(len(sim)):
+        frame = sim.frame(k)
+        result = tracker.track_frame(frame.cloud, frame.timestamp)
+        if result.status == "ok":
+            e, _, _ = tracker_errors(
+                result.T_sensor_target, result.covariance, frame.T_sensor_target
+            )
+            errors.append(e)
+    errors = np.array(errors)
+    assert len(errors) >= 18
+    rms = np.sqrt(np.mean(errors**2, axis=0))
+    assert np.all(np.degrees(rms[:3]) < 0.12), np.degrees(rms[:3])
+    assert np.all(rms[3:] < 2e-3), rms[3:]

@@ -116,6 +116,16 @@ class ResidualNoise:
         self._pending.append(sigma)
         return GATE_SIGMAS * sigma > 1.25 * before
 
+    def take(self) -> list[float]:
+        """Remove and return the current frame's measurements so far (a candidate pose's, set
+        aside until it is chosen)."""
+        taken, self._pending = self._pending, []
+        return taken
+
+    def restore(self, values: list[float]) -> None:
+        """Put back measurements :meth:`take` set aside."""
+        self._pending.extend(values)
+
     def commit(self) -> None:
         """The frame was accepted: its measurements join the estimate."""
         self._sigmas.extend(self._pending)
