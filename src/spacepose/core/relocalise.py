@@ -214,10 +214,15 @@ class Relocaliser:
     def _candidate(
         self, prepared: PreparedCloud, T_init: NDArray[np.float64], wide: float
     ) -> tuple[Checked, list[float]]:
-        """A candidate pose registered from ``T_init``, and the residual noise it measured
-        (taken off the estimate until the candidate is kept)."""
+        """A candidate pose registered from ``T_init`` at the gate of the frames before (not
+        of another candidate's residuals), and the residual noise it measured, set aside
+        until the candidate is kept; the frame's measurements so far stay."""
+        noise = self.registrar.noise
+        before = noise.take()
         checked = self.register(prepared, T_init, wide, None)
-        return checked, self.registrar.noise.take()
+        measured = noise.take()
+        noise.restore(before)
+        return checked, measured
 
     def _restore(self, measured: list[float], kept: Checked) -> Checked:
         """``kept``, with this frame's residual noise set back to what it measured."""
@@ -240,12 +245,10 @@ class Relocaliser:
         """
         estimate = checked[0]
         wide = self.registrar.lengths.ransac.max_correspondence_distance
-        measured_by_tracked = self.registrar.noise.take()
         twin, measured_by_twin = self._candidate(
             prepared, estimate.T_sensor_target @ self.twin, wide
         )
         self.twin = None
-        self.registrar.noise.restore(measured_by_tracked)
         if twin[0] is None or twin[1] == "lost":
             return checked, False
         (checked, twin), test = self._rematch(prepared, (checked, twin))
