@@ -33,6 +33,18 @@ def test_sigma_of_gaussian_offsets_from_a_plane(sigma):
     assert point_to_plane_sigma(np.eye(4), far, target, 0.01, 1) is None
 
 
+def test_a_hint_narrows_the_search_but_not_the_answer():
+    """The registration's last matches, passed as hints, give the σ of an unhinted search to
+    the bit, even when some hints are far off (they only bound the search ball)."""
+    rng = np.random.default_rng(5)
+    target = PreparedCloud(_plane(5000, rng))
+    src = _plane(3000, rng).points + np.c_[np.zeros((3000, 2)), rng.normal(0, 2e-3, 3000)]
+    unhinted = point_to_plane_sigma(np.eye(4), src, target, 0.01, workers=1)
+    hint = rng.integers(-1, 5000, size=3000)
+    hinted = point_to_plane_sigma(np.eye(4), src, target, 0.01, workers=2, hint=hint)
+    assert hinted == unhinted and 1.8e-3 < unhinted < 2.2e-3
+
+
 def test_gate_widens_to_three_sigma_and_forgets_lost_frames():
     noise = ResidualNoise(voxel_gate=0.005)
     assert noise.sigma is None and noise.gate == 0.005 and noise.window == pytest.approx(0.015)

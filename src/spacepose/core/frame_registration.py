@@ -196,7 +196,12 @@ class FrameRegistrar:
         pairs = None
         if measure:
             sigma = point_to_plane_sigma(
-                res.T_target_source, prepared.cloud.points, tgt, self.noise.window, self.workers
+                res.T_target_source,
+                prepared.cloud.points,
+                tgt,
+                self.noise.window,
+                self.workers,
+                _hint(matches, len(prepared.cloud)),
             )
             if self.noise.add(sigma):
                 # The gate cut the residuals: again with the gate the noise asks for.
@@ -497,3 +502,13 @@ def _edge_onto(
             T = se3.invert(T_earlier_frame)
             return T, _moved(np.linalg.pinv(info, hermitian=True), T)
     return None
+
+
+def _hint(matches: Correspondences | None, n_source: int) -> NDArray[np.int64] | None:
+    """(N,) each source point's last match (-1: none), to narrow a search from the same
+    pose; None for GICP, which returns no matches."""
+    if matches is None:
+        return None
+    hint = np.full(n_source, -1, dtype=np.int64)
+    hint[matches.src_idx] = matches.tgt_idx
+    return hint

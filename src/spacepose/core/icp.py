@@ -105,7 +105,11 @@ def target_index(target: PointCloud, target_tree: SearchIndex | None) -> SearchI
 
 
 def find_correspondences(
-    tree: SearchIndex, points: NDArray[np.float64], max_distance: float, workers: int = -1
+    tree: SearchIndex,
+    points: NDArray[np.float64],
+    max_distance: float,
+    workers: int = -1,
+    hint: NDArray[np.int64] | None = None,
 ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
     """Nearest target point strictly within ``max_distance`` of each query point.
 
@@ -119,6 +123,9 @@ def find_correspondences(
         Correspondence gate (m).
     workers
         Threads for the search.
+    hint
+        (N,) a target index near each point (-1: none), e.g. its last match: it only bounds
+        a :class:`VoxelIndex` search (ignored by a cKDTree); the answer does not depend on it.
 
     Returns
     -------
@@ -127,7 +134,7 @@ def find_correspondences(
         (M,) squared distances.
     """
     if isinstance(tree, VoxelIndex):
-        nearest, d2 = tree.nearest_within(points, max_distance, workers=workers)
+        nearest, d2 = tree.nearest_within(points, max_distance, hint, workers=workers)
         src = np.flatnonzero(nearest >= 0)
         return src, nearest[src], d2[src]
     idx, dist = hybrid(tree, points, max_distance, 1, workers=workers)

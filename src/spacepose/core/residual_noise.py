@@ -42,6 +42,7 @@ def point_to_plane_sigma(
     target: PreparedCloud,
     window: float,
     workers: int = -1,
+    hint: NDArray[np.int64] | None = None,
 ) -> float | None:
     """Robust σ (m) of the point-to-plane residuals of a registration, pairs within ``window``.
 
@@ -55,6 +56,11 @@ def point_to_plane_sigma(
         The target, with normals (target frame).
     window
         Largest pair distance (m).
+    workers
+        Threads for the search.
+    hint
+        (N,) a target index near each source point (-1: none), such as the registration's
+        last matches: it only narrows the search (:func:`find_correspondences`).
 
     Returns
     -------
@@ -63,7 +69,7 @@ def point_to_plane_sigma(
         than 7 pairs.
     """
     moved = se3.transform_points(T_target_source, source_points)
-    s, t, _ = find_correspondences(target.tree, moved, window, workers)
+    s, t, _ = find_correspondences(target.tree, moved, window, workers, hint)
     if len(s) < 7:
         return None
     cloud = target.cloud
