@@ -7,12 +7,13 @@ import pytest
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import validate_config
-from spacepose.core.neighbors import hybrid
+from spacepose.core.neighbors import hybrid, knn
 from spacepose.core.normals import (
     NormalsConfig,
     estimate_normals,
     normal_consistency,
     normals_from_covariances,
+    plane_offsets,
 )
 from spacepose.errors import ConfigError, InputError
 
@@ -245,3 +246,20 @@ def test_estimate_normals_takes_an_n_by_3_array() -> None:
     assert np.median(np.einsum("ij,ij->i", from_array.normals, radial)) > 0.99
     with pytest.raises(InputError, match=r"^cloud: points must have shape \(N, 3\)"):
         estimate_normals(pts[:, :2])
+
+
+def test_plane_offsets_match_the_neighbourhood_mean_and_flag_missing_neighbours():
+    """Each point's signed distance from the plane through its k neighbours' centroid, as
+    numpy computes it from the gathered neighbours; NaN where the bounded search came short."""
+    rng = np.random.default_rng(11)
+    xy = rng.uniform(0.0, 0.3, size=(4000, 2))
+    pts = np.c_[xy, 0.5 * xy[:, 0] ** 2 + rng.normal(0.0, 1e-3, 4000)]
+    pts[:5] += 1.0  # isolated: fewer than k neighbours within the bound
+    n = rng.normal(size=(4000, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    _, idx = knn(pts, None, 12, 1, distance_upper_bound=0.05)
+    off = plane_offsets(pts, n, idx, workers=2)
+    local = idx[:, -1] < len(pts)
+    assert not local[:5].any() and np.isnan(off[:5]).all() and np.isfinite(off[local]).all()
+    expected = np.einsum("ij,ij->i", pts[local] - pts[idx[local]].mean(axis=1), n[local])
+    np.testing.assert_allclose(off[local], expected, rtol=0, atol=1e-15)

@@ -120,6 +120,62 @@ def _neighbourhood_normals_kernel(pts, idx, normals):
             _symmetric_eigen(cov, normals[i], eigenvalues)
 
 
+def plane_offsets(
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    idx: NDArray[np.intp],
+    workers: int = 1,
+) -> NDArray[np.float64]:
+    """Signed distance of each point from the plane through its neighbours' centroid.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points (any frame).
+    normals
+        (N, 3) unit normal of each point's plane.
+    idx
+        (N, k) neighbour indices into ``points`` (:func:`~spacepose.core.neighbors.knn`), ``N``
+        for a neighbour missing within the search's bound.
+    workers
+        Threads (-1: all cores); the result does not depend on it.
+
+    Returns
+    -------
+    (N,) ``n · (p − mean of its k neighbours)`` (m); NaN where a neighbour is missing.
+    """
+    out = np.empty(len(points))
+    with numba_threads(workers):
+        _plane_offsets_kernel(
+            np.ascontiguousarray(points, dtype=np.float64),
+            np.ascontiguousarray(normals, dtype=np.float64),
+            np.ascontiguousarray(idx, dtype=np.int64),
+            out,
+        )
+    return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _plane_offsets_kernel(pts, normals, idx, out):
+    n, k = idx.shape
+    for chunk in numba.prange((n + _CHUNK_ROWS - 1) // _CHUNK_ROWS):
+        for i in range(chunk * _CHUNK_ROWS, min(n, (chunk + 1) * _CHUNK_ROWS)):
+            if idx[i, k - 1] >= n:
+                out[i] = np.nan
+                continue
+            cx = cy = cz = 0.0
+            for j in range(k):
+                q = idx[i, j]
+                cx += pts[q, 0]
+                cy += pts[q, 1]
+                cz += pts[q, 2]
+            out[i] = (
+                normals[i, 0] * (pts[i, 0] - cx / k)
+                + normals[i, 1] * (pts[i, 1] - cy / k)
+                + normals[i, 2] * (pts[i, 2] - cz / k)
+            )
+
+
 @numba.njit(cache=True, parallel=True)
 def _eigen_kernel(A, normals, eigenvalues):
     """:func:`_symmetric_eigen` of every matrix of ``A`` (M, 3, 3), in chunks of rows."""
