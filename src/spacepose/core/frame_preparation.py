@@ -94,7 +94,7 @@ class FramePreparer:
         pc = as_cloud(cloud, "frame")
         # No-returns written as points at the sensor would be a dense object there, and set
         # the spacing and scale.
-        valid = returns(pc.points)
+        valid = returns(pc)
         if not valid.all():
             pc = pc.select(np.flatnonzero(valid))
         if cfg.use_background_removal:

@@ -26,13 +26,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from spacepose.core.cloud import as_points
+from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.voxel import voxel_cells
 
 # Cell edge of the clustering, in point spacings: coarse enough to be cheap on a cluttered VGA
@@ -67,13 +68,21 @@ class TargetRegion:
     kept: float
 
 
-def returns(points: ArrayLike) -> NDArray[np.bool_]:
+def returns(points: PointCloud | ArrayLike) -> NDArray[np.bool_]:
     """(N,) False for the points at the sensor's origin: the value many drivers write for a
     pixel or beam with no return (the real LiDAR pair of data/real holds 5,107 of 69,792)."""
-    pts = as_points(points)
-    # Column by column: ``np.any(pts != 0, axis=1)`` reduces along a length-3 axis, 7× slower
-    # (13 ms against 2 on a 1280×720 frame).
-    return (pts[:, 0] != 0.0) | (pts[:, 1] != 0.0) | (pts[:, 2] != 0.0)
+    pts = np.ascontiguousarray(as_points(points))
+    out = np.empty(len(pts), dtype=np.bool_)
+    # One compiled pass over the rows: the column-by-column numpy test took 2 ms on a
+    # 1280×720 frame, ``np.any(pts != 0, axis=1)`` 13 ms.
+    _returns_kernel(pts, out)
+    return out
+
+
+@numba.njit(cache=True)
+def _returns_kernel(pts, out):
+    for i in range(len(pts)):
+        out[i] = pts[i, 0] != 0.0 or pts[i, 1] != 0.0 or pts[i, 2] != 0.0
 
 
 def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
