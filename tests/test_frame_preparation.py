@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from spacepose.core import se3
+from spacepose.core.cloud import PointCloud
 from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.sim.grid import grid_scenario
 from spacepose.core.sim.scenarios import simulate
@@ -65,6 +66,30 @@ def test_keyframe_cloud_leaves_flying_pixels_where_they_are():
     kept = {tuple(p) for p in dense.cloud.points[~on_plane]}
     assert kept == {tuple(p) for p in stray}
     assert np.sqrt(np.mean(d[on_plane] ** 2)) < 0.45 * 0.002
+
+
+def test_a_panel_thinner_than_the_model_cells_is_seen_from_both_sides():
+    """A closed 0.5 m panel 10 µm thick, sampled on both faces: the model the tracker culls
+    keeps each face wherever it was sampled, so from either side the visible model is that
+    whole face (one point per cell kept one of the two faces and hid the panel in places)."""
+    pts, _, _ = _noisy_plane(0, 0.002)
+    frames = FramePreparer(TrackerConfig(), None, workers=1)
+    frames.prepare(pts, None)  # sets the lengths: both faces lie in one row of model cells
+    rng = np.random.default_rng(2)
+    faces = {}
+    for side in (1.0, -1.0):
+        xy = rng.uniform(-0.25, 0.25, size=(8000, 2))
+        normals = np.tile([0.0, 0.0, side], (8000, 1))
+        faces[side] = PointCloud(np.c_[xy, np.full(8000, 1.5e-5 + 0.5e-5 * side)], normals)
+    both = [np.vstack([getattr(f, a) for f in faces.values()]) for a in ("points", "normals")]
+    model = frames.sensor_model(PointCloud(*both))
+    for side, face in faces.items():
+        alone = len(frames.sensor_model(face))
+        assert np.count_nonzero(model.normals[:, 2] == side) == alone
+        # The sensor 1.2 m off this face: it sees the face's points, none of the other's.
+        T_sensor_target = se3.invert(se3.make_transform(np.eye(3), [0.0, 0.0, 1.2 * side]))
+        seen = frames.visible_model(model, T_sensor_target).prepared.cloud
+        assert len(seen) == alone and np.all(seen.points[:, 2] == face.points[0, 2])
 
 
 def test_keyframe_cloud_needs_a_density_and_a_frame_finer_than_its_voxel():
