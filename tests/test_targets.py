@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import trimesh
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from spacepose.core.sim import orbit_target, sample_surface, symmetric_orbit_target
+from spacepose.core.sim.targets import Target
 
 
 def _unmatched_share(make, rotation: Rotation) -> tuple[float, float]:
@@ -37,3 +39,23 @@ def test_the_symmetric_orbit_target_maps_onto_itself_under_a_half_turn_about_y()
     turned, floor = _unmatched_share(symmetric_orbit_target, half_turn)
     # Measured: 0.0010 turned, 0.0013 unturned.
     assert turned < 0.003 and floor < 0.003
+
+
+def test_a_sheet_is_sampled_with_both_normals_and_a_closed_part_with_its_outer_one() -> None:
+    """A dish (an open sheet: seen from behind too) beside a closed box: every dish sample
+    comes twice, with opposite normals; every box sample once, its normal outward."""
+    dish = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    dish.update_faces(dish.triangles_center[:, 2] < -0.2)  # a cap: open along its rim
+    dish.remove_unreferenced_vertices()
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    box.apply_translation((2.0, 0.0, 0.0))
+    samples = sample_surface(Target("dish and box", trimesh.util.concatenate([dish, box])), 4000)
+    on_dish = samples.points[:, 0] < 1.0
+    normals_at: dict[tuple, list] = {}
+    for p, n in zip(samples.points[on_dish], samples.normals[on_dish], strict=True):
+        normals_at.setdefault(tuple(p), []).append(n)
+    assert len(normals_at) > 100
+    assert all(len(ns) == 2 and np.allclose(ns[0], -ns[1]) for ns in normals_at.values())
+    box_pts, box_n = samples.points[~on_dish], samples.normals[~on_dish]
+    assert len({tuple(p) for p in box_pts}) == len(box_pts)
+    assert np.all(np.einsum("ij,ij->i", box_n, box_pts - (2.0, 0.0, 0.0)) > 0.0)

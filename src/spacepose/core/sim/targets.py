@@ -330,8 +330,32 @@ def sample_surface(target: Target, count: int, seed: int = 0) -> PointCloud:
         hidden = np.zeros(len(points), dtype=bool)
         for j, part in enumerate(target.parts):
             hidden[owner != j] |= _depth_inside_convex(part, points[owner != j]) > 1e-6
-        points, normals = points[~hidden], normals[~hidden]
+        points, normals, face = points[~hidden], normals[~hidden], face[~hidden]
+    # A sheet (a dish, a foil) is seen from both sides: its samples carry both normals, as a
+    # closed part's two faces would, so that a model culled by its normals keeps it from behind.
+    sheet = _sheet_faces(target.mesh)[face]
+    points = np.vstack([points, points[sheet]])
+    normals = np.vstack([normals, -normals[sheet]])
     return PointCloud(points, normals, source=f"{target.name} surface samples")
+
+
+def _sheet_faces(mesh: trimesh.Trimesh) -> NDArray[np.bool_]:
+    """(F,) True for the faces of the connected parts that do not close (an edge of theirs
+    borders one face only, once coincident vertices are merged)."""
+    merged = mesh.copy()
+    merged.merge_vertices(merge_tex=True, merge_norm=True)
+    _, edge_of, uses = np.unique(
+        merged.edges_sorted, axis=0, return_inverse=True, return_counts=True
+    )
+    border = (uses[edge_of.ravel()] == 1).reshape(-1, 3).any(axis=1)
+    sheet = np.zeros(len(merged.faces), dtype=bool)
+    parts = trimesh.graph.connected_components(
+        merged.face_adjacency, nodes=np.arange(len(merged.faces)), engine="scipy"
+    )
+    for part in parts:
+        if border[part].any():
+            sheet[part] = True
+    return sheet
 
 
 def _depth_inside_convex(part: trimesh.Trimesh, points: NDArray[np.float64]) -> NDArray[np.float64]:
