@@ -260,6 +260,7 @@ class Tracker:
                 self._model,
                 self._fine_and_check,
                 self._check,
+                health_bounds(self._context(), self.model_based).ok_fitness,
                 self.workers,
             )
         return prepared
