@@ -5,9 +5,10 @@ The first frame's object is everything connected to the nearest cluster
 plinth; a docking fixture) is part of it, and when it moves otherwise (a slide carries it while
 the target turns or tumbles) no single rigid motion fits both: registration settles on a
 compromise that point-to-plane residuals barely reject, because each surface slides along
-itself. The residuals then carry structure or a part pulls the pose, which the health check sees
-(:mod:`spacepose.core.residual_structure`, :mod:`spacepose.core.part_influence`). On such a frame
-:func:`split_motion` looks for a second rigid motion:
+itself. Against a nearby keyframe the residuals may carry structure or a part pull the pose
+(:mod:`spacepose.core.residual_structure`, :mod:`spacepose.core.part_influence`), or not: the
+two have hardly parted. On the few frames the tracker looks (:mod:`spacepose.core.support`),
+:func:`split_motion` looks for a second rigid motion against the first keyframe:
 
 1. the points the compromise leaves unexplained (point-to-plane residual beyond three residual
    σ, or no surface within reach) are registered alone from it, with a redescending kernel of

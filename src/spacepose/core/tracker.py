@@ -335,14 +335,11 @@ class Tracker:
     def _split_off_support(
         self, prepared: PreparedCloud, checked: Checked, timestamp: float, reach: float
     ) -> tuple[PreparedCloud, Checked]:
-        """Model-free, on a frame showing a second motion: a support moving otherwise split off
+        """Model-free, on the looks' schedule: a support moving otherwise split off
         (:mod:`spacepose.core.support`), the target's part of the frame registered onto the
         target's part of the first keyframe."""
         estimate, support = checked[0], self._support
-        if support is None or estimate is None:
-            return prepared, checked
-        bound = health_bounds(self._context(), False).ok_structure
-        if not support.signalled(estimate, bound, timestamp):
+        if support is None or estimate is None or not support.due(timestamp):
             return prepared, checked
         found = support.split(prepared, estimate, timestamp, reach)
         if found is None:
