@@ -242,6 +242,20 @@ class FrameRegistrar:
             )
         return PairRegistration(res, cov, step, structure, influence)
 
+    def structure_onto(
+        self, prepared: PreparedCloud, ref: Keyframe, T_init_sensor_target: NDArray[np.float64]
+    ) -> tuple[float | None, float]:
+        """:func:`~spacepose.core.residual_structure.residual_structure` of the frame registered
+        onto ``ref`` with one motion from ``T_init_sensor_target``, at the fine gate, and that
+        registration's fitness; the measured noise and the frame's design effect are left as
+        they are."""
+        init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
+        tgt = self.as_target(ref.registration_target)
+        res, matches = self._pairwise(prepared, tgt, init_T_ref_k)
+        pairs = self._final_pairs(prepared, tgt, res, matches)
+        cell = STRUCTURE_CELL_GATES * self.noise.gate
+        return residual_structure(pairs.points, pairs.residuals, cell), res.fitness
+
     def _final_pairs(
         self,
         prepared: PreparedCloud,

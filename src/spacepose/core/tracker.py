@@ -252,7 +252,10 @@ class Tracker:
                 self._model_cloud = self._frames.sensor_model(self._model_cloud)
             if self._model_cloud is None:
                 self._support = SupportSeparation(
-                    self._registrar, cfg.health.min_points, self.workers
+                    self._registrar,
+                    cfg.health.min_points,
+                    self.workers,
+                    cfg.keyframe.stale_fitness,
                 )
             self._relocaliser = Relocaliser(
                 self._registrar,
@@ -335,11 +338,19 @@ class Tracker:
     def _split_off_support(
         self, prepared: PreparedCloud, checked: Checked, timestamp: float, reach: float
     ) -> tuple[PreparedCloud, Checked]:
-        """Model-free, on the looks' schedule: a support moving otherwise split off
+        """Model-free, on the looks' schedule and on frames whose residuals against the first
+        keyframe carry structure (those are degraded): a support moving otherwise split off
         (:mod:`spacepose.core.support`), the target's part of the frame registered onto the
         target's part of the first keyframe."""
         estimate, support = checked[0], self._support
-        if support is None or estimate is None or not support.due(timestamp):
+        if support is None or estimate is None or support.support is not None:
+            return prepared, checked
+        bound = health_bounds(self._context(), False).ok_structure
+        due = support.due(timestamp)
+        parted = support.parted(prepared, estimate, bound, timestamp)
+        if parted is not None and estimate.reference is not support.first:
+            checked = _parted(checked, parted, bound)
+        if not (due or parted is not None):
             return prepared, checked
         found = support.split(prepared, estimate, timestamp, reach)
         if found is None:
@@ -429,6 +440,16 @@ class Tracker:
         return accepted_result(
             index, timestamp, estimate, prepared, health, times, coarse, promoted
         )
+
+
+def _parted(checked: Checked, structure: float, bound: float) -> Checked:
+    """The frame degraded: against the first keyframe its residuals carry structure."""
+    estimate, status, reasons = checked
+    reason = (
+        f"residual structure {structure:.1f} > {bound:g} against the first keyframe: part of "
+        "the cloud moves otherwise"
+    )
+    return estimate, "degraded" if status == "ok" else status, (*reasons, reason)
 
 
 # --------------------------------------------------------------------------------------------
