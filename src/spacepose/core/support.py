@@ -34,7 +34,7 @@ class SupportSeparation:
     """
 
     def __init__(
-        self, registrar: FrameRegistrar, min_points: int, workers: int, stale_fitness: float = 0.7
+        self, registrar: FrameRegistrar, min_points: int, workers: int, stale_fitness: float
     ) -> None:
         self.registrar = registrar
         self.min_points = min_points
