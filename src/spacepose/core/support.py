@@ -65,6 +65,11 @@ class SupportSeparation:
             return False
         return timestamp - self.first.timestamp >= 2.0 * self._tried
 
+    def looked(self, timestamp: float) -> None:
+        """A look made (:meth:`due`) that tried no split: the schedule moves on as after one."""
+        if self.first is not None:
+            self._tried = timestamp - self.first.timestamp
+
     def parted(
         self, prepared: PreparedCloud, estimate: FineEstimate, bound: float, timestamp: float
     ) -> float | None:

@@ -338,10 +338,14 @@ class Tracker:
     def _split_off_support(
         self, prepared: PreparedCloud, checked: Checked, timestamp: float, reach: float
     ) -> tuple[PreparedCloud, Checked]:
-        """Model-free, on the looks' schedule and on frames whose residuals against the first
-        keyframe carry structure (those are degraded): a support moving otherwise split off
-        (:mod:`spacepose.core.support`), the target's part of the frame registered onto the
-        target's part of the first keyframe."""
+        """Model-free, on a look (the schedule of :meth:`SupportSeparation.due`) whose frame's
+        residuals against the first keyframe or its own reference carry structure, or a part
+        pulls its pose, and on a frame after one whose did: a support moving otherwise split
+        off (:mod:`spacepose.core.support`), the target's part of the frame registered onto the
+        target's part of the first keyframe. A look without those signs tries no split: a try
+        costs several steps' time (a 1280×720 frame: 40-70 ms), and the structure against the
+        first keyframe is the sign (on the wall-and-table cells, trying on the signs alone
+        removes the same false ok frames as trying on every look)."""
         estimate, support = checked[0], self._support
         if support is None or estimate is None or support.support is not None:
             return prepared, checked
@@ -350,7 +354,11 @@ class Tracker:
         parted = support.parted(prepared, estimate, bound, timestamp)
         if parted is not None and estimate.reference is not support.first:
             checked = _parted(checked, parted, bound)
-        if not (due or parted is not None):
+        structured = estimate.structure is not None and estimate.structure > bound
+        pulled = estimate.influence is not None and estimate.influence.excessive
+        if parted is None and not (due and (structured or pulled)):
+            if due:
+                support.looked(timestamp)
             return prepared, checked
         found = support.split(prepared, estimate, timestamp, reach)
         if found is None:
