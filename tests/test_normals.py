@@ -263,3 +263,10 @@ def test_plane_offsets_match_the_neighbourhood_mean_and_flag_missing_neighbours(
     assert not local[:5].any() and np.isnan(off[:5]).all() and np.isfinite(off[local]).all()
     expected = np.einsum("ij,ij->i", pts[local] - pts[idx[local]].mean(axis=1), n[local])
     np.testing.assert_allclose(off[local], expected, rtol=0, atol=1e-15)
+    # Mismatched shapes or indices out of range: the package's error, not numba's.
+    with pytest.raises(InputError, match="normals for"):
+        plane_offsets(pts, n[:10], idx)
+    with pytest.raises(InputError, match=r"0\.\.4000"):
+        plane_offsets(pts, n, idx - 1)
+    with pytest.raises(InputError, match="integer array"):
+        plane_offsets(pts, n, idx[:, 0])

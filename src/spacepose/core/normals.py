@@ -143,15 +143,30 @@ def plane_offsets(
     Returns
     -------
     (N,) ``n · (p − mean of its k neighbours)`` (m); NaN where a neighbour is missing.
+
+    Raises
+    ------
+    InputError
+        Points or normals not finite (N, 3), or indices not (N, k) within ``0..N``.
     """
-    out = np.empty(len(points))
+    pts = np.ascontiguousarray(as_points(points, "points"), dtype=np.float64)
+    nrm = np.ascontiguousarray(as_points(normals, "normals"), dtype=np.float64)
+    idx = np.asarray(idx)
+    n = len(pts)
+    if len(nrm) != n:
+        raise InputError(f"{len(nrm)} normals for {n} points")
+    if (
+        idx.ndim != 2
+        or len(idx) != n
+        or idx.shape[1] < 1
+        or not np.issubdtype(idx.dtype, np.integer)
+    ):
+        raise InputError(f"neighbour indices must be an ({n}, k) integer array, got {idx.shape}")
+    if idx.min() < 0 or idx.max() > n:
+        raise InputError(f"neighbour indices must lie in 0..{n} ({n}: missing)")
+    out = np.empty(n)
     with numba_threads(workers):
-        _plane_offsets_kernel(
-            np.ascontiguousarray(points, dtype=np.float64),
-            np.ascontiguousarray(normals, dtype=np.float64),
-            np.ascontiguousarray(idx, dtype=np.int64),
-            out,
-        )
+        _plane_offsets_kernel(pts, nrm, np.ascontiguousarray(idx, dtype=np.int64), out)
     return out
 
 
