@@ -295,3 +295,17 @@ def _cropped(pc: PointCloud, sphere: Sphere | None) -> PointCloud:
     if sphere is None:
         return pc
     return pc.select(np.flatnonzero(crop_sphere(pc.points, *sphere)))
+
+
+def checked_model(model: PointCloud | ArrayLike, min_points: int) -> PointCloud:
+    """A reference model (target frame) as a cloud of at least ``min_points`` points.
+
+    Raises
+    ------
+    InputError
+        Not a finite (N, 3) cloud, or fewer points.
+    """
+    pc = as_cloud(model, "model")
+    if len(pc) < min_points:
+        raise InputError(f"model has {len(pc)} points (< {min_points})", pc.source)
+    return pc

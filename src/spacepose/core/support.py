@@ -3,7 +3,7 @@ leaving it out of every frame once found (the geometry is :mod:`spacepose.core.b
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -13,8 +13,27 @@ from spacepose.core.bodies import ClutterBody, split_motion, subset
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.icp import find_correspondences
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
+from spacepose.core.relocalise import Checked
 from spacepose.core.segmentation import TargetRegion, region_of
 from spacepose.errors import SpaceposeError
+
+
+@dataclass(frozen=True)
+class Look:
+    """What a frame showed of a support moving otherwise (:meth:`SupportSeparation.look`).
+
+    Attributes
+    ----------
+    checked
+        The frame's registration and health, ``degraded`` when its residuals against the first
+        keyframe carry structure above the bound.
+    found
+        After a split: (the target's part of the frame, initial ``T_sensor_target`` (4, 4)
+        onto the first keyframe's target points); None without one.
+    """
+
+    checked: Checked
+    found: tuple[PreparedCloud, NDArray[np.float64]] | None = None
 
 
 class SupportSeparation:
@@ -69,6 +88,39 @@ class SupportSeparation:
         """A look made (:meth:`due`) that tried no split: the schedule moves on as after one."""
         if self.first is not None:
             self._tried = timestamp - self.first.timestamp
+
+    def look(
+        self,
+        prepared: PreparedCloud,
+        checked: Checked,
+        bound: float,
+        timestamp: float,
+        reach: float,
+    ) -> Look:
+        """Model-free, one frame's look for a support: on the schedule of :meth:`due` and on a
+        frame after one that parted (:meth:`parted`), a split tried (:meth:`split`) when the
+        frame's residuals against the first keyframe or its own reference carry structure
+        above ``bound``, or a part pulls its pose.
+
+        A look without those signs tries no split: a try costs several steps' time (a
+        1280×720 frame: 40-70 ms), and the structure against the first keyframe is the sign
+        (on the wall-and-table cells, trying on the signs alone removes the same false ok
+        frames as trying on every look).
+        """
+        estimate = checked[0]
+        if estimate is None or self.support is not None:
+            return Look(checked)
+        due = self.due(timestamp)
+        parted = self.parted(prepared, estimate, bound, timestamp)
+        if parted is not None and estimate.reference is not self.first:
+            checked = _parted(checked, parted, bound)
+        structured = estimate.structure is not None and estimate.structure > bound
+        pulled = estimate.influence is not None and estimate.influence.excessive
+        if parted is None and not (due and (structured or pulled)):
+            if due:
+                self.looked(timestamp)
+            return Look(checked)
+        return Look(checked, self.split(prepared, estimate, timestamp, reach))
 
     def parted(
         self, prepared: PreparedCloud, estimate: FineEstimate, bound: float, timestamp: float
@@ -217,3 +269,13 @@ class SupportSeparation:
         if np.count_nonzero(keep) < self.min_points:
             return prepared
         return subset(prepared, keep)
+
+
+def _parted(checked: Checked, structure: float, bound: float) -> Checked:
+    """The frame degraded: against the first keyframe its residuals carry structure."""
+    estimate, status, reasons = checked
+    reason = (
+        f"residual structure {structure:.1f} > {bound:g} against the first keyframe: part of "
+        "the cloud moves otherwise"
+    )
+    return estimate, "degraded" if status == "ok" else status, (*reasons, reason)

@@ -137,3 +137,20 @@ def accepted_result(
         coarse=coarse,
         keyframe=keyframe,
     )
+
+
+def first_result(index: int, timestamp: float, times: dict[str, float]) -> TrackResult:
+    """Model-free, the first usable frame's result: it defines the target frame (pose identity,
+    no uncertainty) and is the first keyframe."""
+    return TrackResult(
+        index,
+        timestamp,
+        np.eye(4),
+        np.zeros((6, 6)),
+        "ok",
+        time_ms=times,
+        reference_index=index,
+        keyframe=True,
+        fitness=1.0,
+        rmse=0.0,
+    )

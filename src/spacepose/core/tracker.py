@@ -35,19 +35,11 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.frame_check import (
-    CheckContext,
-    check_frame,
-    health_bounds,
-    wide_gate,
-)
-from spacepose.core.frame_preparation import FramePreparer
+from spacepose.core.cloud import PointCloud
+from spacepose.core.frame_check import CheckContext, check_frame, health_bounds, wide_gate
+from spacepose.core.frame_preparation import FramePreparer, checked_model
 from spacepose.core.frame_registration import FrameRegistrar
-from spacepose.core.health import (
-    Status,
-    pose_disagreement,
-)
+from spacepose.core.health import Status, pose_disagreement
 from spacepose.core.keyframe_window import KeyframeWindow
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 from spacepose.core.motion import MotionModel, Prediction, next_timestamp
@@ -61,6 +53,7 @@ from spacepose.core.track_result import (
     accepted_result,
     close_times,
     elapsed_ms,
+    first_result,
     lost_result,
 )
 from spacepose.core.tracker_config import StageLengths, TrackerConfig
@@ -97,7 +90,9 @@ class Tracker:
         self._window = KeyframeWindow(config)
         self._registrar: FrameRegistrar | None = None
         self._t_start = 0.0
-        self._model_cloud = None if model is None else self._check_model(model)
+        self._model_cloud = (
+            None if model is None else checked_model(model, config.health.min_points)
+        )
         self._model: Keyframe | None = None
         self._relocaliser: Relocaliser | None = None
         self._frames = FramePreparer(config, self._model_cloud, workers)
@@ -240,41 +235,28 @@ class Tracker:
         T = None if prediction is None else prediction.T_sensor_target
         prepared = self._frames.prepare(cloud, T, slack)
         if self._registrar is None:
-            # The first usable frame has set every length.
-            cfg = self.config
-            lengths = self._frames.lengths
-            self._registrar = FrameRegistrar(
-                cfg.method, lengths, cfg.covariance_scale, self.workers, cfg.health.ok_influence
-            )
-            if self._model_cloud is not None:
-                self._model = self._frames.prepare_model(self._model_cloud)
-                # Its normals tell the faces a pose turns to the sensor (visible_model).
-                self._model_cloud = self._frames.sensor_model(self._model_cloud)
-            if self._model_cloud is None:
-                self._support = SupportSeparation(
-                    self._registrar,
-                    cfg.health.min_points,
-                    self.workers,
-                    cfg.keyframe.stale_fitness,
-                )
-            self._relocaliser = Relocaliser(
-                self._registrar,
-                self._reference,
-                self._model,
-                self._fine_and_check,
-                self._check,
-                health_bounds(self._context(), self.model_based).ok_fitness,
-                self.workers,
-            )
+            self._build_stages()
         return prepared
 
-    def _check_model(self, model: PointCloud | ArrayLike) -> PointCloud:
-        pc = as_cloud(model, "model")
-        if len(pc) < self.config.health.min_points:
-            raise InputError(
-                f"model has {len(pc)} points (< {self.config.health.min_points})", pc.source
-            )
-        return pc
+    def _build_stages(self) -> None:
+        """The registration stages, once the first usable frame has set every length."""
+        cfg, workers = self.config, self.workers
+        lengths, ok_influence = self._frames.lengths, cfg.health.ok_influence
+        registrar = FrameRegistrar(cfg.method, lengths, cfg.covariance_scale, workers, ok_influence)
+        self._registrar = registrar
+        if self.model_based:
+            self._model = self._frames.prepare_model(self._model_cloud)
+            # Its normals tell the faces a pose turns to the sensor (visible_model).
+            self._model_cloud = self._frames.sensor_model(self._model_cloud)
+        else:
+            min_points, stale = cfg.health.min_points, cfg.keyframe.stale_fitness
+            self._support = SupportSeparation(registrar, min_points, workers, stale)
+        ok_fitness = health_bounds(self._context(), self.model_based).ok_fitness
+        fine, check = self._fine_and_check, self._check
+        model = self._model
+        self._relocaliser = Relocaliser(
+            registrar, self._reference, model, fine, check, ok_fitness, workers
+        )
 
     def _reference(self) -> Keyframe:
         return self._model if self._model is not None else self._window.latest
@@ -338,36 +320,20 @@ class Tracker:
     def _split_off_support(
         self, prepared: PreparedCloud, checked: Checked, timestamp: float, reach: float
     ) -> tuple[PreparedCloud, Checked]:
-        """Model-free, on a look (the schedule of :meth:`SupportSeparation.due`) whose frame's
-        residuals against the first keyframe or its own reference carry structure, or a part
-        pulls its pose, and on a frame after one whose did: a support moving otherwise split
-        off (:mod:`spacepose.core.support`), the target's part of the frame registered onto the
-        target's part of the first keyframe. A look without those signs tries no split: a try
-        costs several steps' time (a 1280×720 frame: 40-70 ms), and the structure against the
-        first keyframe is the sign (on the wall-and-table cells, trying on the signs alone
-        removes the same false ok frames as trying on every look)."""
-        estimate, support = checked[0], self._support
-        if support is None or estimate is None or support.support is not None:
+        """Model-free: the frame's look for a support moving otherwise
+        (:meth:`SupportSeparation.look`); once one is split off, the target's part of the frame
+        registered onto the target's part of the first keyframe."""
+        if self._support is None:
             return prepared, checked
         bound = health_bounds(self._context(), False).ok_structure
-        due = support.due(timestamp)
-        parted = support.parted(prepared, estimate, bound, timestamp)
-        if parted is not None and estimate.reference is not support.first:
-            checked = _parted(checked, parted, bound)
-        structured = estimate.structure is not None and estimate.structure > bound
-        pulled = estimate.influence is not None and estimate.influence.excessive
-        if parted is None and not (due and (structured or pulled)):
-            if due:
-                support.looked(timestamp)
-            return prepared, checked
-        found = support.split(prepared, estimate, timestamp, reach)
-        if found is None:
-            return prepared, checked
-        prepared, T_init = found
+        look = self._support.look(prepared, checked, bound, timestamp, reach)
+        if look.found is None:
+            return prepared, look.checked
+        prepared, T_init = look.found
         # The window's later keyframes hold the support and the compromise's error; the crop
         # follows the target alone.
-        self._window.restart(support.first)
-        self._frames.region = support.target_region(self._frames.region)
+        self._window.restart(self._support.first)
+        self._frames.region = self._support.target_region(self._frames.region)
         return prepared, self._fine_and_check(prepared, T_init, 0.0, None)
 
     # -- state -------------------------------------------------------------------------------
@@ -382,18 +348,7 @@ class Tracker:
         self._support.first = first
         self._motion.accept(timestamp, T, cov, None, restart=True)
         close_times(times, self._t_start)
-        return TrackResult(
-            index,
-            timestamp,
-            T,
-            cov,
-            "ok",
-            time_ms=times,
-            reference_index=index,
-            keyframe=True,
-            fitness=1.0,
-            rmse=0.0,
-        )
+        return first_result(index, timestamp, times)
 
     def _dense(self, prepared: PreparedCloud) -> PreparedCloud | None:
         """A new keyframe's finer registration target (:meth:`FramePreparer.keyframe_cloud`;
@@ -448,16 +403,6 @@ class Tracker:
         return accepted_result(
             index, timestamp, estimate, prepared, health, times, coarse, promoted
         )
-
-
-def _parted(checked: Checked, structure: float, bound: float) -> Checked:
-    """The frame degraded: against the first keyframe its residuals carry structure."""
-    estimate, status, reasons = checked
-    reason = (
-        f"residual structure {structure:.1f} > {bound:g} against the first keyframe: part of "
-        "the cloud moves otherwise"
-    )
-    return estimate, "degraded" if status == "ok" else status, (*reasons, reason)
 
 
 # --------------------------------------------------------------------------------------------
