@@ -11,16 +11,14 @@ from scipy.spatial.transform import Rotation
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import validate_config
-from spacepose.core.grid import VoxelIndex
-from spacepose.core.icp import (
+from spacepose.core.correspondences import (
     CorrespondenceSearch,
-    ICPConfig,
     _FusedPlaneMatcher,
     find_correspondences,
-    icp,
-    point_to_plane_system,
-    point_to_point_information,
 )
+from spacepose.core.grid import VoxelIndex
+from spacepose.core.icp import ICPConfig, icp
+from spacepose.core.icp_systems import point_to_plane_system, point_to_point_information
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.sim.targets import Target, sample_surface
 from spacepose.errors import ConfigError, DegenerateGeometryError, InputError, RegistrationError

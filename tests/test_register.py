@@ -169,8 +169,8 @@ def test_real_scanner_noise_is_correlated_but_no_part_pulls_the_pose(pair) -> No
     out any one part of the scene moves the pose by at most 2.8 squared σ against a bound of
     13.5, once the covariance carries S (the design effect): the scene is rigid. With σ² H⁻¹
     alone the same part would move it by 142."""
+    from spacepose.core.correspondences import find_correspondences
     from spacepose.core.grid import VoxelIndex
-    from spacepose.core.icp import find_correspondences
     from spacepose.core.normals import NormalsConfig, estimate_normals
     from spacepose.core.part_influence import part_influence
     from spacepose.core.residual_structure import residual_structure

@@ -310,7 +310,8 @@ def test_pose_graph_tolerance_is_below_what_matters(lab, monkeypatch):
 def test_plane_covariance_from_icp_sums_equals_a_fresh_search(lab):
     # The tracker's covariance takes ICP's final point-to-plane sums as they are; they must be
     # the sums a fresh correspondence search at the returned transform gives.
-    from spacepose.core.icp import Correspondences, ICPConfig, icp_correspondences
+    from spacepose.core.correspondences import Correspondences
+    from spacepose.core.icp import ICPConfig, icp_correspondences
 
     _, frames = lab
     target = _lab_registrar().as_target(PreparedCloud(voxel_downsample(frames[0].cloud, 0.006)))

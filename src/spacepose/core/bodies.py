@@ -45,7 +45,8 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_points
-from spacepose.core.icp import ICPConfig, find_correspondences, icp
+from spacepose.core.correspondences import find_correspondences
+from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.scale import rms_radius
 from spacepose.core.voxel import voxel_cells

@@ -16,14 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
+from spacepose.core.correspondences import Correspondences, find_correspondences
 from spacepose.core.gicp import GICPConfig, gicp
-from spacepose.core.icp import (
-    Correspondences,
-    ICPConfig,
-    find_correspondences,
-    icp,
-    icp_correspondences,
-)
+from spacepose.core.icp import ICPConfig, icp, icp_correspondences
 from spacepose.core.jicp import average_three, average_three_covariance
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, moved_covariance
 from spacepose.core.motion import rigid

@@ -26,12 +26,8 @@ from spacepose.core.gicp_kernels import (
     weights_kernel,
 )
 from spacepose.core.grid import VoxelIndex, numba_threads
-from spacepose.core.icp import (
-    as_registration_cloud,
-    solve_normal_equations,
-    system_from_sums,
-    target_index,
-)
+from spacepose.core.icp import as_registration_cloud, target_index
+from spacepose.core.icp_systems import solve_normal_equations, system_from_sums
 from spacepose.core.neighbors import SearchIndex, knn
 from spacepose.core.normals import neighbourhood_normals
 from spacepose.core.registration import RegistrationResult

@@ -12,7 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
-from spacepose.core.icp import Correspondences, find_correspondences, point_to_plane_system
+from spacepose.core.correspondences import Correspondences, find_correspondences
+from spacepose.core.icp_systems import point_to_plane_system
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.errors import RegistrationError
 

@@ -31,13 +31,11 @@ from scipy.spatial import cKDTree
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
+from spacepose.core.correspondences import find_correspondences
 from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.grid import VoxelIndex
-from spacepose.core.icp import (
-    as_registration_cloud,
-    find_correspondences,
-    point_to_point_information,
-)
+from spacepose.core.icp import as_registration_cloud
+from spacepose.core.icp_systems import point_to_point_information
 from spacepose.core.neighbors import SearchIndex
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.registration import RegistrationResult, kabsch

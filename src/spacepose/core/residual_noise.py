@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
-from spacepose.core.icp import find_correspondences
+from spacepose.core.correspondences import find_correspondences
 from spacepose.core.keyframes import PreparedCloud
 
 # The gate spans this many residual σ: the fine registration sees the whole noise distribution.

@@ -10,8 +10,8 @@ from numpy.typing import NDArray
 
 from spacepose.core import se3
 from spacepose.core.bodies import ClutterBody, split_motion, subset
+from spacepose.core.correspondences import find_correspondences
 from spacepose.core.frame_registration import FrameRegistrar
-from spacepose.core.icp import find_correspondences
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 from spacepose.core.relocalise import Checked
 from spacepose.core.segmentation import TargetRegion, region_of

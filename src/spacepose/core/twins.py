@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from spacepose.core import se3
-from spacepose.core.icp import find_correspondences
+from spacepose.core.correspondences import find_correspondences
 from spacepose.core.neighbors import SearchIndex
 
 # False-decision rate of the test between a pose and its twin.
