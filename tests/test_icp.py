@@ -13,7 +13,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import validate_config
 from spacepose.core.correspondences import (
     CorrespondenceSearch,
-    _FusedPlaneMatcher,
+    FusedPlaneMatcher,
     find_correspondences,
 )
 from spacepose.core.grid import VoxelIndex
@@ -295,7 +295,7 @@ def test_fused_plane_matcher_equals_tree_search(noisy_pair, gate: float, clutter
     src = np.concatenate([src, src[rng.choice(len(src), clutter)] + away])
     tree, index = cKDTree(tgt), VoxelIndex(tgt)
     normals = estimate_normals(PointCloud(tgt), NormalsConfig(k=15), workers=1).normals
-    matcher = _FusedPlaneMatcher(index, normals, src, gate, ICPConfig(), workers=2)
+    matcher = FusedPlaneMatcher(index, normals, src, gate, ICPConfig(), workers=2)
     closing = [
         se3.exp(np.random.default_rng(k).normal(0, 10.0 ** -(k / 2 + 1.5), 6)) @ T_true
         for k in range(10)

@@ -3,7 +3,7 @@ what an update needs at one transform (methods.md §1.5, Li Eq. 7).
 
 :func:`find_correspondences` searches once; :class:`CorrespondenceSearch` searches again for the
 same source points moved between calls, skipping the points whose nearest target is certain.
-The matchers :class:`_Matcher` (any search index) and :class:`_FusedPlaneMatcher` (point-to-plane
+The matchers :class:`Matcher` (any search index) and :class:`FusedPlaneMatcher` (point-to-plane
 on a :class:`~spacepose.core.grid.VoxelIndex`, in one compiled pass) move the (N, 3) source
 points by a ``T_target_source`` (4, 4), match them and return :class:`Correspondences`: indices
 (M,), fitness, RMSE (m) and the matched points in the target frame or the point-to-plane normal
@@ -22,10 +22,10 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.grid import VoxelIndex, numba_threads
 from spacepose.core.icp_systems import (
-    _SYSTEM_CHUNK,
-    _plane_matches_kernel,
-    _robust_plane_kernel,
+    SYSTEM_CHUNK,
+    plane_matches_kernel,
     point_to_plane_system,
+    robust_plane_kernel,
     system_from_sums,
 )
 from spacepose.core.neighbors import SearchIndex, hybrid
@@ -239,7 +239,7 @@ def _robust_matches(
     return Correspondences(s, t, fitness, rmse, points, system, w, np.sqrt(w.variance(r)))
 
 
-class _Matcher:
+class Matcher:
     """Correspondences at a transform through :class:`CorrespondenceSearch` (any index)."""
 
     def __init__(
@@ -272,7 +272,7 @@ class _Matcher:
         return Correspondences(s, t, fitness, rmse, p, system)
 
 
-class _FusedPlaneMatcher:
+class FusedPlaneMatcher:
     """Point-to-plane correspondences and normal equations at a transform in one compiled pass
     over a :class:`VoxelIndex` (no moved copy of the cloud, no gathered rows): about half the
     time of the generic path per iteration on a lab frame. Each point's search starts at its
@@ -302,12 +302,12 @@ class _FusedPlaneMatcher:
     def __call__(self, T: NDArray[np.float64]) -> Correspondences:
         n = len(self.source_points)
         robust = self.config.robust_kernel != "none"
-        partial = np.zeros((max(1, -(-n // _SYSTEM_CHUNK)), 30))
+        partial = np.zeros((max(1, -(-n // SYSTEM_CHUNK)), 30))
         nearest = np.empty(n, dtype=np.int64)
         moved = np.empty((n if robust else 0, 3))
         residuals = np.empty(n if robust else 0)
         with numba_threads(self.workers):
-            _plane_matches_kernel(
+            plane_matches_kernel(
                 self.index.kernel_grid,
                 self.rings,
                 self.index.data,
@@ -350,9 +350,9 @@ class _FusedPlaneMatcher:
         sigma, c = kernel_width(r, self.config.robust_kernel, self.config.robust_scale)
         n = len(moved)
         w, slopes = np.empty(n), np.empty(n)
-        partial = np.zeros((max(1, -(-n // _SYSTEM_CHUNK)), 30))
+        partial = np.zeros((max(1, -(-n // SYSTEM_CHUNK)), 30))
         with numba_threads(self.workers):
-            _robust_plane_kernel(
+            robust_plane_kernel(
                 moved,
                 self.index.data,
                 self.normals,

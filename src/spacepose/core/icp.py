@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
-from spacepose.core.correspondences import Correspondences, _FusedPlaneMatcher, _Matcher
+from spacepose.core.correspondences import Correspondences, FusedPlaneMatcher, Matcher
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp_systems import point_to_point_information, solve_normal_equations
 from spacepose.core.neighbors import SearchIndex
@@ -164,9 +164,9 @@ def icp_correspondences(
     tree = target_index(tgt, target_tree)
     gate = config.max_correspondence_distance
     if plane and isinstance(tree, VoxelIndex):
-        evaluate = _FusedPlaneMatcher(tree, tgt.normals, src.points, gate, config, workers)
+        evaluate = FusedPlaneMatcher(tree, tgt.normals, src.points, gate, config, workers)
     else:
-        evaluate = _Matcher(tree, tgt, src.points, gate, plane, config, workers)
+        evaluate = Matcher(tree, tgt, src.points, gate, plane, config, workers)
 
     matches = evaluate(T)
     converged = False

@@ -9,7 +9,7 @@ matched source point already moved into the target frame. Point-to-point: the (3
 (all 1 without a robust kernel). :func:`solve_normal_equations` turns ``(H, g)`` into the twist
 of one step, and refuses a degenerate H; GICP uses it and :func:`system_from_sums` too.
 
-The compiled kernels sum rows in fixed chunks of ``_SYSTEM_CHUNK``, each in its own fixed order,
+The compiled kernels sum rows in fixed chunks of ``SYSTEM_CHUNK``, each in its own fixed order,
 so any thread count gives the same bits. Two of them fuse the point-to-plane sums with the
 correspondence search on a :class:`~spacepose.core.grid.VoxelIndex` (move, match, sum; then
 weigh with a robust kernel) for the matcher of :mod:`spacepose.core.correspondences`.
@@ -31,7 +31,7 @@ from spacepose.errors import DegenerateGeometryError
 # considered unconstrained (a plane, a cylinder): solving it would return noise, not a pose.
 _DEGENERATE_RATIO = 1e-12
 # Rows per chunk of the compiled point-to-plane sums (fixed, so the sum order is too).
-_SYSTEM_CHUNK = 512
+SYSTEM_CHUNK = 512
 
 
 def point_to_point_jacobians(points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -92,7 +92,7 @@ def point_to_plane_system(
     check_rows(
         "point_to_plane_system", points, target_points, normals, w, shapes=((3,),) * 3 + ((),)
     )
-    chunks = max(1, -(-len(points) // _SYSTEM_CHUNK))
+    chunks = max(1, -(-len(points) // SYSTEM_CHUNK))
     partial = np.zeros((chunks, 28))
     with numba_threads(workers):
         _plane_system_kernel(
@@ -117,7 +117,7 @@ def _plane_system_kernel(points, target_points, normals, weights, partial):
     m = len(points)
     for c in numba.prange(len(partial)):
         h = np.empty(6)
-        for i in range(c * _SYSTEM_CHUNK, min(m, (c + 1) * _SYSTEM_CHUNK)):
+        for i in range(c * SYSTEM_CHUNK, min(m, (c + 1) * SYSTEM_CHUNK)):
             _accumulate_plane(partial[c], points[i], target_points[i], normals[i], weights[i], h)
 
 
@@ -149,7 +149,7 @@ def _plane_residual(p, q, n):
 
 
 @numba.njit(cache=True, parallel=True)
-def _plane_matches_kernel(
+def plane_matches_kernel(
     grid,
     rings,
     targets,
@@ -172,14 +172,14 @@ def _plane_matches_kernel(
     updated in place), count the match and Σ d² (sums 28, 29) and either accumulate
     :func:`_accumulate_plane` (sums 0..27) or, when ``moved`` has a row per point, store the
     moved point there and its residual ``n·(p − q)`` in ``residuals`` instead (a robust kernel
-    weighs the rows once the residuals' scale is known: :func:`_robust_plane_kernel`)."""
+    weighs the rows once the residuals' scale is known: :func:`robust_plane_kernel`)."""
     m = len(src)
     accumulate = len(moved) != m
     for c in numba.prange(len(partial)):
         acc = partial[c]
         q = np.empty(3)
         h = np.empty(6)
-        for i in range(c * _SYSTEM_CHUNK, min(m, (c + 1) * _SYSTEM_CHUNK)):
+        for i in range(c * SYSTEM_CHUNK, min(m, (c + 1) * SYSTEM_CHUNK)):
             j, d2 = move_and_match(grid, rings, src, R, t, gate, hint, anchors, bounds, i, q)
             nearest[i] = j
             if j >= 0:
@@ -193,8 +193,8 @@ def _plane_matches_kernel(
 
 
 @numba.njit(cache=True, parallel=True)
-def _robust_plane_kernel(moved, targets, normals, nearest, residuals, c, code, w, slopes, partial):
-    """The weighted sums of the matches (``nearest`` >= 0) that :func:`_plane_matches_kernel`
+def robust_plane_kernel(moved, targets, normals, nearest, residuals, c, code, w, slopes, partial):
+    """The weighted sums of the matches (``nearest`` >= 0) that :func:`plane_matches_kernel`
     stored, per chunk of source points: each weight and slope of the kernel ``code`` at
     ``residuals / c`` (:func:`~spacepose.core.robust.weight_and_slope`) into ``w`` and
     ``slopes`` (code 0, c unused: all 1), :func:`_accumulate_plane` (sums 0..27), then
@@ -203,7 +203,7 @@ def _robust_plane_kernel(moved, targets, normals, nearest, residuals, c, code, w
     for k in numba.prange(len(partial)):
         acc = partial[k]
         h = np.empty(6)
-        for i in range(k * _SYSTEM_CHUNK, min(m, (k + 1) * _SYSTEM_CHUNK)):
+        for i in range(k * SYSTEM_CHUNK, min(m, (k + 1) * SYSTEM_CHUNK)):
             j = nearest[i]
             if j < 0:
                 continue
