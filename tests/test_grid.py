@@ -7,8 +7,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.grid import VoxelIndex, numba_threads
+from spacepose.core.grid import VoxelIndex
 from spacepose.core.segmentation import crop_sphere
+from spacepose.core.threads import numba_threads
 from spacepose.core.voxel import bounds, cell_keys, voxel_cells, voxel_downsample
 from spacepose.errors import InputError
 

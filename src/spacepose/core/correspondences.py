@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
-from spacepose.core.grid import VoxelIndex, numba_threads
+from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp_systems import (
     SYSTEM_CHUNK,
     plane_matches_kernel,
@@ -37,6 +37,7 @@ from spacepose.core.robust import (
     robust_weights,
     sandwich_variance,
 )
+from spacepose.core.threads import numba_threads
 from spacepose.errors import RegistrationError
 
 # Fewest query points for which CorrespondenceSearch lets the tree search use several threads.

@@ -26,7 +26,9 @@ from pydantic import Field, PositiveFloat
 
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
-from spacepose.core.grid import VoxelIndex, cell_candidates, numba_threads
+from spacepose.core.grid import VoxelIndex
+from spacepose.core.grid_knn import cell_candidates
+from spacepose.core.threads import numba_threads
 from spacepose.errors import InputError
 
 N_BINS = 11

@@ -25,13 +25,14 @@ from spacepose.core.gicp_kernels import (
     system_kernel,
     weights_kernel,
 )
-from spacepose.core.grid import VoxelIndex, numba_threads
+from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import as_registration_cloud, target_index
 from spacepose.core.icp_systems import solve_normal_equations, system_from_sums
 from spacepose.core.neighbors import SearchIndex, knn
 from spacepose.core.normals import neighbourhood_normals
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.robust import RobustConfig, robust_weights
+from spacepose.core.threads import numba_threads
 from spacepose.errors import InputError, RegistrationError
 
 # Levenberg-Marquardt damping schedule (the values small_gicp uses).

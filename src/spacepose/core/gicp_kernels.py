@@ -11,7 +11,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from spacepose.core.grid import move_and_match
+from spacepose.core.grid_nearest import move_and_match
 
 # Rows per chunk of the compiled sums (fixed: so is the sum order).
 CHUNK = 512

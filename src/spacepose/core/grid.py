@@ -18,31 +18,33 @@ kernel over a hash of voxel cells:
   block of cells around it shared by all its points (:meth:`VoxelIndex.query_self`);
 * the gated nearest point (ICP correspondences) starts at the point's previous match, or else
   at its own cell (a gate within a cell) or the cells ring by ring, nearest first
-  (:func:`nearest_point`, also called from other modules' kernels); a query that moved less
-  than its last search's margin keeps that answer unsearched (:func:`certified_nearest`).
+  (:func:`~spacepose.core.grid_nearest.nearest_point`, also called from other modules'
+  kernels); a query that moved less than its last search's margin keeps that answer
+  unsearched (:func:`~spacepose.core.grid_nearest.certified_nearest`).
 
 Queries are independent, so the result is the same on any thread count. :class:`VoxelIndex`
 answers ``query`` with the contract of ``cKDTree.query`` (missing neighbours: index ``n``,
 distance ``inf``; the k axis dropped for ``k=1``) so either structure can back a search.
+
+This module builds the index and checks the calls; the compiled searches are in
+:mod:`spacepose.core.grid_knn` (k nearest) and :mod:`spacepose.core.grid_nearest` (gated
+nearest), the thread count in :mod:`spacepose.core.threads`.
 """
 
 from __future__ import annotations
 
 import functools
-import os
-from collections.abc import Iterator
-from contextlib import contextmanager
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import as_points
-from spacepose.core.voxel import bounds, cell_keys, find_cell, group_cells
+from spacepose.core.grid_knn import knn_kernel, self_knn_kernel
+from spacepose.core.grid_nearest import nearest_kernel
+from spacepose.core.threads import numba_threads
+from spacepose.core.voxel import bounds, cell_keys, group_cells
 from spacepose.errors import InputError
 
-# Queries per unit of parallel work: enough to amortise scheduling, few enough to balance.
-_CHUNK = 64
 # Mean points per occupied cell the automatic cell size aims at: a k ≈ 15..30 ball then spans
 # a few cells per axis and a correspondence gate one or two.
 _TARGET_OCCUPANCY = 6.0
@@ -50,40 +52,10 @@ _TARGET_OCCUPANCY = 6.0
 _MAX_RINGS = 6
 # Largest number of cells per axis; three of them pack into one int64 key.
 _MAX_CELLS_PER_AXIS = 1 << 20
-# Bands of squared distance the self k-nearest search sorts its candidates into, over this
-# multiple of the previous point's squared k-th distance (the rest: one more band): the bands
-# below the k-th's are taken without comparisons, about two points each are sorted.
-_BANDS = 32
-_BAND_SPAN = 2.0
 # Direct (dense) cell table while the box has at most this many cells per point (plus a floor):
 # a scanned surface fills few of its box's cells, but a lookup then costs one load.
 _DENSE_CELLS_PER_POINT = 16
 _DENSE_CELLS_MIN = 1 << 16
-# OpenMP before TBB: Open3D (the optional peer) bundles a TBB older than numba accepts, and the
-# OpenMP layer, unlike the workqueue fallback, takes concurrent calls from several threads.
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-# Idle OpenMP threads sleep instead of spinning: after a short kernel a spinning thread takes a
-# core from the work that follows (a lab tracking step interleaved with Open3D took 80 ms instead
-# of 27 on two cores). Read when the OpenMP runtime starts; a user's own setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-
-@contextmanager
-def numba_threads(workers: int) -> Iterator[None]:
-    """Run the enclosed kernels on ``workers`` threads (-1: all cores), then restore the count."""
-    available = numba.config.NUMBA_NUM_THREADS
-    if workers == -1:
-        count = available
-    elif isinstance(workers, int | np.integer) and workers >= 1:
-        count = min(int(workers), available)
-    else:
-        raise InputError(f"workers must be -1 (all cores) or a positive count, got {workers}")
-    before = numba.get_num_threads()
-    numba.set_num_threads(count)
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
 
 
 class VoxelIndex:
@@ -202,7 +174,9 @@ class VoxelIndex:
         d2 = np.empty((len(q), k))
         idx = np.empty((len(q), k), dtype=np.int64)
         with numba_threads(workers):
-            _search(self.kernel_grid, np.ascontiguousarray(q, dtype=np.float64), k, bound, d2, idx)
+            knn_kernel(
+                self.kernel_grid, np.ascontiguousarray(q, dtype=np.float64), k, bound, d2, idx
+            )
         missing = idx < 0
         idx[missing] = self.n
         dist = np.sqrt(d2, out=d2)
@@ -258,7 +232,7 @@ class VoxelIndex:
         reach = int(np.ceil(np.sqrt(k / (np.pi * occupancy))))
         with numba_threads(workers):
             reach = max(reach, 1)
-            _self_knn(self.kernel_grid, k, _near_first(reach), reach, d2, idx, unsure)
+            self_knn_kernel(self.kernel_grid, k, _near_first(reach), reach, d2, idx, unsure)
         dist = np.sqrt(d2, out=d2)
         if unsure.any():
             rows = np.flatnonzero(unsure)
@@ -325,7 +299,7 @@ class VoxelIndex:
         idx = np.empty(len(points), dtype=np.int64)
         d2 = np.empty(len(points))
         with numba_threads(workers):
-            _nearest(
+            nearest_kernel(
                 self.kernel_grid,
                 self.rings(max_distance),
                 np.ascontiguousarray(points, dtype=np.float64),
@@ -365,359 +339,6 @@ def _auto_cell_size(
     return trial * float(np.sqrt(target / occupancy))
 
 
-@numba.njit(cache=True, inline="always")
-def _cell_range(x: float, radius: float, origin: float, h: float, dim: int) -> tuple[int, int]:
-    """First and last cell index along one axis overlapping ``[x − radius, x + radius]``.
-
-    ``int`` truncates rather than floors: it differs only below zero, where the clamp makes the
-    first index 0 either way and the last at worst admits cell 0 needlessly (never misses one).
-    """
-    return max(int((x - radius - origin) / h), 0), min(int((x + radius - origin) / h), dim - 1)
-
-
-@numba.njit(cache=True, inline="always")
-def _gap(x: float, cell: int, origin: float, h: float) -> float:
-    """Distance along one axis from ``x`` to the cell's slab (0 inside it)."""
-    low = origin + cell * h
-    if x < low:
-        return low - x
-    if x > low + h:
-        return x - low - h
-    return 0.0
-
-
-@numba.njit(cache=True, inline="always")
-def _insert(order, j, d2, bd, bi):
-    """Insert point ``j`` (sorted rank) at squared distance ``d2`` into the k-best buffer
-    ``(bd, bi)`` (squared distances ascending, sorted ranks) if it belongs there. Ties compare
-    the original index (cells are visited in no particular order); an empty slot holds the
-    bound itself (or ``inf``), which admits only strictly nearer points."""
-    k = len(bd)
-    if d2 > bd[k - 1] or (d2 == bd[k - 1] and (bi[k - 1] < 0 or order[j] > order[bi[k - 1]])):
-        return
-    pos = k - 1
-    while pos > 0 and (bd[pos - 1] > d2 or (bd[pos - 1] == d2 and order[bi[pos - 1]] > order[j])):
-        bd[pos] = bd[pos - 1]
-        bi[pos] = bi[pos - 1]
-        pos -= 1
-    bd[pos] = d2
-    bi[pos] = j
-
-
-@numba.njit(cache=True, inline="always")
-def _collect(grid, q, radius, bd, bi):
-    """Offer the points of the cells overlapping the box ``q ± radius`` to the k-best buffer
-    ``(bd, bi)``: squared distances ascending and sorted ranks; empty slots hold the bound and -1.
-
-    A cell entirely farther than the current k-th best is skipped before its hash lookup.
-    """
-    points, order, starts, cell_keys, table, bits, origin, h, dims, _ = grid
-    k = len(bd)
-    qx, qy, qz = q[0], q[1], q[2]
-    x0, x1 = _cell_range(qx, radius, origin[0], h, dims[0])
-    y0, y1 = _cell_range(qy, radius, origin[1], h, dims[1])
-    z0, z1 = _cell_range(qz, radius, origin[2], h, dims[2])
-    for cx in range(x0, x1 + 1):
-        gx = _gap(qx, cx, origin[0], h) ** 2
-        for cy in range(y0, y1 + 1):
-            gxy = _gap(qy, cy, origin[1], h) ** 2 + gx
-            row = (cx * dims[1] + cy) * dims[2]
-            for cz in range(z0, z1 + 1):
-                if _gap(qz, cz, origin[2], h) ** 2 + gxy > bd[k - 1]:
-                    continue
-                rank = find_cell(table, cell_keys, bits, row + cz)
-                if rank < 0:
-                    continue
-                for j in range(starts[rank], starts[rank + 1]):
-                    d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2
-                    _insert(order, j, d2 + (points[j, 2] - qz) ** 2, bd, bi)
-
-
-@numba.njit(cache=True, parallel=True)
-def _search(grid, queries, k, bound, d2, idx):
-    """k nearest (strictly within ``bound``) of every query into ``d2`` and ``idx`` (original
-    indices, -1 for none)."""
-    order, h, dims = grid[1], grid[7], grid[8]
-    origin = grid[6]
-    n_queries = len(queries)
-    half_diagonal = 0.5 * h * np.sqrt((dims[0] ** 2 + dims[1] ** 2 + dims[2] ** 2) * 1.0)
-    cx = origin[0] + 0.5 * h * dims[0]
-    cy = origin[1] + 0.5 * h * dims[1]
-    cz = origin[2] + 0.5 * h * dims[2]
-    for chunk in numba.prange((n_queries + _CHUNK - 1) // _CHUNK):
-        bd = np.empty(k)
-        bi = np.empty(k, dtype=np.int64)
-        guess = h
-        for i in range(chunk * _CHUNK, min(n_queries, (chunk + 1) * _CHUNK)):
-            q = queries[i]
-            bi[:] = -1
-            if np.isfinite(bound):
-                # Strictly inside the bound: start the buffer at it.
-                bd[:] = bound * bound
-                _collect(grid, q, bound, bd, bi)
-            else:
-                bd[:] = np.inf
-                radius = guess
-                # Beyond this radius the box holds every cell: nothing more to find.
-                reach = np.sqrt((q[0] - cx) ** 2 + (q[1] - cy) ** 2 + (q[2] - cz) ** 2)
-                reach += half_diagonal
-                while True:
-                    _collect(grid, q, radius, bd, bi)
-                    if bi[k - 1] >= 0:
-                        kth = np.sqrt(bd[k - 1])
-                        if kth > radius:
-                            # k candidates bound the k-th distance: one more pass is exact.
-                            radius = kth * (1.0 + 1e-12)
-                            bd[:] = np.inf
-                            bi[:] = -1
-                            _collect(grid, q, radius, bd, bi)
-                        # Never zero (a duplicate point), or the doubling would never grow.
-                        guess = max(1.25 * np.sqrt(bd[k - 1]), 0.5 * h)
-                        break
-                    if radius > reach:
-                        break
-                    radius *= 2.0
-                    bd[:] = np.inf
-                    bi[:] = -1
-            for j in range(k):
-                found = bi[j] >= 0
-                idx[i, j] = order[bi[j]] if found else -1
-                d2[i, j] = bd[j] if found else np.inf
-
-
-@numba.njit(cache=True, inline="always")
-def nearest_point(grid, rings, qx, qy, qz, gate, hint):
-    """Compiled core of :meth:`VoxelIndex.nearest_within` for one query point, for other kernels
-    to call: ``(original index, squared distance)`` of its nearest point strictly within
-    ``gate`` (``(-1, gate²)`` when none). ``hint`` is a candidate's original index (-1: none).
-    ``grid`` is a VoxelIndex's ``kernel_grid``, ``rings`` its :meth:`VoxelIndex.rings` for the
-    gate.
-
-    With a hint inside the gate, one pass over the box of the hint's distance (a cell or two
-    after a small move). Without, the query's own cell, then the box of the distance found
-    there (or of the gate) when the gate is within a cell; else the cells ring by ring, nearest
-    first, until no further ring can hold anything nearer: a wide gate's box holds hundreds of
-    cells.
-    """
-    best, found = _hinted(grid, qx, qy, qz, gate, hint)
-    j, d2, _ = _gated_search(grid, rings, qx, qy, qz, gate, best, found, False)
-    return j, d2
-
-
-@numba.njit(cache=True, inline="always")
-def certified_nearest(grid, rings, qx, qy, qz, gate, hint, anchor, bound):
-    """:func:`nearest_point` for a query that moves a little between calls (ICP's source
-    points), skipping the search while a certificate from an earlier one still holds.
-
-    The certificate of a search at ``anchor`` is a lower bound ``b`` on the distance from there
-    to every indexed point but the nearest found (the second nearest scanned, or the scanned
-    block's border when nearer; with none, a ring search's skipped cells and rings): at a query
-    ``δ`` from the anchor every other point is at least ``b − δ`` away, so the previous
-    nearest ``hint`` is still the nearest when it is strictly within ``b − δ``. Without a
-    nearest (none within the gate) ``b`` bounds every point, and there is still none while
-    ``b − δ`` reaches the gate. The answer is :func:`nearest_point`'s to the bit (same
-    distances, ties by index); a tie or a bound within rounding of the distance is searched
-    again.
-
-    Parameters
-    ----------
-    grid, rings, qx, qy, qz, gate, hint
-        As for :func:`nearest_point` (``hint``: the previous call's answer for this query).
-    anchor
-        (3,) where this query's certificate was taken (read only when ``bound`` is not 0).
-    bound
-        The certificate: ``b > 0`` with a nearest (``hint``), ``−b < 0`` without one, 0 none.
-
-    Returns
-    -------
-    (index, squared distance, certificate)
-        As :func:`nearest_point`, and the certificate of a new search at this query (store it
-        with the query as the new anchor) or NaN when the old one held
-        (keep both).
-    """
-    best, found = _hinted(grid, qx, qy, qz, gate, hint)
-    if bound != 0.0:
-        dx, dy, dz = qx - anchor[0], qy - anchor[1], qz - anchor[2]
-        delta = np.sqrt(dx * dx + dy * dy + dz * dz)
-        if bound > 0.0 and found >= 0 and np.sqrt(best) + delta < bound:
-            return hint, best, np.nan
-        if bound < 0.0 and -bound - delta >= gate:
-            return -1, best, np.nan
-    return _gated_search(grid, rings, qx, qy, qz, gate, best, found, True)
-
-
-@numba.njit(cache=True, inline="always")
-def move_and_match(grid, rings, src, R, t, gate, hint, anchors, bounds, i, q):
-    """Move source point ``i`` into ``q`` (3,) (``R p + t``) and find its nearest indexed point
-    within the gate by :func:`certified_nearest` from ``hint[i]`` and its certificate
-    (``anchors[i]``, ``bounds[i]``, renewed in place when it searched): ICP's and GICP's
-    compiled passes. Returns ``(original index or -1, squared distance)``."""
-    for a in range(3):
-        q[a] = R[a, 0] * src[i, 0] + R[a, 1] * src[i, 1] + R[a, 2] * src[i, 2] + t[a]
-    j, d2, bound = certified_nearest(
-        grid, rings, q[0], q[1], q[2], gate, hint[i], anchors[i], bounds[i]
-    )
-    if not np.isnan(bound):
-        bounds[i] = bound
-        anchors[i, 0], anchors[i, 1], anchors[i, 2] = q[0], q[1], q[2]
-    return j, d2
-
-
-@numba.njit(cache=True, inline="always")
-def _hinted(grid, qx, qy, qz, gate, hint):
-    """(squared distance, sorted rank) of the hint when it lies strictly within the gate, else
-    (gate², -1)."""
-    points, rank = grid[0], grid[9]
-    if hint >= 0:
-        j = rank[hint]
-        d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
-        if d2 < gate * gate:
-            return d2, j
-    return gate * gate, -1
-
-
-@numba.njit(cache=True, inline="always")
-def _gated_search(grid, rings, qx, qy, qz, gate, best, found, certify):
-    """The search of :func:`nearest_point` from ``(best, found)`` (:func:`_hinted`):
-    ``(original index or -1, squared distance, certificate)``, the certificate as
-    :func:`certified_nearest` returns it (``certify``: worth a wider ring search)."""
-    points, order, starts, cell_keys, table, bits, origin, h, dims, _ = grid
-    second, own = np.inf, -1
-    if found < 0 and gate > h:
-        # A gate wider than a cell and nothing to start from: ring by ring, nearest first.
-        ox = int(np.floor((qx - origin[0]) / h))
-        oy = int(np.floor((qy - origin[1]) / h))
-        oz = int(np.floor((qz - origin[2]) / h))
-        # Every cell from the first ring not visited on is at least its ring less one cell away;
-        # a skipped cell at least its gap (squared: skipped). While nothing is within the gate,
-        # the cells up to a cell beyond it are scanned too (none can hold a match): their
-        # points bound how far the query may move and still have none (when the rings reach
-        # that far: else the block search below takes over).
-        reach, skipped = rings[-1, 3] + 1, np.inf
-        wide = (gate + h) ** 2 if certify and rings[-1, 3] * h >= gate + h else best
-        for o in range(len(rings)):
-            limit = best if found >= 0 else wide
-            # Ring r lies at least (r − 1) cells away; ">" keeps ties at the bound in play.
-            if rings[o, 3] > 1 and ((rings[o, 3] - 1) * h) ** 2 > limit:
-                reach = rings[o, 3]
-                break
-            cx, cy, cz = ox + rings[o, 0], oy + rings[o, 1], oz + rings[o, 2]
-            if not (0 <= cx < dims[0] and 0 <= cy < dims[1] and 0 <= cz < dims[2]):
-                continue
-            gap2 = _gap(qx, cx, origin[0], h) ** 2 + _gap(qy, cy, origin[1], h) ** 2
-            gap2 += _gap(qz, cz, origin[2], h) ** 2
-            if gap2 > limit:
-                skipped = min(skipped, gap2)
-                continue
-            cell = find_cell(table, cell_keys, bits, (cx * dims[1] + cy) * dims[2] + cz)
-            if cell >= 0 and found >= 0:
-                best, found = _nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, found)
-            elif cell >= 0:
-                best, second, found = _two_nearest_in_cell(
-                    points, order, starts, cell, qx, qy, qz, best, second, found
-                )
-        if best < ((reach - 1) * h) ** 2 and found >= 0:
-            # A nearest found ring by ring has moved a query far: no certificate (0).
-            return order[found], best, 0.0
-        if best < ((reach - 1) * h) ** 2:
-            return _certified(found, order, best, (reach - 1) * h, second, skipped, qx, qy, qz)
-    elif found < 0:
-        # The own cell first: its nearest (if any) shrinks the box of the others.
-        ox = int(np.floor((qx - origin[0]) / h))
-        oy = int(np.floor((qy - origin[1]) / h))
-        oz = int(np.floor((qz - origin[2]) / h))
-        if 0 <= ox < dims[0] and 0 <= oy < dims[1] and 0 <= oz < dims[2]:
-            own = (ox * dims[1] + oy) * dims[2] + oz
-            cell = find_cell(table, cell_keys, bits, own)
-            if cell >= 0:
-                best, second, found = _two_nearest_in_cell(
-                    points, order, starts, cell, qx, qy, qz, best, second, found
-                )
-    # (1 + 1e-12): a tie at exactly the best distance must fall inside the box.
-    radius = np.sqrt(best) * (1.0 + 1e-12)
-    x0, x1 = _cell_range(qx, radius, origin[0], h, dims[0])
-    y0, y1 = _cell_range(qy, radius, origin[1], h, dims[1])
-    z0, z1 = _cell_range(qz, radius, origin[2], h, dims[2])
-    for cx in range(x0, x1 + 1):
-        for cy in range(y0, y1 + 1):
-            row = (cx * dims[1] + cy) * dims[2]
-            for cz in range(z0, z1 + 1):
-                if row + cz == own:
-                    continue
-                cell = find_cell(table, cell_keys, bits, row + cz)
-                if cell >= 0:
-                    best, second, found = _two_nearest_in_cell(
-                        points, order, starts, cell, qx, qy, qz, best, second, found
-                    )
-    # Every point outside the scanned block is beyond its nearest face (none past the grid).
-    outside = np.inf
-    if x0 > 0:
-        outside = min(outside, qx - (origin[0] + x0 * h))
-    if x1 < dims[0] - 1:
-        outside = min(outside, origin[0] + (x1 + 1) * h - qx)
-    if y0 > 0:
-        outside = min(outside, qy - (origin[1] + y0 * h))
-    if y1 < dims[1] - 1:
-        outside = min(outside, origin[1] + (y1 + 1) * h - qy)
-    if z0 > 0:
-        outside = min(outside, qz - (origin[2] + z0 * h))
-    if z1 < dims[2] - 1:
-        outside = min(outside, origin[2] + (z1 + 1) * h - qz)
-    return _certified(found, order, best, outside, second, np.inf, qx, qy, qz)
-
-
-@numba.njit(cache=True, inline="always")
-def _certified(found, order, best, outside, second, skipped, qx, qy, qz):
-    """``(original index or -1, best, certificate)`` of a search that scanned every point
-    nearer than ``outside`` but those in cells at least ``√skipped`` away, and whose second
-    smallest squared distance offered (with the gate² it started from) was ``second``."""
-    # Rounding of the distances (relative to the coordinates) must not fake a certificate.
-    limit = min(np.sqrt(min(second, skipped)), outside)
-    b = max(limit - 1e-12 * (1.0 + abs(qx) + abs(qy) + abs(qz)), 0.0)
-    if found < 0:
-        # Everything scanned is at the gate or beyond, and so is the block's border.
-        return -1, best, -b
-    return order[found], best, b
-
-
-@numba.njit(cache=True, inline="always")
-def _nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, found):
-    """(best squared distance, its sorted rank) after offering the points of ``cell``; ties go
-    to the smaller original index, as everywhere in this module."""
-    for j in range(starts[cell], starts[cell + 1]):
-        d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
-        if d2 < best or (d2 == best and found >= 0 and order[j] < order[found]):
-            best, found = d2, j
-    return best, found
-
-
-@numba.njit(cache=True, inline="always")
-def _two_nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, second, found):
-    """:func:`_nearest_in_cell` that also keeps the second smallest squared distance offered
-    (``second``; the point ``found`` itself is skipped, as it is already counted)."""
-    for j in range(starts[cell], starts[cell + 1]):
-        if j == found:
-            continue
-        d2 = (points[j, 0] - qx) ** 2 + (points[j, 1] - qy) ** 2 + (points[j, 2] - qz) ** 2
-        if d2 < best or (d2 == best and found >= 0 and order[j] < order[found]):
-            second = best
-            best, found = d2, j
-        elif d2 < second:
-            second = d2
-    return best, second, found
-
-
-@numba.njit(cache=True, parallel=True)
-def _nearest(grid, rings, queries, hint, gate, idx, d2):
-    """:func:`nearest_point` of every query into ``idx`` and ``d2`` (``inf`` for none)."""
-    n_queries = len(queries)
-    for chunk in numba.prange((n_queries + _CHUNK - 1) // _CHUNK):
-        for i in range(chunk * _CHUNK, min(n_queries, (chunk + 1) * _CHUNK)):
-            q = queries[i]
-            idx[i], best = nearest_point(grid, rings, q[0], q[1], q[2], gate, hint[i])
-            d2[i] = best if idx[i] >= 0 else np.inf
-
-
 @functools.cache
 def _rings(reach: int) -> NDArray[np.int64]:
     offsets = _near_first(max(reach, 1))
@@ -735,124 +356,3 @@ def _near_first(reach: int) -> NDArray[np.int64]:
     side = 2 * reach + 1
     offsets = np.array(list(np.ndindex(side, side, side)), dtype=np.int64) - reach
     return offsets[np.argsort(np.abs(offsets).sum(axis=1), kind="stable")]
-
-
-@numba.njit(cache=True, inline="always")
-def cell_candidates(grid, offsets, c):
-    """The points of the cells at ``offsets`` (K, 3) from sorted cell ``c``, in cell order.
-
-    Returns ``c``'s cell coordinates and the candidates' sorted ranks and coordinates, one array
-    per axis, copied once per cell: a query's distances to all of them then run as one
-    vectorised loop (13 % faster than point by point).
-    """
-    points, _, starts, cell_keys, table, bits, _, _, dims, _ = grid
-    key = cell_keys[c]
-    cz = key % dims[2]
-    cy = (key // dims[2]) % dims[1]
-    cx = key // (dims[2] * dims[1])
-    first = np.empty(len(offsets), dtype=np.int64)
-    last = np.empty(len(offsets), dtype=np.int64)
-    runs = total = 0
-    for o in range(len(offsets)):
-        x, y, z = cx + offsets[o, 0], cy + offsets[o, 1], cz + offsets[o, 2]
-        if not (0 <= x < dims[0] and 0 <= y < dims[1] and 0 <= z < dims[2]):
-            continue
-        rank = find_cell(table, cell_keys, bits, (x * dims[1] + y) * dims[2] + z)
-        if rank >= 0:
-            first[runs] = starts[rank]
-            last[runs] = starts[rank + 1]
-            total += last[runs] - first[runs]
-            runs += 1
-    cand = np.empty(total, dtype=np.int64)
-    cand_x, cand_y, cand_z = np.empty(total), np.empty(total), np.empty(total)
-    m = 0
-    for r in range(runs):
-        for j in range(first[r], last[r]):
-            cand[m] = j
-            cand_x[m], cand_y[m], cand_z[m] = points[j, 0], points[j, 1], points[j, 2]
-            m += 1
-    return cx, cy, cz, cand, cand_x, cand_y, cand_z
-
-
-@numba.njit(cache=True, parallel=True)
-def _self_knn(grid, k, offsets, w, d2, idx, unsure):
-    """k nearest of every indexed point among the cells at ``offsets`` (:func:`_near_first`,
-    within ``w`` cells) from its own, a cell at a time; rows (original indices) whose k-th
-    distance may reach beyond those cells are flagged in ``unsure`` instead.
-
-    The candidates (about 200 for k = 30) are counted into bands of squared distance rather
-    than offered one by one to a sorted buffer (whose shifts took about 70 % of the time): the
-    bands below the k-th's are taken whole and the k-th's band gives its best. The answer is
-    the buffer's to the bit: sorted by (squared distance, index)."""
-    points, order, starts, cell_keys, _, _, origin, h, dims, _ = grid
-    for c in numba.prange(len(cell_keys)):
-        cx, cy, cz, cand, cand_x, cand_y, cand_z = cell_candidates(grid, offsets, c)
-        total = len(cand)
-        dd = np.empty(total)
-        band = np.empty(total, dtype=np.int64)
-        counts = np.empty(_BANDS + 1, dtype=np.int64)
-        # The faces of the searched block, per axis and side: a face at the grid's border has
-        # nothing beyond it.
-        low_x = origin[0] + (cx - w) * h if cx - w > 0 else -np.inf
-        high_x = origin[0] + (cx + w + 1) * h if cx + w + 1 < dims[0] else np.inf
-        low_y = origin[1] + (cy - w) * h if cy - w > 0 else -np.inf
-        high_y = origin[1] + (cy + w + 1) * h if cy + w + 1 < dims[1] else np.inf
-        low_z = origin[2] + (cz - w) * h if cz - w > 0 else -np.inf
-        high_z = origin[2] + (cz + w + 1) * h if cz + w + 1 < dims[2] else np.inf
-        bd = np.empty(k)
-        bi = np.empty(k, dtype=np.int64)
-        # Squared k-th distance of the cell's previous point: the scale of the bands (per cell,
-        # so the work does not depend on the thread that takes the cell).
-        scale = h * h
-        for i in range(starts[c], starts[c + 1]):
-            qx, qy, qz = points[i, 0], points[i, 1], points[i, 2]
-            # Bands of squared distance, monotone in it: a nearer band's points are all nearer.
-            inv = _BANDS / (_BAND_SPAN * scale)
-            counts[:] = 0
-            for m in range(total):
-                dd[m] = (cand_x[m] - qx) ** 2 + (cand_y[m] - qy) ** 2 + (cand_z[m] - qz) ** 2
-                band[m] = int(min(dd[m] * inv, _BANDS))
-                counts[band[m]] += 1
-            row = order[i]
-            if total < k:
-                unsure[row] = True
-                continue
-            # The bands below the k-th's ("edge") are taken whole, each to its own run of the
-            # buffer (a counting sort); the edge band's best fill the rest, in order.
-            edge = below = 0
-            while below + counts[edge] < k:
-                below += counts[edge]
-                edge += 1
-            start = 0
-            for b in range(edge):
-                counts[b], start = start, start + counts[b]
-            tail_d, tail_i = bd[below:], bi[below:]
-            tail_d[:] = np.inf
-            tail_i[:] = -1
-            for m in range(total):
-                if band[m] < edge:
-                    bd[counts[band[m]]] = dd[m]
-                    bi[counts[band[m]]] = cand[m]
-                    counts[band[m]] += 1
-                elif band[m] == edge:
-                    _insert(order, cand[m], dd[m], tail_d, tail_i)
-            reach = min(qx - low_x, high_x - qx, qy - low_y, high_y - qy, qz - low_z, high_z - qz)
-            # Exact when every point not seen is strictly farther than the k-th (ties too).
-            if bd[k - 1] >= reach * reach:
-                unsure[row] = True
-                continue
-            if bd[k - 1] > 0:
-                scale = bd[k - 1]
-            # Within each band (a point or two): the order of (squared distance, index).
-            for j in range(1, below):
-                dj, rj = bd[j], bi[j]
-                pos = j
-                while pos > 0 and (
-                    bd[pos - 1] > dj or (bd[pos - 1] == dj and order[bi[pos - 1]] > order[rj])
-                ):
-                    bd[pos], bi[pos] = bd[pos - 1], bi[pos - 1]
-                    pos -= 1
-                bd[pos], bi[pos] = dj, rj
-            for j in range(k):
-                d2[row, j] = bd[j]
-                idx[row, j] = order[bi[j]]

@@ -23,8 +23,9 @@ from numpy.typing import NDArray
 
 from spacepose.core import se3
 from spacepose.core.cloud import check_rows
-from spacepose.core.grid import move_and_match, numba_threads
+from spacepose.core.grid_nearest import move_and_match
 from spacepose.core.robust import weight_and_slope
+from spacepose.core.threads import numba_threads
 from spacepose.errors import DegenerateGeometryError
 
 # Smallest/largest eigenvalue ratio of a Gauss-Newton system below which a direction is

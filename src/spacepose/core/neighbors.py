@@ -18,7 +18,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import as_points
-from spacepose.core.grid import VoxelIndex, numba_threads, self_knn_occupancy
+from spacepose.core.grid import VoxelIndex, self_knn_occupancy
+from spacepose.core.threads import numba_threads
 from spacepose.errors import InputError
 
 SearchIndex = cKDTree | VoxelIndex

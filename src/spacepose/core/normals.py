@@ -17,8 +17,8 @@ from pydantic import Field, PositiveFloat
 
 from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.core.config import StageConfig
-from spacepose.core.grid import numba_threads
 from spacepose.core.neighbors import SearchIndex, hybrid, knn, row_moments
+from spacepose.core.threads import numba_threads
 from spacepose.errors import InputError
 
 # Matrices per unit of parallel work: amortises scheduling, balances the two threads.
