@@ -53,7 +53,7 @@ def certified_nearest(grid, rings, qx, qy, qz, gate, hint, anchor, bound):
 
     The certificate of a search at ``anchor`` is a lower bound ``b`` on the distance from there
     to every indexed point but the nearest found (the second nearest scanned, or the scanned
-    block's border when nearer; with none, a ring search's skipped cells and rings): at a query
+    block's border when nearer; after a ring search, the nearest skipped cell or ring): at a query
     ``δ`` from the anchor every other point is at least ``b − δ`` away, so the previous
     nearest ``hint`` is still the nearest when it is strictly within ``b − δ``. Without a
     nearest (none within the gate) ``b`` bounds every point, and there is still none while
@@ -152,16 +152,17 @@ def _gated_search(grid, rings, qx, qy, qz, gate, best, found, certify):
                 skipped = min(skipped, gap2)
                 continue
             cell = find_cell(table, cell_keys, bits, (cx * dims[1] + cy) * dims[2] + cz)
-            if cell >= 0 and found >= 0:
+            if cell >= 0 and found >= 0 and not certify:
                 best, found = _nearest_in_cell(points, order, starts, cell, qx, qy, qz, best, found)
             elif cell >= 0:
+                # A certificate needs the second nearest of every cell visited.
                 best, second, found = _two_nearest_in_cell(
                     points, order, starts, cell, qx, qy, qz, best, second, found
                 )
-        if best < ((reach - 1) * h) ** 2 and found >= 0:
-            # A nearest found ring by ring has moved a query far: no certificate (0).
+        if best < ((reach - 1) * h) ** 2 and found >= 0 and not certify:
             return order[found], best, 0.0
         if best < ((reach - 1) * h) ** 2:
+            # Every cell not visited lies beyond the ring before the last one reached.
             return _certified(found, order, best, (reach - 1) * h, second, skipped, qx, qy, qz)
     elif found < 0:
         # The own cell first: its nearest (if any) shrinks the box of the others.
