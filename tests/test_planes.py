@@ -7,14 +7,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from spacepose.core.cloud import PointCloud
+from spacepose.core.moments import distribution, fit_plane
 from spacepose.core.planes import (
     Plane,
     PlaneConfig,
     assign_along_rays,
     dense_support,
-    distribution,
     extract_planes,
-    fit_plane,
     iteration_bound,
     largest_component,
     range_residuals,

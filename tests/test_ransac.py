@@ -19,7 +19,6 @@ from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.ransac import (
     RansacConfig,
-    coverage_counts,
     feature_ransac,
     global_registration,
     iteration_bound,
@@ -27,6 +26,7 @@ from spacepose.core.ransac import (
     ransac_correspondences,
     sample_triples,
 )
+from spacepose.core.ransac_scoring import coverage_counts
 from spacepose.core.sim import lab_target, sample_surface, scenario_config, simulate
 from spacepose.errors import ConfigError, InputError, RegistrationError
 from spacepose.tools.experiments.li_global import (

@@ -40,9 +40,10 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
+from spacepose.core.moments import fit_plane
 from spacepose.core.neighbors import hybrid
 from spacepose.core.normals import neighbourhood_normals
-from spacepose.core.planes import PlaneConfig, fit_plane, largest_component, ransac_plane
+from spacepose.core.planes import PlaneConfig, largest_component, ransac_plane
 from spacepose.core.voxel import voxel_cells
 from spacepose.errors import DegenerateGeometryError, InputError
 

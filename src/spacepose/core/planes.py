@@ -2,9 +2,9 @@
 
 Hypotheses (planes through three sampled points) are scored in batches: a (B, chunk) matrix of
 point-to-plane distances at a time, so no Python loop runs over points. The best plane is refitted
-to its inliers by PCA. :func:`extract_planes` repeats this on the points left over and, for a
-range sensor, finally gives every point to the plane nearest along its ray
-(:func:`assign_along_rays`).
+to its inliers by PCA (:func:`~spacepose.core.moments.fit_plane`). :func:`extract_planes` repeats
+this on the points left over and, for a range sensor, finally gives every point to the plane
+nearest along its ray (:func:`assign_along_rays`).
 
 All coordinates are in the frame of the input cloud (usually the sensor frame), in metres. Each
 plane's normal is oriented towards the origin of that frame (the sensor), so ``offset <= 0``.
@@ -24,15 +24,13 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud
-from spacepose.core.cloud import as_points as _finite_points
 from spacepose.core.config import StageConfig
+from spacepose.core.moments import as_points, distribution, fit_plane, is_collinear
 from spacepose.core.ransac import sample_triples
 from spacepose.errors import DegenerateGeometryError, InputError
 
 # Largest number of distances held at once when scoring a batch (32 MB of float64).
 _SCORE_BLOCK = 1 << 22
-# Relative size of the second eigenvalue below which points count as collinear.
-_COLLINEAR_RTOL = 1e-10
 
 
 class PlaneConfig(StageConfig):
@@ -113,109 +111,6 @@ class Plane:
     def distances(self, points: ArrayLike) -> NDArray[np.float64]:
         """Signed distances (N,) of points (N, 3) from the plane, positive on the normal's side."""
         return np.asarray(points, dtype=np.float64) @ self.normal - self.offset
-
-
-def as_points(cloud_or_points: PointCloud | ArrayLike, what: str = "points") -> NDArray[np.float64]:
-    """Validate an (N, 3) finite array with N >= 3 (or take a PointCloud's points).
-
-    Raises
-    ------
-    InputError
-        On a wrong shape, non-finite values or fewer than 3 points.
-    """
-    return _finite_points(cloud_or_points, what, min_points=3)
-
-
-def normalised_weights(weights: ArrayLike, n: int) -> NDArray[np.float64]:
-    """Weights (n,) scaled to sum to 1.
-
-    Raises
-    ------
-    InputError
-        Not n finite non-negative numbers, or all of them 0.
-    """
-    w = np.asarray(weights, dtype=np.float64)
-    if w.shape != (n,):
-        raise InputError(f"weights must be ({n},) (one per point), got shape {w.shape}")
-    if not np.all(np.isfinite(w)) or np.any(w < 0.0):
-        raise InputError("weights must be finite and non-negative")
-    total = float(w.sum())
-    if total <= 0.0:
-        raise InputError("weights are all 0: no point counts")
-    return w / total
-
-
-def distribution(
-    points: ArrayLike, weights: ArrayLike | None = None
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """Centroid and eigen-decomposition of the distribution matrix (methods.md §2.2).
-
-    Parameters
-    ----------
-    points
-        (N, 3) points, N >= 3, finite.
-    weights
-        Optional (N,) non-negative weights (the surface each point stands for); uniform if None.
-
-    Raises
-    ------
-    InputError
-        Bad points, or bad weights (:func:`normalised_weights`).
-
-    Returns
-    -------
-    centroid
-        (3,) mean point (weighted).
-    eigenvalues
-        (3,) eigenvalues of ``M = Σ w (p − c)(p − c)ᵀ / Σ w``, ascending (m²).
-    eigenvectors
-        (3, 3) orthonormal eigenvectors as columns, in the same order.
-    """
-    pts = as_points(points)
-    if weights is None:
-        centroid = pts.mean(axis=0)
-        centred = pts - centroid
-        M = centred.T @ centred / len(pts)
-    else:
-        w = normalised_weights(weights, len(pts))
-        centroid = w @ pts
-        centred = pts - centroid
-        M = (centred * w[:, None]).T @ centred
-    eigenvalues, eigenvectors = np.linalg.eigh(M)
-    return centroid, np.clip(eigenvalues, 0.0, None), eigenvectors
-
-
-def is_collinear(eigenvalues: NDArray[np.float64]) -> bool:
-    """Whether ascending eigenvalues (3,) of a distribution matrix describe a line or a point."""
-    return bool(eigenvalues[1] <= _COLLINEAR_RTOL * max(eigenvalues[2], 1e-300))
-
-
-def fit_plane(points: ArrayLike) -> tuple[NDArray[np.float64], float]:
-    """Least-squares plane (PCA) through points (N, 3).
-
-    Returns
-    -------
-    normal
-        (3,) unit normal (eigenvector of the smallest eigenvalue), towards the frame's origin.
-    offset
-        ``normal · centroid`` (m), so the plane is ``normal · x = offset``.
-
-    Raises
-    ------
-    InputError
-        Fewer than 3 points or non-finite values.
-    DegenerateGeometryError
-        Collinear or coincident points, which do not determine a plane.
-    """
-    centroid, eigenvalues, eigenvectors = distribution(points)
-    if is_collinear(eigenvalues):
-        raise DegenerateGeometryError("points are collinear or coincident: no unique plane")
-    normal = eigenvectors[:, 0]
-    offset = float(normal @ centroid)
-    # Face the sensor (origin): a visible surface's normal points back along the ray.
-    if offset > 0:
-        normal, offset = -normal, -offset
-    return normal, offset
 
 
 def iteration_bound(confidence: float, outlier_ratio: float) -> int:

@@ -4,17 +4,18 @@ Correspondences are nearest neighbours in feature space (optionally mutual). Hyp
 and scored in batches: three distinct correspondences per hypothesis, a cheap edge-length test,
 a batched Kabsch fit, a test that the three sampled pairs land within the correspondence
 distance, inlier counting on the whole correspondence set (at least ``min_inliers``), a few
-Kabsch refits of each surviving hypothesis on its own inliers, and then a coverage score:
-how many points of a fixed subsample of each cloud land within the gate of the other cloud (as
-PCL's SampleConsensusPrerejective validates by inlier fraction). Hypotheses are ranked by
-coverage, ties broken by correspondence inliers. Correspondence inliers alone cannot
-tell a near-symmetric target from its flip (the lab mock-up turned 180° about a body axis
-collects as many feature matches as the true pose), but the flip leaves part of the observed
-surface unexplained. Sampling stops at the confidence bound ``k = log(1 − p) / log(1 − w³)``
-(w the inlier ratio of the best hypothesis so far) or at the iteration limit; the best hypothesis
-is refitted on its inliers with Kabsch. ``ranking="inliers"`` is the paper's plain RANSAC
-instead: no refits, no coverage, the most correspondence inliers win. All randomness comes from
-one seeded generator consumed in a fixed order, so the result is the same for any ``workers``.
+Kabsch refits of each surviving hypothesis on its own inliers, and then a coverage score
+(:mod:`spacepose.core.ransac_scoring`): how many points of a fixed subsample of each cloud land
+within the gate of the other cloud (as PCL's SampleConsensusPrerejective validates by inlier
+fraction). Hypotheses are ranked by coverage, ties broken by correspondence inliers.
+Correspondence inliers alone cannot tell a near-symmetric target from its flip (the lab mock-up
+turned 180° about a body axis collects as many feature matches as the true pose), but the flip
+leaves part of the observed surface unexplained. Sampling stops at the confidence bound
+``k = log(1 − p) / log(1 − w³)`` (w the inlier ratio of the best hypothesis so far) or at the
+iteration limit; the best hypothesis is refitted on its inliers with Kabsch.
+``ranking="inliers"`` is the paper's plain RANSAC instead: no refits, no coverage, the most
+correspondence inliers win. All randomness comes from one seeded generator consumed in a fixed
+order, so the result is the same for any ``workers``.
 """
 
 from __future__ import annotations
@@ -22,7 +23,6 @@ from __future__ import annotations
 import math
 from typing import Literal
 
-import numba
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
@@ -31,18 +31,13 @@ from scipy.spatial import cKDTree
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
-from spacepose.core.correspondences import find_correspondences
 from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import as_registration_cloud
-from spacepose.core.icp_systems import point_to_point_information
-from spacepose.core.neighbors import SearchIndex
 from spacepose.core.normals import NormalsConfig, estimate_normals
+from spacepose.core.ransac_scoring import coverage_counts, evaluate_alignment, squared_residuals
 from spacepose.core.registration import RegistrationResult, kabsch
 from spacepose.errors import InputError, RegistrationError
-
-# Fewest query points for which coverage_counts searches with the caller's threads.
-_THREADED_QUERY = 20_000
 
 
 class RansacConfig(StageConfig):
@@ -176,57 +171,6 @@ def iteration_bound(inlier_ratio: float, confidence: float) -> float:
     return math.log(1.0 - confidence) / math.log(miss)
 
 
-def coverage_counts(
-    T_target_source: NDArray[np.float64],
-    source_points: NDArray[np.float64],
-    target_tree: SearchIndex,
-    max_distance: float,
-    workers: int = -1,
-) -> NDArray[np.intp]:
-    """How many source points each transform maps within ``max_distance`` of the target cloud.
-
-    Parameters
-    ----------
-    T_target_source
-        (H, 4, 4) hypotheses mapping the source frame into the target frame.
-    source_points
-        (m, 3) points in the source frame (usually a fixed subsample).
-    target_tree
-        Search index (VoxelIndex, ``cKDTree``) of the target cloud, target frame.
-    max_distance
-        Gate (m); a point counts when its nearest target point is strictly closer.
-    workers
-        Threads for the single query of all H × m moved points.
-
-    Returns
-    -------
-    (H,) counts in ``0..m``.
-
-    Raises
-    ------
-    InputError
-        Transforms not shaped (H, 4, 4) or points not (m, 3).
-    """
-    if T_target_source.ndim != 3 or T_target_source.shape[1:] != (4, 4):
-        raise InputError(f"coverage_counts needs (H, 4, 4) transforms, got {T_target_source.shape}")
-    if source_points.ndim != 2 or source_points.shape[1] != 3:
-        raise InputError(f"coverage_counts needs (m, 3) points, got {source_points.shape}")
-    moved = np.empty((len(T_target_source), len(source_points), 3))
-    _transform_batch(
-        np.ascontiguousarray(T_target_source, dtype=np.float64),
-        np.ascontiguousarray(source_points, dtype=np.float64),
-        np.empty((0, 3)),
-        moved,
-        np.empty((0, 0)),
-    )
-    moved = moved.reshape(-1, 3)
-    # Most batches leave a handful of hypotheses, and starting threads then costs more than the
-    # search (the counts do not depend on it).
-    threads = workers if len(moved) >= _THREADED_QUERY else 1
-    dist, _ = target_tree.query(moved, k=1, distance_upper_bound=max_distance, workers=threads)
-    return np.count_nonzero((dist < max_distance).reshape(len(T_target_source), -1), axis=1)
-
-
 def ransac_correspondences(
     source: PointCloud | ArrayLike,
     target: PointCloud | ArrayLike,
@@ -301,7 +245,7 @@ def ransac_correspondences(
         T = T[np.all(np.sum((moved - D[ok]) ** 2, axis=2) < eps2, axis=1)]
         if len(T) == 0:
             continue
-        r2 = _squared_residuals(T, src_c, tgt_c)
+        r2 = squared_residuals(T, src_c, tgt_c)
         inl = r2 < eps2
         most = max(most, int(inl.sum(axis=1).max()))
         # Score each hypothesis where refits on its own inliers take it: a fit to three noisy
@@ -313,7 +257,7 @@ def ransac_correspondences(
             T, inl = T[keep], inl[keep]
             shape = (len(T), *src_c.shape)
             T = kabsch(np.broadcast_to(src_c, shape), np.broadcast_to(tgt_c, shape), inl)
-            r2 = _squared_residuals(T, src_c, tgt_c)
+            r2 = squared_residuals(T, src_c, tgt_c)
             inl = r2 < eps2
             keep = inl.sum(axis=1) >= config.min_inliers
         if not keep.any():
@@ -345,31 +289,6 @@ def ransac_correspondences(
     inliers = np.sum((se3.transform_points(best_T, src_c) - tgt_c) ** 2, axis=1) < eps2
     T_target_source = kabsch(src_c[inliers], tgt_c[inliers])
     return evaluate_alignment(src, tgt, T_target_source, config, drawn, drawn >= bound, workers)
-
-
-def evaluate_alignment(
-    source: PointCloud,
-    target: PointCloud,
-    T_target_source: NDArray[np.float64],
-    config: RansacConfig,
-    iterations: int,
-    converged: bool,
-    workers: int = -1,
-) -> RegistrationResult:
-    """Fitness, RMSE and information of ``T_target_source`` from nearest target points within ε."""
-    moved = se3.transform_points(T_target_source, source.points)
-    s, _, d2 = find_correspondences(
-        VoxelIndex(target.points), moved, config.max_correspondence_distance, workers
-    )
-    return RegistrationResult(
-        T_target_source=T_target_source,
-        fitness=len(s) / len(source),
-        inlier_rmse=float(np.sqrt(d2.mean())) if len(s) else 0.0,
-        iterations=iterations,
-        converged=converged,
-        information=point_to_point_information(moved[s]),
-        n_correspondences=len(s),
-    )
 
 
 def feature_ransac(
@@ -454,35 +373,6 @@ def global_registration(
     ]
     features = [compute_fpfh(c, fpfh, workers) for c in clouds]
     return feature_ransac(clouds[0], clouds[1], features[0], features[1], ransac, workers)
-
-
-def _squared_residuals(
-    T_target_source: NDArray[np.float64], src_c: NDArray[np.float64], tgt_c: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """(H, K) squared distances between mapped source and target points of K pairs."""
-    r2 = np.empty((len(T_target_source), len(src_c)))
-    _transform_batch(np.ascontiguousarray(T_target_source), src_c, tgt_c, np.empty((0, 0, 3)), r2)
-    return r2
-
-
-@numba.njit(cache=True)
-def _transform_batch(T, points, targets, moved, r2):
-    """Every (H, 4, 4) ``T`` applied to every (m, 3) point: into ``moved`` (H, m, 3), or, when
-    ``targets`` (m, 3) is not empty, the squared distance to the matching target into ``r2``
-    (H, m). One thread, no (H, m, 3) temporaries: numpy's einsum and axis-2 sum took three
-    quarters of a RANSAC batch."""
-    residuals = len(targets) > 0
-    for h in range(len(T)):
-        for m in range(len(points)):
-            x, y, z = points[m, 0], points[m, 1], points[m, 2]
-            mx = T[h, 0, 0] * x + T[h, 0, 1] * y + T[h, 0, 2] * z + T[h, 0, 3]
-            my = T[h, 1, 0] * x + T[h, 1, 1] * y + T[h, 1, 2] * z + T[h, 1, 3]
-            mz = T[h, 2, 0] * x + T[h, 2, 1] * y + T[h, 2, 2] * z + T[h, 2, 3]
-            if residuals:
-                dx, dy, dz = mx - targets[m, 0], my - targets[m, 1], mz - targets[m, 2]
-                r2[h, m] = dx * dx + dy * dy + dz * dz
-            else:
-                moved[h, m, 0], moved[h, m, 1], moved[h, m, 2] = mx, my, mz
 
 
 def _subsample(rng: np.random.Generator, n: int, m: int) -> NDArray[np.intp]:

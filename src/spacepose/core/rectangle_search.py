@@ -17,16 +17,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.planes import (
-    Plane,
-    PlaneConfig,
-    as_points,
-    dense_support,
-    distribution,
-    extract_planes,
-    is_collinear,
-    normalised_weights,
-)
+from spacepose.core.moments import as_points, distribution, is_collinear, normalised_weights
+from spacepose.core.planes import Plane, PlaneConfig, dense_support, extract_planes
 from spacepose.core.rectangles import (
     CatalogueEntry,
     RectangleConfig,

@@ -43,7 +43,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from spacepose.core.config import StageConfig
-from spacepose.core.planes import distribution, is_collinear, normalised_weights
+from spacepose.core.moments import distribution, is_collinear, normalised_weights
 from spacepose.errors import DegenerateGeometryError
 
 __all__ = [

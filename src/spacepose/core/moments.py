@@ -1,0 +1,130 @@
+"""Second moments of a point set: centroid, distribution matrix, PCA plane (methods.md §2.2).
+
+:func:`distribution` gives the centroid (3,) of N >= 3 points (N, 3), each optionally weighted by
+the surface it stands for (:func:`normalised_weights`), and the eigen-decomposition of their
+distribution matrix ``M = Σ w (p − c)(p − c)ᵀ / Σ w`` (3, 3; m²): eigenvalues ascending,
+eigenvectors as columns. :func:`is_collinear` tells a line (or a single point) by its
+eigenvalues; :func:`fit_plane` takes the eigenvector of the smallest as the unit normal of the
+least-squares plane ``normal · x = offset`` (m). RANSAC plane extraction
+(:mod:`spacepose.core.planes`) refits its planes with it, and rectangle measurement
+(:mod:`spacepose.core.rectangles`) reads a face's axes and sides off the same matrix.
+:func:`as_points` is the check of the points every function here makes (N >= 3, finite).
+
+All coordinates are in the frame of the input points (usually the sensor frame), in metres; a
+fitted normal is turned towards the origin of that frame (the sensor), so ``offset <= 0``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import as_points as _finite_points
+from spacepose.errors import DegenerateGeometryError, InputError
+
+# Relative size of the second eigenvalue below which points count as collinear.
+_COLLINEAR_RTOL = 1e-10
+
+
+def as_points(cloud_or_points: PointCloud | ArrayLike, what: str = "points") -> NDArray[np.float64]:
+    """Validate an (N, 3) finite array with N >= 3 (or take a PointCloud's points).
+
+    Raises
+    ------
+    InputError
+        On a wrong shape, non-finite values or fewer than 3 points.
+    """
+    return _finite_points(cloud_or_points, what, min_points=3)
+
+
+def normalised_weights(weights: ArrayLike, n: int) -> NDArray[np.float64]:
+    """Weights (n,) scaled to sum to 1.
+
+    Raises
+    ------
+    InputError
+        Not n finite non-negative numbers, or all of them 0.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (n,):
+        raise InputError(f"weights must be ({n},) (one per point), got shape {w.shape}")
+    if not np.all(np.isfinite(w)) or np.any(w < 0.0):
+        raise InputError("weights must be finite and non-negative")
+    total = float(w.sum())
+    if total <= 0.0:
+        raise InputError("weights are all 0: no point counts")
+    return w / total
+
+
+def distribution(
+    points: ArrayLike, weights: ArrayLike | None = None
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Centroid and eigen-decomposition of the distribution matrix (methods.md §2.2).
+
+    Parameters
+    ----------
+    points
+        (N, 3) points, N >= 3, finite.
+    weights
+        Optional (N,) non-negative weights (the surface each point stands for); uniform if None.
+
+    Raises
+    ------
+    InputError
+        Bad points, or bad weights (:func:`normalised_weights`).
+
+    Returns
+    -------
+    centroid
+        (3,) mean point (weighted).
+    eigenvalues
+        (3,) eigenvalues of ``M = Σ w (p − c)(p − c)ᵀ / Σ w``, ascending (m²).
+    eigenvectors
+        (3, 3) orthonormal eigenvectors as columns, in the same order.
+    """
+    pts = as_points(points)
+    if weights is None:
+        centroid = pts.mean(axis=0)
+        centred = pts - centroid
+        M = centred.T @ centred / len(pts)
+    else:
+        w = normalised_weights(weights, len(pts))
+        centroid = w @ pts
+        centred = pts - centroid
+        M = (centred * w[:, None]).T @ centred
+    eigenvalues, eigenvectors = np.linalg.eigh(M)
+    return centroid, np.clip(eigenvalues, 0.0, None), eigenvectors
+
+
+def is_collinear(eigenvalues: NDArray[np.float64]) -> bool:
+    """Whether ascending eigenvalues (3,) of a distribution matrix describe a line or a point."""
+    return bool(eigenvalues[1] <= _COLLINEAR_RTOL * max(eigenvalues[2], 1e-300))
+
+
+def fit_plane(points: ArrayLike) -> tuple[NDArray[np.float64], float]:
+    """Least-squares plane (PCA) through points (N, 3).
+
+    Returns
+    -------
+    normal
+        (3,) unit normal (eigenvector of the smallest eigenvalue), towards the frame's origin.
+    offset
+        ``normal · centroid`` (m), so the plane is ``normal · x = offset``.
+
+    Raises
+    ------
+    InputError
+        Fewer than 3 points or non-finite values.
+    DegenerateGeometryError
+        Collinear or coincident points, which do not determine a plane.
+    """
+    centroid, eigenvalues, eigenvectors = distribution(points)
+    if is_collinear(eigenvalues):
+        raise DegenerateGeometryError("points are collinear or coincident: no unique plane")
+    normal = eigenvectors[:, 0]
+    offset = float(normal @ centroid)
+    # Face the sensor (origin): a visible surface's normal points back along the ray.
+    if offset > 0:
+        normal, offset = -normal, -offset
+    return normal, offset
