@@ -31,13 +31,7 @@ from spacepose.core.segmentation import (
     region_of,
     returns,
 )
-from spacepose.core.tracker_config import (
-    NEIGHBOURHOOD_VOXELS,
-    StageLengths,
-    TrackerConfig,
-    pairwise_kind,
-    stage_lengths,
-)
+from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
 from spacepose.core.voxel import voxel_cells, voxel_downsample
 from spacepose.errors import InputError
 
@@ -156,14 +150,13 @@ class FramePreparer:
         frame = prepared.with_normals(L.normals, self.workers).cloud
         _, nearest = knn(prepared.tree, pts, 1, workers=self.workers)
         n = frame.normals[nearest[:, 0]]
-        # Neighbourhoods within the normals' reach (NEIGHBOURHOOD_VOXELS): a point without one
-        # is off any surface (a flying pixel), keeps its place, and costs nothing to search;
-        # unbounded, a thousand such points took this search from 21 to 130 ms on a 1280×720
-        # frame. (Within two voxels some surface points went unprojected: lab run yaw 0.029 ->
-        # 0.044°, 10 seeds.)
+        # Neighbourhoods within four frame voxels (a surface seen at 80° from its normal
+        # spreads k points that far): a point without one is off any surface (a flying pixel),
+        # keeps its place, and costs nothing to search; unbounded, a thousand such points took
+        # this search from 21 to 130 ms on a 1280×720 frame. (Within two voxels some surface
+        # points went unprojected: lab run yaw 0.029 -> 0.044°, 10 seeds.)
         k = min(L.normals.k, len(pts))
-        reach = NEIGHBOURHOOD_VOXELS * L.voxel
-        _, idx = knn(pts, None, k, self.workers, distance_upper_bound=reach)
+        _, idx = knn(pts, None, k, self.workers, distance_upper_bound=4.0 * L.voxel)
         off = plane_offsets(pts, n, idx, self.workers)
         local = np.isfinite(off)
         off[~local] = 0.0

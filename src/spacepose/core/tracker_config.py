@@ -35,13 +35,6 @@ from spacepose.core.ransac import RansacConfig
 _ICP_RMSE_TOLERANCE = 1.6e-4
 _GICP_STEP_TOLERANCE = 1.6e-3
 
-#: Reach (voxels) of a point's neighbourhood for its normal and its plane: a surface seen at 80°
-#: from its normal spreads k points that far; a point with fewer than three neighbours within
-#: it is off any surface (a flying pixel) and takes the line of sight as its normal. Unbounded,
-#: the 14 % of a 1280×720 frame's voxels that are flying pixels doubled the normals' time
-#: (10.8 against 5.4 ms, 7.3k points).
-NEIGHBOURHOOD_VOXELS = 4.0
-
 
 class KeyframeConfig(StageConfig):
     """When a model-free tracker promotes the current frame to a keyframe.
@@ -244,9 +237,6 @@ class TrackerConfig(StageConfig):
         (on the lab run a keyframe chain drifted about 0.015° per 4° keyframe, in one
         direction, 3.6 of its noise-only σ). It enters the reported covariance only, not the
         weights of the pose graph (there it made the lab run's y error 2-3× worse).
-    normals
-        Neighbourhood of the frames' PCA normals: the ``k`` nearest within
-        :data:`NEIGHBOURHOOD_VOXELS` voxels, or within ``radius`` (m) when one is given.
     """
 
     method: Method = "keyframe"
@@ -347,9 +337,7 @@ def stage_lengths(config: TrackerConfig, voxel: float, radius: float) -> StageLe
         gicp=gated(config.gicp),
         jicp=pairs_gated(config.jicp),
         keyframe_graph=pairs_gated(config.keyframe_graph),
-        normals=config.normals
-        if config.normals.radius is not None
-        else config.normals.model_copy(update={"radius": NEIGHBOURHOOD_VOXELS * voxel}),
+        normals=config.normals,
         coarse_normals=config.coarse_normals.model_copy(update={"radius": 2.0 * coarse}),
         fpfh=config.fpfh.model_copy(update={"radius": 5.0 * coarse}),
         ransac=config.ransac.model_copy(update={"max_correspondence_distance": 1.5 * coarse}),
