@@ -9,14 +9,8 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from spacepose.core import dynamics, se3
-from spacepose.core.ekf import (
-    EKFConfig,
-    NavState,
-    RelativeNavEKF,
-    discretise,
-    k_from_params,
-    params_from_k,
-)
+from spacepose.core.ekf import EKFConfig, RelativeNavEKF
+from spacepose.core.nav_state import NavState, discretise, k_from_params, params_from_k
 from spacepose.errors import InputError
 
 N = 1.1068e-3

@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from spacepose.core.ekf import N_FIXED, k_from_params
+from spacepose.core.nav_state import N_FIXED, k_from_params
 from spacepose.core.navigation import NavigationConfig
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.tools.experiments import available

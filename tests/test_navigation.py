@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
-from spacepose.core.ekf import NavState
+from spacepose.core.nav_state import NavState
 from spacepose.core.navigation import (
     NAV_COLUMNS,
     NavigationConfig,

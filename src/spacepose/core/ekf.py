@@ -17,21 +17,12 @@ scene about the sensor), so it is held as a Schmidt *consider* state: prior σ
 cross-covariances enter every update, so that P of the estimated states carries its effect.
 It sits after the fixed part (indices 17–19) when its σ is positive; rectangles follow.
 
-Error state (multiplicative for the attitude)
----------------------------------------------
-``(δρ, δv, δθ, δω, δp, δΔ, δ_1, δ_2, ...)`` with the attitude error on the right, in B:
-``R_I_B = R̂_I_B · exp([δθ]×)``. Only two inertia parameters are estimated because only two
-of the three ratios are independent: ``k_z = −(k_x + k_y) / (1 + k_x k_y)``.
-
-Why these choices: the body-frame attitude error gives the classic MEKF kinematics
-``δθ̇ = −[ω]× δθ + δω``. Estimating ``(k_x, k_y)`` themselves keeps Euler's equations linear in
-two of the three parameters; log moment ratios were tried first and their strong nonlinearity
-under a wide prior biased the filter (NEES far above its χ² bound during convergence).
+The error state, ``(δρ, δv, δθ, δω, δp, δΔ, δ_1, δ_2, ...)`` with the attitude error on the
+right, in B, its slices, the inertia parametrisation and the discretisation of its propagation
+are :mod:`spacepose.core.nav_state`'s.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,20 +32,23 @@ from scipy.stats import chi2
 
 from spacepose.core import dynamics, se3
 from spacepose.core.config import StageConfig
-from spacepose.errors import InputError
-
-# Error-state slices of the fixed part; rectangle location errors follow from index 17.
-RHO, VEL, ATT, RATE, INERTIA, COM = (
-    slice(0, 3),
-    slice(3, 6),
-    slice(6, 9),
-    slice(9, 12),
-    slice(12, 14),
-    slice(14, 17),
+from spacepose.core.nav_state import (
+    ATT,
+    CHASER,
+    COM,
+    INERTIA,
+    N_FIXED,
+    RATE,
+    RHO,
+    VEL,
+    NavState,
+    discretise,
+    dk_dp,
+    finite,
+    k_from_params,
+    params_from_k,
 )
-N_FIXED = 17
-# The chaser-attitude consider state, when present (EKFConfig.sigma_chaser_attitude_deg > 0).
-CHASER = slice(N_FIXED, N_FIXED + 3)
+from spacepose.errors import InputError
 
 
 class EKFConfig(StageConfig):
@@ -87,60 +81,6 @@ class EKFConfig(StageConfig):
         0.9999, gt=0, le=1, description="χ² gate on the innovation; 1 disables gating."
     )
     substeps: int = Field(10, ge=1, description="RK4 steps per prediction interval.")
-
-
-@dataclass(frozen=True)
-class NavState:
-    """A navigation state (truth or estimate) in the filter's frames, SI units.
-
-    Attributes
-    ----------
-    t
-        Time, s, since the epoch where I and O coincide.
-    rho, v
-        (3,) relative position / velocity in O, m and m/s.
-    q_I_B
-        (4,) attitude B -> I, scalar last.
-    omega_B
-        (3,) rate in B, rad/s.
-    k
-        (3,) inertia ratios.
-    com
-        (3,) CoM offset Δ in B, m.
-    """
-
-    t: float
-    rho: NDArray[np.float64]
-    v: NDArray[np.float64]
-    q_I_B: NDArray[np.float64]
-    omega_B: NDArray[np.float64]
-    k: NDArray[np.float64]
-    com: NDArray[np.float64]
-
-
-def k_from_params(p: ArrayLike) -> NDArray[np.float64]:
-    """Inertia ratios k (3,) from the estimated pair ``p = (k_x, k_y)``.
-
-    With Izz = 1: ``Ixx = (1 − k_y) / (1 + k_x k_y)``, ``Iyy = (1 + k_x) / (1 + k_x k_y)`` and
-    ``k_z = Ixx − Iyy``.
-    """
-    kx, ky = np.asarray(p, dtype=np.float64)
-    return np.array([kx, ky, -(kx + ky) / (1.0 + kx * ky)])
-
-
-def params_from_k(k: ArrayLike) -> NDArray[np.float64]:
-    """The estimated pair ``(k_x, k_y)`` (2,) from ratios k (3,), checked for consistency."""
-    k = _finite(k, (3,), "inertia ratios k")
-    if np.any(np.abs(k[:2]) >= 1.0) or abs(k[2] - k_from_params(k[:2])[2]) > 1e-6:
-        raise InputError(f"inertia ratios {k} are not those of positive principal moments")
-    return k[:2].copy()
-
-
-def _dk_dp(p: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Jacobian (3, 2) of k with respect to ``p = (k_x, k_y)``."""
-    kx, ky = p
-    d = (1.0 + kx * ky) ** 2
-    return np.array([[1.0, 0.0], [0.0, 1.0], [-(1.0 - ky**2) / d, -(1.0 - kx**2) / d]])
 
 
 class RelativeNavEKF:
@@ -241,7 +181,7 @@ class RelativeNavEKF:
     def sigmas(self) -> dict[str, NDArray[np.float64]]:
         """1-σ of the estimate: rho, v, att (rotation vector, rad), omega, k, com."""
         d = np.sqrt(np.clip(np.diag(self.P), 0, None))
-        J = _dk_dp(self.p)
+        J = dk_dp(self.p)
         sig_k = np.sqrt(np.clip(np.diag(J @ self.P[INERTIA, INERTIA] @ J.T), 0, None))
         return {
             "rho": d[RHO],
@@ -289,7 +229,7 @@ class RelativeNavEKF:
         F[RATE, RATE] = np.array(
             [[0, k[0] * wz, k[0] * wy], [k[1] * wz, 0, k[1] * wx], [k[2] * wy, k[2] * wx, 0]]
         )
-        F[RATE, INERTIA] = np.array([wy * wz, wz * wx, wx * wy])[:, None] * _dk_dp(p)
+        F[RATE, INERTIA] = np.array([wy * wz, wz * wx, wx * wy])[:, None] * dk_dp(p)
         return F
 
     def _process_noise_density(self) -> NDArray[np.float64]:
@@ -372,7 +312,7 @@ class RelativeNavEKF:
         -------
         Whether the measurement passed the gate and was used.
         """
-        c_C = _finite(c_C, (3,), "centroid")
+        c_C = finite(c_C, (3,), "centroid")
         i = self.add_feature(feature_id)
         R_O_B = self.R_O_B()
         r_B = np.asarray(d_Bp, dtype=np.float64) + self.features[feature_id] - self.com
@@ -393,7 +333,7 @@ class RelativeNavEKF:
 
         ``cov`` (3, 3) is the covariance of that rotation vector, in B (rad²).
         """
-        q = _finite(q_I_B_meas, (4,), "attitude quaternion")
+        q = finite(q_I_B_meas, (4,), "attitude quaternion")
         r = (Rotation.from_quat(self.q).inv() * Rotation.from_quat(q)).as_rotvec()
         H = np.zeros((3, self.dim))
         H[:, ATT] = np.eye(3)
@@ -474,43 +414,8 @@ class RelativeNavEKF:
             self.features[fid] = self.features[fid] + dx[i : i + 3]
 
 
-def discretise(
-    F: NDArray[np.float64], Qc: NDArray[np.float64], dt: float
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Transition matrix Φ = exp(F dt) and discrete process noise Q = ∫ Φ(s) Qc Φ(s)ᵀ ds.
-
-    Series in ``h = dt / m`` (Φ to fourth, Q to third order), composed over m steps:
-    ``Φ ← Φ_h Φ``, ``Q ← Φ_h Q Φ_hᵀ + Q_h``. m keeps ``‖F' h‖∞ <= 0.05``, with F' the Jacobian
-    without its ρ̇ = v identity block: that block is nilpotent, so it does not slow the series.
-    Small matrices make this far cheaper than a Padé ``expm`` of the Van Loan matrix.
-    """
-    F_rest = F.copy()
-    F_rest[RHO, VEL] = 0.0
-    norm = float(np.abs(F_rest).sum(axis=1).max()) * abs(dt)
-    m = max(1, int(np.ceil(norm / 0.05)))
-    h = dt / m
-    A = F * h
-    A2 = A @ A
-    Phi_h = np.eye(len(F)) + A + A2 / 2.0 + A2 @ A / 6.0 + A2 @ A2 / 24.0
-    FQ = F @ Qc
-    F2Q = F @ FQ
-    Q_h = Qc * h + (FQ + FQ.T) * h**2 / 2.0 + (F2Q + F2Q.T + 2.0 * FQ @ F.T) * h**3 / 6.0
-    Phi, Q = np.eye(len(F)), np.zeros_like(Qc)
-    for _ in range(m):
-        Phi = Phi_h @ Phi
-        Q = Phi_h @ Q @ Phi_h.T + Q_h
-    return Phi, Q
-
-
-def _finite(values: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
-    arr = np.asarray(values, dtype=np.float64)
-    if arr.shape != shape or not np.all(np.isfinite(arr)):
-        raise InputError(f"{name} must be finite with shape {shape}, got {arr.shape}")
-    return arr
-
-
 def _cov(values: ArrayLike, m: int) -> NDArray[np.float64]:
-    C = _finite(values, (m, m), "measurement covariance")
+    C = finite(values, (m, m), "measurement covariance")
     C = 0.5 * (C + C.T)
     if np.linalg.eigvalsh(C)[0] <= 0:
         raise InputError("measurement covariance must be positive definite")

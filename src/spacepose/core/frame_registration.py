@@ -1,11 +1,15 @@
-"""Fine registration of a tracked frame onto its references (docs/methods.md §1.6, §5.5).
+"""Fine registration of a tracked frame onto one reference (docs/methods.md §1.6, §5.5).
 
-:class:`FrameRegistrar` registers a prepared frame onto one reference (ICP or GICP, with the
-covariance from the point-to-plane residuals and the σ floor), onto the two frames before it
-averaged by Li's Eq. 9 (method ``jicp``), or onto a window of keyframes solved as a pose graph
-(method ``keyframe``, ours). When the motion model has been wrong by more than
-the fine gate, a first point-to-plane pass with a gate of three model-error σ brings the frame
-within reach of the fine gate (KISS-ICP's adaptive threshold, in two stages).
+:class:`FrameRegistrar` registers a prepared frame (the source) onto one reference, a keyframe
+or a model (the target): ICP or GICP from an initial ``T_sensor_target`` (4, 4), giving
+``T_ref_k`` (4, 4) with its (6, 6) covariance (twist order (omega, v), left perturbation in the
+reference frame; rad², m²) from the point-to-plane residuals, scaled by the frame's residual
+structure and with the σ floor. It measures the residual noise that sets the fine gate (m), the
+residual structure and the influence of the frame's parts. When the motion model has been wrong
+by more than the fine gate, a first point-to-plane pass with a gate of three model-error σ
+brings the frame within reach of the fine gate (KISS-ICP's adaptive threshold, in two stages).
+The frame's pose from these registrations onto the keyframe window (one reference, Li's J-ICP,
+or our keyframe graph) is :mod:`spacepose.core.window_registration`'s.
 """
 
 from __future__ import annotations
@@ -19,12 +23,10 @@ from spacepose.core import se3
 from spacepose.core.correspondences import Correspondences, find_correspondences
 from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.icp import ICPConfig, icp, icp_correspondences
-from spacepose.core.jicp import average_three, average_three_covariance
-from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, moved_covariance
+from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.motion import rigid
 from spacepose.core.part_influence import PartInfluence, part_influence
-from spacepose.core.pose_covariance import isotropic_about, plane_covariance, shaped_drift
-from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
+from spacepose.core.pose_covariance import isotropic_about, plane_covariance
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.residual_noise import ResidualNoise, point_to_plane_sigma
 from spacepose.core.residual_structure import residual_structure
@@ -116,7 +118,7 @@ class FrameRegistrar:
         # The fine gate widens to three measured residual σ on a sensor noisier than the voxel.
         self.noise = ResidualNoise(lengths.gate)
         rotation, translation = POSE_GRAPH_TOLERANCE
-        self._graph_tolerance = (rotation, translation * lengths.voxel)
+        self.graph_tolerance = (rotation, translation * lengths.voxel)
         self.covariance_scale = covariance_scale
         # Design effect of the frame being registered (set by its measured registration).
         self._design = 1.0
@@ -306,211 +308,11 @@ class FrameRegistrar:
             target_tree=tgt.tree,
         )
 
-    def single(
-        self,
-        prepared: PreparedCloud,
-        ref: Keyframe,
-        T_init: NDArray[np.float64],
-        robust: bool = False,
-    ) -> FineEstimate:
-        """One registration onto ``ref`` (ICP, GICP, or any method against a model);
-        ``robust``: :meth:`register`'s."""
-        pair = self.register(prepared, ref, T_init, robust=robust)
-        res, cov_ref_k = pair.result, pair.covariance
-        T_k_ref = se3.invert(res.T_target_source)
-        Ad = se3.adjoint(T_k_ref)
-        own = Ad @ cov_ref_k @ Ad.T
-        cov = Ad @ (cov_ref_k + ref.covariance) @ Ad.T
-        T = rigid(T_k_ref @ ref.T_ref_target)
-        bias = self._drift(prepared, res, ref)
-        drift = shaped_drift(prepared, bias, own)
-        return FineEstimate(
-            T,
-            cov + drift,
-            own,
-            res,
-            ref,
-            pair.step,
-            bias=bias,
-            drift=drift,
-            structure=pair.structure,
-            influence=pair.influence,
-        )
-
-    def li_step(
-        self, prepared: PreparedCloud, window: list[Keyframe], T_init: NDArray[np.float64]
-    ) -> FineEstimate:
-        """Li's J-ICP: the frame k onto the two frames j, i before it, averaged by Eq. 9.
-
-        ``window`` holds the references, oldest first (the last two are i and j). The direct
-        ``T_kj`` and the indirect ``T_ki · T_ji⁻¹`` (``T_ji`` being frame j's own registration
-        onto i, stored as its edge) are averaged on SE(3) and chained, ``T_k0 = ΔT_kj T_j0``;
-        the earlier poses stay as they were output. With one reference, or when frame k does
-        not register onto i, the direct estimate stands alone.
-        """
-        j = window[-1]
-        latest = self.register(prepared, j, T_init)
-        res, cov_j_k = latest.result, latest.covariance
-        T_kj = se3.invert(res.T_target_source)
-        own = _moved(cov_j_k, T_kj)
-        delta, cov_delta = T_kj, own
-        through = _edge_onto(j, window[-2]) if len(window) >= 2 else None
-        if through is not None:
-            T_start = rigid(T_kj @ j.T_ref_target)
-            try:
-                onto_i = self.register(prepared, window[-2], T_start, measure=False)
-            except SpaceposeError:
-                onto_i = None
-            if onto_i is not None:
-                T_ji, cov_ji = through
-                T_ki = se3.invert(onto_i.result.T_target_source)
-                delta = average_three(T_kj, T_ki, T_ji)
-                cov_delta = average_three_covariance(
-                    T_ki, T_ji, own, _moved(onto_i.covariance, T_ki), cov_ji
-                )
-        T_k0 = rigid(delta @ j.T_ref_target)
-        cov = cov_delta + _moved(j.covariance, delta)
-        bias = self._drift(prepared, res, j)
-        drift = shaped_drift(prepared, bias, own)
-        cov = cov + drift
-        edge = (j.index, res.T_target_source, np.linalg.pinv(cov_j_k, hermitian=True))
-        return FineEstimate(
-            T_k0,
-            cov,
-            own,
-            res,
-            j,
-            latest.step,
-            (edge,),
-            (),
-            bias,
-            drift,
-            latest.structure,
-            latest.influence,
-        )
-
-    def joint(
-        self,
-        prepared: PreparedCloud,
-        window: list[Keyframe],
-        T_init: NDArray[np.float64],
-        equal_weights: bool,
-    ) -> FineEstimate:
-        """Keyframe graph (ours): register the frame to each keyframe of the window, solve it.
-
-        Nodes are the window's keyframes (the oldest fixed) and the new frame; edges are the
-        stored keyframe-to-keyframe registrations and the new frame's registrations to every
-        keyframe, each weighted by its information (or equally).
-
-        How it differs from Li's J-ICP (:meth:`li_step`, docs/methods.md §5.5): its references
-        are keyframes, not the two frames before, so frames between keyframes do not chain;
-        the earlier keyframe poses are re-estimated, not fixed once output; the edges include
-        the keyframes' own registrations and are weighted by their inverse covariance, not
-        equally; its pairs are point-to-plane ICP, not Li's point-to-point.
-        """
-        node = {kf.index: n for n, kf in enumerate(window)}
-        k = len(window)
-        graph_edges: list[PoseGraphEdge] = []
-        new_edges = []
-        for kf in window:
-            for ref_index, T_j_i, info in kf.edges:
-                if ref_index in node:
-                    graph_edges.append(PoseGraphEdge(node[kf.index], node[ref_index], T_j_i, info))
-        # The latest keyframe must register (its failure fails the frame); an older one out of
-        # reach is no reason to.
-        latest = self.register(prepared, window[-1], T_init)
-        pairs = [(window[-1], latest)]
-        # The latest registration is a better start for the older pairs than the prediction.
-        T_start = se3.invert(latest.result.T_target_source) @ window[-1].T_ref_target
-        poses = [kf.T_ref_target for kf in window] + [T_start]
-        for kf in window[:-1]:
-            try:
-                pairs.append((kf, self.register(prepared, kf, T_start, measure=False)))
-            except SpaceposeError:
-                continue
-        for kf, pair in pairs:
-            T_kf_k = pair.result.T_target_source
-            info = np.eye(6) if equal_weights else np.linalg.pinv(pair.covariance, hermitian=True)
-            graph_edges.append(PoseGraphEdge(k, node[kf.index], T_kf_k, info))
-            new_edges.append((kf.index, T_kf_k, info))
-        # Gauge: the oldest keyframe keeps its pose; its covariance is added to the result.
-        graph = optimize_pose_graph(
-            np.array(poses), graph_edges, fixed=(0,), tolerance=self._graph_tolerance
-        )
-        oldest = window[0]
-        T_k0 = rigid(graph.poses[k])
-        cov = graph.covariances[k] + moved_covariance(oldest, T_k0)
-        res = latest.result
-        Ad_own = se3.adjoint(se3.invert(res.T_target_source))
-        own = Ad_own @ latest.covariance @ Ad_own.T
-        bias = self._drift(prepared, res, window[-1])
-        drift = shaped_drift(prepared, bias, own)
-        cov = cov + drift
-        # Node n < k is window[n]; the oldest (n = 0) is fixed.
-        updated = tuple(
-            (
-                window[n],
-                rigid(graph.poses[n]),
-                graph.covariances[n] + moved_covariance(oldest, graph.poses[n]),
-            )
-            for n in range(1, k)
-        )
-        return FineEstimate(
-            T_k0,
-            cov,
-            own,
-            res,
-            window[-1],
-            latest.step,
-            tuple(new_edges),
-            updated,
-            bias,
-            drift,
-            latest.structure,
-            latest.influence,
-        )
-
-    def _drift(
-        self, prepared: PreparedCloud, res: RegistrationResult, ref: Keyframe
-    ) -> tuple[float, float]:
-        """1-σ (rad, m at the centroid) of the drift a keyframe chain has built up to the frame.
-
-        A registration between two views is biased in proportion to the motion between them
-        (sampling and normals differ), and the bias keeps its sign along a chain of keyframes,
-        so it adds up linearly: the reference's drift plus ``floor_motion`` times the rotation
-        angle and the centroid's displacement from the reference. A model has none.
-        """
-        if ref.index < 0:
-            return 0.0, 0.0
-        kappa = self.lengths.floor_motion
-        c_ref = se3.transform_points(res.T_target_source, prepared.centroid[None])[0]
-        angle = float(np.linalg.norm(se3.log(res.T_target_source)[:3]))
-        shift = float(np.linalg.norm(c_ref - prepared.centroid))
-        return ref.drift[0] + kappa * angle, ref.drift[1] + kappa * shift
-
     def _floor(self, prepared: PreparedCloud, res: RegistrationResult) -> NDArray[np.float64]:
         """The voxel floor (see TrackerConfig) about the centroid, in the reference frame."""
         L = self.lengths
         c_ref = se3.transform_points(res.T_target_source, prepared.centroid[None])[0]
         return isotropic_about(c_ref, (L.floor_rotation, L.floor_translation))
-
-
-def _moved(cov: NDArray[np.float64], T_b_a: NDArray[np.float64]) -> NDArray[np.float64]:
-    """A covariance (6, 6) left in frame a carried into frame b by ``T_b_a``'s adjoint."""
-    Ad = se3.adjoint(T_b_a)
-    return Ad @ cov @ Ad.T
-
-
-def _edge_onto(
-    frame: Keyframe, earlier: Keyframe
-) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-    """``T_frame_earlier`` and its covariance (left, in ``frame``) from ``frame``'s stored
-    registration onto ``earlier``, or None when it has none."""
-    for index, T_earlier_frame, info in frame.edges:
-        if index == earlier.index:
-            T = se3.invert(T_earlier_frame)
-            return T, _moved(np.linalg.pinv(info, hermitian=True), T)
-    return None
 
 
 def _hint(matches: Correspondences | None, n_source: int) -> NDArray[np.int64] | None:

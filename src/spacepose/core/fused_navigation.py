@@ -49,10 +49,11 @@ from scipy.stats import chi2
 from spacepose.core import dynamics
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
-from spacepose.core.ekf import NavState, RelativeNavEKF
+from spacepose.core.ekf import RelativeNavEKF
 from spacepose.core.innovation_scale import InnovationScale
 from spacepose.core.model_free_start import model_free_start
 from spacepose.core.nav_config import NavigationConfig
+from spacepose.core.nav_state import NavState
 from spacepose.core.navigation import NavRow, RelativeNavigator, start_filter
 from spacepose.core.rectangles import CatalogueEntry
 from spacepose.core.track_result import TrackResult

@@ -96,7 +96,7 @@ class Keyframe:
         J-ICP: this keyframe's registrations onto the keyframes before it.
     drift
         1-σ (rad, m) of the drift the keyframe chain has built up to this keyframe, kept apart
-        from ``covariance`` (see :meth:`FrameRegistrar._drift`).
+        from ``covariance`` (see :func:`~spacepose.core.window_registration.chain_drift`).
     timestamp
         Time of the frame (s); NaN for the model.
     """

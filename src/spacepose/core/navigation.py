@@ -37,7 +37,7 @@ from spacepose.core.attitude_fix import (
     explained_rectangles,
 )
 from spacepose.core.cloud import PointCloud
-from spacepose.core.ekf import NavState, RelativeNavEKF
+from spacepose.core.ekf import RelativeNavEKF
 from spacepose.core.innovation_scale import InnovationScale
 from spacepose.core.lost_in_space import (
     FrameEvidence,
@@ -54,6 +54,7 @@ from spacepose.core.nav_measurements import (
     incidence_cosine,
     pixel_area_weights,
 )
+from spacepose.core.nav_state import NavState
 from spacepose.core.rectangle_search import measure_planes
 from spacepose.core.rectangles import (
     CatalogueEntry,

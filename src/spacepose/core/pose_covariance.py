@@ -88,11 +88,12 @@ def shaped_drift(
 ) -> NDArray[np.float64]:
     """(6, 6) covariance (frame k, about the origin) of a keyframe chain's drift.
 
-    ``drift`` (rad, m) is the chain's 1-σ (:meth:`FrameRegistrar._drift`) as a displacement at
-    the target's radius; it is spread over the directions in proportion to the frame's own
-    registration covariance ``own`` (about the centroid, rotations scaled by the radius): a
-    bias builds up where the registration is least constrained (across the line of sight on
-    the lab run, not in depth).
+    ``drift`` (rad, m) is the chain's 1-σ
+    (:func:`~spacepose.core.window_registration.chain_drift`) as a displacement at the target's
+    radius; it is spread over the directions in proportion to the frame's own registration
+    covariance ``own`` (about the centroid, rotations scaled by the radius): a bias builds up
+    where the registration is least constrained (across the line of sight on the lab run, not
+    in depth).
     """
     c, r = prepared.centroid, prepared.radius
     s = drift[1] + r * drift[0]

@@ -35,6 +35,7 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from spacepose.core import window_registration
 from spacepose.core.cloud import PointCloud
 from spacepose.core.frame_check import CheckContext, check_frame, health_bounds, wide_gate
 from spacepose.core.frame_preparation import FramePreparer, checked_model
@@ -302,12 +303,12 @@ class Tracker:
         a model's, weighed by a redescending kernel."""
         cfg = self.config
         if cfg.method not in ("jicp", "keyframe") or self.model_based:
-            return self._registrar.single(prepared, ref, T_init, robust)
+            return window_registration.single(self._registrar, prepared, ref, T_init, robust)
         references = self._window.references()
         if cfg.method == "jicp":
-            return self._registrar.li_step(prepared, references, T_init)
+            return window_registration.li_step(self._registrar, prepared, references, T_init)
         equal = cfg.keyframe_graph.weighting == "equal"
-        return self._registrar.joint(prepared, references, T_init, equal)
+        return window_registration.joint(self._registrar, prepared, references, T_init, equal)
 
     def _check(
         self, estimate: FineEstimate, prepared: PreparedCloud, prediction: Prediction | None

@@ -749,7 +749,8 @@ def _tracker_lengths(first: PointCloud) -> StageLengths:
 
 
 def _ekf_trials(seed: int) -> dict[str, Trial]:
-    from spacepose.core.ekf import NavState, RelativeNavEKF
+    from spacepose.core.ekf import RelativeNavEKF
+    from spacepose.core.nav_state import NavState
 
     sim = simulate_orbit(OrbitConfig(frames=2, seed=seed))
     row0, row1 = sim.truth
