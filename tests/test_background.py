@@ -9,12 +9,11 @@ from spacepose.core.background import (
     BackgroundConfig,
     background_planes,
     cell_normals,
-    cluster_labels,
-    main_cluster_group,
     remove_background,
     voxel_cells,
 )
 from spacepose.core.cloud import PointCloud
+from spacepose.core.clusters import cluster_labels, main_cluster_group
 from spacepose.core.config import validate_config
 from spacepose.core.sim import lab_target, sample_surface, scenario_config, simulate
 from spacepose.errors import ConfigError, InputError

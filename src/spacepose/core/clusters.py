@@ -1,0 +1,81 @@
+"""Euclidean clusters of a point cloud: the groups linked by short distances, and the largest
+group with the clusters near it (the target's cluster group of :mod:`spacepose.core.background`).
+
+Points are (N, 3) in any one frame, distances in metres. Labels and ties follow the lowest point
+index, so a result does not depend on the thread count.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+
+def cluster_labels(points: NDArray[np.float64], distance: float) -> NDArray[np.intp]:
+    """Labels (N,) of the groups of points connected by links shorter than ``distance``.
+
+    Labels are numbered in the order of each group's lowest point index.
+    """
+    n = len(points)
+    pairs = cKDTree(points).query_pairs(distance, output_type="ndarray")
+    graph = coo_matrix(
+        (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n)
+    )
+    return connected_components(graph, directed=False)[1]
+
+
+def main_cluster_group(
+    points: NDArray[np.float64],
+    distance: float,
+    merge_distance: float,
+    min_share: float,
+    workers: int = -1,
+) -> NDArray[np.bool_]:
+    """Mask (N,) of the largest Euclidean cluster and the clusters merged with it.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points, any frame (m).
+    distance
+        Link length (m) of the clusters.
+    merge_distance
+        Clusters of at least ``min_share`` of the largest one's size whose closest points are
+        within this (m) of each other are merged, transitively, starting from the largest.
+    min_share
+        Smallest cluster size, as a share of the largest, that can be merged.
+    workers
+        Threads for the nearest-neighbour queries.
+
+    Notes
+    -----
+    Ties between equally large clusters go to the one holding the lowest point index.
+    """
+    labels = cluster_labels(points, distance)
+    sizes = np.bincount(labels)
+    # argmax returns the first label of the largest size: labels follow the lowest point index.
+    largest = int(np.argmax(sizes))
+    big = np.flatnonzero(sizes >= min_share * sizes[largest])
+    group = labels == largest
+    if merge_distance <= distance:
+        return group
+    waiting = np.isin(labels, big) & ~group
+    # Grow the group from the largest cluster: a cluster joins when one of its points is within
+    # merge_distance of the clusters that joined last (those near earlier ones joined then).
+    # Each round is one tree query over the waiting points; rounds = merge chain length.
+    frontier = group
+    while np.any(waiting):
+        idx = np.flatnonzero(waiting)
+        d, _ = cKDTree(points[frontier]).query(
+            points[idx], distance_upper_bound=merge_distance, workers=workers
+        )
+        joining = np.isin(labels, labels[idx[np.isfinite(d)]]) & waiting
+        if not np.any(joining):
+            break
+        group |= joining
+        waiting &= ~joining
+        frontier = joining
+    return group
