@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 from spacepose.core import se3
 from spacepose.core.ekf import EKFConfig, RelativeNavEKF
 from spacepose.core.fused_navigation import GATE_REASON, FusedNavigator, FusionConfig
+from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.nav_state import NavState, k_from_params
-from spacepose.core.navigation import scenario_geometry
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.errors import ConfigError
 from spacepose.tools.catalogue import parse_catalogue

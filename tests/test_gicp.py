@@ -7,13 +7,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from spacepose.core import se3
-from spacepose.core.gicp import (
-    GICPConfig,
-    compute_covariances,
-    gicp,
-    gicp_linearize,
-    gicp_system,
-)
+from spacepose.core.gicp import GICPConfig, gicp
+from spacepose.core.gicp_covariances import compute_covariances
+from spacepose.core.gicp_systems import gicp_linearize, gicp_system
 from spacepose.core.sim.targets import Target, sample_surface
 from spacepose.errors import DegenerateGeometryError, InputError, RegistrationError
 from test_icp import asymmetric_target, ghost_pair, make_noisy_pair, perturbation, pose_error

@@ -11,16 +11,16 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
+from spacepose.core.nav_result import NAV_COLUMNS
+from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.nav_state import NavState
 from spacepose.core.navigation import (
-    NAV_COLUMNS,
     NavigationConfig,
     RelativeNavigator,
     area_weighted_centroid,
     attitude_covariance,
     centroid_covariance,
     incidence_cosine,
-    scenario_geometry,
 )
 from spacepose.core.planes import PlaneConfig
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, measure_rectangle

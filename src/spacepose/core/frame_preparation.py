@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from spacepose.core import se3
 from spacepose.core.background import remove_background
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.gicp import compute_covariances
+from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
 from spacepose.core.neighbors import knn

@@ -53,8 +53,10 @@ from spacepose.core.ekf import RelativeNavEKF
 from spacepose.core.innovation_scale import InnovationScale
 from spacepose.core.model_free_start import model_free_start
 from spacepose.core.nav_config import NavigationConfig
+from spacepose.core.nav_result import NavRow
+from spacepose.core.nav_start import start_filter
 from spacepose.core.nav_state import NavState
-from spacepose.core.navigation import NavRow, RelativeNavigator, start_filter
+from spacepose.core.navigation import RelativeNavigator
 from spacepose.core.rectangles import CatalogueEntry
 from spacepose.core.track_result import TrackResult
 from spacepose.core.tracker import Tracker

@@ -6,6 +6,11 @@ small_gicp and Open3D do. The cost ``Σ dᵢᵀ (C_q + R C_p Rᵀ)⁻¹ dᵢ`` w
 minimised by Gauss-Newton (or Levenberg-Marquardt) on SE(3) with a left perturbation
 ``T ← exp(δ) T``; the weights ``(C_q + R C_p Rᵀ)⁻¹`` are held fixed within one linearisation, and
 correspondences are searched again at every iteration.
+
+This module holds the configuration, the Levenberg-Marquardt loop and the compiled pass that
+searches, weighs and sums at one transform; the per-point covariances are in
+:mod:`spacepose.core.gicp_covariances`, the normal equations on gathered matches in
+:mod:`spacepose.core.gicp_systems`.
 """
 
 from __future__ import annotations
@@ -17,19 +22,13 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud, check_rows
-from spacepose.core.gicp_kernels import (
-    CHUNK,
-    gicp_pass_kernel,
-    gicp_sums_kernel,
-    system_kernel,
-    weights_kernel,
-)
+from spacepose.core.cloud import PointCloud
+from spacepose.core.gicp_covariances import check_covariances, compute_covariances
+from spacepose.core.gicp_kernels import CHUNK, gicp_pass_kernel, gicp_sums_kernel
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import as_registration_cloud, target_index
 from spacepose.core.icp_systems import solve_normal_equations, system_from_sums
-from spacepose.core.neighbors import SearchIndex, knn
-from spacepose.core.normals import neighbourhood_normals
+from spacepose.core.neighbors import SearchIndex
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.robust import RobustConfig, robust_weights
 from spacepose.core.threads import numba_threads
@@ -78,177 +77,6 @@ class GICPConfig(RobustConfig):
     rotation_tolerance: float = Field(1e-5, gt=0)
     translation_tolerance: float = Field(1e-5, gt=0)
     lm: bool = True
-
-
-def compute_covariances(
-    points: PointCloud | ArrayLike, k: int = 20, epsilon: float = 1e-3, workers: int = -1
-) -> NDArray[np.float64]:
-    """Plane-regularised covariance of every point, from its k nearest neighbours.
-
-    Parameters
-    ----------
-    points
-        (N, 3) points (or a :class:`PointCloud`), N >= k.
-    k
-        Neighbours per point, the point itself included.
-    epsilon
-        Eigenvalue given to the normal direction; the two tangent directions get 1.
-    workers
-        Threads for the neighbour search.
-
-    Returns
-    -------
-    (N, 3, 3) covariances ``V diag(ε, 1, 1) Vᵀ`` in the points' frame, V the eigenvectors of the
-    neighbourhood scatter in ascending eigenvalue order.
-    """
-    pts = as_registration_cloud(points, "points").points
-    if not 3 <= k <= len(pts):
-        raise InputError(f"covariances need 3 <= k <= {len(pts)} (number of points), got k={k}")
-    if not 0 < epsilon <= 1:
-        raise InputError(f"covariance epsilon must be in (0, 1], got {epsilon}")
-    _, idx = knn(pts, None, k, workers=workers)
-    normals = neighbourhood_normals(pts, idx, workers)
-    # V diag(ε, 1, 1) Vᵀ = I − (1 − ε) n nᵀ: only the smallest eigenvector n is needed.
-    return np.eye(3) - (1.0 - epsilon) * normals[:, :, None] * normals[:, None, :]
-
-
-def _check_covariances(C: ArrayLike | None, n: int, name: str) -> NDArray[np.float64] | None:
-    if C is None:
-        return None
-    C = np.asarray(C, dtype=np.float64)
-    if C.shape != (n, 3, 3) or not np.all(np.isfinite(C)):
-        raise InputError(f"{name} must be finite with shape ({n}, 3, 3), got {C.shape}")
-    return C
-
-
-def gicp_linearize(
-    points: NDArray[np.float64],
-    target_points: NDArray[np.float64],
-    R: NDArray[np.float64],
-    source_covariances: NDArray[np.float64],
-    target_covariances: NDArray[np.float64],
-    workers: int = 1,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], float]:
-    """Normal equations of the GICP cost at the current transform.
-
-    :func:`gicp_weight_matrices` then :func:`gicp_system`: ``W = (C_q + R C_p Rᵀ)⁻¹``, then
-    ``JᵀWJ``, ``JᵀWd`` and ``dᵀWd`` with ``J = [−skew(p) I]``.
-
-    Parameters
-    ----------
-    points
-        (M, 3) matched source points mapped into the target frame.
-    target_points
-        (M, 3) their target points.
-    R
-        (3, 3) current rotation ``R_target_source`` (rotates the source covariances).
-    source_covariances, target_covariances
-        (M, 3, 3) matched covariances, each in its own cloud's frame.
-    workers
-        Threads (-1: all cores).
-
-    Returns
-    -------
-    H, g, W, cost
-        6×6 ``Σ JᵀWJ``, (6,) ``Σ JᵀWd``, the (M, 3, 3) weights ``(C_q + R C_p Rᵀ)⁻¹`` and the
-        cost ``Σ dᵀWd``; twist order (omega, v), left perturbation.
-
-    Raises
-    ------
-    InputError
-        As :func:`gicp_weight_matrices`.
-    """
-    W, _ = gicp_weight_matrices(
-        points, target_points, R, source_covariances, target_covariances, workers
-    )
-    H, g, cost = gicp_system(points, target_points, W, workers)
-    return H, g, W, cost
-
-
-def gicp_weight_matrices(
-    points: NDArray[np.float64],
-    target_points: NDArray[np.float64],
-    R: NDArray[np.float64],
-    source_covariances: NDArray[np.float64],
-    target_covariances: NDArray[np.float64],
-    workers: int = 1,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """GICP's per-correspondence weights ``W = (C_q + R C_p Rᵀ)⁻¹`` and Mahalanobis residuals.
-
-    Compiled, one pass per correspondence, the inverse from the adjugate (the numpy form took
-    ~5 ms of each 18 000-point iteration). Arguments as :func:`gicp_linearize`.
-
-    Returns
-    -------
-    W, m2
-        (M, 3, 3) weights and (M,) squared Mahalanobis distances ``dᵀWd``, ``d = p − q``.
-
-    Raises
-    ------
-    InputError
-        When some ``C_q + R C_p Rᵀ`` is singular or not positive definite (e.g. zero
-        covariances), or the arrays do not share their row count and shapes (the kernel
-        indexes them unchecked).
-    """
-    check_rows(
-        "gicp_linearize",
-        points,
-        target_points,
-        source_covariances,
-        target_covariances,
-        shapes=((3,), (3,), (3, 3), (3, 3)),
-    )
-    if np.shape(R) != (3, 3):
-        raise InputError(f"gicp_linearize needs a (3, 3) rotation, got {np.shape(R)}")
-    m = len(points)
-    W = np.empty((m, 3, 3))
-    m2 = np.empty(m)
-    with numba_threads(workers):
-        singular = weights_kernel(
-            np.ascontiguousarray(points, dtype=np.float64),
-            np.ascontiguousarray(target_points, dtype=np.float64),
-            np.ascontiguousarray(R, dtype=np.float64),
-            np.ascontiguousarray(source_covariances, dtype=np.float64),
-            np.ascontiguousarray(target_covariances, dtype=np.float64),
-            W,
-            m2,
-        )
-    if singular:
-        raise InputError(
-            "GICP needs positive definite covariances: C_target + R C_source Rᵀ is singular "
-            f"or indefinite for {singular} correspondences (use compute_covariances)"
-        )
-    return W, m2
-
-
-def gicp_system(
-    points: NDArray[np.float64],
-    target_points: NDArray[np.float64],
-    W: NDArray[np.float64],
-    workers: int = 1,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
-    """``Σ JᵀWJ``, ``Σ JᵀWd`` and ``Σ dᵀWd`` over (M, 3) points, targets and (M, 3, 3) W.
-
-    Compiled, rows summed in fixed chunks (the same bits on any thread count). A robust kernel
-    passes ``wᵢ Wᵢ``: its IRLS weights folded into the matrices.
-
-    Returns
-    -------
-    H, g, cost
-        (6, 6), (6,) and the scalar cost; twist order (omega, v), left perturbation.
-    """
-    check_rows("gicp_system", points, target_points, W, shapes=((3,), (3,), (3, 3)))
-    partial = np.zeros((max(1, -(-len(points) // CHUNK)), 28))
-    with numba_threads(workers):
-        system_kernel(
-            np.ascontiguousarray(points, dtype=np.float64),
-            np.ascontiguousarray(target_points, dtype=np.float64),
-            np.ascontiguousarray(W, dtype=np.float64),
-            partial,
-        )
-    total = partial.sum(axis=0)
-    H, g = system_from_sums(total)
-    return H, g, float(total[27])
 
 
 def gicp(
@@ -307,8 +135,8 @@ def gicp(
     src = as_registration_cloud(source, "source")
     tgt = as_registration_cloud(target, "target")
     T = se3.as_transform(init_T_target_source, "init_T_target_source").copy()
-    Cs = _check_covariances(source_covariances, len(src), "source_covariances")
-    Ct = _check_covariances(target_covariances, len(tgt), "target_covariances")
+    Cs = check_covariances(source_covariances, len(src), "source_covariances")
+    Ct = check_covariances(target_covariances, len(tgt), "target_covariances")
     if Cs is None:
         Cs = compute_covariances(src, config.k_covariance, config.epsilon, workers)
     if Ct is None:

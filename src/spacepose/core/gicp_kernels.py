@@ -1,6 +1,6 @@
-"""Compiled kernels of :mod:`spacepose.core.gicp`: per-correspondence weights
-``W = (C_q + R C_p Rᵀ)⁻¹``, the normal equations ``Σ JᵀWJ``, ``Σ JᵀWd``, ``Σ dᵀWd`` and the fused
-pass (move, match, weigh, sum) of one GICP linearisation.
+"""Compiled kernels of :mod:`spacepose.core.gicp` and :mod:`spacepose.core.gicp_systems`:
+per-correspondence weights ``W = (C_q + R C_p Rᵀ)⁻¹``, the normal equations ``Σ JᵀWJ``,
+``Σ JᵀWd``, ``Σ dᵀWd`` and the fused pass (move, match, weigh, sum) of one GICP linearisation.
 
 Rows are summed in fixed chunks of :data:`CHUNK`, each in its own fixed order, so any thread
 count gives the same bits.

@@ -25,7 +25,8 @@ from numpy.typing import ArrayLike, NDArray
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
-from spacepose.core.gicp import GICPConfig, compute_covariances, gicp
+from spacepose.core.gicp import GICPConfig, gicp
+from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import ICPConfig, as_registration_cloud, icp
 from spacepose.core.motion import rigid

@@ -17,13 +17,15 @@ a median shortfall above ``ambiguity_margin`` (frames whose best score is below
 ``min_explained`` do not count: they cannot tell candidates apart). While two or more remain
 the rows say ``ambiguous``, give no state and list the candidates: a truly symmetric target
 stays so, never confidently wrong.
+
+The rows and the NAV.csv table are in :mod:`spacepose.core.nav_result`; the orbit geometry and
+a filter's initial state in :mod:`spacepose.core.nav_start`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -54,7 +56,8 @@ from spacepose.core.nav_measurements import (
     incidence_cosine,
     pixel_area_weights,
 )
-from spacepose.core.nav_state import NavState
+from spacepose.core.nav_result import Candidate, NavRow
+from spacepose.core.nav_start import start_filter
 from spacepose.core.rectangle_search import measure_planes
 from spacepose.core.rectangles import (
     CatalogueEntry,
@@ -66,117 +69,17 @@ from spacepose.core.rectangles import (
 from spacepose.errors import InputError
 
 __all__ = [
-    "NAV_COLUMNS",
-    "Candidate",
-    "NavRow",
     "NavigationConfig",
     "RelativeNavigator",
     "area_weighted_centroid",
     "attitude_covariance",
     "centroid_covariance",
     "incidence_cosine",
-    "nav_table",
     "navigate",
-    "scenario_geometry",
-    "start_filter",
 ]
 
-STATE_COLUMNS = (
-    "t,rho_x,rho_y,rho_z,v_x,v_y,v_z,qx,qy,qz,qw,w_x,w_y,w_z,k_x,k_y,k_z,com_x,com_y,com_z"
-).split(",")
-SIGMA_COLUMNS = [
-    f"sig_{name}_{axis}" for name in ("rho", "v", "att", "w", "k", "com") for axis in "xyz"
-]
-NAV_COLUMNS = [*STATE_COLUMNS, *SIGMA_COLUMNS, "n_rect", "status"]
 # Rectangles of a frame: each measurement with the catalogue faces its sides allow.
 Rects = list[tuple[RectangleMeasurement, list[CatalogueEntry]]]
-
-
-@dataclass(frozen=True, eq=False)
-class Candidate:
-    """One candidate filter's estimate while the target's pose is ambiguous.
-
-    Attributes
-    ----------
-    state
-        The candidate filter's estimate after the frame.
-    explained
-        Share of the frame its pose explains (:func:`lost_in_space.explained_share`), in [0, 1].
-    """
-
-    state: NavState
-    explained: float
-
-
-@dataclass(frozen=True, eq=False)
-class NavRow:
-    """The navigation output of one frame.
-
-    Attributes
-    ----------
-    state
-        The estimate after the frame's updates; None before initialisation and while ambiguous.
-    sigmas
-        1-σ per block (``rho, v, att, omega, k, com``), None when ``state`` is.
-    n_rect
-        Rectangles recognised and used in this frame (by the best candidate while ambiguous).
-    status
-        ``waiting`` (no filter yet), ``ambiguous`` (several candidate filters explain the data
-        equally well: no state, see ``candidates``), ``init`` (first frame with a state),
-        ``update`` (at least one measurement used) or ``predict`` (prediction only).
-    coarse_T_sensor_model
-        Coarse pose of the frame from its rectangles after the 4-fold fix (4, 4), or None.
-    raw_T_sensor_model
-        Coarse pose from the largest rectangle's raw eigenvector frame (no 4-fold fix), or None;
-        kept for the ablation of the fix.
-    candidates
-        The candidate filters' estimates when ``status`` is ``ambiguous``, best first.
-    """
-
-    t: float
-    state: NavState | None
-    sigmas: dict[str, NDArray[np.float64]] | None
-    n_rect: int
-    status: str
-    coarse_T_sensor_model: NDArray[np.float64] | None = None
-    raw_T_sensor_model: NDArray[np.float64] | None = None
-    candidates: tuple[Candidate, ...] = ()
-
-    def values(self) -> list[float | int | str]:
-        """The row in the order of :data:`NAV_COLUMNS` (NaN before initialisation)."""
-        if self.state is None or self.sigmas is None:
-            numbers = [self.t] + [float("nan")] * (len(STATE_COLUMNS) + len(SIGMA_COLUMNS) - 1)
-        else:
-            s = self.state
-            numbers = [s.t, *s.rho, *s.v, *s.q_I_B, *s.omega_B, *s.k, *s.com]
-            numbers += [float(v) for key in ("rho", "v", "att", "omega", "k", "com")
-                        for v in self.sigmas[key]]  # fmt: skip
-        return [*numbers, self.n_rect, self.status]
-
-
-def scenario_geometry(
-    scenario: Mapping[str, Any], source: str = "scenario.json"
-) -> tuple[float, NDArray[np.float64]]:
-    """Mean motion n (rad/s) and ``R_O_C`` (3, 3) from a run's scenario description.
-
-    Raises
-    ------
-    InputError
-        A key is missing, or ``R_O_C`` is not a rotation matrix, or n is not positive.
-    """
-    for key in ("mean_motion", "R_O_C"):
-        if key not in scenario:
-            raise InputError(f"missing key {key!r} (navigation needs an orbit run)", source)
-    try:
-        n = float(scenario["mean_motion"])
-        R = np.asarray(scenario["R_O_C"], dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"mean_motion / R_O_C are not numeric: {exc}", source) from None
-    if not np.isfinite(n) or n <= 0:
-        raise InputError(f"mean_motion must be positive, got {n}", source)
-    if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise InputError("R_O_C must be a 3x3 rotation matrix", source)
-    return n, R
 
 
 @dataclass(eq=False)
@@ -436,33 +339,6 @@ def _same_pose(T: NDArray[np.float64], U: NDArray[np.float64], same_pose_deg: fl
     to the filters' accuracy: every candidate fits the same points)."""
     angle = Rotation.from_matrix(T[:3, :3] @ U[:3, :3].T).magnitude()
     return bool(np.rad2deg(angle) < same_pose_deg)
-
-
-def start_filter(
-    t: float,
-    T_sensor_model: NDArray[np.float64],
-    mean_motion: float,
-    R_O_C: NDArray[np.float64],
-    config: NavigationConfig,
-) -> RelativeNavEKF:
-    """Filter initialised from a coarse pose ``T_sensor_model`` (4, 4) at time ``t`` (Δ = 0,
-    so ρ is the B' origin), ω and k from the config's priors."""
-    R_I_B = dynamics.R_I_O(mean_motion, t) @ R_O_C @ T_sensor_model[:3, :3]
-    initial = NavState(
-        t,
-        R_O_C @ T_sensor_model[:3, 3],
-        np.zeros(3),
-        Rotation.from_matrix(R_I_B).as_quat(),
-        np.deg2rad(config.init_rate_deg_s),
-        np.asarray(config.init_k, dtype=np.float64),
-        np.zeros(3),
-    )
-    return RelativeNavEKF(mean_motion, R_O_C, initial, config.ekf)
-
-
-def nav_table(rows: Sequence[NavRow]) -> tuple[list[str], list[list[float | int | str]]]:
-    """Column names (:data:`NAV_COLUMNS`) and one list of values per row."""
-    return list(NAV_COLUMNS), [row.values() for row in rows]
 
 
 def navigate(

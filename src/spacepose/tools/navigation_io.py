@@ -23,13 +23,9 @@ from numpy.typing import ArrayLike
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, parse_problem
 from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
-from spacepose.core.navigation import (
-    NavigationConfig,
-    NavRow,
-    nav_table,
-    navigate,
-    scenario_geometry,
-)
+from spacepose.core.nav_result import NavRow, nav_table
+from spacepose.core.nav_start import scenario_geometry
+from spacepose.core.navigation import NavigationConfig, navigate
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_cloud
@@ -52,7 +48,7 @@ class NavigationSummary:
 
 
 def write_nav_csv(path: str | Path, rows: Sequence[NavRow]) -> Path:
-    """Write one NAV.csv row per frame (columns of :data:`navigation.NAV_COLUMNS`)."""
+    """Write one NAV.csv row per frame (columns of :data:`nav_result.NAV_COLUMNS`)."""
     path = Path(path)
     columns, values = nav_table(rows)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -36,7 +36,8 @@ from scipy.spatial import cKDTree
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
-from spacepose.core.gicp import GICPConfig, compute_covariances, gicp
+from spacepose.core.gicp import GICPConfig, gicp
+from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.normals import NormalsConfig, estimate_normals

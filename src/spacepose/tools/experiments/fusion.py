@@ -33,7 +33,7 @@ from scipy.stats import chi2
 from spacepose.core import se3
 from spacepose.core.fused_navigation import GATE_REASON, FusedNavigator, FusionConfig
 from spacepose.core.nav_config import NavigationConfig
-from spacepose.core.navigation import scenario_geometry
+from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register
@@ -251,9 +251,11 @@ def fusion(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
     n_seeds, frames = (1, 30) if options.quick else (options.seeds or 3, options.frames or 600)
     seeds = list(range(options.seed, options.seed + n_seeds))
     base = FusionConfig(navigation=NavigationConfig())
-    plan = {"default": ("registration", "both")} if options.quick else {
-        name: kinds for name, (_, _, kinds) in TARGETS.items()
-    }
+    plan = (
+        {"default": ("registration", "both")}
+        if options.quick
+        else {name: kinds for name, (_, _, kinds) in TARGETS.items()}
+    )
     runs = {
         f"{target} / {kind}": over_seeds(target, kind, seeds, frames, base)
         for target, kinds in plan.items()

@@ -34,8 +34,9 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from spacepose.core.ekf import RelativeNavEKF
+from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.nav_state import INERTIA, N_FIXED, NavState, k_from_params, params_from_k
-from spacepose.core.navigation import NavigationConfig, RelativeNavigator, scenario_geometry
+from spacepose.core.navigation import NavigationConfig, RelativeNavigator
 from spacepose.core.sim.scenarios import OrbitConfig, Simulation, simulate_orbit
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register

@@ -1,0 +1,69 @@
+"""Per-point covariances of Generalized ICP (Segal et al. 2009; methods.md §1.5).
+
+Each point of an (N, 3) cloud gets a (3, 3) covariance from its k nearest neighbours (the point
+itself included), regularised to a plane: the eigenvalues of the neighbourhood scatter are
+replaced by ``(ε, 1, 1)``, smallest along the normal n, which gives ``I − (1 − ε) n nᵀ`` (as
+Segal et al., small_gicp and Open3D do). The covariances are in the cloud's own frame and
+dimensionless: they fix the *shape* of the noise only, its scale (m²) is estimated from the
+residuals by :func:`spacepose.core.gicp.gicp`. :func:`check_covariances` validates (N, 3, 3)
+covariances a caller computed once per frame and passes in.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.icp import as_registration_cloud
+from spacepose.core.neighbors import knn
+from spacepose.core.normals import neighbourhood_normals
+from spacepose.errors import InputError
+
+
+def compute_covariances(
+    points: PointCloud | ArrayLike, k: int = 20, epsilon: float = 1e-3, workers: int = -1
+) -> NDArray[np.float64]:
+    """Plane-regularised covariance of every point, from its k nearest neighbours.
+
+    Parameters
+    ----------
+    points
+        (N, 3) points (or a :class:`PointCloud`), N >= k.
+    k
+        Neighbours per point, the point itself included.
+    epsilon
+        Eigenvalue given to the normal direction; the two tangent directions get 1.
+    workers
+        Threads for the neighbour search.
+
+    Returns
+    -------
+    (N, 3, 3) covariances ``V diag(ε, 1, 1) Vᵀ`` in the points' frame, V the eigenvectors of the
+    neighbourhood scatter in ascending eigenvalue order.
+    """
+    pts = as_registration_cloud(points, "points").points
+    if not 3 <= k <= len(pts):
+        raise InputError(f"covariances need 3 <= k <= {len(pts)} (number of points), got k={k}")
+    if not 0 < epsilon <= 1:
+        raise InputError(f"covariance epsilon must be in (0, 1], got {epsilon}")
+    _, idx = knn(pts, None, k, workers=workers)
+    normals = neighbourhood_normals(pts, idx, workers)
+    # V diag(ε, 1, 1) Vᵀ = I − (1 − ε) n nᵀ: only the smallest eigenvector n is needed.
+    return np.eye(3) - (1.0 - epsilon) * normals[:, :, None] * normals[:, None, :]
+
+
+def check_covariances(C: ArrayLike | None, n: int, name: str) -> NDArray[np.float64] | None:
+    """``C`` as float64 (N, 3, 3) covariances, None when it is None (``name`` for the error).
+
+    Raises
+    ------
+    InputError
+        When ``C`` is not finite or not of shape (n, 3, 3).
+    """
+    if C is None:
+        return None
+    C = np.asarray(C, dtype=np.float64)
+    if C.shape != (n, 3, 3) or not np.all(np.isfinite(C)):
+        raise InputError(f"{name} must be finite with shape ({n}, 3, 3), got {C.shape}")
+    return C
