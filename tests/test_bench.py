@@ -22,17 +22,15 @@ from spacepose.errors import ConfigError, InputError
 from spacepose.tools.bench import (
     QUICK_SIZES,
     REGISTRATIONS,
-    SCALING_STAGES,
     STAGES,
     BenchConfig,
     bench_config,
-    fit_exponent,
-    registration_error,
     run_benchmark,
-    summarize,
-    time_interleaved,
     write_bench,
 )
+from spacepose.tools.bench_data import registration_error
+from spacepose.tools.bench_scaling import SCALING_STAGES, fit_exponent
+from spacepose.tools.bench_trials import summarize, time_interleaved
 
 # A frame of 160×120 pixels (about 1.2k points) and small scaling sizes keep the run short.
 TINY = {

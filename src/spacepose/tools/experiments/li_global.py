@@ -75,7 +75,7 @@ from spacepose.core.tracker_config import StageLengths, TrackerConfig, stage_len
 from spacepose.core.voxel import voxel_downsample
 from spacepose.errors import ConfigError, RegistrationError
 from spacepose.tools import plots
-from spacepose.tools.bench import thread_count
+from spacepose.tools.bench_peers import thread_count
 from spacepose.tools.experiments import ExperimentOptions, register
 
 # Ours (coverage-ranked RANSAC), the paper's plain RANSAC (inlier-ranked) in our pipeline, and
