@@ -233,6 +233,8 @@ class SmallGICP:
 
 @dataclass(frozen=True)
 class Peers:
+    """The peers this run can time (None: not installed or not asked for)."""
+
     open3d: Open3D | None = None
     small_gicp: SmallGICP | None = None
 
