@@ -11,7 +11,8 @@ from spacepose.core.attitude_fix import (
     attitude_hypotheses,
     explained_rectangles,
 )
-from spacepose.core.rectangles import CatalogueEntry, candidates, measure_rectangle
+from spacepose.core.rectangle_measurement import measure_rectangle
+from spacepose.core.rectangles import CatalogueEntry, candidates
 from spacepose.core.sim.targets import box_rectangles
 
 BOX = (2.4, 1.8, 1.4)  # the orbit bus, m

@@ -1,6 +1,6 @@
-"""Two rigid bodies in one object (core/bodies.py): a support moving otherwise is split off by
-motion, against the known motions and labels of synthetic boxes; one body, or noise correlated
-over patches, is never split."""
+"""Two rigid bodies in one object (core/bodies.py, core/clutter_body.py): a support moving
+otherwise is split off by motion and then followed, against the known motions and labels of
+synthetic boxes; one body, or noise correlated over patches, is never split."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
-from spacepose.core.bodies import ClutterBody, split_motion, subset
+from spacepose.core.bodies import split_motion
 from spacepose.core.cloud import PointCloud
+from spacepose.core.clutter_body import ClutterBody, subset
 from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.voxel import voxel_cells

@@ -23,7 +23,8 @@ from spacepose.core.navigation import (
     incidence_cosine,
 )
 from spacepose.core.planes import PlaneConfig
-from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, measure_rectangle
+from spacepose.core.rectangle_measurement import measure_rectangle
+from spacepose.core.rectangles import CatalogueEntry, RectangleConfig
 from spacepose.core.sim import symmetric_orbit_target
 from spacepose.core.sim.scenarios import OrbitConfig, scenario_config, simulate_orbit
 from spacepose.errors import InputError

@@ -15,12 +15,11 @@ from spacepose.core.attitude_fix import (
     consistent_rectangles,
     fix_four_fold,
 )
+from spacepose.core.rectangle_measurement import fill_ratio, measure_rectangle
 from spacepose.core.rectangles import (
     CatalogueEntry,
     RectangleConfig,
     candidates,
-    fill_ratio,
-    measure_rectangle,
     recognise,
     rejection_reason,
 )

@@ -26,7 +26,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
-from spacepose.core.rectangles import CatalogueEntry, RectangleMeasurement
+from spacepose.core.rectangle_measurement import RectangleMeasurement
+from spacepose.core.rectangles import CatalogueEntry
 from spacepose.errors import InputError
 
 # The plane-frame turns of the 4-fold ambiguity: identity and 180° about x, y and z.

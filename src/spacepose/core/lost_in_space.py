@@ -38,7 +38,8 @@ from spacepose.core.attitude_fix import explained_rectangles
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
 from spacepose.core.icp import ICPConfig, icp
-from spacepose.core.rectangles import CatalogueEntry, RectangleMeasurement
+from spacepose.core.rectangle_measurement import RectangleMeasurement
+from spacepose.core.rectangles import CatalogueEntry
 from spacepose.errors import InputError, RegistrationError
 
 __all__ = [

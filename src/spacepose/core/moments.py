@@ -7,7 +7,7 @@ eigenvectors as columns. :func:`is_collinear` tells a line (or a single point) b
 eigenvalues; :func:`fit_plane` takes the eigenvector of the smallest as the unit normal of the
 least-squares plane ``normal · x = offset`` (m). RANSAC plane extraction
 (:mod:`spacepose.core.planes`) refits its planes with it, and rectangle measurement
-(:mod:`spacepose.core.rectangles`) reads a face's axes and sides off the same matrix.
+(:mod:`spacepose.core.rectangle_measurement`) reads a face's axes and sides off the same matrix.
 :func:`as_points` is the check of the points every function here makes (N >= 3, finite).
 
 All coordinates are in the frame of the input points (usually the sensor frame), in metres; a

@@ -13,7 +13,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.nav_config import NavigationConfig
-from spacepose.core.rectangles import CatalogueEntry, RectangleMeasurement
+from spacepose.core.rectangle_measurement import RectangleMeasurement
+from spacepose.core.rectangles import CatalogueEntry
 
 __all__ = [
     "area_weighted_centroid",

@@ -58,14 +58,9 @@ from spacepose.core.nav_measurements import (
 )
 from spacepose.core.nav_result import Candidate, NavRow
 from spacepose.core.nav_start import start_filter
+from spacepose.core.rectangle_measurement import RectangleMeasurement
 from spacepose.core.rectangle_search import measure_planes
-from spacepose.core.rectangles import (
-    CatalogueEntry,
-    RectangleConfig,
-    RectangleMeasurement,
-    candidates,
-    recognise,
-)
+from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, candidates, recognise
 from spacepose.errors import InputError
 
 __all__ = [

@@ -162,10 +162,11 @@ def dense_support(
     half disc: √2 times the spacing) and, on average, its corners (a quarter disc: twice), and
     drops strays more than about one spacing outside the edge. Measured on Y1-style clouds
     (10 × 18 cm, 1,250 points, 1,250 outliers in a box), with the ``random`` edge estimate of
-    :func:`spacepose.core.rectangles.measure_rectangle`: sides 0.51 ± 0.43 and −0.20 ± 0.63 mm
-    off and the centre 0.37 ± 0.20 mm off over 10 seeds (the whole slab: 8.4 and 10.6 mm,
-    1.7 mm). Over 30 seeds, a ``spread`` of 2.5 keeps more strays along the long edges (short
-    side up to 3.6 mm off) and 1.5 trims the face (long side 1.1 mm short on average).
+    :func:`spacepose.core.rectangle_measurement.measure_rectangle`: sides 0.51 ± 0.43 and
+    −0.20 ± 0.63 mm off and the centre 0.37 ± 0.20 mm off over 10 seeds (the whole slab: 8.4
+    and 10.6 mm, 1.7 mm). Over 30 seeds, a ``spread`` of 2.5 keeps more strays along the long
+    edges (short side up to 3.6 mm off) and 1.5 trims the face (long side 1.1 mm short on
+    average).
 
     Parameters
     ----------

@@ -3,9 +3,9 @@
 RANSAC (:func:`spacepose.core.planes.extract_planes`) finds the planes; each keeps only its
 dense connected region (:func:`spacepose.core.planes.dense_support`), since the stray points a
 slab collects around a face pull its distribution matrix; the support is measured as a
-rectangle (:func:`spacepose.core.rectangles.measure_rectangle`) and recognised against the
-catalogue (:func:`spacepose.core.rectangles.recognise`). All vectors are in the frame of the
-points (the sensor frame), in metres.
+rectangle (:func:`spacepose.core.rectangle_measurement.measure_rectangle`) and recognised
+against the catalogue (:func:`spacepose.core.rectangles.recognise`). All vectors are in the
+frame of the points (the sensor frame), in metres.
 """
 
 from __future__ import annotations
@@ -19,13 +19,8 @@ from numpy.typing import ArrayLike, NDArray
 from spacepose.core.cloud import PointCloud
 from spacepose.core.moments import as_points, distribution, is_collinear, normalised_weights
 from spacepose.core.planes import Plane, PlaneConfig, dense_support, extract_planes
-from spacepose.core.rectangles import (
-    CatalogueEntry,
-    RectangleConfig,
-    RectangleMeasurement,
-    measure_rectangle,
-    recognise,
-)
+from spacepose.core.rectangle_measurement import RectangleMeasurement, measure_rectangle
+from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, recognise
 
 __all__ = ["FoundPlane", "MeasuredPlane", "find_rectangles", "measure_planes"]
 

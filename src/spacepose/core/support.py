@@ -1,5 +1,6 @@
 """The tracker's side of a support moving otherwise (methods.md §5.8): when to look for one, and
-leaving it out of every frame once found (the geometry is :mod:`spacepose.core.bodies`)."""
+leaving it out of every frame once found (the geometry is :mod:`spacepose.core.bodies` and
+:mod:`spacepose.core.clutter_body`)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
-from spacepose.core.bodies import ClutterBody, split_motion, subset
+from spacepose.core.bodies import split_motion
+from spacepose.core.clutter_body import ClutterBody, subset
 from spacepose.core.correspondences import find_correspondences
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud

@@ -26,7 +26,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from spacepose.core.planes import PlaneConfig, ransac_plane
-from spacepose.core.rectangles import measure_rectangle
+from spacepose.core.rectangle_measurement import measure_rectangle
 from spacepose.tools.experiments import ExperimentOptions, register
 
 CM = 0.01
