@@ -23,6 +23,8 @@ import spacepose
 from spacepose.cli import main
 from spacepose.errors import ConfigError, FileFormatError, RegistrationError
 from spacepose.tools import campaign as cp
+from spacepose.tools import campaign_cases as cc
+from spacepose.tools import campaign_spec as cs
 
 TESTS_DIR = Path(__file__).resolve().parent
 MARKERS_ENV = "SPACEPOSE_TEST_CAMPAIGN_MARKERS"
@@ -37,7 +39,7 @@ GRID_24 = {
 }
 
 
-@cp.case_runner("cheap", choices={"method": ("a", "b", "fail", "bad")}, extra_axes=("frames",))
+@cc.case_runner("cheap", choices={"method": ("a", "b", "fail", "bad")}, extra_axes=("frames",))
 def cheap_runner(params: dict) -> dict:
     """Closed-form metrics of the parameters; leaves one marker file per computation."""
     if params["method"] == "fail":
@@ -57,7 +59,7 @@ def cheap_runner(params: dict) -> dict:
     }
     markers = os.environ.get(MARKERS_ENV)
     if markers:
-        Path(markers, f"{cp.case_id(params)}.{uuid.uuid4().hex}").touch()
+        Path(markers, f"{cs.case_id(params)}.{uuid.uuid4().hex}").touch()
     return metrics
 
 
@@ -103,27 +105,27 @@ def _rows_without_timing(path: Path) -> list[dict]:
 
 
 def test_case_ids_do_not_depend_on_grid_order():
-    cases = cp.expand_grid(GRID_24)
+    cases = cs.expand_grid(GRID_24)
     assert len(cases) == 24
     assert len({c.case_id for c in cases}) == 24
     assert [c.case_id for c in cases] == sorted(c.case_id for c in cases)
     shuffled = {k: list(reversed(v)) for k, v in reversed(GRID_24.items())}
-    assert {(c.case_id, tuple(sorted(c.params.items()))) for c in cp.expand_grid(shuffled)} == {
+    assert {(c.case_id, tuple(sorted(c.params.items()))) for c in cs.expand_grid(shuffled)} == {
         (c.case_id, tuple(sorted(c.params.items()))) for c in cases
     }
     params = {"seed": 3, "method": "a", "noise_scale": 0.5, "scenario": "s1"}
-    assert cp.case_id(params) == cp.case_id(dict(reversed(params.items())))
-    assert cp.case_id(params) != cp.case_id({**params, "seed": 4})
-    assert len(cp.case_id(params)) == 12
+    assert cs.case_id(params) == cs.case_id(dict(reversed(params.items())))
+    assert cs.case_id(params) != cs.case_id({**params, "seed": 4})
+    assert len(cs.case_id(params)) == 12
 
 
 def test_mixed_int_float_axis_becomes_float():
-    config = cp.CampaignConfig(
+    config = cs.CampaignConfig(
         case_kind="cheap", grid={**GRID_24, "noise_scale": [0, 0.5, 2]}, out="x"
     )
     assert config.grid["noise_scale"] == [0.0, 0.5, 2.0]
     assert all(isinstance(v, float) for v in config.grid["noise_scale"])
-    ints = cp.CampaignConfig(case_kind="cheap", grid={**GRID_24, "noise_scale": [0, 1]}, out="x")
+    ints = cs.CampaignConfig(case_kind="cheap", grid={**GRID_24, "noise_scale": [0, 1]}, out="x")
     assert [type(v) for v in ints.grid["noise_scale"]] == [float, float]
     assert ints.grid["seed"] == [0, 1] and all(type(v) is int for v in ints.grid["seed"])
 
@@ -136,7 +138,7 @@ def test_mixed_int_float_axis_becomes_float():
 def test_killed_campaign_resumes_without_loss_or_duplicates(tmp_path, capsys, markers, scheduler):
     config = _write_config(tmp_path / "c.yaml")
     out_a, out_b = tmp_path / "a", tmp_path / "b"
-    all_ids = {c.case_id for c in cp.expand_grid(GRID_24)}
+    all_ids = {c.case_id for c in cs.expand_grid(GRID_24)}
     assert not any(m.name.split(".")[0] in all_ids for m in markers.iterdir())
     args = ["campaign", str(config), "--out", str(out_a), "--workers", "2"]
     script = (
@@ -187,7 +189,7 @@ def test_killed_campaign_resumes_without_loss_or_duplicates(tmp_path, capsys, ma
     assert [r["case_id"] for r in rows_a] == sorted(all_ids)
     for row in rows_a:
         params = {k: row[k] for k in GRID_24}
-        assert row["case_id"] == cp.case_id(params)
+        assert row["case_id"] == cs.case_id(params)
         assert row["seed_value"] == row["seed"]
         assert row["draw"] == np.random.default_rng(row["seed"]).normal()
 
@@ -204,7 +206,7 @@ def test_results_summary_and_grid_extension(tmp_path, scheduler):
         "method": ["a", "fail"],
         "seed": [0, 1, 2, 3],
     }
-    config = cp.CampaignConfig(name="stats", case_kind="cheap", grid=grid, out=tmp_path / "run")
+    config = cs.CampaignConfig(name="stats", case_kind="cheap", grid=grid, out=tmp_path / "run")
     result = cp.run_campaign(config, scheduler=scheduler, progress=False)
     assert (result.n_computed, result.n_skipped) == (16, 0)
 
@@ -305,7 +307,7 @@ def test_same_seed_same_metrics_other_seed_different():
 def test_bad_config_is_a_config_error_naming_the_file(tmp_path, capsys, fields, expected):
     path = _write_config(tmp_path / "bad.yaml", **fields)
     with pytest.raises(ConfigError, match=r"bad\.yaml") as info:
-        cp.load_campaign_config(path)
+        cs.load_campaign_config(path)
     assert expected in str(info.value)
     assert main(["campaign", str(path), "--out", str(tmp_path / "out")]) == 1
     err = capsys.readouterr().err.strip()
@@ -321,7 +323,7 @@ def test_cli_workers_option_must_be_positive(tmp_path, capsys):
 
 
 def test_incompatible_or_foreign_folder_is_refused(tmp_path):
-    config = cp.CampaignConfig(name="one", case_kind="cheap", grid=GRID_24, out=tmp_path / "run")
+    config = cs.CampaignConfig(name="one", case_kind="cheap", grid=GRID_24, out=tmp_path / "run")
     cp.prepare_out_dir(config)
     # Worker count and grid values may change on resume; name, case_kind and axes may not.
     cp.prepare_out_dir(config.model_copy(update={"workers": 1}))
@@ -345,9 +347,9 @@ def test_incompatible_or_foreign_folder_is_refused(tmp_path):
 
 
 def test_damaged_part_is_a_file_format_error(tmp_path):
-    config = cp.CampaignConfig(case_kind="cheap", grid=GRID_24, out=tmp_path / "run")
+    config = cs.CampaignConfig(case_kind="cheap", grid=GRID_24, out=tmp_path / "run")
     out = cp.prepare_out_dir(config)
-    case = cp.expand_grid(GRID_24)[0]
+    case = cs.expand_grid(GRID_24)[0]
     path = cp.write_part(out, cp.execute_case(cheap_runner, case.params))
     assert list(cp.read_parts(out)) == [case.case_id]
     leftover = out / "parts" / ".abc.json.123.tmp"
@@ -379,7 +381,7 @@ def test_runner_returning_bad_metrics_is_a_type_error():
 
 
 def test_unreachable_scheduler_is_a_config_error(tmp_path):
-    config = cp.CampaignConfig(
+    config = cs.CampaignConfig(
         case_kind="cheap", grid=GRID_24, out=tmp_path / "run", connect_timeout_s=0.5
     )
     with pytest.raises(
@@ -395,12 +397,12 @@ def test_unreachable_scheduler_is_a_config_error(tmp_path):
 
 def test_seeded_perturbation_has_the_requested_size():
     center = np.array([0.1, -0.2, 1.2])
-    T = cp.seeded_perturbation(center, 3.0, 0.02, seed=5)
+    T = cc.seeded_perturbation(center, 3.0, 0.02, seed=5)
     assert np.degrees(Rotation.from_matrix(T[:3, :3]).magnitude()) == pytest.approx(3.0)
     moved = T[:3, :3] @ center + T[:3, 3]
     assert np.linalg.norm(moved - center) == pytest.approx(0.02)
-    assert np.array_equal(T, cp.seeded_perturbation(center, 3.0, 0.02, seed=5))
-    assert not np.allclose(T, cp.seeded_perturbation(center, 3.0, 0.02, seed=6))
+    assert np.array_equal(T, cc.seeded_perturbation(center, 3.0, 0.02, seed=5))
+    assert not np.allclose(T, cc.seeded_perturbation(center, 3.0, 0.02, seed=6))
 
 
 LAB_CASE = {"scenario": "lab", "noise_scale": 1.0, "method": "point_to_plane", "seed": 0}
@@ -411,9 +413,9 @@ def _without_timing(metrics: dict) -> dict:
 
 
 def test_registration_case_same_seed_same_metrics_other_seed_different():
-    first = cp.registration_case(dict(LAB_CASE))
-    again = cp.registration_case(dict(reversed(LAB_CASE.items())))
-    other = cp.registration_case({**LAB_CASE, "seed": 1})
+    first = cc.registration_case(dict(LAB_CASE))
+    again = cc.registration_case(dict(reversed(LAB_CASE.items())))
+    other = cc.registration_case({**LAB_CASE, "seed": 1})
     assert _without_timing(first) == _without_timing(again)
     for key in ("rotation_error_deg", "translation_error_mm", "inlier_rmse_mm", "n_source"):
         assert first[key] != other[key]
@@ -424,7 +426,7 @@ def test_registration_case_same_seed_same_metrics_other_seed_different():
 def test_registration_case_noise_free_recovers_the_true_motion():
     # From a 2 deg / 10 mm start, noise-free frames: any slip in composing the true frame-pair
     # transform or the perturbation would leave an error of the order of the perturbation.
-    m = cp.registration_case({**LAB_CASE, "noise_scale": 0.0})
+    m = cc.registration_case({**LAB_CASE, "noise_scale": 0.0})
     assert m["converged"]
     assert m["fitness"] == 1.0
     assert m["rotation_error_deg"] < 0.01
@@ -434,7 +436,7 @@ def test_registration_case_noise_free_recovers_the_true_motion():
 def test_registration_case_orbit_frame_pair():
     # Flash LiDAR at 25 m: ~1000 points 8 cm apart, so no sub-mm truth, but GICP must undo the
     # 2 deg / 100 mm start (REGISTRATION_DEFAULTS) by more than a factor of 10.
-    m = cp.registration_case({"scenario": "orbit", "noise_scale": 1.0, "method": "gicp", "seed": 0})
+    m = cc.registration_case({"scenario": "orbit", "noise_scale": 1.0, "method": "gicp", "seed": 0})
     assert 500 < m["n_source"] < 2000
     assert m["rotation_error_deg"] < 0.2
     assert m["translation_error_mm"] < 10.0
@@ -442,17 +444,17 @@ def test_registration_case_orbit_frame_pair():
 
 def test_registration_campaign_on_dask_matches_a_direct_call(tmp_path, scheduler):
     grid = {"scenario": ["lab"], "noise_scale": [1.0], "method": ["point_to_plane"], "seed": [0]}
-    config = cp.CampaignConfig(name="reg", grid=grid, out=tmp_path / "reg")
+    config = cs.CampaignConfig(name="reg", grid=grid, out=tmp_path / "reg")
     result = cp.run_campaign(config, scheduler=scheduler, progress=False)
     (row,) = result.table.to_pylist()
-    direct = _without_timing(cp.registration_case(dict(LAB_CASE)))
+    direct = _without_timing(cc.registration_case(dict(LAB_CASE)))
     assert {k: row[k] for k in direct} == direct
     assert row["error"] is None
     assert (tmp_path / "reg" / "rotation_error_deg.png").exists()
 
 
 def test_tracking_runner_scores_a_short_lab_run_against_truth() -> None:
-    from spacepose.tools.campaign import get_runner
+    from spacepose.tools.campaign_cases import get_runner
 
     params = {"scenario": "lab", "noise_scale": 1.0, "method": "keyframe", "seed": 2, "frames": 5}
     metrics = get_runner("tracking").fn(params)

@@ -19,7 +19,8 @@ def campaign(
     out: Path | None = typer.Option(None, help="Output folder (overrides config)."),
 ) -> None:
     """Run or resume a campaign: parts/, results.parquet, summary.json and plots go to OUT."""
-    from spacepose.tools.campaign import RESULTS_FILE, load_campaign_config, run_campaign
+    from spacepose.tools.campaign import RESULTS_FILE, run_campaign
+    from spacepose.tools.campaign_spec import load_campaign_config
 
     cfg = load_campaign_config(config, workers=workers, out=out)
     result = run_campaign(cfg, scheduler=scheduler)
