@@ -8,7 +8,7 @@ eigenvalues; :func:`fit_plane` takes the eigenvector of the smallest as the unit
 least-squares plane ``normal · x = offset`` (m). RANSAC plane extraction
 (:mod:`spacepose.core.planes`) refits its planes with it, and rectangle measurement
 (:mod:`spacepose.core.rectangle_measurement`) reads a face's axes and sides off the same matrix.
-:func:`as_points` is the check of the points every function here makes (N >= 3, finite).
+Every function checks its points with :func:`spacepose.core.cloud.as_points` (N >= 3, finite).
 
 All coordinates are in the frame of the input points (usually the sensor frame), in metres; a
 fitted normal is turned towards the origin of that frame (the sensor), so ``offset <= 0``.
@@ -19,23 +19,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from spacepose.core.cloud import PointCloud
-from spacepose.core.cloud import as_points as _finite_points
+from spacepose.core.cloud import as_points
 from spacepose.errors import DegenerateGeometryError, InputError
 
 # Relative size of the second eigenvalue below which points count as collinear.
 _COLLINEAR_RTOL = 1e-10
-
-
-def as_points(cloud_or_points: PointCloud | ArrayLike, what: str = "points") -> NDArray[np.float64]:
-    """Validate an (N, 3) finite array with N >= 3 (or take a PointCloud's points).
-
-    Raises
-    ------
-    InputError
-        On a wrong shape, non-finite values or fewer than 3 points.
-    """
-    return _finite_points(cloud_or_points, what, min_points=3)
 
 
 def normalised_weights(weights: ArrayLike, n: int) -> NDArray[np.float64]:
@@ -83,7 +71,7 @@ def distribution(
     eigenvectors
         (3, 3) orthonormal eigenvectors as columns, in the same order.
     """
-    pts = as_points(points)
+    pts = as_points(points, min_points=3)
     if weights is None:
         centroid = pts.mean(axis=0)
         centred = pts - centroid

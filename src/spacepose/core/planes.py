@@ -23,9 +23,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from spacepose.core import ransac
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.config import StageConfig
-from spacepose.core.moments import as_points, distribution, fit_plane, is_collinear
+from spacepose.core.moments import distribution, fit_plane, is_collinear
 from spacepose.core.ransac import sample_triples
 from spacepose.errors import DegenerateGeometryError, InputError
 
@@ -237,7 +237,7 @@ def ransac_plane(
     DegenerateGeometryError
         All points collinear.
     """
-    pts = as_points(points)
+    pts = as_points(points, min_points=3)
     _, eigenvalues, _ = distribution(pts)
     if is_collinear(eigenvalues):
         raise DegenerateGeometryError(f"all {len(pts)} points are collinear: no plane to fit")
@@ -328,7 +328,7 @@ def assign_along_rays(
     The remaining planes in their input order, each with its new inliers (sorted) and refitted
     by PCA (the old normal stands if the new inliers alone are collinear).
     """
-    pts = as_points(points)
+    pts = as_points(points, min_points=3)
     if max_residual <= 0:
         raise InputError(f"max_residual must be positive, got {max_residual}")
     need = max(min_inliers, 3)  # a plane needs three points
@@ -381,7 +381,7 @@ def extract_planes(
     DegenerateGeometryError
         All points collinear.
     """
-    pts = as_points(cloud_or_points)
+    pts = as_points(cloud_or_points, min_points=3)
     if is_collinear(distribution(pts)[1]):
         raise DegenerateGeometryError(f"all {len(pts)} points are collinear: no plane to fit")
     rng = np.random.default_rng(config.seed)

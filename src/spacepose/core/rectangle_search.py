@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from spacepose.core.cloud import PointCloud
-from spacepose.core.moments import as_points, distribution, is_collinear, normalised_weights
+from spacepose.core.cloud import PointCloud, as_points
+from spacepose.core.moments import distribution, is_collinear, normalised_weights
 from spacepose.core.planes import Plane, PlaneConfig, dense_support, extract_planes
 from spacepose.core.rectangle_measurement import RectangleMeasurement, measure_rectangle
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, recognise
@@ -66,7 +66,7 @@ def measure_planes(
     -------
     One :class:`MeasuredPlane` per extracted plane, in extraction order.
     """
-    pts = as_points(cloud_or_points)
+    pts = as_points(cloud_or_points, min_points=3)
     all_weights = None if weights is None else normalised_weights(weights, len(pts))
     out = []
     for plane in extract_planes(pts, plane_config):
