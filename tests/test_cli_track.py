@@ -208,10 +208,10 @@ def test_rows_are_written_as_the_run_goes(frame_dir, tmp_path, monkeypatch):
 
     real = Tracker.track_frame
 
-    def dies_at_frame_2(self, cloud, timestamp):
+    def dies_at_frame_2(self, cloud, timestamp, prior=None):
         if timestamp >= 101.0:
             raise KeyboardInterrupt
-        return real(self, cloud, timestamp)
+        return real(self, cloud, timestamp, prior)
 
     monkeypatch.setattr(Tracker, "track_frame", dies_at_frame_2)
     out = tmp_path / "e.tum"

@@ -14,19 +14,21 @@ from spacepose.cli.feedback import print_written, working
 
 @app.command()
 def experiment(
-    name: str = typer.Argument(..., help="li-l1 ... li-l4, li-global, yu-y1 ... yu-y4, robustness"),
+    name: str = typer.Argument(
+        ..., help="li-l1 ... li-l4, li-global, yu-y1 ... yu-y4, robustness, fusion, room"
+    ),
     out: Path = typer.Option(Path("runs/experiments"), help="Folder; NAME/ is created inside."),
     seed: int = typer.Option(0, help="Seed of every random draw."),
     quick: bool = typer.Option(False, help="Smaller sizes, for a smoke run."),
     workers: int = typer.Option(-1, help="Threads for neighbour searches (-1: all cores)."),
     seeds: int = typer.Option(
-        None, min=1, help="li-l1, li-l3: seeds from --seed on (default 10; li-l3 --quick: 2)."
+        None, min=1, help="li-l1, li-l3, fusion, room: seeds from --seed on (li: 10, room: 5)."
     ),
     as_json: bool = typer.Option(False, "--json", help="Also print the result table as JSON."),
     cells: str = typer.Option(
         None, help="robustness: cells, e.g. 'target=lab,range=1.2+25,seed=0', or a YAML/JSON file."
     ),
-    frames: int = typer.Option(None, min=2, help="robustness: frames per run."),
+    frames: int = typer.Option(None, min=2, help="robustness, room: frames per run."),
     frames_csv: bool = typer.Option(False, help="robustness: write every frame's scores."),
     jobs: int = typer.Option(1, min=1, help="robustness: processes running cells."),
     tracker: Path = typer.Option(

@@ -24,6 +24,7 @@ from spacepose.core.mls import mpp_mls
 from spacepose.core.neighbors import knn
 from spacepose.core.normals import estimate_normals, plane_offsets
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
+from spacepose.core.scene_motion import SceneTest
 from spacepose.core.segmentation import (
     TargetRegion,
     crop_sphere,
@@ -62,6 +63,12 @@ class FramePreparer:
         self.scale: DataScale | None = None
         self.lengths: StageLengths | None = None
         self.region: TargetRegion | None = None
+        # Model-free, while it is not known whether the target is the nearest object or the
+        # whole scene (core.scene_motion): the test, and the last frame's points to tell by.
+        self.scene_test: SceneTest | None = None
+        self.last_frame: PointCloud | None = None
+        # Model-free: the first frame held nothing beside the object, so nothing is cropped.
+        self.alone = False
         self._model_region = None if model is None else region_of(model.points)
         self._covariances = pairwise_kind(config.method, config) == "gicp"
 
@@ -101,6 +108,8 @@ class FramePreparer:
             pc, _ = remove_background(pc, cfg.background)
         sphere = None
         if cfg.isolate_target:
+            if self.scene_test is not None:
+                self.last_frame = pc
             pc, sphere = self._isolate(pc, T_predicted, slack)
         if self.scale is None or cfg.use_mls:
             pc, sphere = _cropped(pc, sphere), None
@@ -259,6 +268,8 @@ class FramePreparer:
         """The target's points: the nearest object on the first frame (or whenever there is
         no prediction); then the sphere around where the prediction puts the target, which
         the caller crops to."""
+        if self.alone:
+            return pc, None
         if self.region is None or T_predicted is None:
             mask = nearest_object(pc.points, point_spacing(pc.points))
             if mask.sum() < self.config.health.min_points:
@@ -268,6 +279,16 @@ class FramePreparer:
                 # own bounding sphere is known.
                 own = region_of(pc.points[mask])
                 self.region = own if self._model_region is None else self._model_region
+                min_points = self.config.health.min_points
+                if self._model_region is None and (~mask).sum() < min_points:
+                    # Nothing beside the object: a target alone in view, or a scene seen
+                    # whole (a room), which a crop around its first view would cut off as
+                    # the sensor turns.
+                    self.alone = True
+                elif self._model_region is None:
+                    self.scene_test = SceneTest.of_first_frame(
+                        pc.points, mask, self.config.points_per_frame, min_points
+                    )
             return pc.select(np.flatnonzero(mask)), None
         center = se3.transform_points(T_predicted, self.region.center[None])[0]
         return pc, (center, self.config.crop_margin * self.region.radius + slack)

@@ -226,10 +226,13 @@ class SupportSeparation:
         carried[near] = labels[nearest]
         return carried
 
-    def target_region(self, region: TargetRegion) -> TargetRegion:
+    def target_region(self, region: TargetRegion | None) -> TargetRegion | None:
         """After a split, the crop region cut to the target: the sphere of the first
         keyframe's target points (target frame), no larger than ``region`` (the object's:
-        the target is part of it, stray points labelled so are not)."""
+        the target is part of it, stray points labelled so are not); None without one
+        (target isolation off: no crop)."""
+        if region is None:
+            return None
         first = self.first
         own = region_of(
             se3.transform_points(se3.invert(first.T_ref_target), first.prepared.cloud.points)

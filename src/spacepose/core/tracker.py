@@ -29,6 +29,7 @@ comparable with the per-axis errors of ``ΔT = T_est · T_gt⁻¹``.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Iterable
 
@@ -46,6 +47,7 @@ from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 from spacepose.core.motion import MotionModel, Prediction, next_timestamp
 from spacepose.core.relocalise import Checked, Relocaliser
 from spacepose.core.scale import DataScale
+from spacepose.core.scene_follower import SCENE_NOTE, SceneFollower
 from spacepose.core.support import SupportSeparation
 from spacepose.core.track_result import (
     STAGES,
@@ -99,6 +101,11 @@ class Tracker:
         self._frames = FramePreparer(config, self._model_cloud, workers)
         # Model-free: a support moving otherwise, split off the object (core.support).
         self._support: SupportSeparation | None = None
+        # Model-free with target isolation, while undecided: the whole scene tracked beside the
+        # nearest object (core.scene_motion).
+        self._scene: SceneFollower | None = None
+        if model is None and config.isolate_target:
+            self._scene = SceneFollower(config, workers)
 
     @property
     def model_based(self) -> bool:
@@ -148,6 +155,17 @@ class Tracker:
             Always one per call: a frame that cannot be tracked is reported ``lost`` with the
             predicted pose, never dropped.
         """
+        result = self._track_frame(cloud, timestamp, prior)
+        if self._scene is not None:
+            result = self._follow_scene(cloud, timestamp, prior, result)
+        return result
+
+    def _track_frame(
+        self,
+        cloud: PointCloud | ArrayLike | None,
+        timestamp: float,
+        prior: tuple[ArrayLike, ArrayLike] | None,
+    ) -> TrackResult:
         timestamp = self._last_timestamp = next_timestamp(timestamp, self._last_timestamp)
         self._t_start = time.perf_counter()
         index = self._index
@@ -336,6 +354,26 @@ class Tracker:
         self._window.restart(self._support.first)
         self._frames.region = self._support.target_region(self._frames.region)
         return prepared, self._fine_and_check(prepared, T_init, 0.0, None)
+
+    def _follow_scene(
+        self,
+        cloud: PointCloud | ArrayLike | None,
+        timestamp: float,
+        prior: tuple[ArrayLike, ArrayLike] | None,
+        result: TrackResult,
+    ) -> TrackResult:
+        """Model-free, while undecided: the whole scene followed beside the nearest object
+        (:mod:`spacepose.core.scene_follower`). When the object moves with the scene, the
+        scene's tracker, which has followed every frame, carries on as this one."""
+        verdict, scene = self._scene.follow((cloud, timestamp, prior), result, self._frames)
+        if verdict == "undecided":
+            return result
+        whole, self._scene = self._scene.scene, None
+        self._frames.scene_test = self._frames.last_frame = None
+        if verdict == "target":
+            return result
+        vars(self).update(vars(whole))
+        return dataclasses.replace(scene, reasons=(*scene.reasons, SCENE_NOTE))
 
     # -- state -------------------------------------------------------------------------------
 

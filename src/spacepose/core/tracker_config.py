@@ -213,7 +213,11 @@ class TrackerConfig(StageConfig):
     isolate_target
         Keep the target's points only (:mod:`spacepose.core.segmentation`): the nearest
         object of the first frame, then the points within ``crop_margin`` times its bounding
-        radius (plus the motion model's error) of where the prediction puts it.
+        radius (plus the motion model's error) of where the prediction puts it. Model-free,
+        the whole scene is followed beside it until the data say which is the target: when
+        the object moves with the rest of the scene (a camera carried through a room), the
+        whole scene is (:mod:`spacepose.core.scene_motion`); a first frame with nothing
+        beside the object is not cropped.
     crop_margin
         See ``isolate_target``: the first frame shows part of the target, and its centroid is
         off the target's centre.

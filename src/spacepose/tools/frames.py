@@ -417,6 +417,7 @@ def track_folder(
     scale_path.unlink(missing_ok=True)  # a former run's lengths are not this run's
     statuses: list[str] = []
     times: list[float] = []
+    written_scale = None
     with tum.open("w") as tum_fh, health.open("w", newline="") as health_fh:
         writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
         writer.writeheader()
@@ -428,9 +429,11 @@ def track_folder(
             writer.writerow(health_row(result))
             tum_fh.flush()
             health_fh.flush()
-            if tracker.scale is not None and not scale_path.exists():
+            if tracker.scale is not None and tracker.scale is not written_scale:
                 # The lengths derived from the first usable frame, as soon as it sets them (an
-                # interrupted run keeps them): what a new sensor's user checks.
+                # interrupted run keeps them), and again when the whole scene becomes the
+                # target: what a new sensor's user checks.
+                written_scale = tracker.scale
                 lengths = tracker.scale.to_dict() | tracker.lengths.to_dict()
                 scale_path.write_text(json.dumps(lengths, indent=2) + "\n")
             statuses.append(result.status)

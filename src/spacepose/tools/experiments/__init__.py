@@ -24,6 +24,7 @@ _MODULES: tuple[str, ...] = (
     "li_global",
     "robustness",
     "fusion",
+    "room",
 )
 
 
