@@ -732,3 +732,33 @@ def test_model_based_tracking_of_a_mesh_at_close_range_with_the_tof_camera():
     rms = np.sqrt(np.mean(errors**2, axis=0))
     assert np.all(np.degrees(rms[:3]) < 0.12), np.degrees(rms[:3])
     assert np.all(rms[3:] < 2e-3), rms[3:]
+
+
+def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(
+    lab, monkeypatch
+):
+    """A frame whose registration leaves a direction unobserved (its condition above the
+    bound: a wall and floor alone let the pose slide along their corner) that becomes a
+    keyframe carries that to every frame registered onto it, and on along the chain: none is
+    `ok` (a hand-held room run slid 1 m so, and the frames after were `ok` 1 m off). Here
+    frame 3's condition is made to exceed the bound, and degraded frames always promoted."""
+    from spacepose.core import frame_check
+
+    _, frames = lab
+    real = frame_check.normalised_condition
+    weak_frame = {"now": False}
+
+    def condition(information, centroid, radius):
+        return 5e3 if weak_frame["now"] else real(information, centroid, radius)
+
+    monkeypatch.setattr(frame_check, "normalised_condition", condition)
+    config = validate_config(TrackerConfig, {"keyframe": {"stale_fitness": 1.0}})
+    tracker = Tracker(config, workers=1)
+    results = []
+    for k, f in enumerate(frames[:7]):
+        weak_frame["now"] = k == 3
+        results.append(tracker.track_frame(f.cloud, f.timestamp))
+    assert results[2].status == "ok"
+    assert results[3].keyframe and any(r.startswith("condition") for r in results[3].reasons)
+    for r in results[4:]:
+        assert r.status == "degraded" and frame_check.UNOBSERVED_CHAIN in r.reasons

@@ -28,6 +28,8 @@ from spacepose.core.tracker_config import TrackerConfig
 
 # Reason of a frame degraded only because its keyframe is far: it may become the new keyframe.
 FAR_KEYFRAME = "keyframe"
+# Reason of a frame registered onto a keyframe whose chain left a direction unobserved.
+UNOBSERVED_CHAIN = "keyframe chain through a view that left a direction unobserved"
 
 
 @dataclass(frozen=True)
@@ -92,6 +94,8 @@ def check_frame(
         structure=estimate.structure,
         influence=estimate.influence,
     )
+    if status == "ok" and not model_based and estimate.reference.unobserved:
+        return "degraded", (UNOBSERVED_CHAIN,)
     if status == "ok" and not model_based:
         # A keyframe far behind (none promoted for a while: the frames were degraded) is a
         # reference whose registration can lock onto a wrong but plausible overlap.

@@ -22,6 +22,11 @@ from spacepose.core.tracker_config import HealthConfig
 Status = Literal["ok", "degraded", "lost"]
 
 
+# Reason of a registration that leaves a direction (nearly) unobserved: a view of a wall and a
+# floor alone lets the pose slide along their corner.
+CONDITION = "condition"
+
+
 @dataclass(frozen=True)
 class HealthBounds:
     """The health bounds of one frame in metres and degrees (see :class:`HealthConfig`).
@@ -203,9 +208,9 @@ def assess_health(
     elif rmse > b.ok_rmse:
         weak.append(f"rmse {1e3 * rmse:.2f} mm > {1e3 * b.ok_rmse:.2f} mm")
     if not condition <= b.lost_condition:
-        lost.append(f"condition {condition:.3g} > {b.lost_condition:.3g}")
+        lost.append(f"{CONDITION} {condition:.3g} > {b.lost_condition:.3g}")
     elif condition > b.ok_condition:
-        weak.append(f"condition {condition:.3g} > {b.ok_condition:.3g}")
+        weak.append(f"{CONDITION} {condition:.3g} > {b.ok_condition:.3g}")
     cov_c = covariance_at(own_covariance, centroid)
     sig_t = float(np.sqrt(max(np.linalg.eigvalsh(cov_c[3:, 3:])[-1], 0.0)))
     sig_r = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov_c[:3, :3])[-1], 0.0))))

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from spacepose.core.frame_check import FAR_KEYFRAME
-from spacepose.core.health import Status
+from spacepose.core.health import CONDITION, Status
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
 from spacepose.core.tracker_config import TrackerConfig
 
@@ -104,6 +104,8 @@ class KeyframeWindow:
             estimate.bias,
             timestamp,
             dense_cloud(prepared),
+            # A slide the frame's own registration, or the chain before it, could not see.
+            any(r.startswith(CONDITION) for r in reasons) or estimate.reference.unobserved,
         )
         keep = 1 if self.li else self.config.keyframe_graph.window
         self.keyframes = [*self.keyframes[-keep:], kf]

@@ -99,6 +99,10 @@ class Keyframe:
         from ``covariance`` (see :func:`~spacepose.core.window_registration.chain_drift`).
     timestamp
         Time of the frame (s); NaN for the model.
+    unobserved
+        Whether the keyframe's pose rests on a registration that left a direction unobserved
+        (its own frame's, or one along the chain of keyframes before it): the data could not
+        see a slide there, and a frame registered onto it is never ``ok``.
     """
 
     index: int
@@ -109,6 +113,7 @@ class Keyframe:
     drift: tuple[float, float] = (0.0, 0.0)
     timestamp: float = float("nan")
     dense: PreparedCloud | None = None
+    unobserved: bool = False
 
     @property
     def registration_target(self) -> PreparedCloud:
