@@ -36,9 +36,9 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from spacepose.core import window_registration
 from spacepose.core.cloud import PointCloud
-from spacepose.core.frame_check import CheckContext, check_frame, health_bounds, wide_gate
+from spacepose.core.fine_stage import FineStage
+from spacepose.core.frame_check import CheckContext, health_bounds, wide_gate
 from spacepose.core.frame_preparation import FramePreparer, checked_model
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.health import Status, pose_disagreement
@@ -51,7 +51,6 @@ from spacepose.core.scene_follower import SCENE_NOTE, SceneFollower
 from spacepose.core.support import SupportSeparation
 from spacepose.core.track_result import (
     STAGES,
-    TrackingOutput,
     TrackResult,
     accepted_result,
     close_times,
@@ -59,8 +58,8 @@ from spacepose.core.track_result import (
     first_result,
     lost_result,
 )
+from spacepose.core.track_sequence import track_sequence as track_sequence
 from spacepose.core.tracker_config import StageLengths, TrackerConfig
-from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeError
 
 
@@ -101,6 +100,9 @@ class Tracker:
         self._frames = FramePreparer(config, self._model_cloud, workers)
         # Model-free: a support moving otherwise, split off the object (core.support).
         self._support: SupportSeparation | None = None
+        # Fine registration and its check (core.fine_stage), built with the registrar on this
+        # tracker's objects: _follow_scene's adoption of another's state takes its stage too.
+        self._fine: FineStage | None = None
         # Model-free with target isolation, while undecided: the whole scene tracked beside the
         # nearest object (core.scene_motion).
         self._scene: SceneFollower | None = None
@@ -188,9 +190,11 @@ class Tracker:
             tic = time.perf_counter()
             T, reach = prediction.T_sensor_target, wide_gate(self._context(), prediction)
             if self._support is not None:
-                prepared = self._support.remove(prepared, self._reference(), T, timestamp, reach)
-            checked = self._fine_and_check(prepared, T, reach, prediction)
-            prepared, checked = self._split_off_support(prepared, checked, timestamp, reach)
+                prepared = self._support.remove(
+                    prepared, self._fine.reference(), T, timestamp, reach
+                )
+            checked = self._fine.register(prepared, T, reach, prediction)
+            prepared, checked = self._fine.split_off_support(prepared, checked, timestamp, reach)
             times["fine"] += elapsed_ms(tic)
         relocaliser = self._relocaliser
         coarse = checked[1] == "lost"
@@ -270,90 +274,18 @@ class Tracker:
         else:
             min_points, stale = cfg.health.min_points, cfg.keyframe.stale_fitness
             self._support = SupportSeparation(registrar, min_points, workers, stale)
-        ok_fitness = health_bounds(self._context(), self.model_based).ok_fitness
-        fine, check = self._fine_and_check, self._check
-        model = self._model
-        self._relocaliser = Relocaliser(
-            registrar, self._reference, model, fine, check, ok_fitness, workers
+        model, window, motion = self._model, self._window, self._motion
+        fine = FineStage(
+            cfg, self._frames, registrar, window, motion, model, self._model_cloud, self._support
         )
-
-    def _reference(self) -> Keyframe:
-        return self._model if self._model is not None else self._window.latest
-
-    def _fine_and_check(
-        self,
-        prepared: PreparedCloud,
-        T_init: NDArray[np.float64],
-        wide_gate: float,
-        prediction: Prediction | None,
-    ) -> Checked:
-        """Fine registration from ``T_init`` (after a first pass at ``wide_gate`` m when that
-        is well above the fine gate), then the health check against ``prediction``.
-
-        With a prediction, a model is registered onto by the faces it turns to the sensor at
-        ``T_init`` only (:meth:`FramePreparer.visible_model`), its residuals weighed by a
-        redescending kernel: the frame holds returns the model lacks (flying pixels between
-        parts, a one-sided panel seen from behind), which within the gate pull the pose. A pose
-        without a prediction (a coarse pose, a twin) is tested against the whole model, whose
-        hidden parts tell it wrong, without the kernel: from a coarse pose it settled on a
-        wrong pose that fitted 0.46 of the points (orbit run, seed 2).
-        """
-        try:
-            ref = self._reference()
-            tracking_model = self._model is not None and prediction is not None
-            if tracking_model:
-                ref = self._frames.visible_model(self._model_cloud, T_init)
-            T_init = self._registrar.approach(prepared, ref, T_init, wide_gate)
-            estimate = self._fine(prepared, ref, T_init, tracking_model)
-        except SpaceposeError as exc:
-            return None, "lost", (f"fine registration failed: {exc}",)
-        return (estimate, *self._check(estimate, prepared, prediction))
-
-    def _fine(
-        self,
-        prepared: PreparedCloud,
-        ref: Keyframe,
-        T_init: NDArray[np.float64],
-        robust: bool = False,
-    ) -> FineEstimate:
-        """Fine registration of the frame from the initial ``T_sensor_target`` onto ``ref``
-        (model-free J-ICP and keyframe graph: onto the keyframe window it ends); ``robust``:
-        a model's, weighed by a redescending kernel."""
-        cfg = self.config
-        if cfg.method not in ("jicp", "keyframe") or self.model_based:
-            return window_registration.single(self._registrar, prepared, ref, T_init, robust)
-        references = self._window.references()
-        if cfg.method == "jicp":
-            return window_registration.li_step(self._registrar, prepared, references, T_init)
-        equal = cfg.keyframe_graph.weighting == "equal"
-        return window_registration.joint(self._registrar, prepared, references, T_init, equal)
-
-    def _check(
-        self, estimate: FineEstimate, prepared: PreparedCloud, prediction: Prediction | None
-    ) -> tuple[Status, tuple[str, ...]]:
-        return check_frame(estimate, prepared, prediction, self._context(), self.model_based)
+        self._fine = fine
+        ok_fitness = health_bounds(self._context(), self.model_based).ok_fitness
+        self._relocaliser = Relocaliser(
+            registrar, fine.reference, model, fine.register, fine.check, ok_fitness, workers
+        )
 
     def _context(self) -> CheckContext:
         return CheckContext(self.config, self._frames.scale, self._motion)
-
-    def _split_off_support(
-        self, prepared: PreparedCloud, checked: Checked, timestamp: float, reach: float
-    ) -> tuple[PreparedCloud, Checked]:
-        """Model-free: the frame's look for a support moving otherwise
-        (:meth:`SupportSeparation.look`); once one is split off, the target's part of the frame
-        registered onto the target's part of the first keyframe."""
-        if self._support is None:
-            return prepared, checked
-        bound = health_bounds(self._context(), False).ok_structure
-        look = self._support.look(prepared, checked, bound, timestamp, reach)
-        if look.found is None:
-            return prepared, look.checked
-        prepared, T_init = look.found
-        # The window's later keyframes hold the support and the compromise's error; the crop
-        # follows the target alone.
-        self._window.restart(self._support.first)
-        self._frames.region = self._support.target_region(self._frames.region)
-        return prepared, self._fine_and_check(prepared, T_init, 0.0, None)
 
     def _follow_scene(
         self,
@@ -442,34 +374,3 @@ class Tracker:
         return accepted_result(
             index, timestamp, estimate, prepared, health, times, coarse, promoted
         )
-
-
-# --------------------------------------------------------------------------------------------
-# One call
-
-
-def track_sequence(
-    clouds: Iterable[PointCloud | ArrayLike | None],
-    timestamps: ArrayLike,
-    config: TrackerConfig = TrackerConfig(),
-    model: PointCloud | ArrayLike | None = None,
-    workers: int = -1,
-) -> TrackingOutput:
-    """Track every frame of a sequence with a fresh :class:`Tracker`.
-
-    Parameters
-    ----------
-    clouds
-        One cloud per frame (sensor frame); None / empty for frames without data.
-    timestamps
-        (N,) seconds, one per cloud.
-    config, model, workers
-        As for :class:`Tracker`.
-    """
-    stamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    clouds = list(clouds)
-    if not clouds or len(clouds) != len(stamps):
-        raise InputError(f"{len(clouds)} clouds for {len(stamps)} timestamps; need one each (>0)")
-    results = Tracker(config, model, workers).track(zip(clouds, stamps, strict=True))
-    poses = np.array([r.T_sensor_target for r in results])
-    return TrackingOutput(Trajectory(stamps, poses), results)

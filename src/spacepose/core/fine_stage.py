@@ -1,0 +1,155 @@
+"""The tracker's fine registration of a frame and its health check (docs/methods.md §5.3, §5.5).
+
+A frame is registered from an initial ``T_sensor_target`` onto the model (with a prediction, the
+faces it turns to the sensor) or, model-free, onto the keyframe window
+(:mod:`spacepose.core.window_registration`), after a wide first pass when the motion model has
+been wrong by more than the fine gate; the estimate is then checked
+(:func:`~spacepose.core.frame_check.check_frame`). Model-free, a support moving otherwise is
+split off the target here (methods.md §5.8; the look itself is :mod:`spacepose.core.support`).
+
+:class:`FineStage` holds the tracker's own objects, built with them once the first usable frame
+has set every length: a tracker that adopts another's state (the whole scene's,
+:mod:`spacepose.core.scene_follower`) adopts its fine stage with it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.core import window_registration
+from spacepose.core.cloud import PointCloud
+from spacepose.core.frame_check import CheckContext, check_frame, health_bounds
+from spacepose.core.frame_preparation import FramePreparer
+from spacepose.core.frame_registration import FrameRegistrar
+from spacepose.core.health import Status
+from spacepose.core.keyframe_window import KeyframeWindow
+from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
+from spacepose.core.motion import MotionModel, Prediction
+from spacepose.core.relocalise import Checked
+from spacepose.core.support import SupportSeparation
+from spacepose.core.tracker_config import TrackerConfig
+from spacepose.errors import SpaceposeError
+
+
+@dataclass(frozen=True, eq=False)
+class FineStage:
+    """Fine registration of a frame, its health check, and a support split off.
+
+    Frozen: it holds the tracker's own objects and never rebinds them (it changes the window
+    and the frames' region in place), so it stays the state of the tracker that built it.
+
+    Attributes
+    ----------
+    config
+        The tracker's config (method, keyframe-graph weighting, health bounds).
+    frames
+        The tracker's frame preparation: the data's scale, the model's visible faces, the
+        target's region (narrowed when a support is split off).
+    registrar
+        The tracker's registrar onto one reference.
+    window
+        The keyframe window (model-free: the references; restarted when a support is split off).
+    motion
+        The motion model: its observed error widens the health bounds.
+    model, sensor_model
+        The prepared model, and the model cloud :meth:`FramePreparer.visible_model` culls at
+        every pose (:meth:`FramePreparer.sensor_model`); None, None model-free.
+    support
+        Model-free: the separation of a support moving otherwise; None against a model.
+    """
+
+    config: TrackerConfig
+    frames: FramePreparer
+    registrar: FrameRegistrar
+    window: KeyframeWindow
+    motion: MotionModel
+    model: Keyframe | None
+    sensor_model: PointCloud | None
+    support: SupportSeparation | None
+
+    @property
+    def model_based(self) -> bool:
+        return self.model is not None
+
+    def reference(self) -> Keyframe:
+        """The current registration reference: the model, or the latest keyframe."""
+        return self.model if self.model is not None else self.window.latest
+
+    def register(
+        self,
+        prepared: PreparedCloud,
+        T_init: NDArray[np.float64],
+        wide_gate: float,
+        prediction: Prediction | None,
+    ) -> Checked:
+        """Fine registration from ``T_init`` (after a first pass at ``wide_gate`` m when that
+        is well above the fine gate), then the health check against ``prediction``.
+
+        With a prediction, a model is registered onto by the faces it turns to the sensor at
+        ``T_init`` only (:meth:`FramePreparer.visible_model`), its residuals weighed by a
+        redescending kernel: the frame holds returns the model lacks (flying pixels between
+        parts, a one-sided panel seen from behind), which within the gate pull the pose. A pose
+        without a prediction (a coarse pose, a twin) is tested against the whole model, whose
+        hidden parts tell it wrong, without the kernel: from a coarse pose it settled on a
+        wrong pose that fitted 0.46 of the points (orbit run, seed 2).
+        """
+        try:
+            ref = self.reference()
+            tracking_model = self.model is not None and prediction is not None
+            if tracking_model:
+                ref = self.frames.visible_model(self.sensor_model, T_init)
+            T_init = self.registrar.approach(prepared, ref, T_init, wide_gate)
+            estimate = self._fine(prepared, ref, T_init, tracking_model)
+        except SpaceposeError as exc:
+            return None, "lost", (f"fine registration failed: {exc}",)
+        return (estimate, *self.check(estimate, prepared, prediction))
+
+    def _fine(
+        self,
+        prepared: PreparedCloud,
+        ref: Keyframe,
+        T_init: NDArray[np.float64],
+        robust: bool = False,
+    ) -> FineEstimate:
+        """Fine registration of the frame from the initial ``T_sensor_target`` onto ``ref``
+        (model-free J-ICP and keyframe graph: onto the keyframe window it ends); ``robust``:
+        a model's, weighed by a redescending kernel."""
+        cfg = self.config
+        if cfg.method not in ("jicp", "keyframe") or self.model_based:
+            return window_registration.single(self.registrar, prepared, ref, T_init, robust)
+        references = self.window.references()
+        if cfg.method == "jicp":
+            return window_registration.li_step(self.registrar, prepared, references, T_init)
+        equal = cfg.keyframe_graph.weighting == "equal"
+        return window_registration.joint(self.registrar, prepared, references, T_init, equal)
+
+    def check(
+        self, estimate: FineEstimate, prepared: PreparedCloud, prediction: Prediction | None
+    ) -> tuple[Status, tuple[str, ...]]:
+        """Status and reasons of a frame's fine estimate against ``prediction``."""
+        return check_frame(estimate, prepared, prediction, self._context(), self.model_based)
+
+    def _context(self) -> CheckContext:
+        return CheckContext(self.config, self.frames.scale, self.motion)
+
+    def split_off_support(
+        self, prepared: PreparedCloud, checked: Checked, timestamp: float, reach: float
+    ) -> tuple[PreparedCloud, Checked]:
+        """Model-free: the frame's look for a support moving otherwise
+        (:meth:`SupportSeparation.look`); once one is split off, the target's part of the frame
+        registered onto the target's part of the first keyframe."""
+        if self.support is None:
+            return prepared, checked
+        bound = health_bounds(self._context(), False).ok_structure
+        look = self.support.look(prepared, checked, bound, timestamp, reach)
+        if look.found is None:
+            return prepared, look.checked
+        prepared, T_init = look.found
+        # The window's later keyframes hold the support and the compromise's error; the crop
+        # follows the target alone.
+        self.window.restart(self.support.first)
+        self.frames.region = self.support.target_region(self.frames.region)
+        return prepared, self.register(prepared, T_init, 0.0, None)
