@@ -33,8 +33,9 @@ def room():
 
 
 def _first_frame_test(points: np.ndarray) -> SceneTest:
-    mask = nearest_object(points, point_spacing(points))
-    test = SceneTest.of_first_frame(points, mask, 3000, 100)
+    spacing = point_spacing(points)
+    mask = nearest_object(points, spacing)
+    test = SceneTest.of_first_frame(points, mask, spacing, 3000, 100)
     assert test is not None
     return test
 

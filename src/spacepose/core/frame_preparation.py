@@ -271,7 +271,8 @@ class FramePreparer:
         if self.alone:
             return pc, None
         if self.region is None or T_predicted is None:
-            mask = nearest_object(pc.points, point_spacing(pc.points))
+            spacing = point_spacing(pc.points)
+            mask = nearest_object(pc.points, spacing)
             if mask.sum() < self.config.health.min_points:
                 return pc, None
             if self.region is None:
@@ -287,7 +288,7 @@ class FramePreparer:
                     self.alone = True
                 elif self._model_region is None:
                     self.scene_test = SceneTest.of_first_frame(
-                        pc.points, mask, self.config.points_per_frame, min_points
+                        pc.points, mask, spacing, self.config.points_per_frame, min_points
                     )
             return pc.select(np.flatnonzero(mask)), None
         center = se3.transform_points(T_predicted, self.region.center[None])[0]

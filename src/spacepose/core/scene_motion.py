@@ -42,6 +42,7 @@ from scipy.spatial import cKDTree
 from spacepose.core import se3
 from spacepose.core.cloud import as_points
 from spacepose.core.scale import point_spacing, voxel_for
+from spacepose.core.segmentation import solid
 from spacepose.core.voxel import voxel_cells
 
 Verdict = Literal["scene", "target", "undecided"]
@@ -183,15 +184,24 @@ class SceneTest:
 
     @classmethod
     def of_first_frame(
-        cls, points: ArrayLike, target_mask: ArrayLike, target_points: int, min_points: int
+        cls,
+        points: ArrayLike,
+        target_mask: ArrayLike,
+        spacing: float,
+        target_points: int,
+        min_points: int,
     ) -> SceneTest | None:
-        """The test for a first frame ``points`` (N, 3) whose object is ``target_mask`` (N,);
-        None when the rest holds fewer than ``min_points`` points: nothing to tell by."""
+        """The test for a first frame ``points`` (N, 3) of point spacing ``spacing`` (m) whose
+        object is ``target_mask`` (N,); None when the rest holds fewer than ``min_points``
+        points of a surface (lone flying pixels and stray returns are not a background to
+        tell motion by: they trail the target's silhouette)."""
         pts = as_points(points)
         mask = np.asarray(target_mask, dtype=bool)
-        if (~mask).sum() < min_points:
+        rest = pts[~mask]
+        rest = rest[solid(rest, spacing)] if len(rest) else rest
+        if len(rest) < min_points:
             return None
-        background = Landings.at_own_voxel(pts[~mask], target_points)
+        background = Landings.at_own_voxel(rest, target_points)
         if len(background.points_target) < min_points:
             return None
         return cls(Landings.at_own_voxel(pts[mask], target_points), background)

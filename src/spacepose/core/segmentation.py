@@ -157,6 +157,14 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
         keep = grown
 
 
+def solid(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
+    """(N,) mask of the points in solid cells (see :func:`nearest_object`: cells of four point
+    spacings holding at least 3 points): a surface's, not lone flying pixels or stray returns."""
+    pts = as_points(points)
+    _, of_point = voxel_cells(pts, _CELL_SPACINGS * spacing)
+    return (np.bincount(of_point) >= _MIN_CELL_POINTS)[of_point]
+
+
 def region_of(points: ArrayLike) -> TargetRegion:
     """The bounding sphere of (N, 3) object points; ``kept`` is set by the caller (1 here)."""
     pts = as_points(points)
