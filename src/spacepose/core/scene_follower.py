@@ -84,8 +84,8 @@ class SceneFollower:
         self._undecided += 1
         scene = None
         verdict: Verdict = "undecided"
-        moved = points is not None and not test.background_stays(points.points)
-        if points is not None and (self.scene is not None or moved):
+        started = self.scene is not None
+        if points is not None and (started or not test.background_stays(points.points)):
             scene = self._scene_tracker(result.index).track_frame(*frame)
             if "lost" not in (result.status, scene.status):
                 verdict = test.decide(points.points, result.T_sensor_target, scene.T_sensor_target)
