@@ -39,4 +39,3 @@ def test_open3d_tracks_the_same_run(quick) -> None:
     # on the same frames (a wrong pose convention gives metres and tens of degrees). Measured
     # 0.95 mm / 0.047°.
     assert peer["ate_mm"] < 5.0 and peer["ate_deg"] < 0.3
-    assert table["mean_std"]["open3d"]["ate_mm"][1] == 0.0  # one seed: no spread

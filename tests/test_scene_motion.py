@@ -19,6 +19,7 @@ from spacepose.core.sim.room_scene import kinect_nfov, room_frames
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig
+from spacepose.errors import ConfigError
 from spacepose.tools.frames import track_folder
 
 NOTE = SCENE_NOTE
@@ -150,3 +151,10 @@ def test_the_track_command_writes_the_whole_scene_s_lengths(room, tmp_path):
     # the object's (one piece of furniture).
     assert lengths["voxel_m"] == whole.scale.voxel != the_object.scale.voxel
     assert lengths["radius_m"] == whole.scale.radius > 2 * the_object.scale.radius
+
+
+def test_a_room_run_without_frames_is_a_config_error():
+    with pytest.raises(ConfigError, match="frames >= 1"):
+        room_frames(frames=0)
+    with pytest.raises(ConfigError, match="fps > 0"):
+        room_frames(frames=2, fps=0.0)

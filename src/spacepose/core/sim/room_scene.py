@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
 from spacepose.core.sim.sensors import SensorConfig, scan, sensor_config
+from spacepose.errors import ConfigError
 
 ROOM_M = (6.0, 5.0, 2.8)
 # Camera axes (x right, y down, z ahead) in the room frame when its heading, pitch and roll are
@@ -99,7 +100,18 @@ def room_frames(
     sensor: SensorConfig | None = None,
 ) -> tuple[list[NDArray[np.float64]], NDArray[np.float64], NDArray[np.float64]]:
     """The run: points (N_k, 3) of each frame (sensor frame, m), timestamps (N,) s and the true
-    ``T_sensor_room`` (N, 4, 4). Frame k's noise is drawn from the seed ``[seed, k]``."""
+    ``T_sensor_room`` (N, 4, 4). Frame k's noise is drawn from the seed ``[seed, k]``.
+
+    Raises
+    ------
+    ConfigError
+        No frames, a frame rate not above 0 or a negative turn rate.
+    """
+    if frames < 1 or not fps > 0 or not max_rate_deg_s >= 0:
+        raise ConfigError(
+            f"a room run needs frames >= 1, fps > 0 and max_rate_deg_s >= 0; got {frames}, "
+            f"{fps} and {max_rate_deg_s}"
+        )
     sensor = sensor or kinect_nfov()
     mesh = room_mesh(seed)
     timestamps, T_sensor_room = hand_held_poses(frames, fps, max_rate_deg_s, seed)

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from spacepose.core import se3
 from spacepose.core.metrics import error_table
+from spacepose.core.scene_follower import SCENE_NOTE
 from spacepose.core.sim.room_scene import kinect_nfov, room_frames
 from spacepose.core.track_result import TrackResult
 from spacepose.core.tracker import Tracker
@@ -96,7 +97,7 @@ def run_seed(seed: int, frames: int, quick: bool, workers: int) -> dict[str, Any
     results = Tracker(workers=workers).track(zip(clouds, stamps, strict=True))
     seconds = time.perf_counter() - tic
     statuses = [r.status for r in results]
-    switched = [r.index for r in results if any("whole scene" in x for x in r.reasons)]
+    switched = [r.index for r in results if SCENE_NOTE in r.reasons]
     ours = _errors(np.array([r.T_sensor_target for r in results]), T_true_k0) | {
         "ok": statuses.count("ok"),
         "degraded": statuses.count("degraded"),
