@@ -271,6 +271,34 @@ def test_voxel_downsample_within_a_sphere_equals_cropping_first(voxel):
         voxel_downsample(cloud, voxel, within=(center + 10.0, 0.1))
 
 
+@pytest.mark.parametrize("voxel", [0.03, 0.05])
+def test_stray_voxels_are_those_a_numpy_block_count_finds(voxel):
+    # A sheet and 60 lone returns between it and the sensor (flying pixels): a voxel goes when
+    # its 3×3×3 block holds fewer points than a sixteenth of the median block.
+    rng = np.random.default_rng(7)
+    sheet = _surface(20000, seed=8)
+    lone = np.column_stack([rng.uniform(-0.3, 0.3, (60, 2)), rng.uniform(0.5, 0.9, 60)])
+    pts = np.vstack([sheet, lone])
+    cells = np.floor(pts / voxel).astype(np.int64)
+    occupied, cell, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    assert len(occupied) < 1024  # every block enters the median (one in every 1024 // 512)
+    near = np.abs(occupied[:, None, :] - occupied[None, :, :]).max(axis=2) <= 1
+    block = near @ counts
+    solid = block >= np.median(block) / 16
+    kept = voxel_downsample(PointCloud(pts), voxel, stray_share=1 / 16)
+    every = voxel_downsample(PointCloud(pts), voxel)
+    np.testing.assert_array_equal(kept.points, every.points[solid])
+    # Every lone return dropped, every voxel of the sheet kept.
+    assert not solid[cell[len(sheet) :]].any() and solid[cell[: len(sheet)]].all()
+    # Cropped in the same pass: the same as cropping first.
+    center, radius = sheet.mean(axis=0), 0.25
+    mask = crop_sphere(pts, center, radius)
+    np.testing.assert_array_equal(
+        voxel_downsample(PointCloud(pts), voxel, (center, radius), 1 / 16).points,
+        voxel_downsample(PointCloud(pts[mask]), voxel, stray_share=1 / 16).points,
+    )
+
+
 def test_fuller_cells_give_the_same_self_search():
     from spacepose.core.grid import self_knn_occupancy
 

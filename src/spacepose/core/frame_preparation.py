@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from spacepose.core import se3
 from spacepose.core.background import remove_background
 from spacepose.core.cloud import PointCloud, as_cloud
+from spacepose.core.correspondences import find_correspondences
 from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
@@ -121,7 +122,7 @@ class FramePreparer:
             pc = mpp_mls(pc, L.mls, workers=self.workers)
         else:
             # Crop and downsample in one pass: a raw frame's cropped copy is never made.
-            pc = voxel_downsample(pc, L.voxel, within=sphere)
+            pc = voxel_downsample(pc, L.voxel, sphere, cfg.stray_share)
         if len(pc) < cfg.health.min_points:
             raise InputError(
                 f"{len(pc)} points after preprocessing (< {cfg.health.min_points})", pc.source
@@ -152,13 +153,18 @@ class FramePreparer:
         if prepared.raw is None or voxel > L.voxel / 2.0:
             return None
         pc = voxel_downsample(prepared.raw, voxel, prepared.crop)
-        pts = pc.points
         # Each point takes the normal of its nearest frame-voxel point: the finer cloud's own
         # neighbourhoods are D² times smaller, and their noisy normals gave a plane sliding in
         # itself in-plane information it does not have (condition number 180 instead of 1.6e4).
         frame = prepared.with_normals(L.normals, self.workers).cloud
-        _, nearest = knn(prepared.tree, pts, 1, workers=self.workers)
-        n = frame.normals[nearest[:, 0]]
+        # A point a voxel from every frame point is a stray the frame's downsampling dropped
+        # (the block rule cannot tell one at a voxel near the spacing: 640×480 lab frames kept
+        # 525 flying pixels so; between 0.75 and 1.5 voxels the count moved by 2).
+        near, nearest, _ = find_correspondences(prepared.tree, pc.points, L.voxel, self.workers)
+        if len(near) < len(pc):
+            pc = pc.select(near)
+        pts = pc.points
+        n = frame.normals[nearest]
         # Neighbourhoods within four frame voxels (a surface seen at 80° from its normal
         # spreads k points that far): a point without one is off any surface (a flying pixel),
         # keeps its place, and costs nothing to search; unbounded, a thousand such points took

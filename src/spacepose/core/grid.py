@@ -38,11 +38,12 @@ import functools
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from spacepose.core.cell_hash import group_cells
 from spacepose.core.cloud import as_points
 from spacepose.core.grid_knn import knn_kernel, self_knn_kernel
 from spacepose.core.grid_nearest import nearest_kernel
 from spacepose.core.threads import numba_threads
-from spacepose.core.voxel import bounds, cell_keys, group_cells
+from spacepose.core.voxel import bounds, cell_keys
 from spacepose.errors import InputError
 
 # Mean points per occupied cell the automatic cell size aims at: a k ≈ 15..30 ball then spans

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from spacepose.core.voxel import find_cell
+from spacepose.core.cell_hash import find_cell
 
 # Queries per unit of parallel work: enough to amortise scheduling, few enough to balance.
 QUERY_CHUNK = 64

@@ -23,8 +23,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from spacepose.core.cell_hash import find_cell
 from spacepose.core.grid_knn import QUERY_CHUNK, cell_gap, cell_range
-from spacepose.core.voxel import find_cell
 
 
 @numba.njit(cache=True, inline="always")

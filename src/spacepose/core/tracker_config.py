@@ -203,6 +203,10 @@ class TrackerConfig(StageConfig):
         frames from 92 to 20 (clean cells) and 218 to 101 (wall and table), and the lab run's
         pitch and yaw errors about 45 % down, while the centroid's drift along the keyframe
         chain doubles and a full-resolution frame's step costs 2.6 times as much (README).
+    stray_share
+        A voxel of a frame or keyframe whose block of 3×3×3 voxels holds fewer raw points than
+        this share of the frame's median block is dropped: a flying pixel or a stray return,
+        not a surface (:func:`spacepose.core.voxel.stray_voxels`); 0 keeps every voxel.
     gate
         Correspondence gate of the fine registration (voxels). After the motion model's
         prediction the misalignment is well below a voxel; a wider gate lets silhouette points
@@ -247,6 +251,7 @@ class TrackerConfig(StageConfig):
     points_per_frame: PositiveInt = 3000
     voxel_size: PositiveFloat | None = None
     keyframe_density: float = Field(3.0, ge=1.0)
+    stray_share: float = Field(1 / 16, ge=0.0, lt=1.0)
     gate: PositiveFloat = 0.83
     coarse_voxel: PositiveFloat = 2.0
     isolate_target: bool = True
