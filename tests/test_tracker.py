@@ -762,3 +762,17 @@ def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(
     assert results[3].keyframe and any(r.startswith("condition") for r in results[3].reasons)
     for r in results[4:]:
         assert r.status == "degraded" and frame_check.UNOBSERVED_CHAIN in r.reasons
+
+
+def test_frame_numbers_continue_where_told_and_never_go_back(lab):
+    """A tracker handed frames late (the whole scene's, methods.md §5.7) numbers them as the
+    run does."""
+    _, frames = lab
+    tracker = Tracker(TrackerConfig(), workers=1)
+    tracker.continue_at(4)
+    first, second = frames[:2]
+    assert tracker.track_frame(first.cloud, first.timestamp).index == 4
+    tracker.continue_at(7)
+    assert tracker.track_frame(second.cloud, second.timestamp).index == 7
+    with pytest.raises(ConfigError, match="only grow"):
+        tracker.continue_at(7)

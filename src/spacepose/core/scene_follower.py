@@ -101,8 +101,9 @@ class SceneFollower:
 
             first_index, first = self._first
             self.scene = Tracker(self._config, None, self._workers)
-            self.scene._index = first_index  # frame numbers as the run's
+            # Frame numbers as the run's.
+            self.scene.continue_at(first_index)
             self.scene.track_frame(*first)
-            self.scene._index = index
+            self.scene.continue_at(index)
             self._first = None
         return self.scene

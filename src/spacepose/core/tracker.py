@@ -60,7 +60,7 @@ from spacepose.core.track_result import (
 )
 from spacepose.core.track_sequence import track_sequence as track_sequence
 from spacepose.core.tracker_config import StageLengths, TrackerConfig
-from spacepose.errors import InputError, SpaceposeError
+from spacepose.errors import ConfigError, InputError, SpaceposeError
 
 
 class Tracker:
@@ -128,6 +128,19 @@ class Tracker:
     def lengths(self) -> StageLengths | None:
         """Every stage's lengths, set from :attr:`scale` (None before the first usable frame)."""
         return self._frames.lengths
+
+    def continue_at(self, index: int) -> None:
+        """Number the next frame ``index``: the frames before it went to another tracker (a
+        run's whole-scene tracker starts late, :mod:`spacepose.core.scene_follower`).
+
+        Raises
+        ------
+        ConfigError
+            ``index`` below the next frame's number: frame numbers only grow.
+        """
+        if index < self._index:
+            raise ConfigError(f"frame numbers only grow: {index} after {self._index - 1}")
+        self._index = index
 
     # -- the algorithm -----------------------------------------------------------------------
 
