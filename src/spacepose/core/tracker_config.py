@@ -204,9 +204,12 @@ class TrackerConfig(StageConfig):
         pitch and yaw errors about 45 % down, while the centroid's drift along the keyframe
         chain doubles and a full-resolution frame's step costs 2.6 times as much (README).
     stray_share
-        A voxel of a frame or keyframe whose block of 3×3×3 voxels holds fewer raw points than
-        this share of the frame's median block is dropped: a flying pixel or a stray return,
-        not a surface (:func:`spacepose.core.voxel.stray_voxels`); 0 keeps every voxel.
+        A voxel of a frame whose block of 3×3×3 voxels holds fewer raw points than this share
+        of the frame's median block is dropped, and with it the keyframe's finer points a
+        voxel from every kept one: a flying pixel or a stray return, not a surface
+        (:func:`spacepose.core.voxel.stray_voxels`). 0 keeps every voxel. At 1/16 a surface
+        more than about four times farther than the frame's median range goes too (methods.md
+        §5.1).
     gate
         Correspondence gate of the fine registration (voxels). After the motion model's
         prediction the misalignment is well below a voxel; a wider gate lets silhouette points
