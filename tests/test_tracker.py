@@ -660,9 +660,9 @@ def test_a_turntable_under_a_slow_tumble_is_never_ok_while_followed():
     the table and the target have hardly parted: before the structure checks, every check
     passed and frames 2-6 were `ok` 39-41σ (1.9-5.6°) off. Now their residual structure is
     5.1-28 (bound 5): frames 1-6 are `degraded`, the split comes on frame 7, and frame 9 is
-    `ok` within 0.5σ (methods.md §5.8). The split came on frame 5 while flying pixels were
-    registered: they were most of the points the compromise left unexplained, from which the
-    second motion's fit starts (methods.md §5.1)."""
+    `ok` within 0.5σ (methods.md §5.8). The split came on frame 5 (6 in a 12-frame run) while
+    flying pixels were registered: they were most of the points the compromise left
+    unexplained, from which the second motion's fit starts (methods.md §5.1)."""
     from spacepose.tools.experiments.robustness import Cell, run_cell
 
     rows = run_cell(Cell("panels", 1.2, 3.0, "tumbling-2", "wall-table", 0), 10)["frames"]
