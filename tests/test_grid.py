@@ -297,6 +297,9 @@ def test_stray_voxels_are_those_a_numpy_block_count_finds(voxel):
         voxel_downsample(PointCloud(pts), voxel, (center, radius), 1 / 16).points,
         voxel_downsample(PointCloud(pts[mask]), voxel, stray_share=1 / 16).points,
     )
+    for share in (float("nan"), 1.0, -0.1):
+        with pytest.raises(InputError, match="stray_share"):
+            voxel_downsample(PointCloud(pts), voxel, stray_share=share)
 
 
 def test_fuller_cells_give_the_same_self_search():

@@ -390,8 +390,8 @@ def test_condition_number_is_scale_free_and_a_sliding_plane_is_lost():
 def test_a_fast_tumble_is_tracked_ok_within_sigma():
     """10° a frame about a turning axis: every frame a keyframe, none 'far' from the one before.
     Measured (12 frames): 9 ok; frame 1 degraded (no step seen yet), frames 9 and 10 by their
-    residual structure (5.4 and 9.6 > 5; 3.3 and 7.5 mm off, σ 10-15 mm); every ok frame
-    within 3σ."""
+    residual structure (5.4 and 9.6 > 5; 3.3 and 7.5 mm off, σ 10-15 mm; frame 10 by its σ
+    too); every frame within 0.42σ on every axis, the degraded ones too."""
     from spacepose.core.sim import simulate
     from spacepose.core.sim.grid import grid_scenario
 
@@ -401,8 +401,10 @@ def test_a_fast_tumble_is_tracked_ok_within_sigma():
     assert statuses.count("ok") >= 9 and "lost" not in statuses
     gt = sim.groundtruth.rebased_first().poses
     z = _twist_errors(out.trajectory.poses, gt)[1:] / np.array([r.sigma for r in out.results])[1:]
-    ok = np.array(statuses[1:]) == "ok"
-    assert (np.abs(z[ok]) <= 3).all()
+    # Every frame, not only the ok ones: a degraded frame here is a cautious flag, not a miss.
+    assert (np.abs(z) <= 3).all()
+    for r in out.results[2:]:
+        assert r.status == "ok" or any(x.startswith("residual structure") for x in r.reasons)
 
 
 def test_a_coarse_twin_gives_way_to_the_pose_that_fits(monkeypatch):
@@ -776,6 +778,8 @@ def test_frame_numbers_continue_where_told_and_never_go_back(lab):
     assert tracker.track_frame(second.cloud, second.timestamp).index == 7
     with pytest.raises(ConfigError, match="only grow"):
         tracker.continue_at(7)
+    with pytest.raises(ConfigError, match="integer"):
+        tracker.continue_at(9.5)
 
 
 def test_a_slide_through_frames_never_made_keyframes_is_carried_to_the_next_keyframe():

@@ -136,8 +136,11 @@ class Tracker:
         Raises
         ------
         ConfigError
-            ``index`` below the next frame's number: frame numbers only grow.
+            ``index`` not an integer, or below the next frame's number: frame numbers only
+            grow.
         """
+        if isinstance(index, bool) or not isinstance(index, int | np.integer):
+            raise ConfigError(f"a frame number must be an integer, got {index!r}")
         if index < self._index:
             raise ConfigError(f"frame numbers only grow: {index} after {self._index - 1}")
         self._index = index

@@ -294,8 +294,11 @@ def voxel_downsample(
     Raises
     ------
     InputError
-        A bad voxel size, or no point within the sphere.
+        A bad voxel size, no point within the sphere, or a ``stray_share`` outside [0, 1).
     """
+    if not 0.0 <= stray_share < 1.0:
+        # A share of 1 or more can drop every voxel; NaN would silently drop none.
+        raise InputError(f"stray_share must lie in [0, 1), got {stray_share}", cloud.source)
     # A PointCloud's points are finite (N, 3) float64 already.
     pts = np.ascontiguousarray(cloud.points, dtype=np.float64)
     keep = _ALL
