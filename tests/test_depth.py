@@ -72,6 +72,32 @@ def test_zero_negative_and_nan_depth_are_no_return():
         depth_to_cloud(np.zeros((4, 5), dtype=np.uint16), PINHOLE, source="empty.png")
 
 
+def test_the_integer_no_return_code_and_the_far_plane_are_no_return():
+    depth = np.full((4, 5), 1500, dtype=np.uint16)
+    depth[0, 0] = 65535  # a camera's no-return / saturation code, a renderer's background
+    depth[1, 1] = 9000  # 9 m: beyond a far plane at 8 m
+    assert backproject(depth, PINHOLE).valid.sum() == 19
+    far = PINHOLE.model_copy(update={"max_depth": 8.0})
+    organised = backproject(depth, far)
+    assert organised.valid.sum() == 18 and not organised.valid[1, 1]
+    # A float image has no such code: its largest finite values are depths like any other.
+    metres = depth.astype(np.float32) / 1000
+    assert backproject(metres, PINHOLE.model_copy(update={"depth_scale": 1.0})).valid.sum() == 20
+
+
+def test_a_range_image_puts_each_point_at_its_range_along_the_ray():
+    # A flat wall at z = 2 m seen as ranges bends unless read as ranges.
+    u, v = np.meshgrid(np.arange(160.0), np.arange(120.0))
+    x, y = (u - 79.5) / 500, (v - 59.5) / 480
+    ranges_m = 2.0 * np.sqrt(1 + x**2 + y**2)
+    camera = PINHOLE.model_copy(update={"depth_scale": 1.0, "depth_kind": "range"})
+    points = backproject(ranges_m, camera).points
+    np.testing.assert_allclose(points[..., 2], 2.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(points, axis=-1), ranges_m, rtol=1e-12)
+    as_z = backproject(ranges_m, camera.model_copy(update={"depth_kind": "z"})).points
+    assert as_z[0, 0, 2] - 2.0 > 0.04  # the corner pixel 4.6 cm behind the wall
+
+
 def test_stride_keeps_every_other_pixel():
     depth = np.arange(1, 121 * 161 + 1, dtype=np.float64).reshape(121, 161) % 5000 + 100
     organised = backproject(depth, PINHOLE)

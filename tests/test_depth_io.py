@@ -82,8 +82,13 @@ def test_colour_and_8_bit_images_are_refused(tmp_path):
 
 
 def test_write_refuses_out_of_range(tmp_path):
-    with pytest.raises(InputError, match="exceeds 65535 units"):
+    with pytest.raises(InputError, match="reaches 65535 units"):
         write_depth_image(tmp_path / "far.png", np.full((2, 2), 70.0), depth_scale=0.001)
+    # 65535 itself is the no-return code and is refused too; 65534 units are written.
+    with pytest.raises(InputError, match="no-return code"):
+        write_depth_image(tmp_path / "edge.png", np.full((2, 2), 65.535), depth_scale=0.001)
+    path = write_depth_image(tmp_path / "ok.png", np.full((2, 2), 65.534), depth_scale=0.001)
+    assert read_depth_image(path).max() == 65534
     with pytest.raises(InputError, match="non-negative"):
         write_depth_image(tmp_path / "neg.png", -np.ones((2, 2)))
 

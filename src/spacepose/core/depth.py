@@ -1,10 +1,14 @@
 """Depth images to points: the pinhole camera with OpenCV's distortion model, back-projection.
 
 A depth image holds, per pixel ``(u, v)`` (column, row; pixel centres at integer coordinates),
-the depth ``z`` along the boresight (not the range along the ray) in stored units; ``z = value ·
-depth_scale`` metres. A zero, negative or non-finite value is "no return". The sensor frame is
-z along the boresight, x right, y down, so a pixel's point is ``(x_n·z, y_n·z, z)`` with
-``(x_n, y_n)`` the undistorted normalised image coordinates of the pixel.
+the depth ``z`` along the boresight in stored units (``z = value · depth_scale`` metres), or with
+``depth_kind = "range"`` the distance along the pixel's ray, as flash LiDARs and some renderers
+write it. A zero, negative or non-finite value is "no return", and so is an integer image's
+largest value (65535 in 16 bits: the no-return or saturation code of many cameras and a
+renderer's empty background) and any depth at or beyond ``max_depth``. The sensor frame is z along
+the boresight, x right, y down, so a pixel's point is ``(x_n·z, y_n·z, z)`` with ``(x_n, y_n)``
+the undistorted normalised image coordinates of the pixel; a range ``r`` gives
+``z = r / √(1 + x_n² + y_n²)``.
 
 Distortion follows OpenCV's rational model (``k1…k6``, ``p1``, ``p2``; plumb-bob is the special
 case ``k4 = k5 = k6 = 0``): an undistorted normalised point ``(x, y)`` is seen at
@@ -20,6 +24,7 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -41,7 +46,9 @@ class DepthCamera(StageConfig):
 
     ``depth_scale`` is metres per stored unit: 0.001 for millimetres (ROS ``16UC1``), 1 for
     float images in metres (ROS ``32FC1``), 0.0002 for TUM RGB-D's 5000 units per metre.
-    ``width`` and ``height``, when given, are checked against every image.
+    ``width`` and ``height``, when given, are checked against every image. ``depth_kind`` says
+    whether a value is the depth along the boresight (``z``: OpenCV, ROS, Kinect-style cameras)
+    or the range along the pixel's ray (``range``); read as the wrong kind, a flat wall bends.
     """
 
     fx: float = Field(gt=0, description="Focal length along x (columns), pixels.")
@@ -59,6 +66,12 @@ class DepthCamera(StageConfig):
     p2: float = 0.0
     width: int | None = Field(None, ge=1, description="Image columns, checked when given.")
     height: int | None = Field(None, ge=1, description="Image rows, checked when given.")
+    depth_kind: Literal["z", "range"] = Field(
+        "z", description="z: depth along the boresight; range: distance along the pixel's ray."
+    )
+    max_depth: float | None = Field(
+        None, gt=0, description="Depths (m) at or beyond this are no return: a far clip plane."
+    )
 
     @property
     def distorted(self) -> bool:
@@ -204,7 +217,8 @@ def backproject(depth: ArrayLike, camera: DepthCamera, source: str | None = None
     ----------
     depth
         (H, W) stored depth values (any numeric dtype); metres are ``value · depth_scale``.
-        Zero, negative and non-finite values are no return.
+        Zero, negative and non-finite values are no return, and so are an integer dtype's
+        largest value and depths at or beyond ``camera.max_depth``.
     camera
         Intrinsics and depth scale.
     source
@@ -238,6 +252,12 @@ def backproject(depth: ArrayLike, camera: DepthCamera, source: str | None = None
     rays = pixel_rays(camera, height, width)
     with np.errstate(invalid="ignore"):
         valid = (z > 0) & np.isfinite(z) & np.isfinite(rays[..., 0])
+        if np.issubdtype(values.dtype, np.integer):
+            valid &= values != np.iinfo(values.dtype).max
+        if camera.max_depth is not None:
+            valid &= z < camera.max_depth
+        if camera.depth_kind == "range":
+            z = z / np.sqrt(1.0 + rays[..., 0] ** 2 + rays[..., 1] ** 2)
     z = np.where(valid, z, np.nan)
     points = np.stack([rays[..., 0] * z, rays[..., 1] * z, z], axis=-1)
     return OrganisedCloud(points, valid)

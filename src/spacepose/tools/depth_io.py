@@ -75,7 +75,8 @@ def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float =
     Raises
     ------
     InputError
-        Not 2-D, negative or non-finite depths, a depth beyond 65535 units, or an unknown suffix.
+        Not 2-D, negative or non-finite depths, a depth of 65535 units or more (65535 is
+        no return), or an unknown suffix.
     """
     path = Path(path)
     depth = np.asarray(depth_m, dtype=np.float64)
@@ -87,9 +88,12 @@ def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float =
         values = depth.astype(np.float32)
     else:
         units = np.rint(depth / depth_scale)
-        if units.max(initial=0.0) > np.iinfo(np.uint16).max:
+        # 65535 is read back as no return (:func:`~spacepose.core.depth.backproject`).
+        if units.max(initial=0.0) >= np.iinfo(np.uint16).max:
             raise InputError(
-                f"depth {depth.max():.4g} m exceeds 65535 units of {depth_scale} m", path
+                f"depth {depth.max():.4g} m reaches 65535 units of {depth_scale} m, "
+                "the no-return code",
+                path,
             )
         values = units.astype(np.uint16)
     path.parent.mkdir(parents=True, exist_ok=True)
