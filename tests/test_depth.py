@@ -17,6 +17,8 @@ from spacepose.core.depth import (
 from spacepose.errors import InputError
 
 PINHOLE = DepthCamera(fx=500.0, fy=480.0, cx=79.5, cy=59.5, depth_scale=0.001)
+# The same lens on a 5 x 4 crop: its principal point inside the small test images.
+SMALL = PINHOLE.model_copy(update={"cx": 2.0, "cy": 1.5})
 # A wide-angle lens with OpenCV's full rational model and tangential terms (|k| as in real
 # ToF calibrations: a few pixels to tens of pixels at the corners).
 WIDE = PINHOLE.model_copy(
@@ -63,26 +65,26 @@ def test_pinhole_backprojection_closed_form():
 def test_zero_negative_and_nan_depth_are_no_return():
     depth = np.full((4, 5), 1.25, dtype=np.float32)
     depth[0, 0], depth[1, 1], depth[2, 2] = 0.0, -1.0, np.nan
-    camera = PINHOLE.model_copy(update={"depth_scale": 1.0})
+    camera = SMALL.model_copy(update={"depth_scale": 1.0})
     organised = backproject(depth, camera)
     assert organised.valid.sum() == 17
     assert np.isnan(organised.points[~organised.valid]).all()
     assert len(organised.cloud()) == 17
     with pytest.raises(InputError, match="no return"):
-        depth_to_cloud(np.zeros((4, 5), dtype=np.uint16), PINHOLE, source="empty.png")
+        depth_to_cloud(np.zeros((4, 5), dtype=np.uint16), SMALL, source="empty.png")
 
 
 def test_the_integer_no_return_code_and_the_far_plane_are_no_return():
     depth = np.full((4, 5), 1500, dtype=np.uint16)
     depth[0, 0] = 65535  # a camera's no-return / saturation code, a renderer's background
     depth[1, 1] = 9000  # 9 m: beyond a far plane at 8 m
-    assert backproject(depth, PINHOLE).valid.sum() == 19
-    far = PINHOLE.model_copy(update={"max_depth": 8.0})
+    assert backproject(depth, SMALL).valid.sum() == 19
+    far = SMALL.model_copy(update={"max_depth": 8.0})
     organised = backproject(depth, far)
     assert organised.valid.sum() == 18 and not organised.valid[1, 1]
     # A float image has no such code: its largest finite values are depths like any other.
     metres = depth.astype(np.float32) / 1000
-    assert backproject(metres, PINHOLE.model_copy(update={"depth_scale": 1.0})).valid.sum() == 20
+    assert backproject(metres, SMALL.model_copy(update={"depth_scale": 1.0})).valid.sum() == 20
 
 
 def test_a_range_image_puts_each_point_at_its_range_along_the_ray():
@@ -113,6 +115,9 @@ def test_size_and_shape_are_checked():
         backproject(np.ones((480, 640)), sized, source="big.png")
     with pytest.raises(InputError, match="one numeric channel"):
         backproject(np.ones((4, 5, 3)), PINHOLE)
+    # Intrinsics of the full 160 x 120 sensor on a 64 x 48 binned image: refused, not bent.
+    with pytest.raises(InputError, match=r"principal point \(79.5, 59.5\) lies outside the 64x48"):
+        backproject(np.ones((48, 64)), PINHOLE, source="binned.png")
 
 
 def test_render_then_backproject_round_trip_with_distortion():

@@ -10,6 +10,7 @@ import yaml
 
 from spacepose.core.depth import DepthCamera, render_depth
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
+from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.depth_io import read_depth_image, write_depth_image
 from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.runs import write_run
@@ -40,7 +41,9 @@ def test_unreadable_frame_does_not_abort_navigation(run_dir, tmp_path):
     victim = sorted((bad / "frames").glob("*.ply"))[3]
     victim.write_bytes(b"")
     ref = navigate_run(run_dir, tmp_path / "ref.csv", prior_q_I_B=_prior(run_dir))
-    got = navigate_run(bad, tmp_path / "nav.csv", prior_q_I_B=_prior(run_dir))
+    # The loss is not silent: a warning names the frame and its file.
+    with pytest.warns(SpaceposeWarning, match=rf"frame 3 cannot be read.*{victim.name}"):
+        got = navigate_run(bad, tmp_path / "nav.csv", prior_q_I_B=_prior(run_dir))
     assert len(got.rows) == FRAMES
     assert [r.n_rect > 0 for r in got.rows] == [k != 3 for k in range(FRAMES)]
     assert ref.rows[3].n_rect > 0 and got.rows[3].status == "predict"
@@ -80,3 +83,16 @@ def test_depth_folder_navigates_like_its_cloud_folder(run_dir, tmp_path, capsys)
     got = navigate_run(depth_dir, out, intrinsics=intrinsics, **common)
     assert out.read_text() == ref.read_text()
     assert all(r.n_rect > 0 for r in got.rows)
+
+
+def test_an_output_that_cannot_be_written_fails_before_navigating(run_dir, tmp_path, monkeypatch):
+    def no_navigation(*args, **kwargs):
+        raise AssertionError("navigation started before the output was checked")
+
+    monkeypatch.setattr("spacepose.tools.navigation_io.navigate", no_navigation)
+    (tmp_path / "NAV.csv").mkdir()
+    with pytest.raises(InputError, match=r"NAV\.csv: output exists and is not a regular file"):
+        navigate_run(run_dir, tmp_path / "NAV.csv")
+    (tmp_path / "out.config.json").mkdir()  # a companion in the way counts too
+    with pytest.raises(InputError, match=r"out\.config\.json"):
+        navigate_run(run_dir, tmp_path / "out.csv")

@@ -123,6 +123,15 @@ def test_report_cli_and_errors(tmp_path: Path, capsys) -> None:
     assert "not a folder" in capsys.readouterr().err
 
 
+def test_report_finds_nav_csv_named_as_the_readme_names_it(tmp_path: Path) -> None:
+    expected = _make_run(tmp_path / "demo")
+    orbit = tmp_path / "demo" / "orbit"
+    (orbit / "nav.csv").rename(orbit / "NAV.csv")
+    page = build_report(tmp_path / "demo").read_text()
+    nav_row = re.search(r"<tr><td>position \(mm\)</td><td>([\d.]+)</td>", page)
+    assert nav_row and float(nav_row.group(1)) == pytest.approx(expected["nav_rho_x_mm"], rel=1e-6)
+
+
 def _chromium() -> str | None:
     return shutil.which("chromium") or shutil.which("chromium-browser")
 

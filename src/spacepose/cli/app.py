@@ -1,9 +1,10 @@
 """The typer application object, the one error handler and the warning printer of the CLI.
 
 Every error ends as one line on stderr and exit code 1: a :class:`SpaceposeError` (bad input,
-bad config) and a usage error alike (an unknown option or command, a missing argument, a value
-that does not parse), as the README promises. A :class:`SpaceposeWarning` is one line
-``warning: FILE: problem``; past the first few files with the same problem (every frame of a
+bad config), a file the system refuses (OSError) and a usage error alike (an unknown option or
+command, a missing argument, a value that does not parse), as the README promises. A
+:class:`SpaceposeWarning` is one line ``warning: FILE: problem``, and so is any other warning;
+past the first few files with the same problem (every frame of a
 folder in millimetres) the others are only counted, and the count printed at the end.
 """
 
@@ -71,6 +72,10 @@ def main(argv: list[str] | None = None) -> int:
         except typer.TyperException as exc:  # any other click error (e.g. an unreadable file)
             print_error(exc.format_message())
             return 1
+        except OSError as exc:  # a file the system refused (disk full, a read-only mount)
+            where = f"{exc.filename}: " if exc.filename else ""
+            print_error(f"{where}{exc.strerror or exc}")
+            return 1
     return result if isinstance(result, int) else 0
 
 
@@ -92,14 +97,21 @@ class _OneLineWarnings:
 
     def __init__(self) -> None:
         self.repeats: Counter[tuple[type, str]] = Counter()
-        self.fallback = warnings.showwarning
 
     def __enter__(self) -> _OneLineWarnings:
         return self
 
     def show(self, message, category, filename, lineno, file=None, line=None) -> None:
         if not isinstance(message, SpaceposeWarning):
-            self.fallback(message, category, filename, lineno, file, line)
+            # A library's warning (numpy on overflowing values): one line too, without the
+            # source line Python's printer adds.
+            err_console.print("[yellow]warning:[/] ", end="")
+            err_console.print(
+                f"{category.__name__}: {_one_line(str(message))}",
+                markup=False,
+                highlight=False,
+                soft_wrap=True,
+            )
             return
         key = (category, message.reason)
         self.repeats[key] += 1

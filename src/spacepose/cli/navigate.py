@@ -89,8 +89,9 @@ def navigate(
 
 
 def _quaternion(text: str) -> tuple[float, ...]:
-    """``qx,qy,qz,qw`` as four floats; ConfigError otherwise."""
+    """``qx,qy,qz,qw`` as four floats of a rotation; ConfigError otherwise."""
     from spacepose.errors import ConfigError
+    from spacepose.tools.navigation_io import prior_quaternion
 
     try:
         q = tuple(float(v) for v in text.replace(" ", ",").split(",") if v)
@@ -98,4 +99,4 @@ def _quaternion(text: str) -> tuple[float, ...]:
         q = ()
     if len(q) != 4:
         raise ConfigError(f"--prior must be four numbers qx,qy,qz,qw, got {text!r}")
-    return q
+    return prior_quaternion(q, "--prior")

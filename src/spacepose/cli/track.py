@@ -9,7 +9,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from spacepose.cli.app import app, console
-from spacepose.errors import SpaceposeWarning
+from spacepose.errors import InputError, SpaceposeWarning
 
 # Old method names still accepted, each with a one-line warning.
 _DEPRECATED = {"icp": "point_to_plane"}
@@ -86,3 +86,6 @@ def track(
         f"{summary['lost']} lost; {summary['mean_time_ms']:.1f} ms/frame -> {out}",
         highlight=False,
     )
+    if summary["lost"] == summary["frames"]:
+        # Rows were written for every frame, but a run with no pose is a failure to report.
+        raise InputError(f"every frame was lost ({summary['first_lost']})", input)

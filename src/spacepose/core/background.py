@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from scipy.spatial import ConvexHull, QhullError
 
 from spacepose.core.cloud import PointCloud
@@ -63,7 +63,7 @@ class BackgroundConfig(StageConfig):
     Attributes
     ----------
     range_min, range_max
-        Kept distances from the sensor origin (m).
+        Kept distances from the sensor origin (m); ``range_max`` None: no upper limit.
     remove_planes
         Largest number of background planes removed (0: no plane step).
     plane_candidates
@@ -107,7 +107,7 @@ class BackgroundConfig(StageConfig):
     """
 
     range_min: float = Field(default=0.0, ge=0)
-    range_max: float = Field(default=math.inf, gt=0)
+    range_max: float | None = Field(default=None, gt=0)
     remove_planes: int = Field(default=4, ge=0)
     plane_candidates: int = Field(default=12, ge=1)
     plane_distance: float = Field(default=0.01, gt=0)
@@ -121,11 +121,17 @@ class BackgroundConfig(StageConfig):
     cluster_distance: float = Field(default=0.02, gt=0)
     merge_distance: float = Field(default=0.12, gt=0)
     min_cluster_share: float = Field(default=0.01, gt=0, le=1)
-    seed: int = 0
+    seed: int = Field(default=0, ge=0)
+
+    @field_validator("range_max", mode="before")
+    @classmethod
+    def _unbounded(cls, value: object) -> object:
+        # Configs written before None meant "no limit" hold inf (JSON: Infinity) here.
+        return None if isinstance(value, float) and value == math.inf else value
 
     @model_validator(mode="after")
     def _range_order(self) -> BackgroundConfig:
-        if self.range_min >= self.range_max:
+        if self.range_max is not None and self.range_min >= self.range_max:
             raise ValueError(f"range_min {self.range_min} must be below range_max {self.range_max}")
         return self
 
@@ -326,10 +332,11 @@ def remove_background(
     """
     pts = cloud.points
     rng = np.linalg.norm(pts, axis=1)
-    keep = np.flatnonzero((rng >= config.range_min) & (rng <= config.range_max))
+    range_max = math.inf if config.range_max is None else config.range_max
+    keep = np.flatnonzero((rng >= config.range_min) & (rng <= range_max))
     if len(keep) == 0:
         raise InputError(
-            f"no point within the range gate {config.range_min}..{config.range_max} m "
+            f"no point within the range gate {config.range_min}..{range_max} m "
             f"(ranges {rng.min():.3g}..{rng.max():.3g} m)",
             cloud.source,
         )

@@ -21,14 +21,15 @@ from spacepose.errors import ConfigError
 
 
 class StageConfig(BaseModel):
-    """Base of every config model: immutable, unknown keys are an error.
+    """Base of every config model: immutable, unknown keys and non-finite floats are an error.
 
-    Constructing one with a bad value (``TrackerConfig(voxel_size=-1)``, an unknown keyword)
-    raises :class:`~spacepose.errors.ConfigError` naming the model and the field, not pydantic's
-    ``ValidationError``.
+    Constructing one with a bad value (``TrackerConfig(voxel_size=-1)``, an unknown keyword,
+    ``inf`` or ``nan`` for a float) raises :class:`~spacepose.errors.ConfigError` naming the
+    model and the field, not pydantic's ``ValidationError``. A bound that may be absent is
+    ``None``, never ``inf``: the effective config is written as JSON, which has no infinity.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     def __init__(self, /, **data: Any) -> None:
         try:
@@ -114,6 +115,11 @@ def parse_structured(text: str, source: str | Path, kind: str | None = None) -> 
         raise ConfigError(f"{source}: not valid {kind.upper()}: {parse_problem(exc)}") from None
 
 
+def not_text(exc: UnicodeDecodeError) -> str:
+    """``not UTF-8 text (byte 0xff at offset 0)``: the problem of a file that does not decode."""
+    return f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
+
+
 def load_config(model: type[C], path: str | Path) -> C:
     """Read a YAML (``.yaml``/``.yml``) or JSON config file into ``model``."""
     path = Path(path)
@@ -121,6 +127,8 @@ def load_config(model: type[C], path: str | Path) -> C:
         text = path.read_text()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: cannot read config: {not_text(exc)}") from None
     data = parse_structured(text, path)
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"{path}: a config file must hold a mapping, got {type(data).__name__}")

@@ -232,7 +232,8 @@ def backproject(depth: ArrayLike, camera: DepthCamera, source: str | None = None
     Raises
     ------
     InputError
-        ``depth`` is not 2-D, or its size differs from the camera's ``width``/``height``.
+        ``depth`` is not 2-D, its size differs from the camera's ``width``/``height``, or the
+        principal point lies outside it.
     """
     values = np.asarray(depth)
     if values.ndim != 2 or not (
@@ -247,6 +248,13 @@ def backproject(depth: ArrayLike, camera: DepthCamera, source: str | None = None
     if (camera.width or width, camera.height or height) != (width, height):
         raise InputError(
             f"image is {width}x{height}, the intrinsics say {camera.width}x{camera.height}", source
+        )
+    if not (-0.5 <= camera.cx <= width - 0.5 and -0.5 <= camera.cy <= height - 0.5):
+        # Intrinsics of another resolution (or camera): every ray would be off.
+        raise InputError(
+            f"the principal point ({camera.cx:g}, {camera.cy:g}) lies outside the "
+            f"{width}x{height} image: intrinsics of another resolution?",
+            source,
         )
     z = values.astype(np.float64) * camera.depth_scale
     rays = pixel_rays(camera, height, width)

@@ -80,7 +80,7 @@ class PlaneConfig(StageConfig):
     batch_size: int = Field(64, ge=1)
     cluster_radius: float | None = Field(None, gt=0)
     range_threshold: float | None = Field(None, gt=0)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -383,7 +383,10 @@ def extract_planes(
     """
     pts = as_points(cloud_or_points, min_points=3)
     if is_collinear(distribution(pts)[1]):
-        raise DegenerateGeometryError(f"all {len(pts)} points are collinear: no plane to fit")
+        raise DegenerateGeometryError(
+            f"all {len(pts)} points are collinear: no plane to fit",
+            getattr(cloud_or_points, "source", None),
+        )
     rng = np.random.default_rng(config.seed)
     remaining = np.arange(len(pts))
     planes: list[Plane] = []

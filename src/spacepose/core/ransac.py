@@ -87,7 +87,7 @@ class RansacConfig(StageConfig):
     edge_length_ratio: float = Field(default=0.9, ge=0, lt=1)
     max_iterations: int = Field(default=100_000, ge=1)
     confidence: float = Field(default=0.999, gt=0, lt=1)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
     batch_size: int = Field(default=256, ge=1)
     min_inliers: int = Field(default=10, ge=4)
     coverage_points: int = Field(default=300, ge=1)

@@ -69,7 +69,8 @@ def measure_planes(
     pts = as_points(cloud_or_points, min_points=3)
     all_weights = None if weights is None else normalised_weights(weights, len(pts))
     out = []
-    for plane in extract_planes(pts, plane_config):
+    # The cloud itself, not its points: a degenerate cloud's error names its file.
+    for plane in extract_planes(cloud_or_points, plane_config):
         support = plane.inliers
         if config.support:
             dense = plane.inliers[dense_support(pts[plane.inliers], plane.normal)]

@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from pydantic import Field, PositiveFloat, PositiveInt
+from pydantic import Field, PositiveFloat
 
 from spacepose.core.background import BackgroundConfig
 from spacepose.core.config import StageConfig
@@ -251,7 +251,8 @@ class TrackerConfig(StageConfig):
     """
 
     method: Method = "keyframe"
-    points_per_frame: PositiveInt = 3000
+    # Fewer leaves every frame below health.min_points (100 by default): lost.
+    points_per_frame: int = Field(3000, ge=100)
     voxel_size: PositiveFloat | None = None
     keyframe_density: float = Field(3.0, ge=1.0)
     stray_share: float = Field(1 / 16, ge=0.0, lt=1.0)

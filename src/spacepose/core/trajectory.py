@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
+from spacepose.core.cloud import MAX_ABS_COORDINATE
 from spacepose.errors import InputError
 
 # Same tolerance as :func:`spacepose.core.se3.as_transform`, so a pose accepted one by one is
@@ -58,6 +59,13 @@ class Trajectory:
         bad = ~np.isfinite(T).all(axis=(1, 2))
         if bad.any():
             raise InputError(f"pose {int(np.argmax(bad))} has non-finite entries", self.source)
+        # Beyond this a squared error overflows: such a translation is a corrupt value.
+        far = np.abs(T[:, :3, 3]).max(axis=1) > MAX_ABS_COORDINATE
+        if far.any():
+            raise InputError(
+                f"pose {int(np.argmax(far))} has a translation beyond {MAX_ABS_COORDINATE:.0e} m",
+                self.source,
+            )
         R = T[:, :3, :3]
         ortho_err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
         bad = (

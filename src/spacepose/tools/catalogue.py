@@ -25,7 +25,7 @@ from pydantic import ValidationError
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
-from spacepose.core.config import parse_structured
+from spacepose.core.config import not_text, parse_structured
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, side_tolerance
 from spacepose.errors import ConfigError
 
@@ -63,8 +63,8 @@ def parse_catalogue(
     ------
     ConfigError
         Naming ``source`` and the entry: a malformed entry (missing field, ``a > b``, a rotation
-        that is not orthonormal with det +1), duplicate names, an empty catalogue, or two entries
-        that are the same face (:func:`check_distinguishable`).
+        that is not orthonormal with det +1, a non-finite centre or side), duplicate names, an
+        empty catalogue, or two entries that are the same face (:func:`check_distinguishable`).
     """
     source = str(source)
     raw = _entries_of(data, source)
@@ -76,13 +76,22 @@ def parse_catalogue(
             f" ({item['name']!r})" if isinstance(item, dict) and "name" in item else ""
         )
         try:
-            entries.append(CatalogueEntry.model_validate(item))
+            entry = CatalogueEntry.model_validate(item)
         except ValidationError as exc:
             problems = "; ".join(
                 f"{'.'.join(str(p) for p in err['loc']) or '<entry>'}: {err['msg']}"
                 for err in exc.errors()
             )
             raise ConfigError(f"{source}: rectangle {label}: {problems}") from None
+        # The model takes inf for a float (and the sides' gt=0 lets +inf through); a face at
+        # infinity or of infinite size is no face.
+        infinite = [k for k in ("center", "a", "b") if not np.all(np.isfinite(getattr(entry, k)))]
+        if infinite:
+            raise ConfigError(
+                f"{source}: rectangle {label}: "
+                + "; ".join(f"{k}: must be finite, got {getattr(entry, k)}" for k in infinite)
+            )
+        entries.append(entry)
     names = [e.name for e in entries]
     duplicates = sorted({n for n in names if names.count(n) > 1})
     if duplicates:
@@ -176,4 +185,6 @@ def load_catalogue(
         text = path.read_text()
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read the rectangle catalogue: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: cannot read the rectangle catalogue: {not_text(exc)}") from None
     return parse_catalogue(parse_structured(text, path), config, path)

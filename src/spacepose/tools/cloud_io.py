@@ -27,6 +27,10 @@ _XYZ = ("x", "y", "z")
 _PLY_NORMALS = ("nx", "ny", "nz")
 _PCD_NORMALS = ("normal_x", "normal_y", "normal_z")
 _TEXT_SUFFIXES = (".xyz", ".txt", ".csv")
+_NPY_MAGIC = b"\x93NUMPY"
+# Widest scene (m) a cloud in millimetres can span: 100 km, past any ToF camera or LiDAR.
+_FARTHEST_M = 1e5
+_ZIP_MAGIC = b"PK"
 # Significant digits that round-trip a value of the given precision through text.
 _DIGITS = {"float32": 9, "float64": 17}
 
@@ -69,6 +73,8 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
         The file holds no finite point.
     """
     path = Path(path)
+    if path.is_dir():
+        raise FileFormatError("a folder, not a point cloud file", path)
     reader = _READERS.get(path.suffix.lower())
     if reader is None:
         raise FileFormatError(
@@ -77,21 +83,24 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
             path,
         )
     if not path.is_file():
-        raise FileFormatError("no such file", path)
+        raise FileFormatError("a broken link" if path.is_symlink() else "no such file", path)
     if not (np.isfinite(scale) and scale > 0):
         raise InputError(f"scale must be a positive number, got {scale}", path)
     points, normals = reader(path)
     cloud = PointCloud(points * scale, normals, source=str(path))
     if scale == 1.0 and (check := check_scale(cloud.points)).millimetres:
-        warnings.warn(
-            SpaceposeWarning(
+        if check.extent * 1e-3 > _FARTHEST_M:
+            problem = (
+                f"coordinates span {check.extent:.3g} m, beyond any sensor's reach even read "
+                "as millimetres: corrupt values, or another unit?"
+            )
+        else:
+            problem = (
                 f"coordinates look like millimetres ({check.extent:.0f} m across, median point "
                 f"spacing {check.spacing:.2f} m); spacepose works in metres: scale the file by "
-                "0.001 (read_cloud(..., scale=1e-3))",
-                path,
-            ),
-            stacklevel=2,
-        )
+                "0.001 (read_cloud(..., scale=1e-3))"
+            )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
     return cloud
 
 
@@ -149,16 +158,47 @@ def write_cloud(
 def _read_ply(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
     try:
         with path.open("rb") as fh:
+            _check_ply_counts(plyfile.PlyData._parse_header(fh), path.stat().st_size - fh.tell())
+            fh.seek(0)
             ply = plyfile.PlyData.read(fh, mmap=False)
     except plyfile.PlyParseError as exc:
         raise FileFormatError(f"bad or truncated PLY: {exc}", path) from None
-    except (OSError, ValueError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError:
+        raise FileFormatError("not a PLY file: its header is not ASCII text", path) from None
+    except (OSError, ValueError) as exc:
         raise FileFormatError(f"cannot read PLY: {exc}", path) from None
     if "vertex" not in ply:
         raise FileFormatError("PLY has no 'vertex' element", path)
     data = ply["vertex"].data
     names = data.dtype.names or ()
     return _columns(data, names, _XYZ, _PLY_NORMALS, path, "PLY vertex")
+
+
+def _check_ply_counts(header: plyfile.PlyData, body_bytes: int) -> None:
+    """Refuse a header whose element counts the body cannot hold, before anything is
+    allocated: a corrupt count of 10¹² vertices would otherwise ask for terabytes.
+
+    Each row takes at least its fixed-size properties' bytes (a list's count) in binary, and a
+    character and a separator per property in ASCII.
+
+    Raises
+    ------
+    plyfile.PlyParseError
+        Rows promised beyond what ``body_bytes`` can hold.
+    """
+    for element in header.elements:
+        if header.text:
+            row = 2 * len(element.properties)
+        else:
+            row = sum(
+                np.dtype(getattr(p, "len_dtype", None) or p.val_dtype).itemsize
+                for p in element.properties
+            )
+        if element.count * row > body_bytes:
+            raise plyfile.PlyParseError(
+                f"the header promises {element.count:,} '{element.name}' rows, more than the "
+                f"file's {body_bytes:,} bytes of data can hold"
+            )
 
 
 def _write_ply(
@@ -214,7 +254,8 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
         raise FileFormatError("no point rows in text file", path)
     delimiter = "," if "," in lines[first] else None
     head = lines[first].replace(",", " ").split()
-    skip = first + 1 if not _is_number(head[0]) else 0  # a header line such as "x,y,z"
+    header = not _is_number(head[0])  # a header line such as "x,y,z" or CloudCompare's "//X,Y,Z"
+    skip = first + 1 if header else 0
     try:
         table = np.loadtxt(
             io.StringIO(text), delimiter=delimiter, comments="#", skiprows=skip, ndmin=2
@@ -223,11 +264,39 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
         raise FileFormatError(_first_bad_line(lines[skip:], skip), path) from None
     if table.shape[0] == 0:
         raise FileFormatError("no point rows in text file", path)
+    if header:
+        return _named_columns(table, head, path)
     if table.shape[1] not in (3, 6):
         raise FileFormatError(
             f"expected 3 (x y z) or 6 (x y z nx ny nz) columns, got {table.shape[1]}", path
         )
     return table[:, :3], (table[:, 3:] if table.shape[1] == 6 else None)
+
+
+def _named_columns(
+    table: NDArray[np.float64], header: list[str], path: Path
+) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """The x y z (and nx ny nz, when all three are named) columns a header line names, in
+    whatever order and among whatever other columns (intensity, ring) it lists.
+
+    Raises
+    ------
+    FileFormatError
+        The header does not name x, y and z, or names a different number of columns than the
+        rows hold.
+    """
+    names = [token.strip("/\"'").lower() for token in header]
+    if len(names) != table.shape[1]:
+        raise FileFormatError(
+            f"the header names {len(names)} columns {header}, the rows hold {table.shape[1]}", path
+        )
+    if not set(_XYZ) <= set(names):
+        raise FileFormatError(f"the header {header} does not name x, y and z columns", path)
+    xyz = table[:, [names.index(c) for c in _XYZ]]
+    for normal_names in (_PLY_NORMALS, _PCD_NORMALS):
+        if set(normal_names) <= set(names):
+            return xyz, table[:, [names.index(c) for c in normal_names]]
+    return xyz, None
 
 
 def _first_bad_line(lines: list[str], offset: int) -> str:
@@ -265,10 +334,28 @@ def _write_text(
     )
 
 
+def _check_magic(path: Path, magic: bytes, problem: str) -> None:
+    """Refuse a file that does not start with ``magic``: numpy reads anything else as a pickle
+    and answers with advice to load it unsafely."""
+    with path.open("rb") as fh:
+        if fh.read(len(magic)) != magic:
+            raise FileFormatError(problem, path)
+
+
+def _numpy_problem(exc: ValueError, kind: str) -> str:
+    """The problem of a ``np.load`` ValueError, without numpy's advice to allow pickles."""
+    if "pickle" in str(exc).lower():
+        return f"{kind} holds Python objects (pickled data), not a numeric array; not loaded"
+    return f"bad or truncated {kind}: {exc}"
+
+
 def _read_npy(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    _check_magic(path, _NPY_MAGIC, "not a .npy file (no NumPy header)")
     try:
         arr = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
+    except ValueError as exc:
+        raise FileFormatError(_numpy_problem(exc, ".npy"), path) from None
+    except (OSError, EOFError) as exc:
         raise FileFormatError(f"bad or truncated .npy: {exc}", path) from None
     if arr.ndim != 2 or arr.shape[1] not in (3, 6) or arr.dtype.kind not in "fiu":
         raise FileFormatError(
@@ -279,6 +366,7 @@ def _read_npy(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | No
 
 
 def _read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    _check_magic(path, _ZIP_MAGIC, "not a .npz archive (no zip header)")
     try:
         with np.load(path, allow_pickle=False) as npz:
             if "points" not in npz.files:
@@ -287,6 +375,8 @@ def _read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | No
             normals = npz["normals"] if "normals" in npz.files else None
     except FileFormatError:
         raise
+    except ValueError as exc:
+        raise FileFormatError(_numpy_problem(exc, ".npz"), path) from None
     except Exception as exc:  # zipfile/zlib errors of a corrupt archive have no common base
         raise FileFormatError(f"bad or truncated .npz: {exc}", path) from None
     for name, arr in (("points", points), ("normals", normals)):

@@ -147,9 +147,8 @@ def depth_files(root: str | Path) -> tuple[Path, ...]:
         The folder holds no image with a suffix of :data:`DEPTH_SUFFIXES`.
     """
     root = Path(root)
-    paths = tuple(
-        sorted(p for p in root.iterdir() if p.is_file() and p.suffix.lower() in DEPTH_SUFFIXES)
-    )
+    # Every entry named as an image: one that is not a readable file is a lost frame.
+    paths = tuple(sorted(p for p in root.iterdir() if p.suffix.lower() in DEPTH_SUFFIXES))
     if not paths:
         raise InputError(f"no depth images ({', '.join(DEPTH_SUFFIXES)}) in the folder", root)
     return paths

@@ -20,7 +20,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
-import os
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -39,6 +38,7 @@ from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
+from spacepose.tools.outputs import check_writable
 from spacepose.tools.trajectory_io import tum_lines
 
 HEALTH_COLUMNS: tuple[str, ...] = (
@@ -177,9 +177,14 @@ def open_frames(
         sorted(
             p
             for p in root.iterdir()
-            if p.is_file() and p.suffix.lower() in CLOUD_SUFFIXES and p.name != TIMESTAMPS_FILE
+            # Not only regular files: a folder or a broken link named as a frame is a frame
+            # that cannot be read (reported lost), not one to skip and shift the rest.
+            if p.suffix.lower() in CLOUD_SUFFIXES and p.name != TIMESTAMPS_FILE
         )
     )
+    if not paths and any(p.suffix.lower() in depth_io.DEPTH_SUFFIXES for p in root.iterdir()):
+        # Images without intrinsics: say what is missing, not that there is nothing.
+        return _open_depth_folder(root, None)
     if not paths:
         raise InputError(f"no frame files ({', '.join(CLOUD_SUFFIXES)}) in the folder", root)
     return FrameSequence(paths, _folder_timestamps(root, len(paths)))
@@ -236,7 +241,7 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
     ------
     InputError
         A line is not a single finite number, the count differs from ``n_frames``, or the
-        timestamps decrease.
+        timestamps do not increase.
     """
     path = Path(path)
     values: list[float] = []
@@ -254,8 +259,12 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
     if len(values) != n_frames:
         raise InputError(f"{len(values)} timestamps for {n_frames} frame files", path)
     stamps = np.asarray(values, dtype=np.float64)
-    if np.any(np.diff(stamps) < 0):
-        raise InputError("timestamps decrease", path)
+    steps = np.diff(stamps)
+    if np.any(steps <= 0):
+        # Two frames at one time leave the motion between them undefined.
+        k = int(np.argmax(steps <= 0))
+        what = "repeats" if steps[k] == 0 else "goes back to"
+        raise InputError(f"timestamps must increase: frame {k + 1} {what} {stamps[k + 1]}", path)
     return stamps
 
 
@@ -344,27 +353,18 @@ def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path]:
 
 
 def check_output(out: str | Path) -> None:
-    """Refuse an output location that cannot be written, before any work is done.
-
-    Each of the four output files must be a regular file or not exist yet, and the nearest
-    existing folder above them must be a writable folder (not a regular file).
+    """Refuse an output location that cannot be written, before any work is done: each of the
+    four output files (:func:`~spacepose.tools.outputs.check_writable`).
 
     Raises
     ------
     InputError
-        An output is an existing folder, a parent is a regular file, or the folder is not
-        writable.
+        An output is an existing folder, a parent is a regular file, or a file cannot be
+        written there.
     """
-    for path in output_paths(out):
-        if path.exists() and not path.is_file():
-            raise InputError("output exists and is not a regular file (a folder?)", path)
-    parent = Path(out).absolute().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise InputError(f"cannot write under {parent}: it is a regular file", out)
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"cannot write under {parent}: permission denied", out)
+    if Path(out).name in ("", ".", ".."):
+        raise InputError(f"--out needs a file name such as EST.tum, got {str(out)!r}")
+    check_writable(*output_paths(out))
 
 
 def track_folder(
@@ -406,7 +406,8 @@ def track_folder(
 
     Returns
     -------
-    Summary: frames, ok / degraded / lost counts, mean time per frame (ms), output paths.
+    Summary: frames, ok / degraded / lost counts, the first lost frame and its reasons (None
+    when none is lost), mean time per frame (ms), output paths.
     """
     check_output(out)
     frames = open_frames(input, intrinsics=intrinsics, topic=topic)
@@ -417,6 +418,7 @@ def track_folder(
     scale_path.unlink(missing_ok=True)  # a former run's lengths are not this run's
     statuses: list[str] = []
     times: list[float] = []
+    first_lost = None
     written_scale = None
     with tum.open("w") as tum_fh, health.open("w", newline="") as health_fh:
         writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
@@ -438,6 +440,8 @@ def track_folder(
                 scale_path.write_text(json.dumps(lengths, indent=2) + "\n")
             statuses.append(result.status)
             times.append(result.time_ms["total"])
+            if result.status == "lost" and first_lost is None:
+                first_lost = f"frame {len(statuses) - 1}: {'; '.join(result.reasons)}"
             if progress is not None:
                 progress(len(statuses), len(frames), result.status)
     return {
@@ -445,6 +449,7 @@ def track_folder(
         "ok": statuses.count("ok"),
         "degraded": statuses.count("degraded"),
         "lost": statuses.count("lost"),
+        "first_lost": first_lost,
         "mean_time_ms": float(np.mean(times)) if times else float("nan"),
         "trajectory": str(tum),
         "health": str(health),

@@ -13,23 +13,27 @@ one line saying why.
 from __future__ import annotations
 
 import csv
-from collections.abc import Sequence
-from dataclasses import dataclass
+import warnings
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import yaml
 from numpy.typing import ArrayLike
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import dump_config, parse_problem
+from spacepose.core.config import dump_config, not_text, parse_problem
 from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
 from spacepose.core.nav_result import NavRow, nav_table
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.navigation import NavigationConfig, navigate
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.frames import open_frames, write_health_csv
+from spacepose.tools.frames import Frames, open_frames, write_health_csv
+from spacepose.tools.outputs import check_writable
 from spacepose.tools.runs import SCENARIO, read_run
 
 
@@ -132,8 +136,14 @@ def navigate_run(
     ------
     InputError
         Besides bad input: no frame was navigated (after NAV.csv is written), saying why.
+    ConfigError
+        The attitude prior is not a rotation (:func:`prior_quaternion`).
     """
     cfg = config or NavigationConfig()
+    out = Path(out)
+    companions = [".config.json", ".candidates.csv"]
+    companions += [".health.csv"] if measurements != "rectangles" else []
+    check_writable(out, *(out.with_suffix(c) for c in companions))
     frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
     if scenario is not None:
         source = str(scenario)
@@ -154,14 +164,18 @@ def navigate_run(
         fov = tuple(float(v) for v in description["sensor_fov_deg"])
         cfg = cfg.model_copy(update={"lost_in_space": cfg.lost_in_space.model_copy(
             update={"fov_deg": fov})})  # fmt: skip
+    prior_name = "prior_q_I_B"
     if debug_prior_from_truth:
         if "initial_q_I_B" not in description:
             raise InputError("missing key 'initial_q_I_B' for the attitude prior", source)
-        prior_q_I_B = description["initial_q_I_B"]
+        prior_q_I_B, prior_name = description["initial_q_I_B"], f"{source}: initial_q_I_B"
+    if prior_q_I_B is None:
+        prior_q_I_B = cfg.prior_q_I_B  # from a config file, if any
     if prior_q_I_B is not None:
-        prior = tuple(float(v) for v in prior_q_I_B)
+        prior = prior_quaternion(prior_q_I_B, prior_name)
         cfg = NavigationConfig.model_validate(cfg.model_dump() | {"prior_q_I_B": prior})
-    pairs = ((f.timestamp, f.cloud) for f in frames)
+    unreadable: dict[int, str] = {}
+    pairs = _readable_pairs(frames, unreadable)
     health_csv = None
     if measurements == "rectangles":
         rows = navigate(pairs, catalogue, n, R_O_C, cfg, model)
@@ -172,9 +186,11 @@ def navigate_run(
         )
         fused = fused_navigate(pairs, catalogue, n, R_O_C, fusion, model)
         rows = [r.nav for r in fused]
-        health_csv = write_health_csv(
-            Path(out).with_suffix(".health.csv"), [r.track for r in fused]
-        )
+        tracks = [
+            replace(r.track, reasons=(unreadable[k],)) if k in unreadable else r.track
+            for k, r in enumerate(fused)
+        ]
+        health_csv = write_health_csv(Path(out).with_suffix(".health.csv"), tracks)
         config_json = dump_config(fusion, Path(out).with_suffix(".config.json"))
     nav_csv = write_nav_csv(out, rows)
     navigated = sum(r.state is not None for r in rows)
@@ -186,6 +202,10 @@ def navigate_run(
         why = _why_nothing(rows, candidates_csv, model is not None)
         if measurements == "registration":
             why = f"no frame navigated: the tracker gave no ok pose (see {health_csv})"
+        if unreadable:
+            k = min(unreadable)
+            why = f"{len(unreadable)} of {len(rows)} frames could not be read (frame {k}: "
+            why += f"{unreadable[k]}); {why}"
         raise InputError(why, input_dir)
     return NavigationSummary(
         nav_csv,
@@ -197,6 +217,51 @@ def navigate_run(
         candidates_csv,
         health_csv,
     )
+
+
+def prior_quaternion(values: ArrayLike, name: str) -> tuple[float, float, float, float]:
+    """``values`` as a unit attitude prior ``(qx, qy, qz, qw)``.
+
+    Parameters
+    ----------
+    values
+        The quaternion, scalar last; any non-zero norm.
+    name
+        What the values came from (``--prior``, a file's key), named by the error.
+
+    Raises
+    ------
+    ConfigError
+        Not four finite numbers, or a zero norm: no rotation (scipy would fail on it mid-run).
+    """
+    try:
+        q = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        q = np.empty(0)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or not np.any(q):
+        got = " ".join(repr(values).split())  # an array's repr may span lines
+        raise ConfigError(
+            f"{name}: the quaternion must be four finite numbers with a non-zero norm, got {got}"
+        )
+    # Scaled first: the norm of 1e-200s underflows to 0 and that of 1e308s overflows.
+    q = q / np.max(np.abs(q))
+    q /= np.linalg.norm(q)
+    return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
+
+
+def _readable_pairs(frames: Frames, unreadable: dict[int, str]) -> Iterator[tuple[float, Any]]:
+    """``(timestamp, cloud)`` of each frame; a frame that cannot be read goes in as an empty one
+    (the filter predicts through it), is warned about, and its reason kept in ``unreadable``."""
+    for frame in frames:
+        if frame.error is not None:
+            unreadable[frame.index] = frame.error
+            warnings.warn(
+                SpaceposeWarning(
+                    f"frame {frame.index} cannot be read, navigated as empty: {frame.error}"
+                ),
+                stacklevel=2,
+            )
+        yield frame.timestamp, frame.cloud
 
 
 def _why_nothing(rows: Sequence[NavRow], candidates_csv: Path | None, has_model: bool) -> str:
@@ -232,6 +297,8 @@ def _read_mapping(path: Path) -> dict:
         data = yaml.safe_load(path.read_text())
     except OSError as exc:
         raise InputError(f"cannot read: {exc.strerror}", path) from None
+    except UnicodeDecodeError as exc:
+        raise FileFormatError(not_text(exc), path) from None
     except yaml.YAMLError as exc:
         raise FileFormatError(f"not valid YAML/JSON: {parse_problem(exc)}", path) from None
     if not isinstance(data, dict):

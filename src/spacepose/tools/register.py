@@ -45,7 +45,7 @@ from spacepose.core.ransac import global_registration
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.robust import RobustKernelName
 from spacepose.core.voxel import voxel_cells
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, RegistrationError
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.depth_io import (
     DEPTH_SUFFIXES,
@@ -53,6 +53,7 @@ from spacepose.tools.depth_io import (
     read_depth_cloud,
     read_intrinsics,
 )
+from spacepose.tools.outputs import check_writable
 
 Method = Literal["point_to_plane", "point_to_point", "gicp"]
 # Points whose nearest-neighbour distance samples the spacing (seeded subsample).
@@ -99,7 +100,7 @@ class RegisterConfig(StageConfig):
     start_radius_fraction: float = Field(0.25, ge=0)
     global_registration: bool = False
     max_iterations: int = Field(30, ge=1)
-    seed: int = 0
+    seed: int = Field(0, ge=0)
 
 
 @dataclass(frozen=True)
@@ -245,9 +246,13 @@ def register(
             raise InputError(f"{len(cloud)} point(s): a rigid fit needs 3", cloud.source)
     scales = [cloud_scale(c.points, config.seed) for c in (source, target)]
     voxel = config.voxel_size or derived_voxel(scales, config)
-    src, tgt = (
-        PointCloud(voxel_cells(c.points, voxel)[0], source=c.source) for c in (source, target)
-    )
+    downsampled = []
+    for cloud in (source, target):
+        try:
+            downsampled.append(PointCloud(voxel_cells(cloud.points, voxel)[0], source=cloud.source))
+        except InputError as exc:  # a voxel far too fine for the cloud's extent
+            raise InputError(f"voxel {voxel:.4g} m: {exc.reason}", cloud.source) from None
+    src, tgt = downsampled
     for cloud in (src, tgt):
         if len(cloud) < 3:
             raise InputError(
@@ -366,10 +371,15 @@ def register_files(
     A depth image (16-bit PNG or TIFF) is read through ``intrinsics`` (or the
     ``intrinsics.yaml`` / ``.json`` beside it) into the camera's sensor frame.
     """
+    if out is not None:
+        check_writable(out)
     source = _read_input(source_path, intrinsics)
     target = _read_input(target_path, intrinsics)
     init = None if init_path is None else read_transform(init_path)
-    outcome = register(source, target, init, config, workers)
+    try:
+        outcome = register(source, target, init, config, workers)
+    except RegistrationError as exc:  # say which pair failed
+        raise RegistrationError(f"{source_path} onto {target_path}: {exc}") from None
     if out is not None:
         summary = {"source": str(source_path), "target": str(target_path), **outcome.to_dict()}
         summary["config"] = config.model_dump(mode="json")

@@ -26,13 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from spacepose import __version__
-from spacepose.core.config import parse_problem
+from spacepose.core.config import not_text, parse_problem
 from spacepose.core.metrics import ErrorTable, evaluate, navigation_errors, pose_errors
 from spacepose.core.mls import MLSConfig, mpp_mls
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools import plots
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.evaluation import starts_at_identity
+from spacepose.tools.outputs import check_writable
 from spacepose.tools.trajectory_io import read_tum
 
 # The lab experiments' setting (6 mm voxels and smoothing scale, about the ToF noise at 1.2 m).
@@ -111,8 +112,12 @@ def _read_json(path: Path) -> object:
 
 
 def _read_csv(path: Path, required: Sequence[str] = ()) -> dict[str, list[str]]:
-    with path.open(newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    try:
+        with path.open(newline="") as fh:
+            rows = list(csv.DictReader(fh))
+    except UnicodeDecodeError as exc:
+        # Its own ``reason`` ("invalid start byte") would be all the report shows.
+        raise FileFormatError(not_text(exc), path) from None
     if not rows:
         raise InputError("CSV file has no data rows", path)
     missing = [c for c in required if c not in rows[0]]
@@ -219,7 +224,10 @@ def _table_cells(d: dict) -> list[tuple[float, float]]:
 def _navigation_section(run: Path, skipped: _Skipped) -> str:
     truth_path = run / "truth.csv"
     # NAV.csv itself, not its companions (NAV.candidates.csv, NAV.health.csv).
-    navs = sorted(p for p in run.rglob("nav*.csv") if "." not in p.stem)
+    # Any case: the README writes NAV.csv, the demo nav.csv.
+    navs = sorted(
+        p for p in run.rglob("*.csv") if p.stem.lower().startswith("nav") and "." not in p.stem
+    )
     if not truth_path.exists() or not navs:
         return ""
     truth = {k: np.asarray(v, dtype=float) for k, v in _read_csv(truth_path).items()}
@@ -313,6 +321,8 @@ def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     root = Path(run_dir)
     if not root.is_dir():
         raise InputError("not a folder", root)
+    out_path = Path(out) if out is not None else root / "report.html"
+    check_writable(out_path)
     runs = sorted(p.parent for p in root.rglob("scenario.json"))
     skipped = _Skipped()
     body = []
@@ -346,7 +356,6 @@ def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
         f"<p class='muted'>spacepose {__version__}, written {stamp}</p>"
         f"{''.join(body)}</body></html>"
     )
-    out_path = Path(out) if out is not None else root / "report.html"
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(page)
     return out_path

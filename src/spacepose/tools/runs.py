@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
+from spacepose.core.config import not_text
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS, Simulation
 from spacepose.core.sim.targets import Rectangle
 from spacepose.core.trajectory import Trajectory
@@ -166,7 +167,9 @@ def read_run(path: str | Path) -> Run:
             raise InputError(f"run folder is missing {name}", root)
     try:
         scenario = json.loads((root / SCENARIO).read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise FileFormatError(not_text(exc), root / SCENARIO) from None
+    except json.JSONDecodeError as exc:
         raise FileFormatError(f"not valid JSON: {exc}", root / SCENARIO) from None
     if not isinstance(scenario, dict):
         raise FileFormatError("must hold a JSON object", root / SCENARIO)
@@ -191,12 +194,19 @@ def _frame_name(k: int) -> str:
 
 
 def _read_truth(path: Path, n_frames: int) -> NDArray[np.float64]:
-    with path.open() as fh:
-        header = fh.readline().strip().split(",")
-    if header != TRUTH_COLUMNS:
-        raise FileFormatError(f"header must be {','.join(TRUTH_COLUMNS)}", path)
     try:
-        table = np.loadtxt(path, delimiter=",", skiprows=1, ndmin=2)
+        lines = path.read_text().splitlines()
+    except UnicodeDecodeError as exc:
+        raise FileFormatError(not_text(exc), path) from None
+    if not lines or lines[0].strip().split(",") != TRUTH_COLUMNS:
+        raise FileFormatError(f"header must be {','.join(TRUTH_COLUMNS)}", path)
+    # np.loadtxt only warns on a body without data (blank or '#' comment lines alone).
+    if not any(line.split("#")[0].strip() for line in lines[1:]):
+        raise FileFormatError(
+            f"expected {n_frames} rows of {len(TRUTH_COLUMNS)} values, got none", path
+        )
+    try:
+        table = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
     except ValueError as exc:
         raise FileFormatError(f"bad row: {exc}", path) from None
     if table.shape != (n_frames, len(TRUTH_COLUMNS)):

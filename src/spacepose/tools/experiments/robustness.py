@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
-from pydantic import Field
+from pydantic import Field, NonNegativeInt
 
 import spacepose
 from spacepose.core.config import StageConfig, load_config, validate_config
@@ -83,7 +83,7 @@ class RobustnessGrid(StageConfig):
     motion: list[str] = Field(list(MOTIONS), min_length=1)
     # The wall alone (a third clutter) is an option, not in the full grid of the README.
     clutter: list[str] = Field(["none", "wall-table"], min_length=1)
-    seed: list[int] = Field([0, 1, 2, 3, 4], min_length=1)
+    seed: list[NonNegativeInt] = Field([0, 1, 2, 3, 4], min_length=1)
     frames: int = Field(30, ge=2, description="Frames per run.")
 
 

@@ -1,0 +1,287 @@
+"""Bad config-like input (fuzzer findings): undecodable files, non-finite values, negative seeds,
+a quaternion prior that is no rotation. Each is one line naming the file, option or field."""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import pkgutil
+import types
+import typing
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import spacepose
+from spacepose.cli import main
+from spacepose.core.background import BackgroundConfig
+from spacepose.core.config import StageConfig, dump_config, load_config
+from spacepose.core.depth import DepthCamera
+from spacepose.core.navigation import NavigationConfig
+from spacepose.core.planes import PlaneConfig
+from spacepose.core.tracker_config import TrackerConfig
+from spacepose.errors import ConfigError, FileFormatError, SpaceposeWarning
+from spacepose.tools.catalogue import load_catalogue, parse_catalogue
+from spacepose.tools.frames import tracker_config
+from spacepose.tools.navigation_io import prior_quaternion
+from spacepose.tools.report import build_report
+from spacepose.tools.runs import read_run
+
+# What the fuzzer fed: a UTF-16 byte order mark and bytes that are no UTF-8.
+BINARY = b"\xff\xfe\x00\xc0garbage\x81\n"
+EYE = np.eye(3).tolist()
+
+
+def _one_line(exc: pytest.ExceptionInfo, *names: object) -> str:
+    """The message, checked to be one line naming every one of ``names``."""
+    message = str(exc.value)
+    assert "\n" not in message, message
+    for name in names:
+        assert str(name) in message, message
+    return message
+
+
+def _cli_error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err, err
+    return err
+
+
+def _entry(**change: object) -> dict:
+    return {"name": "front", "center": [0, 0, 0], "R_model_plane": EYE, "a": 0.4, "b": 0.6} | change
+
+
+def _orbit_run(root: Path, truth: bytes) -> Path:
+    """The smallest orbit run folder that :func:`read_run` reads up to its truth.csv."""
+    (root / "frames").mkdir(parents=True)
+    (root / "frames" / "000000.ply").write_bytes(b"")
+    (root / "scenario.json").write_text(json.dumps({"scenario": "orbit"}))
+    (root / "groundtruth.tum").write_text("0 0 0 0 0 0 0 1\n")
+    (root / "model.ply").write_bytes(b"")
+    (root / "model.obj").write_bytes(b"")
+    (root / "truth.csv").write_bytes(truth)
+    return root
+
+
+# -- 1. files that are not UTF-8 text ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("model", [TrackerConfig, NavigationConfig, DepthCamera])
+def test_binary_config_file_is_a_config_error_naming_it(tmp_path, model):
+    path = tmp_path / "bin.yaml"
+    path.write_bytes(BINARY)
+    with pytest.raises(ConfigError) as exc:
+        load_config(model, path)
+    _one_line(exc, path, "not UTF-8 text")
+
+
+def test_binary_catalogue_is_a_config_error_naming_it(tmp_path):
+    path = tmp_path / "cat_bin.yaml"
+    path.write_bytes(BINARY)
+    with pytest.raises(ConfigError) as exc:
+        load_catalogue(path)
+    _one_line(exc, path, "not UTF-8 text")
+
+
+def test_binary_scenario_file_is_one_line_from_navigate(tmp_path, capsys):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    np.savetxt(frames / "000000.xyz", np.random.default_rng(0).uniform(-1, 1, (50, 3)))
+    scenario = tmp_path / "garbage.yaml"
+    scenario.write_bytes(BINARY)
+    args = ["navigate", str(frames), "--out", str(tmp_path / "nav" / "p.csv")]
+    assert main([*args, "--scenario", str(scenario)]) == 1
+    err = _cli_error(capsys)
+    assert str(scenario) in err and "not UTF-8 text" in err
+
+
+def test_binary_truth_csv_is_a_file_format_error_naming_it(tmp_path):
+    run = _orbit_run(tmp_path / "run", b"t," + BINARY)
+    with pytest.raises(FileFormatError) as exc:
+        read_run(run)
+    _one_line(exc, run / "truth.csv", "not UTF-8 text")
+
+
+@pytest.mark.filterwarnings("error")
+def test_truth_csv_with_its_header_alone_is_one_clean_error(tmp_path):
+    header = (
+        "t,rho_x,rho_y,rho_z,v_x,v_y,v_z,qx,qy,qz,qw,w_x,w_y,w_z,k_x,k_y,k_z,com_x,com_y,com_z\n"
+    )
+    run = _orbit_run(tmp_path / "run", header.encode())
+    # numpy's "input contained no data" warning is an error here: none may leak.
+    with pytest.raises(FileFormatError) as exc:
+        read_run(run)
+    _one_line(exc, run / "truth.csv", "expected 1 rows", "got none")
+
+
+def test_report_says_a_binary_truth_csv_is_not_text(tmp_path):
+    run = tmp_path / "orbit"
+    run.mkdir()
+    (run / "scenario.json").write_text(json.dumps({"scenario": "orbit"}))
+    (run / "nav.csv").write_text("t,rho_x\n0,1\n")
+    (run / "truth.csv").write_bytes(BINARY)
+    with pytest.warns(SpaceposeWarning) as warned:
+        build_report(tmp_path, tmp_path / "report.html")
+    reasons = [str(w.message) for w in warned if "truth.csv" in str(w.message)]
+    assert len(reasons) == 1 and "not UTF-8 text" in reasons[0], reasons
+
+
+# -- 2. non-finite values ------------------------------------------------------------------------
+
+
+def _stage_configs() -> list[type[StageConfig]]:
+    """Every StageConfig subclass of the package (each module imported)."""
+    for module in pkgutil.walk_packages(spacepose.__path__, "spacepose."):
+        importlib.import_module(module.name)
+    found, todo = [], [StageConfig]
+    while todo:
+        for sub in todo.pop().__subclasses__():
+            found.append(sub)
+            todo.append(sub)
+    return found
+
+
+def _is_float(annotation: object) -> bool:
+    if annotation is float:
+        return True
+    union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
+    return union and set(typing.get_args(annotation)) == {float, type(None)}
+
+
+def test_every_stage_config_rejects_inf_and_nan_in_every_float_field():
+    checked = 0
+    for model in _stage_configs():
+        try:
+            defaults = model().model_dump()
+        except ConfigError:  # required fields (DepthCamera): tested on their own below
+            continue
+        for field, info in model.model_fields.items():
+            if not _is_float(info.annotation):
+                continue
+            for value in (math.inf, math.nan):
+                if (model, field, value) == (BackgroundConfig, "range_max", math.inf):
+                    continue  # "no upper limit", tested below
+                with pytest.raises(ConfigError) as exc:
+                    model.model_validate(defaults | {field: value})
+                _one_line(exc, model.__name__, field)
+                checked += 1
+    assert checked > 100
+
+
+def test_every_stage_config_writes_strict_json_that_reads_back(tmp_path):
+    for model in _stage_configs():
+        try:
+            config = model()
+        except ConfigError:
+            continue
+        text = json.dumps(config.model_dump(mode="json"), allow_nan=False)
+        assert model.model_validate(json.loads(text)) == config, model.__name__
+
+
+def test_tracker_config_file_with_inf_voxel_size_is_refused(tmp_path):
+    path = tmp_path / "voxinf.yaml"
+    path.write_text("voxel_size: .inf\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(TrackerConfig, path)
+    _one_line(exc, path, "voxel_size", "finite")
+
+
+def test_intrinsics_with_inf_focal_length_are_refused(tmp_path):
+    path = tmp_path / "intrinsics.yaml"
+    path.write_text("fx: .inf\nfy: 500\ncx: 320\ncy: 240\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(DepthCamera, path)
+    _one_line(exc, path, "fx", "finite")
+
+
+def test_background_range_max_is_unbounded_as_none_and_old_inf_reads_as_none():
+    assert BackgroundConfig().range_max is None
+    # A config written when "no limit" was inf (YAML .inf, JSON Infinity).
+    assert BackgroundConfig(range_max=math.inf).range_max is None
+    assert BackgroundConfig(range_min=1.0, range_max=2.0).range_max == 2.0
+    with pytest.raises(ConfigError) as exc:
+        BackgroundConfig(range_min=3.0, range_max=2.0)
+    _one_line(exc, "range_min")
+
+
+def test_track_config_with_a_partial_background_round_trips_as_strict_json(tmp_path):
+    # A background section without range_max took the unbounded default: Infinity in JSON.
+    path = tmp_path / "bg.json"
+    path.write_text(json.dumps({"background": {"seed": 2}}))
+    written = dump_config(tracker_config(path, background=True), tmp_path / "est.config.json")
+    data = json.loads(written.read_text(), parse_constant=lambda c: pytest.fail(c))
+    assert data["background"]["range_max"] is None and data["use_background_removal"]
+    assert load_config(TrackerConfig, written) == tracker_config(path, background=True)
+
+
+@pytest.mark.filterwarnings("error")
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"center": [math.inf, 0, 0]}, "center"),
+        ({"center": [0, math.nan, 0]}, "center"),
+        ({"b": math.inf}, "b"),
+    ],
+)
+def test_catalogue_entry_with_a_non_finite_centre_or_side_is_refused(tmp_path, change, field):
+    other = _entry(name="side", center=[1, 0, 0], a=0.3, b=0.9)
+    with pytest.raises(ConfigError) as exc:
+        parse_catalogue([_entry(**change), other], source=tmp_path / "cat.json")
+    _one_line(exc, tmp_path / "cat.json", "entry 0 ('front')", field, "finite")
+
+
+def test_points_per_frame_below_the_health_minimum_is_refused():
+    assert TrackerConfig().points_per_frame == 3000
+    assert TrackerConfig(points_per_frame=100).points_per_frame == 100
+    with pytest.raises(ConfigError) as exc:
+        TrackerConfig.model_validate({"points_per_frame": 1})
+    _one_line(exc, "points_per_frame")
+
+
+# -- 3. negative seeds ---------------------------------------------------------------------------
+
+
+def test_negative_seeds_are_config_errors_naming_the_field():
+    with pytest.raises(ConfigError) as exc:
+        PlaneConfig(seed=-1)
+    _one_line(exc, "seed")
+    with pytest.raises(ConfigError) as exc:
+        TrackerConfig.model_validate({"background": {"seed": -1}})
+    _one_line(exc, "background.seed")
+
+
+def test_planes_with_a_negative_seed_exits_1_naming_it(tmp_path, capsys):
+    cloud = tmp_path / "c.xyz"
+    np.savetxt(cloud, np.random.default_rng(0).uniform(-1, 1, (100, 3)))
+    assert main(["planes", str(cloud), "--seed", "-1"]) == 1
+    assert "seed" in _cli_error(capsys)
+
+
+# -- 4. an attitude prior that is no rotation ----------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "values", [(0, 0, 0, 0), (math.nan, 0, 0, 1), (math.inf, 0, 0, 1), (0, 0, 1), "abcd"]
+)
+def test_prior_quaternion_must_be_a_rotation(values):
+    with pytest.raises(ConfigError) as exc:
+        prior_quaternion(values, "prior_q_I_B")
+    _one_line(exc, "prior_q_I_B: the quaternion must be four finite numbers with a non-zero norm")
+
+
+def test_prior_quaternion_of_any_non_zero_norm_is_normalised():
+    assert prior_quaternion([0, 0, 0, 2], "q") == (0.0, 0.0, 0.0, 1.0)
+    # Norms that underflow or overflow on their own.
+    for scale in (1e-200, 1e300):
+        q = np.array(prior_quaternion([scale, 0, 0, scale], "q"))
+        np.testing.assert_allclose(q, [math.sqrt(0.5), 0, 0, math.sqrt(0.5)])
+
+
+@pytest.mark.parametrize("prior", ["0,0,0,0", "nan,0,0,1"])
+def test_navigate_prior_that_is_no_rotation_exits_1(tmp_path, capsys, prior):
+    args = ["navigate", str(tmp_path), "--out", str(tmp_path / "nav" / "p.csv")]
+    assert main([*args, "--prior", prior]) == 1
+    err = _cli_error(capsys)
+    assert "--prior: the quaternion must be four finite numbers with a non-zero norm" in err

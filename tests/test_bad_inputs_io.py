@@ -1,0 +1,171 @@
+"""Bad files and outputs found by fuzzing the CLI: each ends in one line naming the file, or is
+read as its header says, and no frame of a sequence silently disappears."""
+
+from __future__ import annotations
+
+import csv
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from spacepose.cli import main
+from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.cloud_io import read_cloud, write_cloud
+from spacepose.tools.frames import track_folder
+from spacepose.tools.outputs import check_writable
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory) -> Path:
+    """Five lab frames f000 … f004.ply."""
+    lab = simulate_lab(LabConfig(frames=5, seed=4))
+    root = tmp_path_factory.mktemp("five")
+    for k in range(5):
+        write_cloud(root / f"f{k:03d}.ply", lab.frame(k).cloud)
+    return root
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    dst.mkdir()
+    for p in src.iterdir():
+        (dst / p.name).write_bytes(p.read_bytes())
+    return dst
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    return err
+
+
+@pytest.mark.parametrize("kind", ["folder", "broken link"])
+def test_a_frame_that_is_not_a_file_is_lost_in_its_place(frames, tmp_path, kind):
+    seq = _copy(frames, tmp_path / "seq")
+    (seq / "f002.ply").unlink()
+    if kind == "folder":
+        (seq / "f002.ply").mkdir()
+    else:
+        (seq / "f002.ply").symlink_to(tmp_path / "nowhere.ply")
+    summary = track_folder(seq, tmp_path / "e.tum")
+    assert summary["frames"] == 5 and summary["lost"] == 1
+    with (tmp_path / "e.health.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    # Frame 3 keeps its own timestamp: nothing after the bad frame shifts.
+    assert [r["frame"] for r in rows] == ["0", "1", "2", "3", "4"]
+    assert rows[2]["status"] == "lost"
+    assert "f002.ply" in rows[2]["reasons"]
+    assert ("a folder" if kind == "folder" else "a broken link") in rows[2]["reasons"]
+
+
+def test_every_frame_lost_exits_1_with_the_first_reason(frames, tmp_path, capsys):
+    seq = tmp_path / "bad"
+    seq.mkdir()
+    for k in range(3):
+        (seq / f"f{k}.ply").write_bytes(b"")
+    assert main(["track", str(seq), "--out", str(tmp_path / "e.tum")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "every frame was lost (frame 0:" in err and "f0.ply" in err
+    # The rows are still written: nothing is lost.
+    assert len((tmp_path / "e.tum").read_text().splitlines()) == 3
+
+
+def test_text_columns_follow_their_header(tmp_path):
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-1, 1, (50, 3)) + np.array([0.0, 0.0, 3.0])
+    normals = rng.normal(size=(50, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    table = np.column_stack([xyz[:, 2], rng.random(50), xyz[:, 1], xyz[:, 0], normals])
+    path = tmp_path / "zyx.csv"
+    np.savetxt(path, table, delimiter=",", header="z,intensity,y,x,nx,ny,nz", comments="")
+    cloud = read_cloud(path)
+    np.testing.assert_allclose(cloud.points, xyz, atol=1e-15)
+    np.testing.assert_allclose(cloud.normals, normals, atol=1e-12)
+    # CloudCompare's "//X,Y,Z" header reads too.
+    np.savetxt(path, xyz, delimiter=",", header="//X,Y,Z", comments="")
+    np.testing.assert_allclose(read_cloud(path).points, xyz, atol=1e-15)
+    np.savetxt(path, xyz, delimiter=",", header="a,b,c", comments="")
+    with pytest.raises(FileFormatError, match=r"does not name x, y and z") as info:
+        read_cloud(path)
+    assert "zyx.csv" in str(info.value)
+    np.savetxt(path, xyz, delimiter=",", header="x,y", comments="")
+    with pytest.raises(FileFormatError, match=r"names 2 columns .* rows hold 3"):
+        read_cloud(path)
+
+
+@pytest.mark.parametrize("text", [False, True])
+def test_a_ply_header_promising_more_rows_than_its_bytes_is_refused(tmp_path, text):
+    fmt = "ascii" if text else "binary_little_endian"
+    header = (
+        f"ply\nformat {fmt} 1.0\nelement vertex 999999999999\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    path = tmp_path / "huge.ply"
+    path.write_bytes(header.encode() + (b"1 2 3\n" if text else np.zeros(30, "<f4").tobytes()))
+    with pytest.raises(FileFormatError, match=r"promises 999,999,999,999 'vertex' rows") as info:
+        read_cloud(path)
+    assert "huge.ply" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_foreign_bytes_and_folders_are_named_as_such(tmp_path):
+    rng = np.random.default_rng(6)
+    for name in ("r.npy", "r.npz", "r.ply"):
+        (tmp_path / name).write_bytes(b"\xc0" + rng.bytes(200))
+    with pytest.raises(FileFormatError, match=r"r\.npy: not a \.npy file"):
+        read_cloud(tmp_path / "r.npy")
+    with pytest.raises(FileFormatError, match=r"r\.npz: not a \.npz archive"):
+        read_cloud(tmp_path / "r.npz")
+    with pytest.raises(FileFormatError, match=r"r\.ply: not a PLY file"):
+        read_cloud(tmp_path / "r.ply")
+    np.save(tmp_path / "obj.npy", np.array([{"a": 1}, None], dtype=object), allow_pickle=True)
+    with pytest.raises(FileFormatError, match="holds Python objects") as info:
+        read_cloud(tmp_path / "obj.npy")
+    assert "allow_pickle" not in str(info.value)
+    (tmp_path / "d.ply").mkdir()
+    with pytest.raises(FileFormatError, match=r"d\.ply: a folder"):
+        read_cloud(tmp_path / "d.ply")
+    with pytest.raises(FileFormatError, match="a folder"):
+        read_cloud(tmp_path)
+
+
+def test_depth_images_without_intrinsics_say_so(tmp_path, capsys):
+    Image.fromarray(np.full((8, 8), 1000, dtype=np.uint16)).save(tmp_path / "000000.png")
+    assert main(["track", str(tmp_path), "--out", str(tmp_path / "out" / "e.tum")]) == 1
+    assert "depth images need intrinsics" in _one_line(capsys)
+
+
+@pytest.mark.skipif(not Path("/proc/version").is_file(), reason="needs Linux's /proc")
+def test_outputs_that_cannot_be_written_are_refused_up_front(frames, tmp_path, capsys):
+    for out in ("/proc/nope/e.tum", "/proc/version"):
+        with pytest.raises(InputError, match="cannot write the output") as info:
+            check_writable(out)
+        assert "\n" not in str(info.value)
+    with pytest.raises(InputError, match="needs a file name"):
+        check_writable("")
+    # The probe leaves nothing behind: no file, no folder.
+    check_writable(tmp_path / "new" / "deeper" / "r.json")
+    assert not (tmp_path / "new").exists()
+    pair = [str(frames / "f000.ply"), str(frames / "f001.ply")]
+    for command in (
+        ["register", *pair, "--out", "/proc/nope/r.json"],
+        ["track", str(frames), "--out", "/proc/nope/e.tum"],
+        ["track", str(frames), "--out", ""],
+        ["report", str(frames), "--out", "/proc/nope/r.html"],
+    ):
+        assert main(command) == 1
+        assert re.search(r"error: .*(cannot write|file name)", _one_line(capsys)), command
+
+
+def test_repeated_timestamps_and_corrupt_translations_are_refused(tmp_path):
+    from spacepose.tools.frames import read_timestamps
+    from spacepose.tools.trajectory_io import read_tum
+
+    (tmp_path / "timestamps.txt").write_text("0.0\n0.1\n0.1\n0.2\n")
+    with pytest.raises(InputError, match=r"must increase: frame 2 repeats 0.1"):
+        read_timestamps(tmp_path / "timestamps.txt", 4)
+    (tmp_path / "far.tum").write_text("0 0 0 0 0 0 0 1\n1 1e300 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match=r"far\.tum: line 2: pose 1 has a translation beyond"):
+        read_tum(tmp_path / "far.tum")
