@@ -169,3 +169,61 @@ def test_repeated_timestamps_and_corrupt_translations_are_refused(tmp_path):
     (tmp_path / "far.tum").write_text("0 0 0 0 0 0 0 1\n1 1e300 0 0 0 0 0 1\n")
     with pytest.raises(InputError, match=r"far\.tum: line 2: pose 1 has a translation beyond"):
         read_tum(tmp_path / "far.tum")
+
+
+def test_a_voxel_too_fine_to_number_is_an_error_not_a_crash():
+    from spacepose.core.voxel import cell_keys, voxel_downsample
+
+    pts = np.random.default_rng(7).uniform(0, 1, (500, 3))
+    # 1e-20 m overflowed the int64 cast and crashed the process; 1e-30 returned one point.
+    for voxel in (1e-12, 1e-20, 1e-30, 1e-300):
+        with pytest.raises(InputError, match="too many to number"):
+            voxel_downsample(pts, voxel)  # an array is a cloud too
+        with pytest.raises(InputError, match="too many to number"):
+            cell_keys(pts, voxel)
+    with pytest.raises(InputError, match="must be a number of metres, got 'x'"):
+        voxel_downsample(pts, "x")
+    assert len(voxel_downsample(pts, 0.5)) == 8
+
+
+def test_register_takes_arrays_and_refuses_a_voxel_wider_than_the_cloud():
+    from spacepose.tools.register import RegisterConfig, register
+
+    rng = np.random.default_rng(8)
+    pts = rng.uniform(0, 1, (2000, 3))
+    result = register(pts, pts + np.array([0.002, 0.0, 0.0]))
+    np.testing.assert_allclose(result.result.T_target_source[:3, 3], [0.002, 0, 0], atol=5e-4)
+    with pytest.raises(InputError, match="voxel 1e\\+06 m is wider than the cloud"):
+        register(pts, pts, config=RegisterConfig(voxel_size=1e6))
+
+
+def test_api_errors_are_package_errors():
+    from spacepose.core import se3
+    from spacepose.core.metrics import error_table
+    from spacepose.core.planes import PlaneConfig, extract_planes
+    from spacepose.core.ransac import RansacConfig
+    from spacepose.errors import ConfigError
+
+    with pytest.raises(InputError, match="4x4 matrix of numbers"):
+        se3.as_transform("eye")
+    with pytest.raises(InputError, match="6 numbers"):
+        se3.exp([1.0, 2.0, 3.0])
+    with pytest.raises(InputError, match="4x4"):
+        se3.log(np.eye(3))
+    # A scaled "pose" is not a pose: its errors would be silently wrong.
+    with pytest.raises(InputError, match="estimated pose 0 is not a rigid transform"):
+        error_table(2.0 * np.eye(4), np.eye(4))
+    assert error_table(np.eye(4), np.eye(4)).n == 1  # one (4, 4) pose is a stack of one
+    with pytest.raises(ConfigError, match="batch_size"):
+        RansacConfig(batch_size=10**8)
+    # Inliers too rare to bound the iterations: max_iterations decides (was ZeroDivisionError).
+    flat = np.random.default_rng(9).uniform(0, 1, (300, 3)) * [1.0, 1.0, 1e-4]
+    assert len(extract_planes(flat, PlaneConfig(outlier_ratio=0.999999))) == 1
+
+
+def test_a_simulation_that_sees_nothing_says_why(tmp_path, capsys):
+    out = str(tmp_path / "run")
+    assert main(["simulate", "lab", "--frames", "2", "--range", "1e9", "--out", out]) == 1
+    assert "the sensor sees nothing (target 1e+09 m away" in _one_line(capsys)
+    assert main(["simulate", "lab", "--frames", str(10**20), "--out", out]) == 1
+    assert "frames" in _one_line(capsys)

@@ -291,7 +291,7 @@ def test_peers_missing_is_one_clear_error(
 def test_write_bench_unwritable_path(tmp_path: Path) -> None:
     blocker = tmp_path / "file"
     blocker.write_text("")
-    with pytest.raises(InputError, match="cannot write the benchmark"):
+    with pytest.raises(InputError, match="it is a regular file"):
         write_bench({}, blocker / "b.json")
 
 

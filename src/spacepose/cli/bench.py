@@ -30,8 +30,11 @@ def bench(
         stage_table,
         write_bench,
     )
+    from spacepose.tools.outputs import check_writable
 
     options = bench_config(quick, config)
+    # Before the benchmark, which takes minutes: a bad --out would throw its result away.
+    check_writable(out)
     with working("benchmarking"):
         result = run_benchmark(quick, peers, repeats, seed, workers, config=options)
     console.print(stage_table(result))

@@ -50,18 +50,43 @@ def pose_errors(
         (N, 3) ``ΔR`` as intrinsic ZYX Euler angles in radians, ordered (yaw, pitch, roll) as
         scipy's ``as_euler("ZYX")`` returns them.
     """
-    est = np.asarray(T_est, dtype=np.float64)
-    gt = np.asarray(T_gt, dtype=np.float64)
+    est, gt = _pose_stacks(T_est, T_gt)
+    delta = est @ se3.invert(gt)
+    return delta[:, :3, 3], Rotation.from_matrix(delta[:, :3, :3]).as_euler("ZYX")
+
+
+def _pose_stacks(
+    T_est: ArrayLike, T_gt: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Matching non-empty (N, 4, 4) stacks of rigid transforms ((4, 4): N = 1).
+
+    Raises
+    ------
+    InputError
+        Not numbers, shapes that differ or are not (N, 4, 4), non-finite entries, or a pose
+        that is not a rigid transform (a scaled or reflected rotation would give errors of a
+        transform that is not a pose).
+    """
+    try:
+        est = np.asarray(T_est, dtype=np.float64)
+        gt = np.asarray(T_gt, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("poses must be (N, 4, 4) arrays of numbers") from None
     est = est[None] if est.ndim == 2 else est
     gt = gt[None] if gt.ndim == 2 else gt
     if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4) or len(est) == 0:
         raise InputError(
-            f"pose_errors needs matching non-empty (N, 4, 4) stacks, got {est.shape} and {gt.shape}"
+            f"pose errors need matching non-empty (N, 4, 4) stacks, got {est.shape} and {gt.shape}"
         )
-    if not (np.isfinite(est).all() and np.isfinite(gt).all()):
-        raise InputError("pose_errors: poses have non-finite entries")
-    delta = est @ se3.invert(gt)
-    return delta[:, :3, 3], Rotation.from_matrix(delta[:, :3, :3]).as_euler("ZYX")
+    for name, T in (("estimated", est), ("true", gt)):
+        if not np.isfinite(T).all():
+            raise InputError(f"{name} poses have non-finite entries")
+        R = T[:, :3, :3]
+        off = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2)) > 1e-6
+        off |= (np.linalg.det(R) < 0) | (np.abs(T[:, 3] - (0, 0, 0, 1)).max(axis=1) > 1e-9)
+        if off.any():
+            raise InputError(f"{name} pose {int(np.argmax(off))} is not a rigid transform")
+    return est, gt
 
 
 def associate(
@@ -168,8 +193,7 @@ class ErrorTable:
 
 def error_table(T_est: ArrayLike, T_gt: ArrayLike) -> ErrorTable:
     """Statistics of paired poses (N, 4, 4) already associated frame by frame."""
-    est = np.asarray(T_est, dtype=np.float64)
-    gt = np.asarray(T_gt, dtype=np.float64)
+    est, gt = _pose_stacks(T_est, T_gt)
     dt, euler = pose_errors(est, gt)
     trans_mm = np.abs(dt) * 1e3
     # as_euler("ZYX") gives (yaw, pitch, roll); the table lists pitch, yaw, roll.

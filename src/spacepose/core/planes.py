@@ -13,6 +13,7 @@ plane's normal is oriented towards the origin of that frame (the sensor), so ``o
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,7 +78,7 @@ class PlaneConfig(StageConfig):
     max_iterations: int = Field(1000, ge=1)
     min_inliers: int = Field(50, ge=3)
     max_planes: int = Field(10, ge=1)
-    batch_size: int = Field(64, ge=1)
+    batch_size: int = Field(64, ge=1, le=65536)
     cluster_radius: float | None = Field(None, gt=0)
     range_threshold: float | None = Field(None, gt=0)
     seed: int = Field(0, ge=0)
@@ -115,7 +116,9 @@ class Plane:
 
 def iteration_bound(confidence: float, outlier_ratio: float) -> int:
     """RANSAC iterations ``ceil(log(1 − p) / log(1 − (1 − ε)³))`` for a 3-point sample (Yu §2.1)."""
-    return max(1, math.ceil(ransac.iteration_bound(1.0 - outlier_ratio, confidence)))
+    bound = ransac.iteration_bound(1.0 - outlier_ratio, confidence)
+    # Inliers too rare to bound anything: the caller's max_iterations decides.
+    return max(1, math.ceil(bound)) if math.isfinite(bound) else sys.maxsize
 
 
 def _count_inliers(

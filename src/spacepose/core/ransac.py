@@ -88,7 +88,8 @@ class RansacConfig(StageConfig):
     max_iterations: int = Field(default=100_000, ge=1)
     confidence: float = Field(default=0.999, gt=0, lt=1)
     seed: int = Field(0, ge=0)
-    batch_size: int = Field(default=256, ge=1)
+    # Bounded: a batch's arrays grow with it (10⁸ ran out of time and memory).
+    batch_size: int = Field(default=256, ge=1, le=65536)
     min_inliers: int = Field(default=10, ge=4)
     coverage_points: int = Field(default=300, ge=1)
     ranking: Literal["coverage", "inliers"] = "coverage"
@@ -168,6 +169,8 @@ def iteration_bound(inlier_ratio: float, confidence: float) -> float:
     miss = 1.0 - inlier_ratio**3
     if miss <= 0.0:
         return 0.0
+    if miss >= 1.0:  # inliers too rare for the triple's probability to show in float64
+        return math.inf
     return math.log(1.0 - confidence) / math.log(miss)
 
 

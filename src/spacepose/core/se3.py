@@ -35,7 +35,10 @@ def as_transform(T: ArrayLike, name: str = "transform") -> NDArray[np.float64]:
         If the shape is not 4×4, an entry is not finite, the last row is not (0, 0, 0, 1) or the
         rotation block is not orthonormal with determinant +1 (tolerance 1e-6).
     """
-    T = np.asarray(T, dtype=np.float64)
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a 4x4 matrix of numbers, got {T!r:.60}") from None
     if T.shape != (4, 4):
         raise InputError(f"{name} must be a 4x4 matrix, got shape {T.shape}")
     if not np.isfinite(T).all():
@@ -111,7 +114,10 @@ def _left_jacobian_so3(omega: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def exp(xi: ArrayLike) -> NDArray[np.float64]:
     """Exponential map: twist ``(omega, v)`` (6,) -> transform (4, 4)."""
-    xi = np.asarray(xi, dtype=np.float64).reshape(6)
+    try:
+        xi = np.asarray(xi, dtype=np.float64).reshape(6)
+    except (TypeError, ValueError):
+        raise InputError(f"a twist must be 6 numbers (omega, v), got {xi!r:.60}") from None
     omega, v = xi[:3], xi[3:]
     theta = math.sqrt(omega @ omega)
     wx, wy, wz = omega
@@ -135,6 +141,8 @@ def exp(xi: ArrayLike) -> NDArray[np.float64]:
 def log(T: ArrayLike) -> NDArray[np.float64]:
     """Logarithm map: transform (4, 4) -> twist ``(omega, v)`` (6,). Inverse of :func:`exp`."""
     T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"log needs a 4x4 transform, got shape {T.shape}")
     R = T[:3, :3]
     # 2 sin θ · axis from the skew part, cos θ from the trace; atan2 of the two is accurate at
     # every angle, unlike arccos near 0. Near π the skew part vanishes and the axis with it:

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cell_hash import find_cell, hash_bits, hash_slot
-from spacepose.core.cloud import PointCloud, as_points
+from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.errors import InputError
 
 # Largest key: three cell indices pack into one int64.
@@ -71,17 +71,38 @@ def cell_keys(
         cloud spanning more cells than one int64 key can number (a cell size far too small).
     """
     pts = _finite_points(points)
-    if not np.isfinite(cell_size) or cell_size <= 0:
-        raise InputError(f"cell size must be a positive number of metres, got {cell_size}")
+    h = _cell_size(cell_size)
     o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+    _check_span(pts.min(axis=0) - o, pts.max(axis=0) - o, h)
     cells = np.empty(pts.shape, dtype=np.int64)
-    low, high = _cells(pts, o, float(cell_size), cells)
-    dims = high - low + 1
-    if float(np.prod(dims.astype(np.float64))) >= _MAX_KEY:
+    low, high = _cells(pts, o, h, cells)
+    return _pack(cells, low, high - low + 1), high - low + 1, low
+
+
+def _cell_size(cell_size: object) -> float:
+    """A cell edge as a positive finite float (m)."""
+    try:
+        h = float(cell_size)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InputError(f"cell size must be a number of metres, got {cell_size!r}") from None
+    if not (np.isfinite(h) and h > 0):
+        raise InputError(f"cell size must be a positive number of metres, got {cell_size}")
+    return h
+
+
+def _check_span(low: NDArray[np.float64], high: NDArray[np.float64], h: float) -> None:
+    """Refuse cells of edge ``h`` that one int64 key cannot number over ``low..high`` (3,),
+    checked in floating point before any cell index is cast: a cast that overflows is
+    undefined (a voxel of 1e-20 m crashed the process)."""
+    first, last = np.floor(low / h), np.floor(high / h)
+    dims = last - first + 1.0
+    if (
+        not (np.all(np.abs(first) < _MAX_KEY) and np.all(np.abs(last) < _MAX_KEY))
+        or float(np.prod(dims)) >= _MAX_KEY
+    ):
         raise InputError(
-            f"{dims.tolist()} cells of {cell_size} m are too many to number; use larger cells"
+            f"{dims.tolist()} cells of {h:g} m are too many to number; use larger cells"
         )
-    return _pack(cells, low, dims), dims, low
 
 
 def bounds(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -136,17 +157,12 @@ def _cell_sums(
     or is empty for all of them (the cell of a point left out is undefined). Sums run point by
     point in index order: the same bits as a bincount per axis over the points taken.
     """
-    if not np.isfinite(voxel_size) or voxel_size <= 0:
-        raise InputError(f"cell size must be a positive number of metres, got {voxel_size}")
-    h = float(voxel_size)
+    h = _cell_size(voxel_size)
     low, high, n_kept = _bounds(pts, keep)
+    _check_span(low, high, h)
     first, last = np.floor(low / h).astype(np.int64), np.floor(high / h).astype(np.int64)
     dims = last - first + 1
     n_cells = float(np.prod(dims.astype(np.float64)))
-    if n_cells >= _MAX_KEY:
-        raise InputError(
-            f"{dims.tolist()} cells of {voxel_size} m are too many to number; use larger cells"
-        )
     if n_cells <= 2 * n_kept:
         # Few cells in the box: a slot per cell, one load per lookup.
         table, bits = np.full(int(n_cells), -1, dtype=np.int64), 0
@@ -273,7 +289,7 @@ def _pack(cells, low, dims):
 
 
 def voxel_downsample(
-    cloud: PointCloud,
+    cloud: PointCloud | ArrayLike,
     voxel_size: float,
     within: tuple[ArrayLike, float] | None = None,
     stray_share: float = 0.0,
@@ -296,6 +312,7 @@ def voxel_downsample(
     InputError
         A bad voxel size, no point within the sphere, or a ``stray_share`` outside [0, 1).
     """
+    cloud = as_cloud(cloud, "cloud")
     if not 0.0 <= stray_share < 1.0:
         # A share of 1 or more can drop every voxel; NaN would silently drop none.
         raise InputError(f"stray_share must lie in [0, 1), got {stray_share}", cloud.source)
@@ -303,10 +320,13 @@ def voxel_downsample(
     pts = np.ascontiguousarray(cloud.points, dtype=np.float64)
     keep = _ALL
     if within is not None:
-        center, radius = within
+        try:
+            center, radius = within
+            center, radius = np.asarray(center, dtype=np.float64).reshape(3), float(radius)
+        except (TypeError, ValueError):
+            raise InputError(f"within must be ((3,) centre, radius), got {within!r}") from None
         keep = np.empty(len(pts), dtype=np.bool_)
         # radius**2 as crop_sphere squares it.
-        center = np.asarray(center, dtype=np.float64).reshape(3)
         if _within(pts, center, float(radius) ** 2, keep) == 0:
             raise InputError(f"no point within {radius} m of {center.tolist()}", cloud.source)
     centroids, sigma, _, _, occupancy = _cell_sums(pts, voxel_size, cloud.sigma, keep)

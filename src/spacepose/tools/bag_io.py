@@ -27,7 +27,8 @@ from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera, depth_to_cloud
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeError
+from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.frames import FrameInput
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -210,6 +211,8 @@ class BagFrames:
                     msg = reader.deserialize(raw, conn.msgtype)
                     timestamp = stamp_seconds(msg, time_ns)
                     cloud = self._cloud(msg, source)
+                    if index == 0 and self.msgtype == POINTCLOUD2:
+                        warn_if_not_metres(cloud, source)  # a driver in millimetres
                 except InputError as exc:
                     error = exc.reason
                 except (SerdeError, ValueError, IndexError, TypeError, struct.error) as exc:
@@ -289,5 +292,8 @@ def _bag_camera(reader: Any, image_topic: str, path: Path) -> DepthCamera:
             path,
         )
     for conn, _, raw in reader.messages(chosen):
-        return camera_from_info(reader.deserialize(raw, conn.msgtype), depth_scale=1.0)
+        try:
+            return camera_from_info(reader.deserialize(raw, conn.msgtype), depth_scale=1.0)
+        except SpaceposeError as exc:  # say which bag and topic hold the bad CameraInfo
+            raise InputError(f"CameraInfo on {conn.topic}: {exc}", path) from None
     raise InputError(f"CameraInfo topic {chosen[0].topic} has no message", path)

@@ -98,6 +98,7 @@ from spacepose.tools.bench_trials import (
     tracking_shares,
     voxel_trials,
 )
+from spacepose.tools.outputs import check_writable
 
 STAGES: tuple[str, ...] = (
     "voxel",
@@ -362,9 +363,10 @@ def write_bench(result: dict, path: str | Path) -> Path:
     Raises
     ------
     InputError
-        When the file cannot be written.
+        When the file cannot be written (:func:`~spacepose.tools.outputs.check_writable`).
     """
     path = Path(path)
+    check_writable(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(_json_ready(result), indent=2, allow_nan=False) + "\n")

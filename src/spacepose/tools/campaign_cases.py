@@ -34,6 +34,34 @@ CaseFunction = Callable[[dict[str, Scalar]], Mapping[str, Any]]
 
 
 @dataclass(frozen=True)
+class Bound:
+    """The values a numeric axis takes: numbers from ``low`` on (above it if ``strict``),
+    integers only if ``integer``. Checked as the config is read, so that a bad value is one
+    error naming the axis, not a failed case in a Dask worker."""
+
+    low: float
+    strict: bool = False
+    integer: bool = False
+
+    def problem(self, axis: str, values: Sequence[Scalar]) -> str | None:
+        """What is wrong with an axis' values (None: nothing)."""
+        kind = int if self.integer else (int, float)
+        bad = [
+            v
+            for v in values
+            if isinstance(v, bool) or not isinstance(v, kind) or not self._within(float(v))
+        ]
+        if not bad:
+            return None
+        what = "integers" if self.integer else "numbers"
+        above = f"{'>' if self.strict else '>='} {self.low:g}"
+        return f"{axis} values must be {what} {above}, got {bad}"
+
+    def _within(self, value: float) -> bool:
+        return value > self.low if self.strict else value >= self.low
+
+
+@dataclass(frozen=True)
 class CaseRunner:
     """A registered case runner.
 
@@ -45,15 +73,19 @@ class CaseRunner:
         ``fn(params) -> {metric: scalar}``; it must be a module-level function (Dask pickles it by
         reference into the worker processes) and deterministic given ``params``.
     choices
-        Axis name -> the values it accepts (e.g. the ``method`` names); other axes are free.
+        Axis name -> the values it accepts (e.g. the ``method`` names).
     extra_axes
         Names of the optional axes the runner reads besides the four required ones.
+    bounds
+        Numeric axis name -> the :class:`Bound` its values keep; axes in neither ``choices``
+        nor ``bounds`` are free.
     """
 
     name: str
     fn: CaseFunction
     choices: dict[str, tuple[Scalar, ...]]
     extra_axes: tuple[str, ...]
+    bounds: dict[str, Bound]
 
 
 _RUNNERS: dict[str, CaseRunner] = {}
@@ -64,6 +96,7 @@ def case_runner(
     *,
     choices: Mapping[str, Sequence[Scalar]] | None = None,
     extra_axes: Sequence[str] = (),
+    bounds: Mapping[str, Bound] | None = None,
 ) -> Callable[[CaseFunction], CaseFunction]:
     """Decorator registering ``fn(params) -> metrics`` as the runner of ``case_kind=name``.
 
@@ -71,12 +104,13 @@ def case_runner(
     ``noise_scale``, ``method``, ``seed``) and returns scalar metrics (bool, int or float). It
     raises a :class:`~spacepose.errors.SpaceposeError` (not ``ConfigError``) for an expected
     failure such as a registration without correspondences: the case is then recorded with its
-    ``error`` message and no metrics.
+    ``error`` message and no metrics. ``choices`` and ``bounds`` restrict an axis' values
+    (:class:`CaseRunner`).
     """
 
     def wrap(fn: CaseFunction) -> CaseFunction:
         allowed = {axis: tuple(values) for axis, values in (choices or {}).items()}
-        _RUNNERS[name] = CaseRunner(name, fn, allowed, tuple(extra_axes))
+        _RUNNERS[name] = CaseRunner(name, fn, allowed, tuple(extra_axes), dict(bounds or {}))
         return fn
 
     return wrap
@@ -138,6 +172,12 @@ def _registration_params(params: Mapping[str, Scalar]) -> dict[str, Any]:
         "sensor": tuple(SENSOR_PRESETS),
     },
     extra_axes=("sensor", "perturbation_deg", "perturbation_mm", "max_correspondence_mm"),
+    bounds={
+        "perturbation_deg": Bound(0.0),
+        "perturbation_mm": Bound(0.0),
+        # ICP and GICP need a gate above zero.
+        "max_correspondence_mm": Bound(0.0, strict=True),
+    },
 )
 def registration_case(params: dict[str, Scalar]) -> Metrics:
     """Register simulated frame 1 to frame 0 of a two-frame run from a perturbed start.
@@ -205,6 +245,7 @@ def registration_case(params: dict[str, Scalar]) -> Metrics:
     "tracking",
     choices={"method": TRACKER_METHODS, "scenario": ("lab",), "background": (False, True)},
     extra_axes=("frames", "background"),
+    bounds={"frames": Bound(1, integer=True)},  # a run of one frame scores its start
 )
 def tracking_case(params: dict[str, Scalar]) -> Metrics:
     """Track a whole simulated lab run (model-free) and score it against the ground truth.

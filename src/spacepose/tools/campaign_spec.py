@@ -2,9 +2,10 @@
 
 A campaign is described by a :class:`CampaignConfig` (read by :func:`load_campaign_config` from
 YAML or JSON). Its grid is checked as it is read: the four :data:`REQUIRED_AXES`, one type per
-axis, no duplicates, and only the axes and values that the case runner of its ``case_kind``
-accepts. Its cases are the Cartesian product of the axes (:func:`expand_grid`); each is identified
-by :func:`case_id`, a short hash of its sorted parameters, so a resumed run recognises finished
+axis, no duplicates, and only the axes and values (names, numeric bounds) that the case runner
+of its ``case_kind`` accepts, so that no case fails in a worker on a value the file holds. Its
+cases are the Cartesian product of the axes (:func:`expand_grid`); each is identified by
+:func:`case_id`, a short hash of its sorted parameters, so a resumed run recognises finished
 cases whatever the order of the grid.
 """
 
@@ -97,6 +98,10 @@ class CampaignConfig(StageConfig):
                     f"unknown {axis} {', '.join(map(repr, unknown))} for case_kind "
                     f"{self.case_kind!r}; choose from: {', '.join(map(str, allowed))}"
                 )
+        for axis, bound in runner.bounds.items():
+            problem = bound.problem(axis, self.grid.get(axis, ()))
+            if problem is not None:
+                raise ValueError(f"{problem} for case_kind {self.case_kind!r}")
         extra = [a for a in self.grid if a not in REQUIRED_AXES and a not in runner.extra_axes]
         if extra:
             raise ValueError(
@@ -125,8 +130,11 @@ def _check_axis(axis: str, values: list[Scalar]) -> list[Scalar]:
         raise ValueError(f"axis {axis!r} has a non-finite value: {values}")
     if len(set(values)) != len(values):
         raise ValueError(f"axis {axis!r} has duplicate values: {values}")
-    if axis == "seed" and not all(isinstance(v, int) and not isinstance(v, bool) for v in values):
-        raise ValueError(f"seeds must be integers, got {values}")
+    # The simulator and the perturbation draw from default_rng([seed, ...]): no negative seed.
+    if axis == "seed" and not all(
+        isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in values
+    ):
+        raise ValueError(f"seeds must be integers >= 0, got {values}")
     if axis == "noise_scale" and not (float in kinds and all(v >= 0 for v in values)):
         raise ValueError(f"noise_scale values must be numbers >= 0, got {values}")
     if axis in ("scenario", "method") and kinds != {str}:

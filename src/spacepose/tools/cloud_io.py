@@ -88,20 +88,29 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
         raise InputError(f"scale must be a positive number, got {scale}", path)
     points, normals = reader(path)
     cloud = PointCloud(points * scale, normals, source=str(path))
-    if scale == 1.0 and (check := check_scale(cloud.points)).millimetres:
-        if check.extent * 1e-3 > _FARTHEST_M:
-            problem = (
-                f"coordinates span {check.extent:.3g} m, beyond any sensor's reach even read "
-                "as millimetres: corrupt values, or another unit?"
-            )
-        else:
-            problem = (
-                f"coordinates look like millimetres ({check.extent:.0f} m across, median point "
-                f"spacing {check.spacing:.2f} m); spacepose works in metres: scale the file by "
-                "0.001 (read_cloud(..., scale=1e-3))"
-            )
-        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
+    if scale == 1.0:
+        warn_if_not_metres(cloud, path)
     return cloud
+
+
+def warn_if_not_metres(cloud: PointCloud, source: str | Path) -> None:
+    """Warn (:class:`SpaceposeWarning`, naming ``source``) when a cloud's coordinates look like
+    millimetres, or span more than any sensor sees even in millimetres."""
+    check = check_scale(cloud.points)
+    if not check.millimetres:
+        return
+    if check.extent * 1e-3 > _FARTHEST_M:
+        problem = (
+            f"coordinates span {check.extent:.3g} m, beyond any sensor's reach even read "
+            "as millimetres: corrupt values, or another unit?"
+        )
+    else:
+        problem = (
+            f"coordinates look like millimetres ({check.extent:.0f} m across, median point "
+            f"spacing {check.spacing:.2f} m); spacepose works in metres: scale the file by "
+            "0.001 (read_cloud(..., scale=1e-3))"
+        )
+    warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
 
 
 def write_cloud(

@@ -424,7 +424,10 @@ def track_folder(
         writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
         writer.writeheader()
         for frame in frames:
-            result = tracker.track_frame(frame.cloud, frame.timestamp)
+            try:
+                result = tracker.track_frame(frame.cloud, frame.timestamp)
+            except InputError as exc:  # a timestamp out of order: name the frame it came from
+                raise InputError(f"frame {frame.index}: {exc}", frame.source) from None
             if frame.error is not None:  # the read error says more than the tracker's "no points"
                 result = dataclasses.replace(result, reasons=(frame.error,))
             tum_fh.write(tum_lines(Trajectory([result.timestamp], [result.T_sensor_target])))

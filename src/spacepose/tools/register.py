@@ -34,7 +34,7 @@ from pydantic import Field
 from scipy.spatial import cKDTree
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
 from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.gicp_covariances import compute_covariances
@@ -212,8 +212,8 @@ def gate_schedule(fine_gate: float, start_gate: float) -> tuple[float, ...]:
 
 
 def register(
-    source: PointCloud,
-    target: PointCloud,
+    source: PointCloud | ArrayLike,
+    target: PointCloud | ArrayLike,
     init_T_target_source: ArrayLike | None = None,
     config: RegisterConfig = RegisterConfig(),
     workers: int = -1,
@@ -223,7 +223,7 @@ def register(
     Parameters
     ----------
     source, target
-        Clouds, each in its own frame (m).
+        Clouds (PointCloud or (N, 3) arrays), each in its own frame (m).
     init_T_target_source
         (4, 4) initial guess; None: the identity (or the global registration's result).
     config
@@ -237,6 +237,7 @@ def register(
         The final registration, its covariance, iterations, time and the scales used.
     """
     tic = time.perf_counter()
+    source, target = as_cloud(source, "source"), as_cloud(target, "target")
     T = se3.as_transform(
         np.eye(4) if init_T_target_source is None else init_T_target_source,
         "init_T_target_source",
@@ -246,6 +247,14 @@ def register(
             raise InputError(f"{len(cloud)} point(s): a rigid fit needs 3", cloud.source)
     scales = [cloud_scale(c.points, config.seed) for c in (source, target)]
     voxel = config.voxel_size or derived_voxel(scales, config)
+    for cloud, scale in zip((source, target), scales, strict=True):
+        if config.voxel_size is not None and voxel > scale.radius:
+            # A given voxel wider than the cloud leaves a handful of centroids that fit
+            # anything (a derived one follows the spacing; coincident points fail below).
+            raise InputError(
+                f"voxel {voxel:.4g} m is wider than the cloud (radius {scale.radius:.4g} m)",
+                cloud.source,
+            )
     downsampled = []
     for cloud in (source, target):
         try:

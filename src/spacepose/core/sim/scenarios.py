@@ -65,7 +65,8 @@ R_O_C_AHEAD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
 class _ScenarioConfig(StageConfig):
-    frames: int = Field(ge=1, description="Number of frames.")
+    # A million frames (11 days at 1 Hz): larger counts are typos that exhaust memory.
+    frames: int = Field(ge=1, le=1_000_000, description="Number of frames.")
     rate_hz: float = Field(1.0, gt=0, description="Frame rate, Hz.")
     seed: int = Field(0, ge=0, description="Seed of every random draw of the run.")
     model: str | None = Field(None, description="Mesh file replacing the procedural target.")
@@ -76,7 +77,7 @@ class _ScenarioConfig(StageConfig):
 class LabConfig(_ScenarioConfig):
     """The lab run of methods.md §3 (Li et al.): a ToF camera, a mock-up on slide and turntable."""
 
-    frames: int = Field(58, ge=1, description="Number of frames.")
+    frames: int = Field(58, ge=1, le=1_000_000, description="Number of frames.")
     sensor: SensorConfig = Field(default_factory=lambda: SENSOR_PRESETS["tof"])
     range_m: float = Field(1.2, gt=0, description="Turntable axis distance from the sensor, m.")
     step_m: float = Field(0.010, description="Slide step per frame along sensor x, m.")
@@ -110,7 +111,7 @@ class LabConfig(_ScenarioConfig):
 class OrbitConfig(_ScenarioConfig):
     """The orbit run of methods.md §3 (Yu et al.): a flash LiDAR 25 m from a tumbling satellite."""
 
-    frames: int = Field(600, ge=1, description="Number of frames.")
+    frames: int = Field(600, ge=1, le=1_000_000, description="Number of frames.")
     sensor: SensorConfig = Field(default_factory=lambda: SENSOR_PRESETS["flash-lidar"])
     altitude_m: float = Field(
         500e3, gt=0, description="Chaser's perigee altitude (the circle's for e = 0), m."
@@ -264,6 +265,14 @@ class Simulation:
         rng = np.random.default_rng([self.config.seed, k])
         albedo = np.repeat(self.albedo, [len(m.faces) for m in meshes]) if self.albedo else None
         s = scan(scene, self.sensor, rng, albedo)
+        if len(s.points) == 0:
+            # Say why, not only that the cloud is empty: the options put nothing in view.
+            r = float(np.linalg.norm(self.T_sensor_target[k][:3, 3]))
+            raise ConfigError(
+                f"{self.name} frame {k}: the sensor sees nothing (target {r:.3g} m away; the "
+                f"sensor returns {self.sensor.min_range:g}-{self.sensor.max_range:g} m): check "
+                "the range, target size and model scale"
+            )
         return Frame(
             timestamp=float(self.timestamps[k]),
             cloud=PointCloud(s.points, sigma=s.sigma, source=f"{self.name} frame {k}"),

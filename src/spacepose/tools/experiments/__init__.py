@@ -43,10 +43,11 @@ class ExperimentOptions:
     seeds
         li-l1 and li-l3: number of seeds, from ``seed`` on (None: the experiment's default).
     cells, frames, frames_csv, jobs, tracker
-        ``robustness`` only (the others ignore them): the grid cells to run (selection string
-        or config file, None: the whole grid), frames per run (None: the experiment's
-        default), whether to write every frame's scores, the processes running cells, and a
-        tracker config file (YAML or JSON; None: the defaults).
+        ``robustness`` only (the others ignore the middle three and refuse ``cells`` and
+        ``tracker``, :func:`check_options`): the grid cells to run (selection string or config
+        file, None: the whole grid), frames per run (None: the experiment's default), whether
+        to write every frame's scores, the processes running cells, and a tracker config file
+        (YAML or JSON; None: the defaults).
     """
 
     seed: int = 0
@@ -62,16 +63,37 @@ class ExperimentOptions:
 
 Experiment = Callable[[Path, ExperimentOptions], dict[str, Any]]
 _REGISTRY: dict[str, Experiment] = {}
+# Options that only some experiments read; set for another one, they are an error, not ignored.
+OWN_OPTIONS: tuple[str, ...] = ("cells", "tracker")
+_USES: dict[str, tuple[str, ...]] = {}
 
 
-def register(name: str) -> Callable[[Experiment], Experiment]:
-    """Decorator that makes an experiment available under ``name``."""
+def register(name: str, uses: tuple[str, ...] = ()) -> Callable[[Experiment], Experiment]:
+    """Decorator that makes an experiment available under ``name``; ``uses``: the options of
+    :data:`OWN_OPTIONS` it reads."""
 
     def wrap(fn: Experiment) -> Experiment:
         _REGISTRY[name] = fn
+        _USES[name] = uses
         return fn
 
     return wrap
+
+
+def check_options(name: str, options: ExperimentOptions) -> None:
+    """Refuse an option of :data:`OWN_OPTIONS` that experiment ``name`` would ignore.
+
+    Raises
+    ------
+    ConfigError
+        ``--cells: experiment 'li-l1' does not use it (only robustness does)``.
+    """
+    for option in OWN_OPTIONS:
+        if getattr(options, option) is not None and option not in _USES[name]:
+            users = sorted(n for n, uses in _USES.items() if option in uses)
+            raise ConfigError(
+                f"--{option}: experiment {name!r} does not use it (only {', '.join(users)} does)"
+            )
 
 
 def available() -> list[str]:
@@ -86,6 +108,7 @@ def run_experiment(name: str, out_dir: str | Path, options: ExperimentOptions) -
     names = available()
     if name not in _REGISTRY:
         raise ConfigError(f"unknown experiment {name!r}; choose one of: {', '.join(names)}")
+    check_options(name, options)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     return _REGISTRY[name](out, options)

@@ -28,6 +28,7 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+import math
 import multiprocessing
 from collections import Counter
 from collections.abc import Sequence
@@ -43,7 +44,7 @@ from pydantic import Field, NonNegativeInt
 import spacepose
 from spacepose.core.config import StageConfig, load_config, validate_config
 from spacepose.core.sim import grid_scenario, simulate
-from spacepose.core.sim.grid import MOTIONS
+from spacepose.core.sim.grid import CLUTTERS, MOTIONS, motion_fields
 from spacepose.core.tracker import Tracker, TrackerConfig
 from spacepose.errors import ConfigError, SpaceposeError
 from spacepose.tools import plots
@@ -119,38 +120,121 @@ def mesh_path(target: str) -> str:
 
 
 def parse_cells(spec: str) -> dict[str, list[str]]:
-    """``"target=lab,range=1.2+25"`` -> ``{"target": ["lab"], "range": ["1.2", "25"]}``."""
+    """``"target=lab,range=1.2+25"`` -> ``{"target": ["lab"], "range": ["1.2", "25"]}``.
+
+    Raises
+    ------
+    ConfigError
+        An item that is not ``AXIS=VALUE[+VALUE...]``, an axis named twice, or no item at all.
+    """
     axes: dict[str, list[str]] = {}
     for item in filter(None, (s.strip() for s in spec.split(","))):
         name, sep, values = item.partition("=")
         name = name.strip()
         if not sep or name not in AXES or not values.strip():
             raise ConfigError(
-                f"cell selection {item!r}: write AXIS=VALUE[+VALUE...] with AXIS one of "
-                f"{', '.join(AXES)}"
+                f"--cells {item!r}: write AXIS=VALUE[+VALUE...] with AXIS one of {', '.join(AXES)}"
             )
+        if name in axes:
+            raise ConfigError(f"--cells: axis {name} is named twice; join its values with +")
         axes[name] = [v.strip() for v in values.split("+")]
+    if not axes:
+        raise ConfigError(f"--cells {spec!r} names no cells; write AXIS=VALUE[+VALUE...]")
     return axes
+
+
+def cell_problem(cell: Cell) -> str | None:
+    """What keeps a run from simulating (None: nothing), naming the axis and its value.
+
+    Builds the run's scenario config (no simulation), so a whole grid is checked in
+    milliseconds; the range must also lie within the range of the sensor the scenario picks,
+    or the target's frames would be empty.
+    """
+    if cell.target != "lab" and cell.target not in TARGETS and not Path(cell.target).is_file():
+        return f"unknown target {cell.target!r}; choose lab, {', '.join(TARGETS)} or a mesh file"
+    if not (math.isfinite(cell.range) and cell.range > 0):
+        return f"range {cell.range:g} is not a positive number of metres"
+    if not (math.isfinite(cell.noise) and cell.noise >= 0):
+        return f"noise {cell.noise:g} is not a factor >= 0 of the sensor's sigma"
+    if cell.clutter not in CLUTTERS:
+        return f"unknown clutter {cell.clutter!r}; choose {', '.join(CLUTTERS)}"
+    try:
+        motion_fields(cell.motion)
+    except ConfigError as exc:  # an unknown name, told as such rather than as the cell's
+        return str(exc)
+    try:
+        config = grid_scenario(
+            target=mesh_path(cell.target),
+            range_m=cell.range,
+            noise_scale=cell.noise,
+            motion=cell.motion,
+            clutter=cell.clutter,
+            seed=cell.seed,
+            frames=2,
+        )
+    except ConfigError as exc:
+        return f"cell {cell.label} seed {cell.seed}: {exc}"
+    sensor = config.sensor
+    if not sensor.min_range <= cell.range <= sensor.max_range:
+        return (
+            f"range {cell.range:g} m is outside the {sensor.min_range:g}-{sensor.max_range:g} m "
+            f"that the {sensor.model} sees"
+        )
+    return None
+
+
+def check_cells(runs: Sequence[Cell], source: str) -> None:
+    """Check every run before any starts (:func:`cell_problem`), so that a bad value ends the
+    experiment at once instead of as an error record among the results.
+
+    Raises
+    ------
+    ConfigError
+        ``source: `` and the first problem found.
+    """
+    for cell in dict.fromkeys(runs):
+        problem = cell_problem(cell)
+        if problem is not None:
+            raise ConfigError(f"{source}: {problem}")
+
+
+def is_cells_file(cells: str) -> bool:
+    """Whether a ``cells`` option names a YAML / JSON file (else it is a selection string)."""
+    return Path(cells).suffix.lower() in (".yaml", ".yml", ".json")
 
 
 def select_cells(
     cells: str | None, quick: bool, frames: int | None, seed: int = 0
 ) -> tuple[list[Cell], int]:
-    """The runs and the frames per run an experiment's options ask for (module notes)."""
-    if cells and Path(cells).suffix.lower() in (".yaml", ".yml", ".json"):
+    """The runs and the frames per run an experiment's options ask for (module notes).
+
+    Raises
+    ------
+    ConfigError
+        A bad selection or cells file (an empty one included), or a run that cannot simulate
+        (:func:`check_cells`).
+    """
+    source = "--cells"
+    if cells is not None and is_cells_file(cells):
+        source = cells
         grid = load_config(RobustnessGrid, cells)
-    elif cells:
+        # An empty file would otherwise mean the whole grid, hours of runs nobody asked for.
+        if not grid.model_fields_set:
+            raise ConfigError(f"{cells}: holds no cells; set any of {', '.join(AXES)}")
+    elif cells is not None:
         named = parse_cells(cells)
         base = {} if not quick else {a: [v] for a, v in asdict(Cell(seed=seed)).items()}
         base |= {"frames": QUICK_FRAMES} if quick else {}
-        grid = validate_config(RobustnessGrid, base | named, source=f"cells {cells!r}")
+        grid = validate_config(RobustnessGrid, base | named, source=source)
     elif quick:
         default = Cell(seed=seed)
         runs = [default, *(replace(default, **variant) for variant in QUICK_VARIANTS)]
+        check_cells(runs, "--seed")
         return runs, frames or QUICK_FRAMES
     else:
         grid = RobustnessGrid()
     runs = [Cell(*values) for values in itertools.product(*(getattr(grid, a) for a in AXES))]
+    check_cells(runs, source)
     return runs, frames or grid.frames
 
 
@@ -406,7 +490,7 @@ def write_outputs(
     return result
 
 
-@register("robustness")
+@register("robustness", uses=("cells", "tracker"))
 def robustness_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
     """The default tracker over the robustness grid (module notes)."""
     runs, frames = select_cells(options.cells, options.quick, options.frames, options.seed)
