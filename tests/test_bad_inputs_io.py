@@ -227,3 +227,41 @@ def test_a_simulation_that_sees_nothing_says_why(tmp_path, capsys):
     assert "the sensor sees nothing (target 1e+09 m away" in _one_line(capsys)
     assert main(["simulate", "lab", "--frames", str(10**20), "--out", out]) == 1
     assert "frames" in _one_line(capsys)
+
+
+def test_tracker_and_normals_arguments_are_checked():
+    from spacepose.core.fpfh import FPFHConfig
+    from spacepose.core.normals import estimate_normals
+    from spacepose.core.tracker import Tracker
+    from spacepose.errors import ConfigError
+
+    pts = np.random.default_rng(10).uniform(0, 1, (200, 3))
+    assert Tracker({"points_per_frame": 2000}).config.points_per_frame == 2000
+    with pytest.raises(ConfigError, match="config must be a TrackerConfig, got list"):
+        Tracker([1])
+    for viewpoint, message in (((0, 0), "3 numbers"), ((np.nan, 0, 0), "finite")):
+        with pytest.raises(InputError, match=f"viewpoint must be {message}"):
+            estimate_normals(pts, viewpoint=viewpoint)
+    with pytest.raises(ConfigError, match="max_nn"):
+        FPFHConfig(max_nn=10**7)
+    tracker = Tracker()
+    tracker.track_frame(pts, 0.0)
+    with pytest.raises(InputError, match="prior must be a pair"):
+        tracker.track_frame(pts, 1.0, prior="x")
+    for cov in (-np.eye(6), np.zeros((6, 6))):
+        with pytest.raises(InputError, match="positive semi-definite and not zero"):
+            tracker.track_frame(pts, 1.0, prior=(np.eye(4), cov))
+
+
+def test_timestamps_and_weights_that_are_not_numbers_are_refused():
+    from spacepose.core import se3
+    from spacepose.core.metrics import associate
+
+    with pytest.raises(InputError, match="must be finite"):
+        associate([0.0, np.nan], [0.0, 1.0])
+    with pytest.raises(InputError, match="must be numbers"):
+        associate(["a"], [0.0])
+    with pytest.raises(InputError, match="tolerance"):
+        associate([0.0], [0.0], tolerance=np.nan)
+    with pytest.raises(InputError, match="weights must be finite"):
+        se3.geodesic_mean([np.eye(4), np.eye(4)], weights=[np.nan, 1.0])

@@ -54,7 +54,8 @@ class FPFHConfig(StageConfig):
     """
 
     radius: PositiveFloat = 0.05
-    max_nn: int = Field(default=100, ge=2)
+    # Bounded: the pair buffers grow with it (10^7 asked for 75 GiB).
+    max_nn: int = Field(default=100, ge=2, le=10_000)
 
 
 def pair_features(

@@ -110,11 +110,21 @@ def associate(
     Raises
     ------
     InputError
-        If any estimated timestamp has no ground truth within ``tolerance``: every estimate must
-        be evaluated, so none is silently skipped.
+        If any estimated timestamp has no ground truth within ``tolerance`` (every estimate must
+        be evaluated, so none is silently skipped), or timestamps that are not finite 1-D
+        numbers.
     """
-    t_est = np.asarray(est_timestamps, dtype=np.float64).reshape(-1)
-    t_gt = np.asarray(gt_timestamps, dtype=np.float64).reshape(-1)
+    try:
+        t_est = np.asarray(est_timestamps, dtype=np.float64)
+        t_gt = np.asarray(gt_timestamps, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("timestamps must be numbers (seconds)") from None
+    if t_est.ndim != 1 or t_gt.ndim != 1 or len(t_gt) == 0:
+        raise InputError(f"timestamps must be 1-D, got {t_est.shape} and {t_gt.shape}")
+    if not (np.isfinite(t_est).all() and np.isfinite(t_gt).all()):
+        raise InputError("timestamps must be finite")
+    if not tolerance >= 0:
+        raise InputError(f"tolerance must be a number of seconds >= 0, got {tolerance}")
     order = np.argsort(t_gt, kind="stable")
     sorted_gt = t_gt[order]
     right = np.clip(np.searchsorted(sorted_gt, t_est), 0, len(sorted_gt) - 1)

@@ -113,13 +113,26 @@ class Prediction:
         Raises
         ------
         InputError
-            Not a rigid transform, or a covariance of the wrong shape or not finite.
+            Not a rigid transform, or a covariance of the wrong shape, not finite, with a
+            negative eigenvalue or zero.
         """
         T = se3.as_transform(T_sensor_target, "prior T_sensor_target")
-        cov = np.asarray(covariance, dtype=np.float64)
+        try:
+            cov = np.asarray(covariance, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError("prior covariance must be a 6x6 matrix of numbers") from None
         if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
             raise InputError(f"prior covariance must be a finite 6x6 matrix, got {cov.shape}")
-        return cls(rigid(T), 0.5 * (cov + cov.T), True)
+        cov = 0.5 * (cov + cov.T)
+        eig = np.linalg.eigvalsh(cov)
+        # A covariance has no negative variance and is not zero: a certain prior cannot be
+        # weighed against anything.
+        if eig[-1] <= 0.0 or eig[0] < -1e-9 * eig[-1]:
+            raise InputError(
+                "prior covariance must be positive semi-definite and not zero, got "
+                f"eigenvalues {eig[0]:.3g}..{eig[-1]:.3g}"
+            )
+        return cls(rigid(T), cov, True)
 
 
 @dataclass

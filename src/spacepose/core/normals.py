@@ -291,7 +291,7 @@ def orient_towards(
     """Flip normals (N, 3) so that each points towards ``viewpoint`` (3,), same frame as points."""
     pts = np.asarray(points, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)
-    to_view = np.asarray(viewpoint, dtype=np.float64).reshape(3) - pts
+    to_view = _viewpoint(viewpoint) - pts
     flip = np.einsum("ij,ij->i", n, to_view) < 0
     return np.where(flip[:, None], -n, n)
 
@@ -346,7 +346,7 @@ def estimate_normals(
     # A k-nearest search always finds k >= 3 neighbours; a radius search may find fewer.
     sparse = None if config.radius is None else (idx >= 0).sum(axis=1) < 3
     if sparse is not None and np.any(sparse):
-        sight = np.asarray(viewpoint, dtype=np.float64).reshape(3) - pts[sparse]
+        sight = _viewpoint(viewpoint) - pts[sparse]
         norm = np.linalg.norm(sight, axis=1, keepdims=True)
         # A point exactly at the viewpoint has no line of sight: fall back to the boresight.
         normals[sparse] = np.where(norm > 0, sight / np.where(norm > 0, norm, 1.0), (0, 0, -1))
@@ -415,3 +415,14 @@ def normal_consistency(
     edges = np.linspace(0.0, 180.0, round(n_bins) + 1)
     counts, _ = np.histogram(angles, bins=edges)
     return NormalConsistency(angles, edges, counts, float(np.mean(angles < 20.0)))
+
+
+def _viewpoint(viewpoint: ArrayLike) -> NDArray[np.float64]:
+    """A viewpoint as a finite (3,) point."""
+    try:
+        v = np.asarray(viewpoint, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):
+        raise InputError(f"viewpoint must be 3 numbers, got {viewpoint!r:.60}") from None
+    if not np.all(np.isfinite(v)):
+        raise InputError(f"viewpoint must be finite, got {v.tolist()}")
+    return v

@@ -184,8 +184,10 @@ def geodesic_mean(
     if Ts.ndim != 3 or Ts.shape[1:] != (4, 4) or len(Ts) == 0:
         raise InputError(f"geodesic_mean needs a non-empty (M, 4, 4) stack, got {Ts.shape}")
     w = np.ones(len(Ts)) if weights is None else np.asarray(weights, dtype=np.float64)
-    if w.shape != (len(Ts),) or np.any(w < 0) or w.sum() <= 0:
-        raise InputError("geodesic_mean weights must be non-negative, one per transform, not all 0")
+    if w.shape != (len(Ts),) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+        raise InputError(
+            "geodesic_mean weights must be finite, non-negative, one per transform, not all 0"
+        )
     w = w / w.sum()
     mean = Ts[0].copy()
     for _ in range(max_iterations):

@@ -79,10 +79,16 @@ class Tracker:
 
     def __init__(
         self,
-        config: TrackerConfig = TrackerConfig(),
+        config: TrackerConfig | dict = TrackerConfig(),
         model: PointCloud | ArrayLike | None = None,
         workers: int = -1,
     ) -> None:
+        if not isinstance(config, TrackerConfig):
+            # A mapping of fields (as a config file holds) is validated; anything else is not a
+            # config.
+            if not isinstance(config, dict):
+                raise ConfigError(f"config must be a TrackerConfig, got {type(config).__name__}")
+            config = TrackerConfig.model_validate(config)
         self.config = config
         self.workers = workers
         self._index = 0
@@ -189,6 +195,8 @@ class Tracker:
         index = self._index
         self._index += 1
         times = dict.fromkeys(STAGES, 0.0)
+        if prior is not None and not (isinstance(prior, tuple | list) and len(prior) == 2):
+            raise InputError("prior must be a pair (T_sensor_target (4, 4), covariance (6, 6))")
         prediction = self._predict(timestamp) if prior is None else Prediction.given(*prior)
 
         tic = time.perf_counter()
