@@ -180,20 +180,19 @@ def test_every_stage_config_writes_strict_json_that_reads_back(tmp_path):
         assert model.model_validate(json.loads(text)) == config, model.__name__
 
 
-def test_tracker_config_file_with_inf_voxel_size_is_refused(tmp_path):
-    path = tmp_path / "voxinf.yaml"
-    path.write_text("voxel_size: .inf\n")
+@pytest.mark.parametrize(
+    ("model", "name", "text", "field"),
+    [
+        (TrackerConfig, "voxinf.yaml", "voxel_size: .inf\n", "voxel_size"),
+        (DepthCamera, "intrinsics.yaml", "fx: .inf\nfy: 500\ncx: 320\ncy: 240\n", "fx"),
+    ],
+)
+def test_config_files_with_an_infinite_value_are_refused(tmp_path, model, name, text, field):
+    path = tmp_path / name
+    path.write_text(text)
     with pytest.raises(ConfigError) as exc:
-        load_config(TrackerConfig, path)
-    _one_line(exc, path, "voxel_size", "finite")
-
-
-def test_intrinsics_with_inf_focal_length_are_refused(tmp_path):
-    path = tmp_path / "intrinsics.yaml"
-    path.write_text("fx: .inf\nfy: 500\ncx: 320\ncy: 240\n")
-    with pytest.raises(ConfigError) as exc:
-        load_config(DepthCamera, path)
-    _one_line(exc, path, "fx", "finite")
+        load_config(model, path)
+    _one_line(exc, path, field, "finite")
 
 
 def test_background_range_max_is_unbounded_as_none_and_old_inf_reads_as_none():

@@ -86,6 +86,12 @@ def print_error(message: str) -> None:
     err_console.print(_one_line(message), markup=False, highlight=False, soft_wrap=True)
 
 
+def _print_warning(text: str) -> None:
+    """``warning: text`` as one line on stderr (plain text, as :func:`print_error`)."""
+    err_console.print("[yellow]warning:[/] ", end="")
+    err_console.print(text, markup=False, highlight=False, soft_wrap=True)
+
+
 def _one_line(message: str) -> str:
     return " ".join(part.strip() for part in str(message).splitlines() if part.strip())
 
@@ -105,30 +111,15 @@ class _OneLineWarnings:
         if not isinstance(message, SpaceposeWarning):
             # A library's warning (numpy on overflowing values): one line too, without the
             # source line Python's printer adds.
-            err_console.print("[yellow]warning:[/] ", end="")
-            err_console.print(
-                f"{category.__name__}: {_one_line(str(message))}",
-                markup=False,
-                highlight=False,
-                soft_wrap=True,
-            )
+            _print_warning(f"{category.__name__}: {_one_line(str(message))}")
             return
         key = (category, message.reason)
         self.repeats[key] += 1
         if self.repeats[key] <= self.shown:
-            err_console.print("[yellow]warning:[/] ", end="")
-            err_console.print(
-                _one_line(str(message)), markup=False, highlight=False, soft_wrap=True
-            )
+            _print_warning(_one_line(str(message)))
 
     def __exit__(self, *exc_info: object) -> None:
         for (_, reason), count in self.repeats.items():
             if count > self.shown:
                 what = reason.split("(")[0].split(";")[0].strip()
-                err_console.print("[yellow]warning:[/] ", end="")
-                err_console.print(
-                    f"{count - self.shown} more file(s) with the same warning: {what}",
-                    markup=False,
-                    highlight=False,
-                    soft_wrap=True,
-                )
+                _print_warning(f"{count - self.shown} more file(s) with the same warning: {what}")

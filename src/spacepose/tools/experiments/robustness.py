@@ -43,7 +43,7 @@ from pydantic import Field, NonNegativeInt
 
 import spacepose
 from spacepose.core.config import StageConfig, load_config, validate_config
-from spacepose.core.sim import grid_scenario, simulate
+from spacepose.core.sim import LabConfig, grid_scenario, simulate
 from spacepose.core.sim.grid import CLUTTERS, MOTIONS, motion_fields
 from spacepose.core.tracker import Tracker, TrackerConfig
 from spacepose.errors import ConfigError, SpaceposeError
@@ -143,6 +143,19 @@ def parse_cells(spec: str) -> dict[str, list[str]]:
     return axes
 
 
+def cell_scenario(cell: Cell, frames: int) -> LabConfig:
+    """The scenario config of one run of the grid (:func:`~spacepose.core.sim.grid_scenario`)."""
+    return grid_scenario(
+        target=mesh_path(cell.target),
+        range_m=cell.range,
+        noise_scale=cell.noise,
+        motion=cell.motion,
+        clutter=cell.clutter,
+        seed=cell.seed,
+        frames=frames,
+    )
+
+
 def cell_problem(cell: Cell) -> str | None:
     """What keeps a run from simulating (None: nothing), naming the axis and its value.
 
@@ -163,15 +176,7 @@ def cell_problem(cell: Cell) -> str | None:
     except ConfigError as exc:  # an unknown name, told as such rather than as the cell's
         return str(exc)
     try:
-        config = grid_scenario(
-            target=mesh_path(cell.target),
-            range_m=cell.range,
-            noise_scale=cell.noise,
-            motion=cell.motion,
-            clutter=cell.clutter,
-            seed=cell.seed,
-            frames=2,
-        )
+        config = cell_scenario(cell, 2)
     except ConfigError as exc:
         return f"cell {cell.label} seed {cell.seed}: {exc}"
     sensor = config.sensor
@@ -249,15 +254,7 @@ def run_cell(
     """
     record: dict[str, Any] = {"cell": asdict(cell)}
     try:
-        config = grid_scenario(
-            target=mesh_path(cell.target),
-            range_m=cell.range,
-            noise_scale=cell.noise,
-            motion=cell.motion,
-            clutter=cell.clutter,
-            seed=cell.seed,
-            frames=frames,
-        )
+        config = cell_scenario(cell, frames)
     except SpaceposeError as exc:
         return record | {"error": str(exc)}
     sim = simulate(config)
