@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import io
 import warnings
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,16 +20,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, check_scale
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
+from spacepose.tools.npy_io import read_npy, read_npz, write_npy, write_npz
 from spacepose.tools.pcd_io import read_pcd_table, write_pcd
 
 _XYZ = ("x", "y", "z")
 _PLY_NORMALS = ("nx", "ny", "nz")
 _PCD_NORMALS = ("normal_x", "normal_y", "normal_z")
 _TEXT_SUFFIXES = (".xyz", ".txt", ".csv")
-_NPY_MAGIC = b"\x93NUMPY"
 # Widest scene (m) a cloud in millimetres can span: 100 km, past any ToF camera or LiDAR.
 _FARTHEST_M = 1e5
-_ZIP_MAGIC = b"PK"
 # Significant digits that round-trip a value of the given precision through text.
 _DIGITS = {"float32": 9, "float64": 17}
 
@@ -343,87 +341,6 @@ def _write_text(
     )
 
 
-def _check_magic(path: Path, magic: bytes, problem: str) -> None:
-    """Refuse a file that does not start with ``magic``: numpy reads anything else as a pickle
-    and answers with advice to load it unsafely."""
-    with path.open("rb") as fh:
-        if fh.read(len(magic)) != magic:
-            raise FileFormatError(problem, path)
-
-
-def _numpy_problem(exc: ValueError, kind: str) -> str:
-    """The problem of a ``np.load`` ValueError, without numpy's advice to allow pickles."""
-    if "pickle" in str(exc).lower():
-        return f"{kind} holds Python objects (pickled data), not a numeric array; not loaded"
-    return f"bad or truncated {kind}: {exc}"
-
-
-def _read_npy(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    _check_magic(path, _NPY_MAGIC, "not a .npy file (no NumPy header)")
-    try:
-        arr = np.load(path, allow_pickle=False)
-    except ValueError as exc:
-        raise FileFormatError(_numpy_problem(exc, ".npy"), path) from None
-    except (OSError, EOFError) as exc:
-        raise FileFormatError(f"bad or truncated .npy: {exc}", path) from None
-    if arr.ndim != 2 or arr.shape[1] not in (3, 6) or arr.dtype.kind not in "fiu":
-        raise FileFormatError(
-            f".npy must hold a numeric (N, 3) or (N, 6) array, got {arr.dtype} {arr.shape}", path
-        )
-    arr = arr.astype(np.float64)
-    return arr[:, :3], (arr[:, 3:] if arr.shape[1] == 6 else None)
-
-
-def _read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    _check_magic(path, _ZIP_MAGIC, "not a .npz archive (no zip header)")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            if "points" not in npz.files:
-                raise FileFormatError(f".npz has no 'points' array (keys: {npz.files})", path)
-            points = npz["points"]
-            normals = npz["normals"] if "normals" in npz.files else None
-    except FileFormatError:
-        raise
-    except ValueError as exc:
-        raise FileFormatError(_numpy_problem(exc, ".npz"), path) from None
-    except Exception as exc:  # zipfile/zlib errors of a corrupt archive have no common base
-        raise FileFormatError(f"bad or truncated .npz: {exc}", path) from None
-    for name, arr in (("points", points), ("normals", normals)):
-        if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or arr.dtype.kind not in "fiu"):
-            raise FileFormatError(f".npz '{name}' must be numeric (N, 3), got {arr.shape}", path)
-    return points.astype(np.float64), None if normals is None else normals.astype(np.float64)
-
-
-def _write_npy(
-    path: Path,
-    points: NDArray[np.float64],
-    normals: NDArray[np.float64] | None,
-    binary: bool,
-    dtype: np.dtype,
-) -> None:
-    values = points if normals is None else np.hstack([points, normals])
-    np.save(path, values.astype(dtype))
-
-
-def _write_npz(
-    path: Path,
-    points: NDArray[np.float64],
-    normals: NDArray[np.float64] | None,
-    binary: bool,
-    dtype: np.dtype,
-) -> None:
-    arrays = {"points": points.astype(dtype)}
-    if normals is not None:
-        arrays["normals"] = normals.astype(dtype)
-    # np.savez stamps each member with the current time; a fixed date keeps the bytes
-    # a function of the data only.
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
-        for name, arr in arrays.items():
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            with zf.open(info, "w") as fh:
-                np.lib.format.write_array(fh, arr, allow_pickle=False)
-
-
 # --------------------------------------------------------------------------------------------
 # Helpers
 
@@ -482,12 +399,12 @@ Writer = Callable[[Path, NDArray[np.float64], NDArray[np.float64] | None, bool, 
 _READERS: dict[str, Reader] = {
     ".ply": _read_ply,
     ".pcd": _read_pcd,
-    ".npy": _read_npy,
-    ".npz": _read_npz,
+    ".npy": read_npy,
+    ".npz": read_npz,
 } | dict.fromkeys(_TEXT_SUFFIXES, _read_text)
 _WRITERS: dict[str, Writer] = {
     ".ply": _write_ply,
     ".pcd": _write_pcd,
-    ".npy": _write_npy,
-    ".npz": _write_npz,
+    ".npy": write_npy,
+    ".npz": write_npz,
 } | dict.fromkeys(_TEXT_SUFFIXES, _write_text)

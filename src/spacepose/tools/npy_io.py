@@ -1,0 +1,106 @@
+"""NumPy point files: ``.npy`` (an (N, 3) or (N, 6) array) and ``.npz`` (``points``, optional
+``normals``), read without ever unpickling and written byte for byte the same for the same data.
+
+A file that does not start with NumPy's (or zip's) signature is refused as such: ``np.load``
+would take it for a pickle and answer with advice to load it unsafely. Every failure is one
+:class:`~spacepose.errors.FileFormatError` naming the file. :mod:`spacepose.tools.cloud_io`
+chooses these by extension.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from spacepose.errors import FileFormatError
+
+NPY_MAGIC = b"\x93NUMPY"
+ZIP_MAGIC = b"PK"
+
+
+def _check_magic(path: Path, magic: bytes, problem: str) -> None:
+    """Refuse a file that does not start with ``magic``: numpy reads anything else as a pickle
+    and answers with advice to load it unsafely."""
+    with path.open("rb") as fh:
+        if fh.read(len(magic)) != magic:
+            raise FileFormatError(problem, path)
+
+
+def _numpy_problem(exc: ValueError, kind: str) -> str:
+    """The problem of a ``np.load`` ValueError, without numpy's advice to allow pickles."""
+    if "pickle" in str(exc).lower():
+        return f"{kind} holds Python objects (pickled data), not a numeric array; not loaded"
+    return f"bad or truncated {kind}: {exc}"
+
+
+def read_npy(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """(N, 3) points and (N, 3) normals or None of a numeric (N, 3) / (N, 6) ``.npy`` array."""
+    _check_magic(path, NPY_MAGIC, "not a .npy file (no NumPy header)")
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except ValueError as exc:
+        raise FileFormatError(_numpy_problem(exc, ".npy"), path) from None
+    except (OSError, EOFError) as exc:
+        raise FileFormatError(f"bad or truncated .npy: {exc}", path) from None
+    if arr.ndim != 2 or arr.shape[1] not in (3, 6) or arr.dtype.kind not in "fiu":
+        raise FileFormatError(
+            f".npy must hold a numeric (N, 3) or (N, 6) array, got {arr.dtype} {arr.shape}", path
+        )
+    arr = arr.astype(np.float64)
+    return arr[:, :3], (arr[:, 3:] if arr.shape[1] == 6 else None)
+
+
+def read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """(N, 3) ``points`` and (N, 3) ``normals`` or None of a ``.npz`` archive."""
+    _check_magic(path, ZIP_MAGIC, "not a .npz archive (no zip header)")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            if "points" not in npz.files:
+                raise FileFormatError(f".npz has no 'points' array (keys: {npz.files})", path)
+            points = npz["points"]
+            normals = npz["normals"] if "normals" in npz.files else None
+    except FileFormatError:
+        raise
+    except ValueError as exc:
+        raise FileFormatError(_numpy_problem(exc, ".npz"), path) from None
+    except Exception as exc:  # zipfile/zlib errors of a corrupt archive have no common base
+        raise FileFormatError(f"bad or truncated .npz: {exc}", path) from None
+    for name, arr in (("points", points), ("normals", normals)):
+        if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or arr.dtype.kind not in "fiu"):
+            raise FileFormatError(f".npz '{name}' must be numeric (N, 3), got {arr.shape}", path)
+    return points.astype(np.float64), None if normals is None else normals.astype(np.float64)
+
+
+def write_npy(
+    path: Path,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    binary: bool,
+    dtype: np.dtype,
+) -> None:
+    """Points (and normals) as one (N, 3) / (N, 6) array of ``dtype`` (``binary`` unused)."""
+    values = points if normals is None else np.hstack([points, normals])
+    np.save(path, values.astype(dtype))
+
+
+def write_npz(
+    path: Path,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64] | None,
+    binary: bool,
+    dtype: np.dtype,
+) -> None:
+    """``points`` (and ``normals``) of ``dtype`` in an uncompressed, date-free archive."""
+    arrays = {"points": points.astype(dtype)}
+    if normals is not None:
+        arrays["normals"] = normals.astype(dtype)
+    # np.savez stamps each member with the current time; a fixed date keeps the bytes
+    # a function of the data only.
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as zf:
+        for name, arr in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            with zf.open(info, "w") as fh:
+                np.lib.format.write_array(fh, arr, allow_pickle=False)
