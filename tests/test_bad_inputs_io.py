@@ -265,3 +265,9 @@ def test_timestamps_and_weights_that_are_not_numbers_are_refused():
         associate([0.0], [0.0], tolerance=np.nan)
     with pytest.raises(InputError, match="weights must be finite"):
         se3.geodesic_mean([np.eye(4), np.eye(4)], weights=[np.nan, 1.0])
+
+
+def test_an_empty_sensor_name_is_refused(tmp_path, capsys):
+    out = str(tmp_path / "run")
+    assert main(["simulate", "lab", "--frames", "2", "--sensor", "", "--out", out]) == 1
+    assert "unknown sensor ''" in _one_line(capsys)

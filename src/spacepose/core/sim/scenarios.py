@@ -445,7 +445,8 @@ def scenario_config(
     if name not in SCENARIOS:
         raise ConfigError(f"unknown scenario {name!r}; choose one of: {', '.join(SCENARIOS)}")
     model, _ = SCENARIOS[name]
-    sensor_name = sensor or ("tof" if name == "lab" else "flash-lidar")
+    # None is the scenario's own sensor; an empty name is a mistake, not a request for it.
+    sensor_name = ("tof" if name == "lab" else "flash-lidar") if sensor is None else sensor
     overrides = {} if noise_scale is None else {"noise_scale": noise_scale}
     fields["sensor"] = sensor_config(sensor_name, **overrides)
     return validate_config(model, fields, source=f"scenario {name}")
