@@ -81,9 +81,7 @@ def _pose_stacks(
     for name, T in (("estimated", est), ("true", gt)):
         if not np.isfinite(T).all():
             raise InputError(f"{name} poses have non-finite entries")
-        R = T[:, :3, :3]
-        off = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2)) > 1e-6
-        off |= (np.linalg.det(R) < 0) | (np.abs(T[:, 3] - (0, 0, 0, 1)).max(axis=1) > 1e-9)
+        off = se3.non_rigid(T)
         if off.any():
             raise InputError(f"{name} pose {int(np.argmax(off))} is not a rigid transform")
     return est, gt

@@ -53,6 +53,19 @@ def as_transform(T: ArrayLike, name: str = "transform") -> NDArray[np.float64]:
     return T
 
 
+def non_rigid(T: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """(N,) which of the finite (N, 4, 4) transforms are not rigid, to the tolerances of
+    :func:`as_transform`: a rotation block off orthonormal by more than 1e-6 or reflected, or a
+    last row other than (0, 0, 0, 1)."""
+    R = T[:, :3, :3]
+    ortho_err = np.abs(np.einsum("nji,njk->nik", R, R) - _I3).max(axis=(1, 2))
+    return (
+        (ortho_err > 1e-6)
+        | (np.linalg.det(R) < 0)
+        | (np.abs(T[:, 3] - _LAST_ROW).max(axis=1) > 1e-9)
+    )
+
+
 def make_transform(R: ArrayLike | Rotation, t: ArrayLike) -> NDArray[np.float64]:
     """Build ``T`` (4×4) from a rotation (3×3 matrix or ``Rotation``) and a translation (3,)."""
     T = np.eye(4)

@@ -11,10 +11,6 @@ from spacepose.core import se3
 from spacepose.core.cloud import MAX_ABS_COORDINATE
 from spacepose.errors import InputError
 
-# Same tolerance as :func:`spacepose.core.se3.as_transform`, so a pose accepted one by one is
-# accepted in a stack too.
-_RIGID_TOL = 1e-6
-
 
 @dataclass(frozen=True, eq=False)
 class Trajectory:
@@ -66,13 +62,7 @@ class Trajectory:
                 f"pose {int(np.argmax(far))} has a translation beyond {MAX_ABS_COORDINATE:.0e} m",
                 self.source,
             )
-        R = T[:, :3, :3]
-        ortho_err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
-        bad = (
-            (ortho_err > _RIGID_TOL)
-            | (np.linalg.det(R) < 0)
-            | (np.abs(T[:, 3] - (0.0, 0.0, 0.0, 1.0)).max(axis=1) > 1e-9)
-        )
+        bad = se3.non_rigid(T)
         if bad.any():
             raise InputError(f"pose {int(np.argmax(bad))} is not a rigid transform", self.source)
         for name, value in (("timestamps", t), ("poses", T)):

@@ -73,7 +73,9 @@ def cell_keys(
     pts = _finite_points(points)
     h = _cell_size(cell_size)
     o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
-    _check_span(pts.min(axis=0) - o, pts.max(axis=0) - o, h)
+    # Compiled bounds: numpy's axis-0 min and max cost 0.5 ms each on a lab frame.
+    low, high, _ = _bounds(pts, _ALL)
+    _check_span(low - o, high - o, h)
     cells = np.empty(pts.shape, dtype=np.int64)
     low, high = _cells(pts, o, h, cells)
     return _pack(cells, low, high - low + 1), high - low + 1, low
