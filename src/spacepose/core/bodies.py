@@ -271,8 +271,12 @@ def _shift_cost(
     workers: int,
 ) -> float:
     """Mean capped squared point-to-plane residual of ``points`` under the best pure shift
-    (no turn in the sensor frame), found by Gauss-Newton from the shift of ``T_ref_frame``."""
-    t = T_ref_frame[:3, 3].copy()
+    (no turn in the sensor frame), found by Gauss-Newton from the shift ``T_ref_frame`` gives
+    their centroid."""
+    # The shift the motion gives the body's centroid: T's own shift is that of the sensor
+    # origin, metres away from a body turning about its own axis (a turntable's disc).
+    centroid = points.mean(axis=0)
+    t = se3.transform_points(T_ref_frame, centroid[None])[0] - centroid
     q = ref.cloud
     for _ in range(_SHIFT_ITERATIONS):
         moved = points + t
