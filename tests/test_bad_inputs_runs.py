@@ -18,6 +18,7 @@ from spacepose.tools import campaign as cp
 from spacepose.tools.campaign_spec import load_campaign_config
 from spacepose.tools.experiments import ExperimentOptions, run_experiment
 from spacepose.tools.experiments import robustness as rb
+from spacepose.tools.experiments.robustness_cells import select_cells
 
 GRID = {"scenario": ["lab"], "noise_scale": [0.0], "method": ["gicp"], "seed": [0]}
 
@@ -88,16 +89,16 @@ def test_an_empty_cells_file_is_not_the_whole_grid(
     cells = tmp_path / "empty.yaml"
     cells.write_text("")
     with pytest.raises(ConfigError, match=r"empty\.yaml: holds no cells"):
-        rb.select_cells(str(cells), quick=True, frames=None)
+        select_cells(str(cells), quick=True, frames=None)
     args = ["experiment", "robustness", "--cells", str(cells), "--out", str(tmp_path)]
     assert main(args) == 1
     assert "empty.yaml: holds no cells" in _cli_error(capsys)
 
 
 def test_good_cells_still_pass_the_check() -> None:
-    runs, _ = rb.select_cells("range=0.3+6+7+200,motion=tumbling-90", quick=True, frames=None)
+    runs, _ = select_cells("range=0.3+6+7+200,motion=tumbling-90", quick=True, frames=None)
     assert {r.range for r in runs} == {0.3, 6.0, 7.0, 200.0}
-    assert len(rb.select_cells(None, quick=False, frames=None)[0]) == 1500
+    assert len(select_cells(None, quick=False, frames=None)[0]) == 1500
 
 
 @pytest.mark.parametrize(("option", "value"), [("--cells", "foo=1"), ("--tracker", "bad.yaml")])

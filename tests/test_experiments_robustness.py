@@ -15,12 +15,8 @@ from spacepose.core import se3
 from spacepose.core.track_result import TrackResult
 from spacepose.errors import ConfigError
 from spacepose.tools.experiments import ExperimentOptions, available, run_experiment
-from spacepose.tools.experiments.robustness import (
-    Cell,
-    failed_criteria,
-    markdown_table,
-    select_cells,
-)
+from spacepose.tools.experiments.robustness import failed_criteria, markdown_table
+from spacepose.tools.experiments.robustness_cells import Cell, select_cells
 from spacepose.tools.experiments.robustness_scores import (
     FrameTruth,
     chain_bound,

@@ -12,7 +12,7 @@ from spacepose.core.sim.grid import grid_scenario
 from spacepose.core.sim.scenarios import simulate
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig
-from spacepose.tools.experiments.robustness import mesh_path
+from spacepose.tools.experiments.robustness_cells import mesh_path
 
 
 def _noisy_plane(seed: int, sigma: float) -> tuple[np.ndarray, np.ndarray, float]:

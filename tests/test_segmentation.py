@@ -117,7 +117,7 @@ def test_a_target_alone_before_a_wall_is_found_in_a_simulated_frame(target, rang
     wall."""
     from spacepose.core.scale import point_spacing
     from spacepose.core.sim import grid_scenario, simulate
-    from spacepose.tools.experiments.robustness import mesh_path
+    from spacepose.tools.experiments.robustness_cells import mesh_path
 
     config = grid_scenario(target=mesh_path(target), range_m=range_m, clutter="wall", frames=1)
     frame = simulate(config).frame(0)

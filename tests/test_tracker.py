@@ -665,7 +665,8 @@ def test_a_turntable_under_a_slow_tumble_is_never_ok_while_followed():
     `ok` within 0.5σ (methods.md §5.8). The split came on frame 5 (6 in a 12-frame run) while
     flying pixels were registered: they were most of the points the compromise left
     unexplained, from which the second motion's fit starts (methods.md §5.1)."""
-    from spacepose.tools.experiments.robustness import Cell, run_cell
+    from spacepose.tools.experiments.robustness import run_cell
+    from spacepose.tools.experiments.robustness_cells import Cell
 
     rows = run_cell(Cell("panels", 1.2, 3.0, "tumbling-2", "wall-table", 0), 10)["frames"]
     assert not any(r["false_ok"] for r in rows)
