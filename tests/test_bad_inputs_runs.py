@@ -65,14 +65,16 @@ def test_bad_cells_fail_before_any_run(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], no_runs: None, cells: str, names: tuple
 ) -> None:
     with pytest.raises(ConfigError) as info:
-        run_experiment("robustness", tmp_path, ExperimentOptions(quick=True, cells=cells))
+        run_experiment("robustness", tmp_path / "a", ExperimentOptions(quick=True, cells=cells))
     message = str(info.value)
     assert message.startswith("--cells") and "\n" not in message
     assert all(name in message for name in names), message
-    args = ["experiment", "robustness", "--quick", "--cells", cells, "--out", str(tmp_path)]
+    args = ["experiment", "robustness", "--quick", "--cells", cells, "--out", str(tmp_path / "b")]
     assert main(args) == 1
     err = _cli_error(capsys)
     assert "--cells" in err and names[0] in err
+    # Refused before any run: no empty output folders left behind.
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
 
 
 def test_bad_values_in_a_cells_file_name_the_file(tmp_path: Path, no_runs: None) -> None:

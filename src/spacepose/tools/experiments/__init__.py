@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from spacepose.errors import ConfigError
+from spacepose.errors import ConfigError, SpaceposeError
 
 # Modules that register experiments when imported.
 _MODULES: tuple[str, ...] = (
@@ -110,5 +110,15 @@ def run_experiment(name: str, out_dir: str | Path, options: ExperimentOptions) -
         raise ConfigError(f"unknown experiment {name!r}; choose one of: {', '.join(names)}")
     check_options(name, options)
     out = Path(out_dir)
+    # The folders this run makes, deepest first: a run refused before it writes (a bad cell,
+    # a config it cannot read) leaves no empty folders behind.
+    made = [p for p in (out, *out.parents) if not p.exists()]
     out.mkdir(parents=True, exist_ok=True)
-    return _REGISTRY[name](out, options)
+    try:
+        return _REGISTRY[name](out, options)
+    except SpaceposeError:
+        for folder in made:
+            if any(folder.iterdir()):
+                break
+            folder.rmdir()
+        raise
