@@ -63,6 +63,12 @@ def test_simulate_orbit_and_a_mesh_model(tmp_path, capsys) -> None:
     run = read_run(out)
     assert run.truth.shape == (3, 20) and len(run) == 3
     assert 600 < len(run.frame(0)) < 2500
+    # --range is the orbit's standoff: at 12.5 m instead of 25 m the target fills about four
+    # times the pixels.
+    near = tmp_path / "near"
+    assert main(["simulate", "orbit", "--out", str(near), "--frames", "1", "--range", "12.5"]) == 0
+    assert read_run(near).scenario["config"]["standoff_m"] == 12.5
+    assert len(read_run(near).frame(0)) > 3 * len(run.frame(0))
     out = tmp_path / "hubble"
     args = ["simulate", "lab", "--out", str(out), "--frames", "1", "--model", HUBBLE]
     assert main([*args, "--model-scale", "0.004"]) == 0
@@ -79,7 +85,9 @@ def test_simulate_errors_are_one_line(tmp_path, capsys) -> None:
     assert main(["simulate", "lab", "--out", out, "--sensor", "sonar"]) == 1
     assert "unknown sensor 'sonar'" in capsys.readouterr().err
     assert main(["simulate", "orbit", "--out", out, "--background"]) == 1
-    assert "background" in capsys.readouterr().err
+    assert "--background applies to the lab scenario only" in capsys.readouterr().err
+    assert main(["simulate", "orbit", "--out", out, "--motion", "tumbling-3"]) == 1
+    assert "--motion applies to the lab scenario only" in capsys.readouterr().err
     assert main(["simulate", "lab", "--out", out, "--model", str(tmp_path / "none.obj")]) == 1
     assert "none.obj: no such mesh file" in capsys.readouterr().err
     assert main(["simulate", "lab", "--out", out, "--noise-scale", "-1"]) == 1

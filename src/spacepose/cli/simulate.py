@@ -32,7 +32,9 @@ def simulate(
         None, help="lab: constant (default), accelerating or tumbling-D (D degrees a frame)."
     ),
     range_m: float | None = typer.Option(
-        None, "--range", help="lab: target distance, m (default 1.2)."
+        None,
+        "--range",
+        help="lab: target distance, m (default 1.2); orbit: the chaser's standoff (default 25).",
     ),
     target_size: float | None = typer.Option(
         None, help="lab: scale the target to this largest extent, m."
@@ -52,6 +54,13 @@ def simulate(
 
     if grid and scenario != "lab":
         raise ConfigError(f"--grid builds lab scenes only, not {scenario!r}")
+    lab_only = {"--background": background, "--motion": motion, "--target-size": target_size}
+    given_lab = [name for name, value in lab_only.items() if value not in (None, False)]
+    if scenario == "orbit" and given_lab:
+        raise ConfigError(
+            f"{given_lab[0]} applies to the lab scenario only; the orbit run's target tumbles "
+            "torque-free from its inertia and rates"
+        )
     if grid:
         given = {
             "target": None if model is None else str(model),
@@ -79,7 +88,7 @@ def simulate(
         if motion is not None:
             fields |= motion_fields(motion)
         if range_m is not None:
-            fields["range_m"] = range_m
+            fields["range_m" if scenario == "lab" else "standoff_m"] = range_m
         if target_size is not None:
             fields["target_size_m"] = target_size
         config = scenario_config(scenario, sensor=sensor, noise_scale=noise_scale, **fields)
