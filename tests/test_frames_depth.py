@@ -127,6 +127,39 @@ def test_bad_depth_image_is_lost_with_its_reason(folders, tmp_path):
     assert "0002.png" in frames[2].error and "cannot decode" in frames[2].error
 
 
+def test_numpy_depth_maps_read_as_their_images(folders, camera, tmp_path):
+    """Depth maps saved as arrays, as renderers write them: the PNGs' units as uint16 give the
+    same points bit for bit; float32 metres with NaN and inf for no return, the same points
+    to float32's rounding; the folder's intrinsics make .npy files depth maps (the cloud
+    folder, .npy without intrinsics, stays clouds)."""
+    units_dir, metres_dir = tmp_path / "units", tmp_path / "metres"
+    units_dir.mkdir(), metres_dir.mkdir()
+    for png in sorted(folders["depth"].glob("*.png")):
+        units = read_depth_image(png)
+        np.save(units_dir / f"{png.stem}.npy", units)
+        metres = (units * DEPTH_SCALE).astype(np.float32)
+        metres[units == 0] = np.nan
+        metres[0, 0] = np.inf  # a renderer's miss: no return, whatever the pixel
+        np.save(metres_dir / f"{png.stem}.npy", metres)
+    intrinsics = (folders["depth"] / "intrinsics.yaml").read_text()
+    (units_dir / "intrinsics.yaml").write_text(intrinsics)
+    (metres_dir / "intrinsics.yaml").write_text(
+        intrinsics.replace(f"depth_scale: {DEPTH_SCALE!r}", "depth_scale: 1.0")
+    )
+    reference = [f.cloud.points for f in open_frames(folders["depth"])]
+    for k, frame in enumerate(open_frames(units_dir)):
+        np.testing.assert_array_equal(frame.cloud.points, reference[k])
+    for k, frame in enumerate(open_frames(metres_dir)):
+        assert frame.error is None and len(frame.cloud) == len(reference[k])
+        assert np.max(np.abs(frame.cloud.points - reference[k])) < 1e-6
+    # A 3-D array is not a depth map: that frame is lost with its reason, the rest read.
+    np.save(units_dir / "0001.npy", np.zeros((2, 3, 4), dtype=np.uint16))
+    frames = list(open_frames(units_dir))
+    assert [f.cloud is None for f in frames] == [k == 1 for k in range(N_FRAMES)]
+    assert "0001.npy" in frames[1].error and "2-D integer or float array" in frames[1].error
+    assert all(isinstance(f.cloud.points, np.ndarray) for f in open_frames(folders["clouds"]))
+
+
 @pytest.mark.parametrize("odd", [0, 3])
 def test_an_image_of_another_size_is_lost_when_the_intrinsics_give_none(folders, tmp_path, odd):
     """Intrinsics without width and height: the size most of the sequence's images have is
@@ -150,8 +183,12 @@ def test_an_image_of_another_size_is_lost_when_the_intrinsics_give_none(folders,
 
 
 def test_depth_folder_without_intrinsics(folders, tmp_path):
-    with pytest.raises(InputError, match="no depth images"):
+    with pytest.raises(InputError, match=r"0000\.npy holds points, an \(\d+, 3\) array"):
         open_frames(folders["clouds"], intrinsics=folders["depth"] / "intrinsics.yaml")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(InputError, match="no depth images"):
+        open_frames(empty, intrinsics=folders["depth"] / "intrinsics.yaml")
 
 
 def test_register_takes_depth_images(sim, camera, tmp_path, capsys):

@@ -1,11 +1,13 @@
 """Depth image files: 16-bit PNG / TIFF depth maps, their intrinsics file, TUM RGB-D's list.
 
 A depth folder holds one image per frame (``.png``, ``.tif``, ``.tiff``; 16-bit integers or
-32-bit floats, one channel, decoded by Pillow) and an intrinsics file (``intrinsics.yaml``,
-``.yml`` or ``.json``: the fields of :class:`spacepose.core.depth.DepthCamera`), or one given
-explicitly. Frames are the images sorted by name, with ``timestamps.txt`` when present, or, in
-TUM RGB-D's layout, the ``timestamp path`` lines of ``depth.txt`` (``#`` comments ignored; the
-paths relative to the folder).
+32-bit floats, one channel, decoded by Pillow; or ``.npy``, an (H, W) integer or float array as
+renderers and simulators save them, NaN or inf for no return) and an intrinsics file
+(``intrinsics.yaml``, ``.yml`` or ``.json``: the fields of
+:class:`spacepose.core.depth.DepthCamera`), or one given explicitly. Frames are the images
+sorted by name, with ``timestamps.txt`` when present, or, in TUM RGB-D's layout, the
+``timestamp path`` lines of ``depth.txt`` (``#`` comments ignored; the paths relative to the
+folder).
 """
 
 from __future__ import annotations
@@ -20,8 +22,11 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import load_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud
 from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.npy_io import load_npy, npy_shape
 
 DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
+# A depth folder's frames may also be NumPy arrays; elsewhere a ``.npy`` is a point cloud.
+FOLDER_DEPTH_SUFFIXES: tuple[str, ...] = (*DEPTH_SUFFIXES, ".npy")
 INTRINSICS_FILES: tuple[str, ...] = ("intrinsics.yaml", "intrinsics.yml", "intrinsics.json")
 TUM_DEPTH_LIST = "depth.txt"
 # Pillow modes of one-channel depth maps: 16-bit unsigned (three byte orders), 32-bit int, float.
@@ -29,15 +34,26 @@ _DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
 
 
 def read_depth_image(path: str | Path) -> NDArray:
-    """Decode one depth image: (H, W) stored values (uint16, int32 or float32).
+    """Decode one depth image: (H, W) stored values (uint16, int32 or float32; any integer or
+    float type from a ``.npy`` array).
 
     Raises
     ------
     FileFormatError
         Missing, unreadable, corrupt or truncated file, or an image that is not one channel of
-        16-bit integers or 32-bit floats (an 8-bit or colour image is not a depth map).
+        16-bit integers or 32-bit floats (an 8-bit or colour image is not a depth map), or a
+        ``.npy`` that is not a 2-D numeric array.
     """
     path = Path(path)
+    if path.suffix.lower() == ".npy":
+        values = load_npy(path)
+        if values.ndim != 2 or values.dtype.kind not in "fiu":
+            raise FileFormatError(
+                f"a depth map must be a 2-D integer or float array, got {values.dtype} "
+                f"{values.shape}",
+                path,
+            )
+        return values
     try:
         with Image.open(path) as image:
             image.load()
@@ -60,6 +76,9 @@ def read_depth_image(path: str | Path) -> NDArray:
 
 def image_size(path: str | Path) -> tuple[int, int] | None:
     """(width, height) of an image from its header (nothing decoded), None if unreadable."""
+    if Path(path).suffix.lower() == ".npy":
+        shape = npy_shape(Path(path))
+        return None if shape is None or len(shape) != 2 else (shape[1], shape[0])
     try:
         with Image.open(path) as image:
             return image.size
@@ -144,13 +163,25 @@ def depth_files(root: str | Path) -> tuple[Path, ...]:
     Raises
     ------
     InputError
-        The folder holds no image with a suffix of :data:`DEPTH_SUFFIXES`.
+        The folder holds no image with a suffix of :data:`FOLDER_DEPTH_SUFFIXES`, or its
+        first ``.npy`` is an (N, 3) or (N, 6) point array.
     """
     root = Path(root)
     # Every entry named as an image: one that is not a readable file is a lost frame.
-    paths = tuple(sorted(p for p in root.iterdir() if p.suffix.lower() in DEPTH_SUFFIXES))
+    paths = tuple(sorted(p for p in root.iterdir() if p.suffix.lower() in FOLDER_DEPTH_SUFFIXES))
     if not paths:
-        raise InputError(f"no depth images ({', '.join(DEPTH_SUFFIXES)}) in the folder", root)
+        raise InputError(
+            f"no depth images ({', '.join(FOLDER_DEPTH_SUFFIXES)}) in the folder", root
+        )
+    arrays = [p for p in paths if p.suffix.lower() == ".npy"]
+    shape = npy_shape(arrays[0]) if arrays else None
+    if shape is not None and len(shape) == 2 and shape[1] in (3, 6):
+        # No depth map is 3 or 6 pixels wide: these are point clouds, given intrinsics.
+        raise InputError(
+            f"{arrays[0].name} holds points, an {shape} array, not a depth map: a folder of "
+            "point clouds needs no intrinsics",
+            root,
+        )
     return paths
 
 

@@ -1,5 +1,6 @@
 """NumPy point files: ``.npy`` (an (N, 3) or (N, 6) array) and ``.npz`` (``points``, optional
-``normals``), read without ever unpickling and written byte for byte the same for the same data.
+``normals``), read without ever unpickling and written byte for byte the same for the same data;
+and the plain ``.npy`` reading that depth maps stored as arrays share (:func:`load_npy`).
 
 A file that does not start with NumPy's (or zip's) signature is refused as such: ``np.load``
 would take it for a pickle and answer with advice to load it unsafely. Every failure is one
@@ -36,15 +37,37 @@ def _numpy_problem(exc: ValueError, kind: str) -> str:
     return f"bad or truncated {kind}: {exc}"
 
 
-def read_npy(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """(N, 3) points and (N, 3) normals or None of a numeric (N, 3) / (N, 6) ``.npy`` array."""
-    _check_magic(path, NPY_MAGIC, "not a .npy file (no NumPy header)")
+def load_npy(path: Path) -> NDArray:
+    """The array of a ``.npy`` file, as stored (never unpickled).
+
+    Raises
+    ------
+    FileFormatError
+        Missing, not a ``.npy`` file, pickled objects, or a bad or truncated array.
+    """
     try:
-        arr = np.load(path, allow_pickle=False)
+        _check_magic(path, NPY_MAGIC, "not a .npy file (no NumPy header)")
+        return np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise FileFormatError("file not found", path) from None
     except ValueError as exc:
         raise FileFormatError(_numpy_problem(exc, ".npy"), path) from None
     except (OSError, EOFError) as exc:
         raise FileFormatError(f"bad or truncated .npy: {exc}", path) from None
+
+
+def npy_shape(path: Path) -> tuple[int, ...] | None:
+    """The shape of a ``.npy`` array from its header (nothing loaded), None if unreadable."""
+    try:
+        _check_magic(path, NPY_MAGIC, "")
+        return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
+    except (OSError, ValueError, EOFError, FileFormatError):
+        return None
+
+
+def read_npy(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """(N, 3) points and (N, 3) normals or None of a numeric (N, 3) / (N, 6) ``.npy`` array."""
+    arr = load_npy(path)
     if arr.ndim != 2 or arr.shape[1] not in (3, 6) or arr.dtype.kind not in "fiu":
         raise FileFormatError(
             f".npy must hold a numeric (N, 3) or (N, 6) array, got {arr.dtype} {arr.shape}", path
