@@ -47,9 +47,10 @@ def load_npy(path: Path) -> NDArray:
     """
     try:
         _check_magic(path, NPY_MAGIC, "not a .npy file (no NumPy header)")
-        return np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise FileFormatError("file not found", path) from None
+    try:
+        return np.load(path, allow_pickle=False)
     except ValueError as exc:
         raise FileFormatError(_numpy_problem(exc, ".npy"), path) from None
     except (OSError, EOFError) as exc:
