@@ -154,9 +154,11 @@ def test_numpy_depth_maps_read_as_their_images(folders, camera, tmp_path):
         assert np.max(np.abs(frame.cloud.points - reference[k])) < 1e-6
     # A 3-D array is not a depth map: that frame is lost with its reason, the rest read.
     np.save(units_dir / "0001.npy", np.zeros((2, 3, 4), dtype=np.uint16))
+    (units_dir / "0003.npy").write_bytes(b"not numpy at all")
     frames = list(open_frames(units_dir))
-    assert [f.cloud is None for f in frames] == [k == 1 for k in range(N_FRAMES)]
+    assert [f.cloud is None for f in frames] == [k in (1, 3) for k in range(N_FRAMES)]
     assert "0001.npy" in frames[1].error and "2-D integer or float array" in frames[1].error
+    assert frames[3].error.endswith("/0003.npy: not a .npy file (no NumPy header)")
     assert all(isinstance(f.cloud.points, np.ndarray) for f in open_frames(folders["clouds"]))
 
 
