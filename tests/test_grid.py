@@ -141,12 +141,23 @@ def test_query_self_breaks_ties_by_index_on_a_lattice_and_duplicates(k):
 
 
 def test_thread_count_does_not_change_the_answer():
-    pts = _surface(20000, seed=8)
+    # With a fringe of 400 stray points: more unsure rows than the one-thread pass takes.
+    fringe = np.random.default_rng(9).uniform(-1, 1, (400, 3)) + np.array([0.0, 0.0, 1.2])
+    pts = np.vstack([_surface(20000, seed=8), fringe])
     index = VoxelIndex(pts)
-    for search in (lambda w: index.query(pts, k=10, workers=w), lambda w: index.query_self(10, w)):
+    for search in (
+        lambda w: index.query(pts, k=10, workers=w),
+        lambda w: index.query_self(10, w),
+        lambda w: index.query_self(10, w, distance_upper_bound=0.05),
+    ):
         one, two = search(1), search(2)
         np.testing.assert_array_equal(one[1], two[1])
         np.testing.assert_array_equal(one[0], two[0])
+    # And the many unsure rows are exact: brute force on the fringe's rows.
+    dist, idx = index.query_self(10, 2, distance_upper_bound=0.05)
+    ref_d2, ref_idx = _brute(pts, pts[20000:], 10, 0.05)
+    np.testing.assert_array_equal(idx[20000:], np.where(ref_idx < 0, len(pts), ref_idx))
+    np.testing.assert_allclose(dist[20000:] ** 2, ref_d2, rtol=1e-12)
 
 
 def test_degenerate_clouds():
