@@ -88,6 +88,8 @@ def test_simulate_errors_are_one_line(tmp_path, capsys) -> None:
     assert "--background applies to the lab scenario only" in capsys.readouterr().err
     assert main(["simulate", "orbit", "--out", out, "--motion", "tumbling-3"]) == 1
     assert "--motion applies to the lab scenario only" in capsys.readouterr().err
+    assert main(["simulate", "orbit", "--out", out, "--target-size", "0"]) == 1
+    assert "--target-size applies to the lab scenario only" in capsys.readouterr().err
     assert main(["simulate", "lab", "--out", out, "--model", str(tmp_path / "none.obj")]) == 1
     assert "none.obj: no such mesh file" in capsys.readouterr().err
     assert main(["simulate", "lab", "--out", out, "--noise-scale", "-1"]) == 1

@@ -54,8 +54,10 @@ def simulate(
 
     if grid and scenario != "lab":
         raise ConfigError(f"--grid builds lab scenes only, not {scenario!r}")
-    lab_only = {"--background": background, "--motion": motion, "--target-size": target_size}
-    given_lab = [name for name, value in lab_only.items() if value not in (None, False)]
+    # Named, not truthy: --target-size 0 is given (0.0 == False would hide it).
+    lab_only = {"--background": background or None, "--motion": motion}
+    lab_only["--target-size"] = target_size
+    given_lab = [name for name, value in lab_only.items() if value is not None]
     if scenario == "orbit" and given_lab:
         raise ConfigError(
             f"{given_lab[0]} applies to the lab scenario only; the orbit run's target tumbles "
