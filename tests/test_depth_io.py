@@ -110,6 +110,90 @@ def test_intrinsics_file(tmp_path):
         read_intrinsics(tmp_path / "neg.json")
 
 
+# ROS camera_calibration's camera_info YAML (a 640×480 camera, plumb-bob distortion).
+ROS_CAMERA_INFO = """\
+image_width: 640
+image_height: 480
+camera_name: tof
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [505.2, 0, 318.7, 0, 506.9, 241.3, 0, 0, 1]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [-0.12, 0.031, 0.0004, -0.0007, 0.0]
+rectification_matrix:
+  rows: 3
+  cols: 3
+  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]
+projection_matrix:
+  rows: 3
+  cols: 4
+  data: [505.2, 0, 318.7, 0, 0, 506.9, 241.3, 0, 0, 0, 1, 0]
+"""
+
+
+def test_a_ros_camera_info_yaml_is_an_intrinsics_file(tmp_path):
+    path = tmp_path / "intrinsics.yaml"
+    path.write_text(ROS_CAMERA_INFO)
+    camera = read_intrinsics(path)
+    assert (camera.fx, camera.fy, camera.cx, camera.cy) == (505.2, 506.9, 318.7, 241.3)
+    assert (camera.k1, camera.k2, camera.p1, camera.p2, camera.k3) == (
+        -0.12, 0.031, 0.0004, -0.0007, 0.0
+    )  # fmt: skip
+    assert (camera.width, camera.height, camera.depth_scale) == (640, 480, 0.001)
+    # Our own fields may stand beside it; an unknown key is still an error.
+    path.write_text(ROS_CAMERA_INFO + "depth_scale: 0.0002\ndepth_kind: range\n")
+    camera = read_intrinsics(path)
+    assert (camera.depth_scale, camera.depth_kind, camera.fx) == (0.0002, "range", 505.2)
+    path.write_text(ROS_CAMERA_INFO + "baseline: 0.05\n")
+    with pytest.raises(ConfigError, match=r"intrinsics\.yaml.*baseline"):
+        read_intrinsics(path)
+
+
+@pytest.mark.parametrize(
+    ("change", "problem"),
+    [
+        (("data: [505.2, 0, 318.7", "data: [505.2, 3.0, 318.7"), "must be"),  # skew
+        (("data: [505.2, 0, 318.7, 0, 506.9, 241.3, 0, 0, 1]", "data: [505.2, 0]"), "9 finite"),
+        (("data: [505.2, 0, 318.7", "data: [0, 0, 318.7"), "no focal length"),
+        (("plumb_bob", "equidistant"), "equidistant"),
+        (("data: [-0.12,", "data: [x,"), "numbers"),
+    ],
+)
+def test_a_camera_matrix_that_is_not_a_pinhole_is_refused_by_name(tmp_path, change, problem):
+    path = tmp_path / "camera_info.yaml"
+    path.write_text(ROS_CAMERA_INFO.replace(*change, 1))
+    with pytest.raises(ConfigError, match=rf"camera_info\.yaml: .*{problem}"):
+        read_intrinsics(path)
+
+
+@pytest.mark.peers
+def test_open3d_intrinsics_json_back_projects_as_open3d_does(tmp_path):
+    """Open3D writes the file and back-projects the depth image: the reference."""
+    o3d = pytest.importorskip("open3d")
+    width, height, fx, fy, cx, cy = 32, 24, 301.5, 297.0, 15.25, 11.75
+    intrinsic = o3d.camera.PinholeCameraIntrinsic(width, height, fx, fy, cx, cy)
+    o3d.io.write_pinhole_camera_intrinsic(str(tmp_path / "intrinsics.json"), intrinsic)
+    camera = read_intrinsics(tmp_path / "intrinsics.json")
+    assert (camera.fx, camera.fy, camera.cx, camera.cy) == (fx, fy, cx, cy)
+    assert (camera.width, camera.height, camera.distorted) == (width, height, False)
+    rng = np.random.default_rng(3)
+    depth_mm = np.round(_depth_m(rng) * 1000).astype(np.uint16)
+    path = tmp_path / "000000.png"
+    Image.fromarray(depth_mm).save(path)
+    ours = read_depth_cloud(path, camera).points
+    theirs = np.asarray(
+        o3d.geometry.PointCloud.create_from_depth_image(
+            o3d.geometry.Image(depth_mm), intrinsic, depth_scale=1000.0, depth_trunc=100.0
+        ).points
+    )
+    assert len(ours) == np.count_nonzero(depth_mm) == len(theirs)
+    np.testing.assert_allclose(ours, theirs, atol=1e-6)
+
+
 def test_tum_depth_list(tmp_path):
     (tmp_path / "depth").mkdir()
     (tmp_path / "depth.txt").write_text(

@@ -115,6 +115,30 @@ def test_tum_layout_with_intrinsics_option(folders, tmp_path, capsys):
     assert np.max(np.abs(est.poses - read_tum(tmp_path / "ref.tum").poses)) < 1e-9
 
 
+def test_a_ros_camera_info_file_tracks_like_our_intrinsics(folders, camera, tmp_path):
+    """The same depth folder with ROS's camera_info YAML as its intrinsics (our depth_scale
+    beside it: the units are 0.1 mm): the same poses, bit for bit."""
+    ros_dir = tmp_path / "ros"
+    ros_dir.mkdir()
+    for png in sorted(folders["depth"].glob("*.png")):
+        (ros_dir / png.name).write_bytes(png.read_bytes())
+    K = [camera.fx, 0, camera.cx, 0, camera.fy, camera.cy, 0, 0, 1]
+    (ros_dir / "intrinsics.yaml").write_text(
+        f"image_width: {camera.width}\nimage_height: {camera.height}\ncamera_name: tof\n"
+        f"camera_matrix: {{rows: 3, cols: 3, data: {K!r}}}\ndistortion_model: plumb_bob\n"
+        f"distortion_coefficients: {{rows: 1, cols: 5, data: [0, 0, 0, 0, 0]}}\n"
+        f"depth_scale: {DEPTH_SCALE!r}\n"
+    )
+    (ros_dir / "timestamps.txt").write_bytes((folders["depth"] / "timestamps.txt").read_bytes())
+    config = tracker_config(mls=False)
+    ros = track_folder(ros_dir, tmp_path / "ros.tum", config)
+    ours = track_folder(folders["depth"], tmp_path / "ours.tum", config)
+    assert ros["frames"] == ours["frames"] == N_FRAMES and ros["lost"] == 0
+    np.testing.assert_array_equal(
+        read_tum(tmp_path / "ros.tum").poses, read_tum(tmp_path / "ours.tum").poses
+    )
+
+
 def test_bad_depth_image_is_lost_with_its_reason(folders, tmp_path):
     bad = tmp_path / "bad"
     bad.mkdir()

@@ -120,8 +120,15 @@ def not_text(exc: UnicodeDecodeError) -> str:
     return f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
 
 
-def load_config(model: type[C], path: str | Path) -> C:
-    """Read a YAML (``.yaml``/``.yml``) or JSON config file into ``model``."""
+def read_mapping(path: str | Path) -> dict | None:
+    """The mapping a YAML (``.yaml``/``.yml``) or JSON config file holds (None: empty file).
+
+    Raises
+    ------
+    ConfigError
+        One line naming the file: unreadable, not UTF-8, not valid YAML / JSON, or not a
+        mapping.
+    """
     path = Path(path)
     try:
         text = path.read_text()
@@ -132,7 +139,12 @@ def load_config(model: type[C], path: str | Path) -> C:
     data = parse_structured(text, path)
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"{path}: a config file must hold a mapping, got {type(data).__name__}")
-    return validate_config(model, data, path)
+    return data
+
+
+def load_config(model: type[C], path: str | Path) -> C:
+    """Read a YAML (``.yaml``/``.yml``) or JSON config file into ``model``."""
+    return validate_config(model, read_mapping(path), path)
 
 
 def dump_config(config: BaseModel, path: str | Path) -> Path:

@@ -79,6 +79,58 @@ class DepthCamera(StageConfig):
         return any((self.k1, self.k2, self.k3, self.k4, self.k5, self.k6, self.p1, self.p2))
 
 
+# OpenCV's distortion coefficients in their order (plumb-bob gives the first five).
+_OPENCV_DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+
+
+def matrix_fields(
+    K: ArrayLike, D: ArrayLike = (), distortion_model: str | None = None
+) -> dict[str, float]:
+    """The :class:`DepthCamera` fields of a camera matrix and OpenCV distortion coefficients,
+    as ROS ``CameraInfo`` and calibration files hold them.
+
+    Parameters
+    ----------
+    K
+        The 3×3 camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]``, nested or 9 numbers
+        row by row.
+    D
+        Distortion coefficients in OpenCV's order ``k1, k2, p1, p2[, k3[, k4, k5, k6]]``.
+    distortion_model
+        ROS's name of the model (``plumb_bob`` or ``rational_polynomial``); another name is
+        accepted only with every coefficient zero.
+
+    Returns
+    -------
+    dict
+        ``fx, fy, cx, cy`` and the non-zero distortion coefficients.
+
+    Raises
+    ------
+    InputError
+        ``K`` not 9 finite numbers, a zero focal length, a skew or bottom row this model does
+        not have, more than 8 coefficients, or non-zero coefficients of another model.
+    """
+    try:
+        k = np.asarray(K, dtype=np.float64).ravel()
+        d = np.asarray(D, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise InputError("the camera matrix and distortion must be numbers") from None
+    if k.size != 9 or not np.all(np.isfinite(k)):
+        raise InputError(f"a camera matrix needs 9 finite numbers, got {k.size}")
+    if k[0] <= 0 or k[4] <= 0:
+        raise InputError(f"the camera matrix has no focal length (fx {k[0]:g}, fy {k[4]:g})")
+    # A skewed or projective matrix is not a pinhole with square pixel axes.
+    if k[1] != 0 or k[3] != 0 or np.any(k[6:] != (0.0, 0.0, 1.0)):
+        raise InputError("the camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+    if d.size > len(_OPENCV_DISTORTION) or not np.all(np.isfinite(d)):
+        raise InputError(f"expected at most 8 finite distortion coefficients, got {d.size}")
+    if np.any(d) and distortion_model not in (None, "plumb_bob", "rational_polynomial"):
+        raise InputError(f"distortion model {distortion_model!r} is not supported")
+    fields = {"fx": k[0], "fy": k[4], "cx": k[2], "cy": k[5]}
+    return fields | {n: float(v) for n, v in zip(_OPENCV_DISTORTION, d, strict=False) if v}
+
+
 def _radial(camera: DepthCamera, r2: NDArray) -> tuple[NDArray, NDArray]:
     """The radial factor ``c(r²)`` of the distortion model and its derivative ``dc/d(r²)``."""
     c = camera

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.depth import DepthCamera, depth_to_cloud
+from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
 from spacepose.errors import FileFormatError, InputError, SpaceposeError
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.frames import FrameInput
@@ -153,24 +153,14 @@ def camera_from_info(msg: Any, depth_scale: float) -> DepthCamera:
     FileFormatError
         Another distortion model with non-zero coefficients, or a zero focal length.
     """
-    K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, dtype=np.float64)
-    D = [float(v) for v in (msg.d if hasattr(msg, "d") else msg.D)]
-    model = msg.distortion_model
-    if any(D) and model not in ("plumb_bob", "rational_polynomial"):
-        raise FileFormatError(f"CameraInfo distortion model {model!r} is not supported")
-    names = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
-    if K[0] <= 0 or K[4] <= 0:
-        raise FileFormatError("CameraInfo has no focal length (K is zero)")
-    return DepthCamera(
-        fx=K[0],
-        fy=K[4],
-        cx=K[2],
-        cy=K[5],
-        depth_scale=depth_scale,
-        width=msg.width or None,
-        height=msg.height or None,
-        **dict(zip(names, D, strict=False)),
-    )
+    K = msg.k if hasattr(msg, "k") else msg.K
+    D = msg.d if hasattr(msg, "d") else msg.D
+    try:
+        fields = matrix_fields(K, D, msg.distortion_model)
+    except InputError as exc:
+        raise FileFormatError(f"CameraInfo: {exc}") from None
+    size = {"width": msg.width or None, "height": msg.height or None}
+    return DepthCamera(depth_scale=depth_scale, **fields, **size)
 
 
 @dataclass(frozen=True)

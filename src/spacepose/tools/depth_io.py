@@ -4,7 +4,8 @@ A depth folder holds one image per frame (``.png``, ``.tif``, ``.tiff``; 16-bit 
 32-bit floats, one channel, decoded by Pillow; or ``.npy``, an (H, W) integer or float array as
 renderers and simulators save them, NaN or inf for no return) and an intrinsics file
 (``intrinsics.yaml``, ``.yml`` or ``.json``: the fields of
-:class:`spacepose.core.depth.DepthCamera`), or one given explicitly. Frames are the images
+:class:`spacepose.core.depth.DepthCamera`, or ROS's ``camera_info`` YAML, or Open3D's pinhole
+JSON; :func:`read_intrinsics`), or one given explicitly. Frames are the images
 sorted by name, with ``timestamps.txt`` when present, or, in TUM RGB-D's layout, the
 ``timestamp path`` lines of ``depth.txt`` (``#`` comments ignored; the paths relative to the
 folder).
@@ -19,9 +20,9 @@ from numpy.typing import ArrayLike, NDArray
 from PIL import Image, UnidentifiedImageError
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import load_config
-from spacepose.core.depth import DepthCamera, depth_to_cloud
-from spacepose.errors import FileFormatError, InputError
+from spacepose.core.config import read_mapping, validate_config
+from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
+from spacepose.errors import ConfigError, FileFormatError, InputError
 from spacepose.tools.npy_io import load_npy, npy_shape
 
 DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
@@ -134,14 +135,66 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
 
 
 def read_intrinsics(path: str | Path) -> DepthCamera:
-    """Read an intrinsics file (YAML or JSON; fields of :class:`DepthCamera`).
+    """Read an intrinsics file (YAML or JSON) in one of three layouts:
+
+    - ours: the fields of :class:`DepthCamera`;
+    - ROS's ``camera_info`` YAML (``camera_calibration``'s output): ``camera_matrix``,
+      ``distortion_model``, ``distortion_coefficients``, ``image_width``, ``image_height``;
+    - Open3D's ``PinholeCameraIntrinsic`` JSON: ``intrinsic_matrix`` (9 numbers, column by
+      column), ``width``, ``height``.
+
+    A foreign layout may carry our other fields beside it (``depth_scale``, ``depth_kind``,
+    ``max_depth``); without them, 16-bit values are millimetres along the boresight, as ROS
+    and Open3D take them. Their other keys (``camera_name``, the rectification and projection
+    matrices) are not used.
 
     Raises
     ------
     ConfigError
-        Unreadable file, unknown key or a value out of range.
+        Unreadable file, unknown key, a value out of range, or a matrix that is not a pinhole
+        camera's.
     """
-    return load_config(DepthCamera, path)
+    data = read_mapping(path) or {}
+    try:
+        data = _ros_fields(data) if "camera_matrix" in data else data
+        data = _open3d_fields(data) if "intrinsic_matrix" in data else data
+    except InputError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return validate_config(DepthCamera, data, path)
+
+
+# Keys of ROS's camera_info YAML that describe stereo rectification, not the depth image.
+_ROS_UNUSED = ("camera_name", "rectification_matrix", "projection_matrix")
+
+
+def _ros_fields(data: dict) -> dict:
+    """Our fields from ROS's ``camera_info`` YAML layout (and any of ours beside it)."""
+    rest = {k: v for k, v in data.items() if k not in _ROS_UNUSED}
+    K = _matrix_data(rest.pop("camera_matrix"), "camera_matrix")
+    D = _matrix_data(rest.pop("distortion_coefficients", None) or {"data": []}, "distortion")
+    model = rest.pop("distortion_model", None)
+    size = {"width": rest.pop("image_width", None), "height": rest.pop("image_height", None)}
+    return matrix_fields(K, D, model) | {k: v for k, v in size.items() if v} | rest
+
+
+def _open3d_fields(data: dict) -> dict:
+    """Our fields from Open3D's ``PinholeCameraIntrinsic`` JSON (the matrix column-major)."""
+    rest = dict(data)
+    values = rest.pop("intrinsic_matrix")
+    try:
+        K = np.asarray(values, dtype=np.float64).reshape(3, 3).T
+    except (TypeError, ValueError):
+        raise InputError("intrinsic_matrix must be 9 numbers, column by column") from None
+    return matrix_fields(K) | rest
+
+
+def _matrix_data(entry: object, name: str) -> object:
+    """A ROS YAML matrix's numbers: ``{rows, cols, data}`` or a bare list."""
+    if isinstance(entry, dict):
+        if "data" not in entry:
+            raise InputError(f"{name} has no data")
+        return entry["data"]
+    return entry
 
 
 def find_intrinsics(root: str | Path) -> Path | None:
