@@ -24,6 +24,7 @@ from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
 from spacepose.errors import ConfigError, FileFormatError, InputError
 from spacepose.tools.npy_io import load_npy, npy_shape
+from spacepose.tools.text_io import read_text
 
 DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
 # A depth folder's frames may also be NumPy arrays; elsewhere a ``.npy`` is a point cloud.
@@ -253,10 +254,7 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
         or no line at all.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read: {exc}", path) from None
+    text = read_text(path, "the depth list")
     paths: list[Path] = []
     stamps: list[float] = []
     for lineno, line in enumerate(text.splitlines(), start=1):

@@ -39,6 +39,7 @@ from spacepose.errors import InputError
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.outputs import check_writable
+from spacepose.tools.text_io import read_text
 from spacepose.tools.trajectory_io import tum_lines
 
 HEALTH_COLUMNS: tuple[str, ...] = (
@@ -193,7 +194,9 @@ def open_frames(
 def _folder_timestamps(root: Path, n_frames: int) -> NDArray[np.float64]:
     """``timestamps.txt`` of a folder when present, else the frame indices."""
     stamps_path = root / TIMESTAMPS_FILE
-    if stamps_path.is_file():
+    # Not only a regular file: a folder or a broken link by that name is an error, not frame
+    # indices taken without a word.
+    if stamps_path.exists() or stamps_path.is_symlink():
         return read_timestamps(stamps_path, n_frames)
     return np.arange(n_frames, dtype=np.float64)
 
@@ -245,7 +248,7 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
     """
     path = Path(path)
     values: list[float] = []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    for lineno, line in enumerate(read_text(path, "timestamps").splitlines(), start=1):
         body = line.split("#", 1)[0].strip()
         if not body:
             continue

@@ -54,6 +54,7 @@ from spacepose.tools.depth_io import (
     read_intrinsics,
 )
 from spacepose.tools.outputs import check_writable
+from spacepose.tools.text_io import read_text
 
 Method = Literal["point_to_plane", "point_to_point", "gicp"]
 # Points whose nearest-neighbour distance samples the spacing (seeded subsample).
@@ -349,10 +350,7 @@ def read_transform(path: str | Path) -> NDArray[np.float64]:
     """A 4×4 transform from a text file (16 numbers) or a JSON file with ``T_target_source``
     (e.g. an earlier ``--out``)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise FileFormatError(f"cannot read the transform: {exc.strerror}", path) from None
+    text = read_text(path, "the transform")
     try:
         values = json.loads(text)["T_target_source"] if path.suffix == ".json" else text.split()
         T = np.asarray(values, dtype=np.float64).reshape(4, 4)

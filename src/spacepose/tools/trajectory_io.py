@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.text_io import read_text
 
 _TUM_COLUMNS = 8
 _KITTI_COLUMNS = 12
@@ -27,12 +28,7 @@ def _read_rows(path: Path, width: int, kind: str) -> tuple[NDArray[np.float64], 
     Returns the (M, width) values and the 1-based line number of each row, so errors found later
     (e.g. a zero quaternion) can name the line.
     """
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise FileFormatError("no such file", path) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FileFormatError(f"cannot read {kind} file: {exc}", path) from None
+    text = read_text(path, f"{kind} file")
     tokens: list[list[str]] = []
     numbers: list[int] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
@@ -189,16 +185,9 @@ def read_trajectory(path: str | Path) -> Trajectory:
         return read_tum(path)
     if suffix == ".kitti":
         return read_kitti(path)
-    try:
-        with path.open() as fh:
-            first = next(
-                (b for b in (ln.split("#", 1)[0].replace(",", " ").split() for ln in fh) if b),
-                [],
-            )
-    except FileNotFoundError:
-        raise FileFormatError("no such file", path) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FileFormatError(f"cannot read trajectory file: {exc}", path) from None
+    lines = read_text(path, "trajectory file").splitlines()
+    rows = (line.split("#", 1)[0].replace(",", " ").split() for line in lines)
+    first = next((row for row in rows if row), [])
     if len(first) == _TUM_COLUMNS:
         return read_tum(path)
     if len(first) == _KITTI_COLUMNS:

@@ -1,0 +1,94 @@
+"""Small text inputs found wanting by a third fuzzing round (trajectories, timestamps, --init
+transforms, depth lists): binary bytes, a byte-order mark, a folder or a pipe in a file's place
+each end in one line naming the file, and none blocks the command."""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+
+from spacepose.cli import main
+from spacepose.errors import FileFormatError
+from spacepose.tools.cloud_io import write_cloud
+from spacepose.tools.frames import open_frames, read_timestamps
+from spacepose.tools.register import read_transform
+from spacepose.tools.trajectory_io import read_trajectory, read_tum
+
+_TUM = "0 0 0 1 0 0 0 1\n1 0.01 0 1 0 0 0 1\n"
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err, err
+    return err
+
+
+def test_binary_init_transform_is_one_line_naming_it(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    cloud = tmp_path / "c.xyz"
+    write_cloud(cloud, rng.normal(size=(200, 3)) * 0.1 + [0, 0, 1])
+    init = tmp_path / "init.txt"
+    init.write_bytes(b"\xc8" + rng.bytes(100))
+    with pytest.raises(FileFormatError, match=r"init\.txt: cannot read the transform: not UTF-8"):
+        read_transform(init)
+    assert main(["register", str(cloud), str(cloud), "--init", str(init)]) == 1
+    assert "init.txt: cannot read the transform: not UTF-8 text" in _one_line(capsys)
+
+
+def test_timestamps_that_are_binary_or_a_folder_name_the_file(tmp_path, capsys):
+    stamps = tmp_path / "timestamps.txt"
+    stamps.write_bytes(b"\xea\x00\x17" * 10)
+    with pytest.raises(FileFormatError, match=r"timestamps\.txt: cannot read timestamps: not UTF"):
+        read_timestamps(stamps, 3)
+    stamps.unlink()
+    for k in range(3):
+        write_cloud(tmp_path / f"{k:06d}.xyz", np.eye(3) + k)
+    # A folder named timestamps.txt is no set of times: refused, not replaced by frame numbers.
+    stamps.mkdir()
+    with pytest.raises(FileFormatError, match=r"timestamps\.txt: a folder"):
+        open_frames(tmp_path)
+    assert main(["track", str(tmp_path), "--out", str(tmp_path / "o" / "e.tum")]) == 1
+    assert "timestamps.txt: a folder" in _one_line(capsys)
+
+
+def test_a_byte_order_mark_is_read_past(tmp_path):
+    (tmp_path / "timestamps.txt").write_bytes(b"\xef\xbb\xbf0.5\n1.5\n")
+    assert read_timestamps(tmp_path / "timestamps.txt", 2).tolist() == [0.5, 1.5]
+    for name in ("t.tum", "t.txt"):
+        (tmp_path / name).write_bytes(b"\xef\xbb\xbf" + _TUM.encode())
+        assert read_trajectory(tmp_path / name).timestamps.tolist() == [0.0, 1.0]
+
+
+def test_a_trajectory_that_is_not_text_says_so_plainly(tmp_path):
+    (tmp_path / "b.tum").write_bytes(b"\xd2\x00" * 40)
+    with pytest.raises(FileFormatError, match=r"b\.tum: cannot read TUM file: not UTF-8") as info:
+        read_tum(tmp_path / "b.tum")
+    assert "codec" not in str(info.value)
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+@pytest.mark.parametrize("name", ["est.tum", "est.txt", "init.txt"])
+def test_a_named_pipe_is_refused_without_waiting_for_a_writer(tmp_path, name):
+    pipe = tmp_path / name
+    os.mkfifo(pipe)
+    read = read_transform if name == "init.txt" else read_trajectory
+    with ThreadPoolExecutor(1) as pool:
+        future = pool.submit(read, pipe)
+        try:
+            error = future.exception(timeout=20)
+        finally:
+            # A reader blocked in open() is released by a writer's open (and sees no data).
+            if not future.done():
+                os.close(os.open(pipe, os.O_WRONLY | os.O_NONBLOCK))
+    assert isinstance(error, FileFormatError), error
+    assert f"{name}: not a regular file" in str(error)
+
+
+def test_the_evaluate_command_names_a_folder_given_as_a_trajectory(tmp_path, capsys):
+    (tmp_path / "gt.tum").write_text(_TUM)
+    (tmp_path / "est").mkdir()
+    assert main(["evaluate", str(tmp_path / "est"), str(tmp_path / "gt.tum")]) == 1
+    assert _one_line(capsys).endswith("est: a folder, not a file")
