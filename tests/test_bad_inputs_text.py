@@ -4,8 +4,10 @@ each end in one line naming the file, and none blocks the command."""
 
 from __future__ import annotations
 
+import csv
 import os
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ import pytest
 from spacepose.cli import main
 from spacepose.errors import FileFormatError
 from spacepose.tools.cloud_io import write_cloud
-from spacepose.tools.frames import open_frames, read_timestamps
+from spacepose.tools.frames import open_frames, read_timestamps, track_folder
 from spacepose.tools.register import read_transform
 from spacepose.tools.trajectory_io import read_trajectory, read_tum
 
@@ -92,3 +94,36 @@ def test_the_evaluate_command_names_a_folder_given_as_a_trajectory(tmp_path, cap
     (tmp_path / "est").mkdir()
     assert main(["evaluate", str(tmp_path / "est"), str(tmp_path / "gt.tum")]) == 1
     assert _one_line(capsys).endswith("est: a folder, not a file")
+
+
+def _statuses(health: Path) -> list[tuple[str, str]]:
+    with health.open() as fh:
+        return [(row["status"], row["reasons"]) for row in csv.DictReader(fh)]
+
+
+@pytest.mark.skipif(not Path("/proc/self/mem").is_file(), reason="needs Linux's /proc")
+@pytest.mark.parametrize("suffix", [".xyz", ".pcd", ".npy", ".npz"])
+def test_a_frame_the_system_refuses_to_read_is_lost_and_the_run_goes_on(tmp_path, suffix):
+    # /proc/self/mem is a regular file whose first page no read can reach (EIO), even for root,
+    # as a file without read permission is for anyone else.
+    rng = np.random.default_rng(1)
+    cloud = rng.normal(size=(400, 3)) * 0.1 + [0, 0, 1]
+    for k in (0, 2):
+        write_cloud(tmp_path / f"{k:06d}{suffix}", cloud)
+    (tmp_path / f"000001{suffix}").symlink_to("/proc/self/mem")
+    summary = track_folder(tmp_path, tmp_path / "o" / "e.tum")
+    assert summary["frames"] == 3 and summary["lost"] == 1
+    status, reason = _statuses(tmp_path / "o" / "e.health.csv")[1]
+    assert status == "lost" and f"000001{suffix}: cannot read: Input/output error" in reason
+
+
+def test_a_folder_named_as_a_depth_frame_is_lost_in_its_place(tmp_path):
+    yy, xx = np.mgrid[:24, :32]
+    for k in (0, 2):
+        np.save(tmp_path / f"{k:06d}.npy", 1.0 + 0.01 * xx + 0.02 * yy + 0.1 * (xx % 3))
+    (tmp_path / "000001.npy").mkdir()
+    (tmp_path / "intrinsics.yaml").write_text("fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\n")
+    summary = track_folder(tmp_path, tmp_path / "o" / "e.tum")
+    assert summary["frames"] == 3
+    status, reason = _statuses(tmp_path / "o" / "e.health.csv")[1]
+    assert status == "lost" and "000001.npy: a folder" in reason

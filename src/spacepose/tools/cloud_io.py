@@ -22,6 +22,7 @@ from spacepose.core.cloud import PointCloud, check_scale
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.npy_io import read_npy, read_npz, write_npy, write_npz
 from spacepose.tools.pcd_io import read_pcd_table, write_pcd
+from spacepose.tools.text_io import not_a_file
 
 _XYZ = ("x", "y", "z")
 _PLY_NORMALS = ("nx", "ny", "nz")
@@ -66,7 +67,8 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     Raises
     ------
     FileFormatError
-        Unknown extension, missing file, truncated file, bad header or no x/y/z data.
+        Unknown extension, missing file (or a folder, a pipe), a read the system refuses,
+        truncated file, bad header or no x/y/z data.
     InputError
         The file holds no finite point.
     """
@@ -80,11 +82,15 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
             f"{', '.join(sorted(_READERS))}",
             path,
         )
-    if not path.is_file():
-        raise FileFormatError("a broken link" if path.is_symlink() else "no such file", path)
+    problem = not_a_file(path)
+    if problem is not None:
+        raise FileFormatError(problem, path)
     if not (np.isfinite(scale) and scale > 0):
         raise InputError(f"scale must be a positive number, got {scale}", path)
-    points, normals = reader(path)
+    try:
+        points, normals = reader(path)
+    except OSError as exc:  # refused by the system: this file fails (a frame is lost), not the run
+        raise FileFormatError(f"cannot read: {exc.strerror or exc}", path) from None
     cloud = PointCloud(points * scale, normals, source=str(path))
     if scale == 1.0:
         warn_if_not_metres(cloud, path)

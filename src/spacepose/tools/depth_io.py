@@ -24,7 +24,7 @@ from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
 from spacepose.errors import ConfigError, FileFormatError, InputError
 from spacepose.tools.npy_io import load_npy, npy_shape
-from spacepose.tools.text_io import read_text
+from spacepose.tools.text_io import not_a_file, read_text
 
 DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
 # A depth folder's frames may also be NumPy arrays; elsewhere a ``.npy`` is a point cloud.
@@ -47,6 +47,8 @@ def read_depth_image(path: str | Path) -> NDArray:
         ``.npy`` that is not a 2-D numeric array.
     """
     path = Path(path)
+    if path.exists() and not path.is_file():  # a folder, or a pipe Pillow would wait on
+        raise FileFormatError(not_a_file(path), path)
     if path.suffix.lower() == ".npy":
         values = load_npy(path)
         if values.ndim != 2 or values.dtype.kind not in "fiu":
@@ -78,6 +80,8 @@ def read_depth_image(path: str | Path) -> NDArray:
 
 def image_size(path: str | Path) -> tuple[int, int] | None:
     """(width, height) of an image from its header (nothing decoded), None if unreadable."""
+    if not Path(path).is_file():  # a pipe would block the header read
+        return None
     if Path(path).suffix.lower() == ".npy":
         shape = npy_shape(Path(path))
         return None if shape is None or len(shape) != 2 else (shape[1], shape[0])

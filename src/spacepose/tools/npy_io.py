@@ -49,6 +49,8 @@ def load_npy(path: Path) -> NDArray:
         _check_magic(path, NPY_MAGIC, "not a .npy file (no NumPy header)")
     except FileNotFoundError:
         raise FileFormatError("file not found", path) from None
+    except OSError as exc:  # a folder, a read refused: this file fails, not the run
+        raise FileFormatError(f"cannot read: {exc.strerror or exc}", path) from None
     try:
         return np.load(path, allow_pickle=False)
     except ValueError as exc:
@@ -59,6 +61,8 @@ def load_npy(path: Path) -> NDArray:
 
 def npy_shape(path: Path) -> tuple[int, ...] | None:
     """The shape of a ``.npy`` array from its header (nothing loaded), None if unreadable."""
+    if not path.is_file():  # a pipe would block the header read
+        return None
     try:
         _check_magic(path, NPY_MAGIC, "")
         return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
