@@ -284,3 +284,17 @@ def test_navigate_prior_that_is_no_rotation_exits_1(tmp_path, capsys, prior):
     assert main([*args, "--prior", prior]) == 1
     err = _cli_error(capsys)
     assert "--prior: the quaternion must be four finite numbers with a non-zero norm" in err
+
+
+@pytest.mark.parametrize("fov", ["zzz", [-10, 500], [60], [60, 0], {"h": 60}])
+def test_a_scenario_field_of_view_that_is_no_pair_of_angles_is_one_line(tmp_path, capsys, fov):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    np.savetxt(frames / "000000.xyz", np.random.default_rng(0).uniform(-1, 1, (50, 3)))
+    scenario = tmp_path / "scenario.yaml"
+    description = {"mean_motion": 0.001, "R_O_C": EYE, "rectangles": [_entry()]}
+    scenario.write_text(json.dumps(description | {"sensor_fov_deg": fov}))
+    args = ["navigate", str(frames), "--out", str(tmp_path / "nav" / "p.csv")]
+    assert main([*args, "--scenario", str(scenario)]) == 1
+    err = _cli_error(capsys)
+    assert f"{scenario}: sensor_fov_deg: invalid LostInSpaceConfig: fov_deg" in err

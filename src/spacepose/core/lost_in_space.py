@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -36,7 +37,7 @@ from scipy.spatial import cKDTree
 from spacepose.core import se3
 from spacepose.core.attitude_fix import explained_rectangles
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, validate_config
 from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.rectangle_measurement import RectangleMeasurement
 from spacepose.core.rectangles import CatalogueEntry
@@ -51,6 +52,10 @@ __all__ = [
     "refine_on_model",
     "visible_samples",
 ]
+
+
+# A field of view side: a cone of 0 or 180 deg or more sees nothing or has no tangent.
+_Angle = Annotated[float, Field(gt=0, lt=180)]
 
 
 class LostInSpaceConfig(StageConfig):
@@ -123,11 +128,24 @@ class LostInSpaceConfig(StageConfig):
     same_pose_deg: float = Field(
         5.0, gt=0, description="Attitudes closer than this (deg) are one candidate."
     )
-    fov_deg: tuple[float, float] | None = Field(
+    fov_deg: tuple[_Angle, _Angle] | None = Field(
         None,
         description="Sensor field of view (horizontal, vertical), deg: model samples "
         "outside it are not expected in the frame. None: no limit.",
     )
+
+
+def with_sensor_fov(config: LostInSpaceConfig, fov: object, source: str) -> LostInSpaceConfig:
+    """``config`` with a scenario's ``sensor_fov_deg``, validated as the field is.
+
+    Raises
+    ------
+    ConfigError
+        ``source: sensor_fov_deg: invalid LostInSpaceConfig: ...``: not two angles in
+        (0, 180) deg (null, text, a negative or non-finite angle).
+    """
+    data = config.model_dump() | {"fov_deg": fov}
+    return validate_config(LostInSpaceConfig, data, f"{source}: sensor_fov_deg")
 
 
 def _spacing(tree: cKDTree) -> float:

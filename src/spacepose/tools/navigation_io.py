@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, not_text, parse_problem
 from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
+from spacepose.core.lost_in_space import with_sensor_fov
 from spacepose.core.nav_result import NavRow, nav_table
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.navigation import NavigationConfig, navigate
@@ -161,9 +162,8 @@ def navigate_run(
         catalogue = parse_catalogue(description, cfg.rectangle, source)
     model = read_cloud(model) if model is not None else _model(input_dir, scenario, description)
     if cfg.lost_in_space.fov_deg is None and "sensor_fov_deg" in description:
-        fov = tuple(float(v) for v in description["sensor_fov_deg"])
-        cfg = cfg.model_copy(update={"lost_in_space": cfg.lost_in_space.model_copy(
-            update={"fov_deg": fov})})  # fmt: skip
+        fov = with_sensor_fov(cfg.lost_in_space, description["sensor_fov_deg"], source)
+        cfg = cfg.model_copy(update={"lost_in_space": fov})
     prior_name = "prior_q_I_B"
     if debug_prior_from_truth:
         if "initial_q_I_B" not in description:

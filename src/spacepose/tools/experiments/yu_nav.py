@@ -34,6 +34,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from spacepose.core.ekf import RelativeNavEKF
+from spacepose.core.lost_in_space import with_sensor_fov
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.nav_state import INERTIA, N_FIXED, NavState, k_from_params, params_from_k
 from spacepose.core.navigation import NavigationConfig, RelativeNavigator
@@ -90,8 +91,8 @@ def navigation_config(scenario: dict[str, Any], base: NavigationConfig) -> Navig
     if ekf:
         update["ekf"] = base.ekf.model_copy(update=ekf)
     if base.lost_in_space.fov_deg is None and "sensor_fov_deg" in scenario:
-        fov = tuple(float(v) for v in scenario["sensor_fov_deg"])
-        update["lost_in_space"] = base.lost_in_space.model_copy(update={"fov_deg": fov})
+        fov = scenario["sensor_fov_deg"]
+        update["lost_in_space"] = with_sensor_fov(base.lost_in_space, fov, "scenario")
     return base.model_copy(update=update)
 
 
