@@ -298,3 +298,33 @@ def test_a_scenario_field_of_view_that_is_no_pair_of_angles_is_one_line(tmp_path
     assert main([*args, "--scenario", str(scenario)]) == 1
     err = _cli_error(capsys)
     assert f"{scenario}: sensor_fov_deg: invalid LostInSpaceConfig: fov_deg" in err
+
+
+# Deeper than either parser's recursion: a RecursionError traceback before.
+DEEP = "[" * 100_000 + "]" * 100_000
+
+
+@pytest.mark.parametrize("name", ["deep.json", "deep.yaml"])
+def test_structured_files_nested_too_deeply_are_one_line(tmp_path, capsys, name):
+    path = tmp_path / name
+    path.write_text(DEEP if name.endswith(".json") else f"a: {DEEP}\n")
+    with pytest.raises(ConfigError, match="nested too deeply") as info:
+        load_config(TrackerConfig, path)
+    _one_line(info, path)
+    with pytest.raises(ConfigError, match="nested too deeply"):
+        load_catalogue(path)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    np.savetxt(frames / "000000.xyz", np.random.default_rng(0).uniform(-1, 1, (50, 3)))
+    out = ["--out", str(tmp_path / "o" / "n.csv")]
+    assert main(["navigate", str(frames), "--scenario", str(path), *out]) == 1
+    assert f"{path}: not valid" in _cli_error(capsys)
+
+
+def test_a_run_whose_scenario_json_is_nested_too_deeply(tmp_path, capsys):
+    run = _orbit_run(tmp_path / "run", b"")
+    (run / "scenario.json").write_text(DEEP)
+    with pytest.raises(FileFormatError, match=r"scenario\.json: not valid JSON: nested too deeply"):
+        read_run(run)
+    assert main(["report", str(run), "--out", str(tmp_path / "r.html")]) == 0
+    assert "scenario.json: left out of the report: not valid JSON" in capsys.readouterr().err

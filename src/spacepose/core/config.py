@@ -100,6 +100,21 @@ def parse_problem(exc: Exception) -> str:
     return f"{where}{problem}" + (f" ({context})" if context else "")
 
 
+def load_structured(text: str, kind: str) -> Any:
+    """``json.loads`` (``kind == "json"``) or ``yaml.safe_load`` of ``text``.
+
+    Both parsers recurse once per level of nesting, so ``[[[[…`` a few thousand deep ends in a
+    RecursionError; it is raised as the parser's own error (``nested too deeply``), which every
+    reader already turns into one line naming its file.
+    """
+    try:
+        return json.loads(text) if kind == "json" else yaml.safe_load(text)
+    except RecursionError:
+        if kind == "json":
+            raise json.JSONDecodeError("nested too deeply", text, 0) from None
+        raise yaml.YAMLError("nested too deeply") from None
+
+
 def parse_structured(text: str, source: str | Path, kind: str | None = None) -> Any:
     """Parse ``text`` as JSON (``kind == "json"`` or a ``.json`` source) or else YAML.
 
@@ -110,7 +125,7 @@ def parse_structured(text: str, source: str | Path, kind: str | None = None) -> 
     """
     kind = kind or ("json" if Path(source).suffix.lower() == ".json" else "yaml")
     try:
-        return json.loads(text) if kind == "json" else yaml.safe_load(text)
+        return load_structured(text, kind)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:
         raise ConfigError(f"{source}: not valid {kind.upper()}: {parse_problem(exc)}") from None
 

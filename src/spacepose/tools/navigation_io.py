@@ -24,7 +24,7 @@ import yaml
 from numpy.typing import ArrayLike
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import dump_config, not_text, parse_problem
+from spacepose.core.config import dump_config, load_structured, not_text, parse_problem
 from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
 from spacepose.core.lost_in_space import with_sensor_fov
 from spacepose.core.nav_result import NavRow, nav_table
@@ -294,7 +294,7 @@ def _model(
 def _read_mapping(path: Path) -> dict:
     """A YAML or JSON file holding one mapping."""
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_structured(path.read_text(), "yaml")
     except OSError as exc:
         raise InputError(f"cannot read: {exc.strerror}", path) from None
     except UnicodeDecodeError as exc:

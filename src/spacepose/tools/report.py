@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from spacepose import __version__
-from spacepose.core.config import not_text, parse_problem
+from spacepose.core.config import load_structured, not_text, parse_problem
 from spacepose.core.metrics import ErrorTable, evaluate, navigation_errors, pose_errors
 from spacepose.core.mls import MLSConfig, mpp_mls
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
@@ -106,7 +106,7 @@ class _Skipped:
 
 def _read_json(path: Path) -> object:
     try:
-        return json.loads(path.read_text())
+        return load_structured(path.read_text(), "json")
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FileFormatError(f"not valid JSON: {parse_problem(exc)}", path) from None
 

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import not_text
+from spacepose.core.config import load_structured, not_text
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS, Simulation
 from spacepose.core.sim.targets import Rectangle
 from spacepose.core.trajectory import Trajectory
@@ -166,7 +166,7 @@ def read_run(path: str | Path) -> Run:
         if not (root / name).exists():
             raise InputError(f"run folder is missing {name}", root)
     try:
-        scenario = json.loads((root / SCENARIO).read_text())
+        scenario = load_structured((root / SCENARIO).read_text(), "json")
     except UnicodeDecodeError as exc:
         raise FileFormatError(not_text(exc), root / SCENARIO) from None
     except json.JSONDecodeError as exc:
