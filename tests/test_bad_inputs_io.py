@@ -271,3 +271,20 @@ def test_an_empty_sensor_name_is_refused(tmp_path, capsys):
     out = str(tmp_path / "run")
     assert main(["simulate", "lab", "--frames", "2", "--sensor", "", "--out", out]) == 1
     assert "unknown sensor ''" in _one_line(capsys)
+
+
+def test_a_model_that_collapses_at_the_frame_voxel_loses_every_frame_by_name(
+    frames, tmp_path, capsys
+):
+    # 200 copies of one point pass the model's count, then fall to 1 point at the voxel the
+    # first frame sets: the second frame raised AttributeError on half-built stages.
+    model = tmp_path / "one_spot.xyz"
+    np.savetxt(model, np.tile([0.1, 0.2, 1.0], (200, 1)))
+    out = tmp_path / "e.tum"
+    assert main(["track", str(frames), "--model", str(model), "--out", str(out)]) == 1
+    err = _one_line(capsys).splitlines()[-1]
+    assert "every frame was lost" in err and "one_spot.xyz: model has 1 points" in err
+    with out.with_suffix(".health.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 5
+    assert all(r["status"] == "lost" and "one_spot.xyz: model has 1" in r["reasons"] for r in rows)

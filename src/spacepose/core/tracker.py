@@ -290,12 +290,14 @@ class Tracker:
         cfg, workers = self.config, self.workers
         lengths, ok_influence = self._frames.lengths, cfg.health.ok_influence
         registrar = FrameRegistrar(cfg.method, lengths, cfg.covariance_scale, workers, ok_influence)
-        self._registrar = registrar
         if self.model_based:
+            # Before the registrar is kept: a model too sparse at this frame's voxel loses the
+            # frame, and the next frame tries again instead of finding half-built stages.
             self._model = self._frames.prepare_model(self._model_cloud)
             # Its normals tell the faces a pose turns to the sensor (visible_model).
             self._model_cloud = self._frames.sensor_model(self._model_cloud)
-        else:
+        self._registrar = registrar
+        if not self.model_based:
             min_points, stale = cfg.health.min_points, cfg.keyframe.stale_fitness
             self._support = SupportSeparation(registrar, min_points, workers, stale)
         model, window, motion = self._model, self._window, self._motion
