@@ -13,10 +13,11 @@ from PIL import Image
 
 from spacepose.cli import main
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import DegenerateGeometryError, FileFormatError, InputError
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.frames import track_folder
 from spacepose.tools.outputs import check_writable
+from spacepose.tools.register import register_files
 
 
 @pytest.fixture(scope="module")
@@ -288,3 +289,14 @@ def test_a_model_that_collapses_at_the_frame_voxel_loses_every_frame_by_name(
         rows = list(csv.DictReader(fh))
     assert len(rows) == 5
     assert all(r["status"] == "lost" and "one_spot.xyz: model has 1" in r["reasons"] for r in rows)
+
+
+def test_a_degenerate_pair_names_both_files(tmp_path, capsys):
+    t = np.linspace(0.0, 1.0, 300)[:, None]
+    line = tmp_path / "line.xyz"
+    np.savetxt(line, np.hstack([t, 2 * t, np.full_like(t, 2.0)]))
+    with pytest.raises(DegenerateGeometryError, match="do not constrain all 6") as info:
+        register_files(line, line)
+    assert str(info.value).startswith(f"{line} onto {line}: ")
+    assert main(["register", str(line), str(line)]) == 1
+    assert f"{line} onto {line}: the correspondences" in _one_line(capsys)

@@ -383,10 +383,16 @@ def register_files(
     source = _read_input(source_path, intrinsics)
     target = _read_input(target_path, intrinsics)
     init = None if init_path is None else read_transform(init_path)
+    pair = f"{source_path} onto {target_path}"
     try:
         outcome = register(source, target, init, config, workers)
     except RegistrationError as exc:  # say which pair failed
-        raise RegistrationError(f"{source_path} onto {target_path}: {exc}") from None
+        raise RegistrationError(f"{pair}: {exc}") from None
+    except InputError as exc:
+        if exc.source is not None:  # one cloud's own problem, already named
+            raise
+        # The pair's geometry (two lines, two planes sliding in each other): name both files.
+        raise type(exc)(exc.reason, pair) from None
     if out is not None:
         summary = {"source": str(source_path), "target": str(target_path), **outcome.to_dict()}
         summary["config"] = config.model_dump(mode="json")
