@@ -300,3 +300,14 @@ def test_a_degenerate_pair_names_both_files(tmp_path, capsys):
     assert str(info.value).startswith(f"{line} onto {line}: ")
     assert main(["register", str(line), str(line)]) == 1
     assert f"{line} onto {line}: the correspondences" in _one_line(capsys)
+
+
+@pytest.mark.parametrize("header", ["x,x,y,z", "x,y,z,nx,ny,nz,nz"])
+def test_a_header_naming_a_coordinate_twice_is_refused(tmp_path, header):
+    # Before, the first 'x' was taken without a word, whichever column the writer meant.
+    rng = np.random.default_rng(2)
+    width = len(header.split(","))
+    path = tmp_path / "twice.csv"
+    np.savetxt(path, rng.normal(size=(20, width)), delimiter=",", header=header, comments="")
+    with pytest.raises(FileFormatError, match=r"twice\.csv: the header .* names (x|nz) twice"):
+        read_cloud(path)

@@ -295,8 +295,8 @@ def _named_columns(
     Raises
     ------
     FileFormatError
-        The header does not name x, y and z, or names a different number of columns than the
-        rows hold.
+        The header does not name x, y and z, names one of them (or a normal) twice, or names
+        a different number of columns than the rows hold.
     """
     names = [token.strip("/\"'").lower() for token in header]
     if len(names) != table.shape[1]:
@@ -305,6 +305,9 @@ def _named_columns(
         )
     if not set(_XYZ) <= set(names):
         raise FileFormatError(f"the header {header} does not name x, y and z columns", path)
+    twice = sorted({n for n in names if names.count(n) > 1} & {*_XYZ, *_PLY_NORMALS, *_PCD_NORMALS})
+    if twice:  # which of the two is the coordinate? Taking the first would be a guess.
+        raise FileFormatError(f"the header {header} names {', '.join(twice)} twice", path)
     xyz = table[:, [names.index(c) for c in _XYZ]]
     for normal_names in (_PLY_NORMALS, _PCD_NORMALS):
         if set(normal_names) <= set(names):
