@@ -311,3 +311,19 @@ def test_a_header_naming_a_coordinate_twice_is_refused(tmp_path, header):
     np.savetxt(path, rng.normal(size=(20, width)), delimiter=",", header=header, comments="")
     with pytest.raises(FileFormatError, match=r"twice\.csv: the header .* names (x|nz) twice"):
         read_cloud(path)
+
+
+def test_a_folder_in_millimetres_warns_three_times_then_counts(frames, tmp_path, capsys):
+    # Each file's warning carries its own extent and spacing; they are one problem all the same.
+    mm = tmp_path / "mm"
+    mm.mkdir()
+    for path in sorted(frames.glob("*.ply")):
+        write_cloud(mm / path.name, read_cloud(path).points * 1e3)
+    capsys.readouterr()
+    main(["track", str(mm), "--out", str(tmp_path / "e.tum")])
+    warned = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("warning:")]
+    assert len(warned) == 4, warned
+    assert all("coordinates look like millimetres" in ln for ln in warned[:3])
+    assert warned[3] == (
+        "warning: 2 more file(s) with the same warning: coordinates look like millimetres"
+    )

@@ -113,13 +113,18 @@ class _OneLineWarnings:
             # source line Python's printer adds.
             _print_warning(f"{category.__name__}: {_one_line(str(message))}")
             return
-        key = (category, message.reason)
+        key = (category, _problem(message.reason))
         self.repeats[key] += 1
         if self.repeats[key] <= self.shown:
             _print_warning(_one_line(str(message)))
 
     def __exit__(self, *exc_info: object) -> None:
-        for (_, reason), count in self.repeats.items():
+        for (_, what), count in self.repeats.items():
             if count > self.shown:
-                what = reason.split("(")[0].split(";")[0].strip()
                 _print_warning(f"{count - self.shown} more file(s) with the same warning: {what}")
+
+
+def _problem(reason: str) -> str:
+    """A warning's problem without its figures: each file in millimetres says its own extent
+    and spacing in brackets, and is still the same problem."""
+    return reason.split("(")[0].split(";")[0].strip()
