@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +13,16 @@ import pytest
 from PIL import Image
 
 from spacepose.cli import main
+from spacepose.core.depth import DepthCamera
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
-from spacepose.errors import DegenerateGeometryError, FileFormatError, InputError
+from spacepose.errors import (
+    DegenerateGeometryError,
+    FileFormatError,
+    InputError,
+    SpaceposeWarning,
+)
 from spacepose.tools.cloud_io import read_cloud, write_cloud
+from spacepose.tools.depth_io import read_depth_cloud
 from spacepose.tools.frames import track_folder
 from spacepose.tools.outputs import check_writable
 from spacepose.tools.register import register_files
@@ -327,3 +335,17 @@ def test_a_folder_in_millimetres_warns_three_times_then_counts(frames, tmp_path,
     assert warned[3] == (
         "warning: 2 more file(s) with the same warning: coordinates look like millimetres"
     )
+
+
+def test_a_depth_map_read_with_the_wrong_depth_scale_is_warned_about(tmp_path):
+    # A 16-bit map in millimetres (a wall 2 m away) with depth_scale 1: 2 km, as metres.
+    yy, xx = np.mgrid[:48, :64]
+    path = tmp_path / "000000.png"
+    Image.fromarray((2000 + 3 * xx + 2 * yy).astype(np.uint16)).save(path)
+    camera = DepthCamera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, depth_scale=1.0)
+    with pytest.warns(SpaceposeWarning, match="look like millimetres") as caught:
+        read_depth_cloud(path, camera)
+    assert str(path) in str(caught[0].message) and "depth_scale" in str(caught[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_depth_cloud(path, camera.model_copy(update={"depth_scale": 0.001}))

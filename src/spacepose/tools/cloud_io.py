@@ -97,9 +97,13 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     return cloud
 
 
-def warn_if_not_metres(cloud: PointCloud, source: str | Path) -> None:
+_RESCALE = "scale the file by 0.001 (read_cloud(..., scale=1e-3))"
+
+
+def warn_if_not_metres(cloud: PointCloud, source: str | Path, remedy: str = _RESCALE) -> None:
     """Warn (:class:`SpaceposeWarning`, naming ``source``) when a cloud's coordinates look like
-    millimetres, or span more than any sensor sees even in millimetres."""
+    millimetres, or span more than any sensor sees even in millimetres; ``remedy`` says what
+    to change (for a file of points, its scale)."""
     check = check_scale(cloud.points)
     if not check.millimetres:
         return
@@ -111,8 +115,7 @@ def warn_if_not_metres(cloud: PointCloud, source: str | Path) -> None:
     else:
         problem = (
             f"coordinates look like millimetres ({check.extent:.0f} m across, median point "
-            f"spacing {check.spacing:.2f} m); spacepose works in metres: scale the file by "
-            "0.001 (read_cloud(..., scale=1e-3))"
+            f"spacing {check.spacing:.2f} m); spacepose works in metres: {remedy}"
         )
     warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
 

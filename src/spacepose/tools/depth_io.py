@@ -23,6 +23,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
 from spacepose.errors import ConfigError, FileFormatError, InputError
+from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.npy_io import load_npy, npy_shape
 from spacepose.tools.text_io import not_a_file, read_text
 
@@ -135,8 +136,17 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
         The image cannot be decoded (see :func:`read_depth_image`).
     InputError
         No pixel has a return, or the size differs from the intrinsics'.
+
+    Warns
+    -----
+    SpaceposeWarning
+        The points look like millimetres (a wrong ``depth_scale``), naming the file.
     """
-    return depth_to_cloud(read_depth_image(path), camera, stride, source=str(path))
+    cloud = depth_to_cloud(read_depth_image(path), camera, stride, source=str(path))
+    # A millimetre map read with depth_scale 1 is a scene 1000 times too large, tracked as such.
+    remedy = f"check depth_scale in the intrinsics ({camera.depth_scale:g} m per stored unit)"
+    warn_if_not_metres(cloud, path, remedy)
+    return cloud
 
 
 def read_intrinsics(path: str | Path) -> DepthCamera:
