@@ -349,3 +349,15 @@ def test_a_depth_map_read_with_the_wrong_depth_scale_is_warned_about(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         read_depth_cloud(path, camera.model_copy(update={"depth_scale": 0.001}))
+
+
+def test_a_voxel_refused_for_points_far_out_says_how_far(tmp_path, capsys):
+    # 2^63 in every coordinate: one cell, yet past any key; "[1, 1, 1] cells are too many"
+    # was all the message said.
+    path = tmp_path / "far.npy"
+    np.save(path, np.full((100, 3), 2**63, dtype=np.uint64))
+    near = tmp_path / "near.npy"
+    np.save(near, np.random.default_rng(3).normal(size=(300, 3)) * 0.1 + [0, 0, 1])
+    assert main(["register", str(path), str(near)]) == 1
+    err = _one_line(capsys)
+    assert "far.npy" in err and "reaching |coordinate| 9.22e+18 m" in err

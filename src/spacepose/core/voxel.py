@@ -102,8 +102,14 @@ def _check_span(low: NDArray[np.float64], high: NDArray[np.float64], h: float) -
         not (np.all(np.abs(first) < _MAX_KEY) and np.all(np.abs(last) < _MAX_KEY))
         or float(np.prod(dims)) >= _MAX_KEY
     ):
+        # Say how far the points reach: at 1e18 m one cell is already past numbering, and
+        # "[1, 1, 1] cells are too many" would read as nonsense.
+        reach = float(np.max(np.abs(np.r_[low, high])))
+        grid = " x ".join(f"{d:.3g}" for d in dims)
         raise InputError(
-            f"{dims.tolist()} cells of {h:g} m are too many to number; use larger cells"
+            f"cells of {h:g} m are too many to number from the origin out to points reaching "
+            f"|coordinate| {reach:.3g} m ({grid} cells here): use larger cells, or check the "
+            "coordinates' units"
         )
 
 
