@@ -361,3 +361,11 @@ def test_a_voxel_refused_for_points_far_out_says_how_far(tmp_path, capsys):
     assert main(["register", str(path), str(near)]) == 1
     err = _one_line(capsys)
     assert "far.npy" in err and "reaching |coordinate| 9.22e+18 m" in err
+
+
+def test_an_orbit_standoff_inside_the_target_is_refused(tmp_path, capsys):
+    # At 1 nm the chaser sat inside the satellite and wrote its faces seen from within.
+    out = str(tmp_path / "o")
+    assert main(["simulate", "orbit", "--frames", "1", "--range", "1e-9", "--out", out]) == 1
+    assert "standoff of 1e-09 m puts the chaser within the target's reach" in _one_line(capsys)
+    assert not (tmp_path / "o" / "frames").exists()

@@ -393,6 +393,14 @@ def simulate_orbit(config: OrbitConfig | None = None) -> Simulation:
     n = orbit_mean_motion(config)
     truth = orbit_truth(config)
     target = _target(config, orbit_target())
+    # Within the tumbling target's reach the chaser would sit inside it and render its faces
+    # from within, a run of frames that looks like any other (--range 1e-9 did).
+    reach = float(np.max(np.linalg.norm(target.mesh.vertices, axis=1)))
+    if config.standoff_m <= reach:
+        raise ConfigError(
+            f"scenario orbit: a standoff of {config.standoff_m:g} m puts the chaser within the "
+            f"target's reach ({reach:.3g} m from its centre); stand off farther"
+        )
     R_O_C_known = misaligned(
         R_O_C_AHEAD,
         np.radians(config.chaser_attitude_sigma_deg),
