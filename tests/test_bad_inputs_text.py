@@ -89,6 +89,37 @@ def test_a_named_pipe_is_refused_without_waiting_for_a_writer(tmp_path, name):
     assert f"{name}: not a regular file" in str(error)
 
 
+def _config_readers():
+    from spacepose.core.config import load_config
+    from spacepose.core.tracker_config import TrackerConfig
+    from spacepose.tools.catalogue import load_catalogue
+    from spacepose.tools.depth_io import read_intrinsics
+
+    return {
+        "tracker.yaml": lambda p: load_config(TrackerConfig, p),
+        "intrinsics.yaml": read_intrinsics,
+        "catalogue.yaml": load_catalogue,
+    }
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+@pytest.mark.parametrize("name", ["tracker.yaml", "intrinsics.yaml", "catalogue.yaml"])
+def test_a_named_pipe_as_a_config_file_is_refused_without_waiting(tmp_path, name):
+    from spacepose.errors import ConfigError
+
+    pipe = tmp_path / name
+    os.mkfifo(pipe)
+    with ThreadPoolExecutor(1) as pool:
+        future = pool.submit(_config_readers()[name], pipe)
+        try:
+            error = future.exception(timeout=20)
+        finally:
+            if not future.done():
+                os.close(os.open(pipe, os.O_WRONLY | os.O_NONBLOCK))
+    assert isinstance(error, ConfigError), error
+    assert f"{name}: cannot read" in str(error) and "not a regular file" in str(error)
+
+
 def test_the_evaluate_command_names_a_folder_given_as_a_trajectory(tmp_path, capsys):
     (tmp_path / "gt.tum").write_text(_TUM)
     (tmp_path / "est").mkdir()

@@ -135,6 +135,41 @@ def not_text(exc: UnicodeDecodeError) -> str:
     return f"not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
 
 
+def not_a_file(path: Path) -> str | None:
+    """Why ``path`` is not a regular file to read, or None when it is one (a pipe or device
+    named as an input would block a read for ever)."""
+    if path.is_file():
+        return None
+    if path.is_dir():
+        return "a folder, not a file"
+    if path.is_symlink() and not path.exists():
+        return "a broken link"
+    if path.exists():
+        return "not a regular file (a pipe or a device?)"
+    return "no such file"
+
+
+def read_config_text(path: Path, what: str) -> str:
+    """The UTF-8 text of a config-like file (``what``: ``"config"``, ``"the rectangle
+    catalogue"``).
+
+    Raises
+    ------
+    ConfigError
+        ``path: cannot read WHAT: problem``: not a regular file, refused by the system, or
+        not UTF-8 text.
+    """
+    problem = not_a_file(path)
+    try:
+        if problem is None:
+            return path.read_text()
+    except OSError as exc:
+        problem = exc.strerror or str(exc)
+    except UnicodeDecodeError as exc:
+        problem = not_text(exc)
+    raise ConfigError(f"{path}: cannot read {what}: {problem}") from None
+
+
 def read_mapping(path: str | Path) -> dict | None:
     """The mapping a YAML (``.yaml``/``.yml``) or JSON config file holds (None: empty file).
 
@@ -145,13 +180,7 @@ def read_mapping(path: str | Path) -> dict | None:
         mapping.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read config: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: cannot read config: {not_text(exc)}") from None
-    data = parse_structured(text, path)
+    data = parse_structured(read_config_text(path, "config"), path)
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"{path}: a config file must hold a mapping, got {type(data).__name__}")
     return data

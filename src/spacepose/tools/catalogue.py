@@ -25,7 +25,7 @@ from pydantic import ValidationError
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
-from spacepose.core.config import not_text, parse_structured
+from spacepose.core.config import parse_structured, read_config_text
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, side_tolerance
 from spacepose.errors import ConfigError
 
@@ -181,10 +181,5 @@ def load_catalogue(
         The file cannot be read or parsed, or :func:`parse_catalogue` rejects its content.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the rectangle catalogue: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: cannot read the rectangle catalogue: {not_text(exc)}") from None
+    text = read_config_text(path, "the rectangle catalogue")
     return parse_catalogue(parse_structured(text, path), config, path)

@@ -24,7 +24,7 @@ import yaml
 from numpy.typing import ArrayLike
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import dump_config, load_structured, not_text, parse_problem
+from spacepose.core.config import dump_config, load_structured, parse_problem
 from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
 from spacepose.core.lost_in_space import with_sensor_fov
 from spacepose.core.nav_result import NavRow, nav_table
@@ -36,6 +36,7 @@ from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.frames import Frames, open_frames, write_health_csv
 from spacepose.tools.outputs import check_writable
 from spacepose.tools.runs import SCENARIO, read_run
+from spacepose.tools.text_io import read_text
 
 
 @dataclass(frozen=True)
@@ -293,12 +294,9 @@ def _model(
 
 def _read_mapping(path: Path) -> dict:
     """A YAML or JSON file holding one mapping."""
+    text = read_text(path, "the scenario")
     try:
-        data = load_structured(path.read_text(), "yaml")
-    except OSError as exc:
-        raise InputError(f"cannot read: {exc.strerror}", path) from None
-    except UnicodeDecodeError as exc:
-        raise FileFormatError(not_text(exc), path) from None
+        data = load_structured(text, "yaml")
     except yaml.YAMLError as exc:
         raise FileFormatError(f"not valid YAML/JSON: {parse_problem(exc)}", path) from None
     if not isinstance(data, dict):

@@ -10,21 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from spacepose.core.config import not_text
+from spacepose.core.config import not_a_file, not_text
 from spacepose.errors import FileFormatError
 
-
-def not_a_file(path: Path) -> str | None:
-    """Why ``path`` is not a regular file to read, or None when it is one."""
-    if path.is_file():
-        return None
-    if path.is_dir():
-        return "a folder, not a file"
-    if path.is_symlink() and not path.exists():
-        return "a broken link"
-    if path.exists():
-        return "not a regular file (a pipe or a device?)"
-    return "no such file"
+__all__ = ["not_a_file", "read_text"]
 
 
 def read_text(path: str | Path, what: str) -> str:
