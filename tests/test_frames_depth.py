@@ -139,6 +139,22 @@ def test_a_ros_camera_info_file_tracks_like_our_intrinsics(folders, camera, tmp_
     )
 
 
+def test_hidden_files_are_not_frames(folders, tmp_path):
+    """A folder copied from macOS holds ``._NAME`` resource forks beside each frame, and
+    ``.DS_Store``: they are not frames, in a depth folder or a cloud folder."""
+    for kind in ("depth", "clouds"):
+        copy = tmp_path / kind
+        copy.mkdir()
+        for path in sorted(folders[kind].iterdir()):
+            (copy / path.name).write_bytes(path.read_bytes())
+            if path.name != "timestamps.txt":
+                (copy / f"._{path.name}").write_bytes(b"\x00\x05\x16\x07" + bytes(80))
+        (copy / ".DS_Store").write_bytes(bytes(64))
+        frames = open_frames(copy)
+        assert len(frames) == N_FRAMES
+        assert not any(p.name.startswith(".") for p in frames.paths)
+
+
 def test_bad_depth_image_is_lost_with_its_reason(folders, tmp_path):
     bad = tmp_path / "bad"
     bad.mkdir()

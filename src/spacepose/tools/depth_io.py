@@ -225,6 +225,20 @@ def is_depth_folder(root: str | Path) -> bool:
     return (Path(root) / TUM_DEPTH_LIST).is_file() or find_intrinsics(root) is not None
 
 
+def frame_entries(root: Path, suffixes: tuple[str, ...]) -> tuple[Path, ...]:
+    """A folder's entries named as frames (a suffix of ``suffixes``, any case), sorted by name.
+
+    Not only regular files: a folder or a broken link named as a frame is a frame that cannot
+    be read (reported lost), not one to skip and shift the rest. Hidden entries (a leading
+    dot: macOS's ``._000000.ply`` resource forks, editors' swap files) are not frames.
+    """
+    return tuple(
+        sorted(
+            p for p in root.iterdir() if p.suffix.lower() in suffixes and not p.name.startswith(".")
+        )
+    )
+
+
 def depth_files(root: str | Path) -> tuple[Path, ...]:
     """The depth images of a folder, sorted by name.
 
@@ -235,8 +249,7 @@ def depth_files(root: str | Path) -> tuple[Path, ...]:
         first ``.npy`` is an (N, 3) or (N, 6) point array.
     """
     root = Path(root)
-    # Every entry named as an image: one that is not a readable file is a lost frame.
-    paths = tuple(sorted(p for p in root.iterdir() if p.suffix.lower() in FOLDER_DEPTH_SUFFIXES))
+    paths = frame_entries(root, FOLDER_DEPTH_SUFFIXES)
     if not paths:
         raise InputError(
             f"no depth images ({', '.join(FOLDER_DEPTH_SUFFIXES)}) in the folder", root

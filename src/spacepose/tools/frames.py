@@ -175,15 +175,9 @@ def open_frames(
     if camera is not None or depth_io.is_depth_folder(root):
         return _open_depth_folder(root, camera)
     paths = tuple(
-        sorted(
-            p
-            for p in root.iterdir()
-            # Not only regular files: a folder or a broken link named as a frame is a frame
-            # that cannot be read (reported lost), not one to skip and shift the rest.
-            if p.suffix.lower() in CLOUD_SUFFIXES and p.name != TIMESTAMPS_FILE
-        )
+        p for p in depth_io.frame_entries(root, CLOUD_SUFFIXES) if p.name != TIMESTAMPS_FILE
     )
-    if not paths and any(p.suffix.lower() in depth_io.DEPTH_SUFFIXES for p in root.iterdir()):
+    if not paths and depth_io.frame_entries(root, depth_io.DEPTH_SUFFIXES):
         # Images without intrinsics: say what is missing, not that there is nothing.
         return _open_depth_folder(root, None)
     if not paths:
