@@ -328,3 +328,33 @@ def test_a_run_whose_scenario_json_is_nested_too_deeply(tmp_path, capsys):
         read_run(run)
     assert main(["report", str(run), "--out", str(tmp_path / "r.html")]) == 0
     assert "scenario.json: left out of the report: not valid JSON" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "where"),
+    [
+        ("tracker.yaml", "gate: 3\nmethod: gicp\ngate: 4\n", "line 3:1"),
+        ("tracker.yaml", "icp:\n  max_iterations: 5\n  max_iterations: 9\n", "line 3:3"),
+        ("tracker.json", '{"gate": 3, "method": "gicp", "gate": 4}', "line 1:"),
+    ],
+)
+def test_a_key_given_twice_is_refused_not_taken_last(tmp_path, name, text, where):
+    """YAML and JSON parsers keep the last of two equal keys without a word; a config whose
+    first value of a knob is silently ignored is wrong, so it is one line naming the key."""
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(TrackerConfig, path)
+    message = _one_line(info, path, where)
+    assert "is given twice" in message and ("'gate'" in message or "'max_iterations'" in message)
+
+
+def test_merge_keys_and_equal_keys_in_separate_mappings_stay_legal(tmp_path):
+    path = tmp_path / "tracker.yaml"
+    path.write_text("base: &b {max_iterations: 5}\nicp:\n  <<: *b\n  method: point_to_plane\n")
+    with pytest.raises(ConfigError, match="base") as info:  # merged; 'base' is no field
+        load_config(TrackerConfig, path)
+    assert "twice" not in str(info.value)
+    path.write_text("icp: {max_iterations: 5}\ngicp: {max_iterations: 5}\n")
+    config = load_config(TrackerConfig, path)
+    assert config.icp.max_iterations == config.gicp.max_iterations == 5

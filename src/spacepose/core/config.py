@@ -100,15 +100,58 @@ def parse_problem(exc: Exception) -> str:
     return f"{where}{problem}" + (f" ({context})" if context else "")
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a mapping that gives a key twice."""
+
+
+def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> Any:
+    # PyYAML keeps the last of two equal keys without a word: a config's first value of a
+    # knob would be ignored silently.
+    seen: set[Any] = set()
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":  # "<<: *base" merges, as it may
+            continue
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            twice = key in seen
+            seen.add(key)
+        except TypeError:  # an unhashable key: construct_mapping says so
+            break
+        if twice:
+            problem = f"the key {key!r} is given twice"
+            raise yaml.constructor.ConstructorError(None, None, problem, key_node.start_mark)
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+
+
+def _unique_pairs(text: str) -> Any:
+    """``object_pairs_hook`` of :func:`json.loads` refusing an object that gives a key twice."""
+
+    def hook(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        keys = [k for k, _ in pairs]
+        twice = next((k for k in keys if keys.count(k) > 1), None)
+        if twice is not None:
+            at = max(text.rfind(json.dumps(twice)), 0)
+            raise json.JSONDecodeError(f"the key {twice!r} is given twice", text, at)
+        return dict(pairs)
+
+    return hook
+
+
 def load_structured(text: str, kind: str) -> Any:
-    """``json.loads`` (``kind == "json"``) or ``yaml.safe_load`` of ``text``.
+    """``json.loads`` (``kind == "json"``) or ``yaml.safe_load`` of ``text``, refusing a key
+    given twice in one mapping.
 
     Both parsers recurse once per level of nesting, so ``[[[[…`` a few thousand deep ends in a
     RecursionError; it is raised as the parser's own error (``nested too deeply``), which every
     reader already turns into one line naming its file.
     """
     try:
-        return json.loads(text) if kind == "json" else yaml.safe_load(text)
+        if kind == "json":
+            return json.loads(text, object_pairs_hook=_unique_pairs(text))
+        return yaml.load(text, Loader=_UniqueKeyLoader)
     except RecursionError:
         if kind == "json":
             raise json.JSONDecodeError("nested too deeply", text, 0) from None
