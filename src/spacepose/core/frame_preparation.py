@@ -257,6 +257,25 @@ class FramePreparer:
         first = np.unique(cell * 6 + side, return_index=True)[1]
         return model if len(first) == len(model) else model.select(np.sort(first))
 
+    def shifted_source(self, prepared: PreparedCloud) -> PreparedCloud | None:
+        """The frame downsampled again on the voxel grid shifted by half a voxel along each
+        axis, from the same raw points and crop (None without them: after mpp-MLS, or with
+        keyframes at the frame's voxel, whose raw points are not kept).
+
+        Voxel centroids cut a surface's edges and corners, and how they cut them depends on
+        where the grid falls: the registrations of the two samplings differ by an error the
+        covariance of white range noise does not hold (methods.md §5.3).
+        """
+        if prepared.raw is None:
+            return None
+        half = np.full(3, 0.5 * self.lengths.voxel)
+        within = None
+        if prepared.crop is not None:
+            within = (np.asarray(prepared.crop[0]) + half, prepared.crop[1])
+        pts = prepared.raw.points + half
+        pc = voxel_downsample(pts, self.lengths.voxel, within, self.config.stray_share)
+        return self.with_covariances(replace(pc, points=pc.points - half))
+
     def with_covariances(self, pc: PointCloud) -> PreparedCloud:
         """``pc`` prepared; with its GICP covariances when the registration uses them (once
         per frame: reused whenever the frame is a source or a keyframe target)."""

@@ -15,6 +15,8 @@ builds up (:func:`chain_drift`, rad and m), spread over the directions by
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -234,3 +236,31 @@ def _edge_onto(
             T = se3.invert(T_earlier_frame)
             return T, _moved(np.linalg.pinv(info, hermitian=True), T)
     return None
+
+
+def with_grid_spread(
+    registrar: FrameRegistrar, shifted: PreparedCloud, estimate: FineEstimate
+) -> FineEstimate:
+    """``estimate`` with the voxel grid's share of its error in its covariance.
+
+    The frame, downsampled on a grid shifted by half a voxel (``shifted``,
+    :meth:`~spacepose.core.frame_preparation.FramePreparer.shifted_source`), is registered
+    onto the estimate's reference from the estimate's own registration there. The two
+    samplings' errors are independent draws of the sampling error, so their difference ``d``
+    (a twist, sensor frame at frame k) has twice its covariance: ``d dᵀ / 2`` is added. The
+    pose is left as it is: its error and ``d`` are correlated (a sampling far from the
+    surface's own pose moves ``d`` with it), which a mean of the two would lose.
+
+    A registration of the shifted frame that fails leaves the estimate as it is.
+    """
+    ref = estimate.reference
+    T_k_ref = se3.invert(estimate.result.T_target_source)
+    try:
+        pair = registrar.register(shifted, ref, T_k_ref @ ref.T_ref_target, measure=False)
+    except SpaceposeError:
+        return estimate
+    T_ref_k_shifted = pair.result.T_target_source
+    # T_shifted = exp(d) T: both at frame k, seen from the one reference.
+    d = se3.log(se3.invert(T_ref_k_shifted) @ se3.invert(T_k_ref))
+    spread = 0.5 * np.outer(d, d)
+    return replace(estimate, covariance=estimate.covariance + spread)
