@@ -3,7 +3,7 @@
 :class:`HealthBounds` turns the unit-free :class:`~spacepose.core.tracker_config.HealthConfig`
 into metres and degrees for one frame, from the voxel edge, the target's radius and the motion
 model's observed error; :func:`assess_health` applies them. The primitives (pose disagreement,
-covariance about a point, unit-free condition number) are public.
+covariance about a point, unit-free twists and condition number) are public.
 """
 
 from __future__ import annotations
@@ -118,17 +118,23 @@ def covariance_at(covariance: NDArray[np.float64], point: ArrayLike) -> NDArray[
     return J @ covariance @ J.T
 
 
+def normalising_map(centroid: ArrayLike, radius: float) -> NDArray[np.float64]:
+    """(6, 6) ``M`` taking a unit-free twist ``η = (ρ, v_c)`` to the twist ``ξ = M η`` about the
+    origin: ``v_c`` the translation of ``centroid`` (3,), ``ρ = r ω`` the rotation as the
+    displacement it gives at ``radius`` (m). An information ``Λ`` in ξ is ``Mᵀ Λ M`` in η."""
+    # About the origin a twist about c is (ω, v_c + skew(c) ω): the inverse of covariance_at.
+    M = np.eye(6)
+    M[3:, :3] = se3.skew(np.asarray(centroid, dtype=np.float64))
+    # ω = ρ / r: the information of ρ is that of ω over r².
+    return M @ np.diag([1.0 / radius] * 3 + [1.0] * 3)
+
+
 def normalised_condition(
     information: NDArray[np.float64], centroid: ArrayLike, radius: float
 ) -> float:
     """Condition number of an information matrix made unit-free (see :class:`HealthConfig`)."""
-    # Information about the centroid: Λ_c = Jᵀ Λ J with J the inverse of the covariance_at map.
-    J = np.eye(6)
-    J[3:, :3] = se3.skew(np.asarray(centroid, dtype=np.float64))
-    # Rotations as the displacement they give at the radius (ρ = r ω, so ω = ρ / r): the
-    # information of ρ is that of ω over r².
-    S = np.diag([1.0 / radius] * 3 + [1.0] * 3)
-    info = S.T @ J.T @ information @ J @ S
+    M = normalising_map(centroid, radius)
+    info = M.T @ information @ M
     ev = np.linalg.eigvalsh(0.5 * (info + info.T))
     return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
 

@@ -17,6 +17,8 @@ The same call must work on a 1 m ToF frame (millimetre spacing) and on a 50 m ou
 - **stopping**: GICP stops below a step of ``1e-3 v``, ICP below an RMSE change of ``1e-4 v``.
 - **global** (optional): FPFH + RANSAC at the same voxel
   (:func:`~spacepose.core.ransac.global_registration`), then the fine gate alone.
+- **degeneracy**: directions the surfaces leave free (a plane's in-plane translations and
+  normal rotation) are flagged and widened in the covariance (:mod:`spacepose.core.degeneracy`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -36,6 +39,7 @@ from scipy.spatial import cKDTree
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
+from spacepose.core.degeneracy import Degeneracy, surface_degeneracy
 from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.grid import VoxelIndex
@@ -45,7 +49,7 @@ from spacepose.core.ransac import global_registration
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.robust import RobustKernelName
 from spacepose.core.voxel import voxel_cells
-from spacepose.errors import FileFormatError, InputError, RegistrationError
+from spacepose.errors import FileFormatError, InputError, RegistrationError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.depth_io import (
     DEPTH_SUFFIXES,
@@ -130,7 +134,7 @@ class RegisterResult:
         The final fine registration (``T_target_source`` 4×4, fitness, inlier RMSE, ...).
     covariance
         (6, 6) covariance of ``T_target_source``: twist (omega, v), left perturbation, target
-        frame (rad², m²).
+        frame (rad², m²); widened along the directions ``degeneracy`` finds free.
     iterations
         Iterations of every fine stage together.
     time_s
@@ -141,6 +145,8 @@ class RegisterResult:
         Correspondence gates of the fine stages, in order (m).
     n_source, n_target
         Points after downsampling.
+    degeneracy
+        Which directions the surfaces leave free (``degeneracy.degenerate``: some do).
     coarse
         The global registration's result, if it ran.
     """
@@ -153,6 +159,7 @@ class RegisterResult:
     gates: tuple[float, ...]
     n_source: int
     n_target: int
+    degeneracy: Degeneracy
     coarse: RegistrationResult | None = None
 
     def to_dict(self) -> dict:
@@ -172,6 +179,7 @@ class RegisterResult:
             "gates": list(self.gates),
             "n_source": self.n_source,
             "n_target": self.n_target,
+            **self.degeneracy.to_dict(),
             "global": None,
         }
         if self.coarse is not None:
@@ -284,6 +292,10 @@ def register(
         T, iterations = result.T_target_source, iterations + result.iterations
     # GICP's information is noise-weighted already; ICP's scales by its residual σ.
     covariance = result.covariance(sigma=1.0 if config.method == "gicp" else None)
+    radius = max(s.radius for s in scales)
+    degeneracy = surface_degeneracy(src.points, tgt.points, T, radius, workers=workers)
+    if degeneracy.degenerate:  # the registration's own information claims too much there
+        covariance = degeneracy.widen(covariance)
     return RegisterResult(
         result,
         covariance,
@@ -293,6 +305,7 @@ def register(
         gates,
         len(src),
         len(tgt),
+        degeneracy,
         coarse,
     )
 
@@ -393,6 +406,8 @@ def register_files(
             raise
         # The pair's geometry (two lines, two planes sliding in each other): name both files.
         raise type(exc)(exc.reason, pair) from None
+    if outcome.degeneracy.degenerate:
+        warnings.warn(SpaceposeWarning(outcome.degeneracy.summary(), pair), stacklevel=2)
     if out is not None:
         summary = {"source": str(source_path), "target": str(target_path), **outcome.to_dict()}
         summary["config"] = config.model_dump(mode="json")
