@@ -71,20 +71,25 @@ def test_a_trajectory_that_is_not_text_says_so_plainly(tmp_path):
     assert "codec" not in str(info.value)
 
 
-@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
-@pytest.mark.parametrize("name", ["est.tum", "est.txt", "init.txt"])
-def test_a_named_pipe_is_refused_without_waiting_for_a_writer(tmp_path, name):
-    pipe = tmp_path / name
+def _error_reading_a_pipe(read, pipe: Path) -> BaseException | None:
+    """What ``read(pipe)`` raises on a new named pipe, within 20 s (a read that blocks fails
+    the test, and is released)."""
     os.mkfifo(pipe)
-    read = read_transform if name == "init.txt" else read_trajectory
     with ThreadPoolExecutor(1) as pool:
         future = pool.submit(read, pipe)
         try:
-            error = future.exception(timeout=20)
+            return future.exception(timeout=20)
         finally:
             # A reader blocked in open() is released by a writer's open (and sees no data).
             if not future.done():
                 os.close(os.open(pipe, os.O_WRONLY | os.O_NONBLOCK))
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="needs named pipes")
+@pytest.mark.parametrize("name", ["est.tum", "est.txt", "init.txt"])
+def test_a_named_pipe_is_refused_without_waiting_for_a_writer(tmp_path, name):
+    read = read_transform if name == "init.txt" else read_trajectory
+    error = _error_reading_a_pipe(read, tmp_path / name)
     assert isinstance(error, FileFormatError), error
     assert f"{name}: not a regular file" in str(error)
 
@@ -107,15 +112,7 @@ def _config_readers():
 def test_a_named_pipe_as_a_config_file_is_refused_without_waiting(tmp_path, name):
     from spacepose.errors import ConfigError
 
-    pipe = tmp_path / name
-    os.mkfifo(pipe)
-    with ThreadPoolExecutor(1) as pool:
-        future = pool.submit(_config_readers()[name], pipe)
-        try:
-            error = future.exception(timeout=20)
-        finally:
-            if not future.done():
-                os.close(os.open(pipe, os.O_WRONLY | os.O_NONBLOCK))
+    error = _error_reading_a_pipe(_config_readers()[name], tmp_path / name)
     assert isinstance(error, ConfigError), error
     assert f"{name}: cannot read" in str(error) and "not a regular file" in str(error)
 
