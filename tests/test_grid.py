@@ -258,6 +258,26 @@ def test_voxel_downsample_equals_a_numpy_reference_to_the_bit(voxel):
     np.testing.assert_array_equal(of_point, cell)
 
 
+@pytest.mark.parametrize("voxel", [0.002, 0.01, 0.1])
+def test_a_moved_grid_groups_as_a_numpy_reference_does(voxel):
+    # Cells aligned to origin + k·voxel: the points grouped by ⌊(p − origin) / voxel⌋, their
+    # centroids summed from the points themselves; a zero origin is the default to the bit.
+    pts = _surface(4000, seed=9)
+    origin = np.array([0.5, -0.25, 0.375]) * voxel
+    cells = np.floor((pts - origin) / voxel).astype(np.int64)
+    _, cell, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    sums = np.column_stack([np.bincount(cell, weights=pts[:, a]) for a in range(3)])
+    moved = voxel_downsample(pts, voxel, origin=origin)
+    np.testing.assert_array_equal(moved.points, sums / counts[:, None])
+    default = voxel_downsample(pts, voxel)
+    np.testing.assert_array_equal(
+        voxel_downsample(pts, voxel, origin=np.zeros(3)).points, default.points
+    )
+    assert len(moved) != len(default) or not np.array_equal(moved.points, default.points)
+    with pytest.raises(InputError, match="origin"):
+        voxel_downsample(pts, voxel, origin=[0.0, np.nan, 0.0])
+
+
 @pytest.mark.parametrize("voxel", [0.002, 0.01])
 def test_voxel_downsample_within_a_sphere_equals_cropping_first(voxel):
     # The compiled crop must keep exactly crop_sphere's points (one on the sphere included)

@@ -268,13 +268,10 @@ class FramePreparer:
         """
         if prepared.raw is None:
             return None
-        half = np.full(3, 0.5 * self.lengths.voxel)
-        within = None
-        if prepared.crop is not None:
-            within = (np.asarray(prepared.crop[0]) + half, prepared.crop[1])
-        pts = prepared.raw.points + half
-        pc = voxel_downsample(pts, self.lengths.voxel, within, self.config.stray_share)
-        return self.with_covariances(replace(pc, points=pc.points - half))
+        voxel, share = self.lengths.voxel, self.config.stray_share
+        half = np.full(3, 0.5 * voxel)
+        pc = voxel_downsample(prepared.raw, voxel, prepared.crop, share, origin=-half)
+        return self.with_covariances(pc)
 
     def with_covariances(self, pc: PointCloud) -> PreparedCloud:
         """``pc`` prepared; with its GICP covariances when the registration uses them (once

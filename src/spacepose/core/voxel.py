@@ -26,6 +26,8 @@ from spacepose.errors import InputError
 _MAX_KEY = 2.0**62
 # The ``keep`` mask of the kernels that means every point.
 _ALL = np.empty(0, dtype=np.bool_)
+# The grid's default origin: the frame's (cells at multiples of the edge).
+_ORIGIN = np.zeros(3)
 # Cells whose blocks give the median of :func:`stray_voxels`.
 _MEDIAN_SAMPLE = 512
 
@@ -154,6 +156,7 @@ def _cell_sums(
     voxel_size: float,
     sigma: NDArray[np.float64] | None,
     keep: NDArray[np.bool_],
+    origin: NDArray[np.float64] = _ORIGIN,
 ) -> tuple[
     NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64], _Occupancy
 ]:
@@ -162,11 +165,13 @@ def _cell_sums(
     the cells' occupancy (by key).
 
     ``pts`` are finite and contiguous; ``keep`` (N,) marks the points to take (at least one),
-    or is empty for all of them (the cell of a point left out is undefined). Sums run point by
+    or is empty for all of them (the cell of a point left out is undefined); the cells are
+    aligned to ``origin`` (3,) plus multiples of the edge. Sums run point by
     point in index order: the same bits as a bincount per axis over the points taken.
     """
     h = _cell_size(voxel_size)
     low, high, n_kept = _bounds(pts, keep)
+    low, high = low - origin, high - origin
     _check_span(low, high, h)
     first, last = np.floor(low / h).astype(np.int64), np.floor(high / h).astype(np.int64)
     dims = last - first + 1
@@ -183,7 +188,9 @@ def _cell_sums(
     weights = np.empty(0) if no_sigma else np.ascontiguousarray(sigma, dtype=np.float64)
     sums = np.zeros((n_kept, 4 if not no_sigma else 3))
     counts = np.zeros(n_kept)
-    m = _key_and_sum(pts, keep, h, first, dims, table, bits, weights, cell, unique, sums, counts)
+    m = _key_and_sum(
+        pts, keep, h, origin, first, dims, table, bits, weights, cell, unique, sums, counts
+    )
     occupancy = _Occupancy(unique[:m], counts[:m], table, bits, dims, np.argsort(unique[:m]))
     # Rank the occupied cells by key: sorting M cells, not N points.
     by_key = occupancy.by_key
@@ -193,11 +200,14 @@ def _cell_sums(
 
 
 @numba.njit(cache=True)
-def _key_and_sum(points, keep, h, first, dims, table, bits, sigma, cell, unique, sums, counts):
-    """Key every point taken (``keep[i]``, or all when ``keep`` is empty; cell ``⌊p / h⌋ −
-    first`` packed with ``dims``), number the occupied cells in order of first appearance
-    (``unique`` their keys, ``cell`` each point's) and add each point (and its σ, when ``sigma``
-    is not empty) to its cell's row of ``sums`` / ``counts``; return the number of cells. A
+def _key_and_sum(
+    points, keep, h, origin, first, dims, table, bits, sigma, cell, unique, sums, counts
+):
+    """Key every point taken (``keep[i]``, or all when ``keep`` is empty; cell
+    ``⌊(p − origin) / h⌋ − first`` packed with ``dims``), number the occupied cells in order of
+    first appearance (``unique`` their keys, ``cell`` each point's) and add each point (and its
+    σ, when ``sigma`` is not empty) to its cell's row of ``sums`` / ``counts``; return the
+    number of cells. A
     point in the previous point's cell (a scan's neighbouring pixels) skips the lookup."""
     mask = (1 << bits) - 1
     count = 0
@@ -207,9 +217,9 @@ def _key_and_sum(points, keep, h, first, dims, table, bits, sigma, cell, unique,
     for i in range(len(points)):
         if not every and not keep[i]:
             continue
-        cx = np.int64(np.floor(points[i, 0] / h)) - first[0]
-        cy = np.int64(np.floor(points[i, 1] / h)) - first[1]
-        cz = np.int64(np.floor(points[i, 2] / h)) - first[2]
+        cx = np.int64(np.floor((points[i, 0] - origin[0]) / h)) - first[0]
+        cy = np.int64(np.floor((points[i, 1] - origin[1]) / h)) - first[1]
+        cz = np.int64(np.floor((points[i, 2] - origin[2]) / h)) - first[2]
         key = (cx * dims[1] + cy) * dims[2] + cz
         if key != previous:
             s = key if bits == 0 else hash_slot(key, bits)
@@ -301,6 +311,7 @@ def voxel_downsample(
     voxel_size: float,
     within: tuple[ArrayLike, float] | None = None,
     stray_share: float = 0.0,
+    origin: ArrayLike | None = None,
 ) -> PointCloud:
     """Centroid of the points in each occupied voxel (edge ``voxel_size`` m), sorted by voxel.
 
@@ -314,6 +325,10 @@ def voxel_downsample(
 
     ``stray_share`` > 0 drops the voxels whose 3×3×3 block of voxels holds fewer points than
     that share of the median block: stray points, not a surface (:func:`stray_voxels`).
+
+    ``origin`` (3,) m moves the grid: its cells are aligned to ``origin`` plus multiples of
+    the edge (None: to the frame's origin). The same points on a grid moved by half a voxel
+    sample the surface's edges otherwise, without copying a raw frame to shift it.
 
     Raises
     ------
@@ -337,7 +352,10 @@ def voxel_downsample(
         # radius**2 as crop_sphere squares it.
         if _within(pts, center, float(radius) ** 2, keep) == 0:
             raise InputError(f"no point within {radius} m of {center.tolist()}", cloud.source)
-    centroids, sigma, _, _, occupancy = _cell_sums(pts, voxel_size, cloud.sigma, keep)
+    grid = _ORIGIN if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(grid)):
+        raise InputError(f"origin must be 3 finite numbers, got {origin!r}", cloud.source)
+    centroids, sigma, _, _, occupancy = _cell_sums(pts, voxel_size, cloud.sigma, keep, grid)
     if stray_share > 0.0:
         solid = np.flatnonzero(~stray_voxels(occupancy, stray_share))
         centroids, sigma = centroids[solid], sigma[solid] if len(sigma) else sigma
