@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from spacepose.core.degeneracy import surface_degeneracy
 from spacepose.core.health import (
     HealthBounds,
     Status,
@@ -81,23 +80,10 @@ def check_frame(
     disagreement = None
     if prediction is not None:
         disagreement = pose_disagreement(estimate.T_sensor_target, prediction.T_sensor_target, c)
-    condition = normalised_condition(res.information, c_ref, prepared.radius)
-    if not model_based:
-        # The normals of the registration's voxels put their noise's information on a plane's
-        # free directions (3 mm of noise on a sliding plane: 59, the lab mock-up's 45-100);
-        # at a quarter of the radius they cannot (core.degeneracy).
-        surfaces = surface_degeneracy(
-            prepared.cloud.points,
-            estimate.reference.registration_target.cloud.points,
-            res.T_target_source,
-            context.scale.radius,
-            context.config.health,
-        )
-        condition = max(condition, surfaces.condition)
     status, reasons = assess_health(
         res.fitness,
         res.inlier_rmse,
-        condition,
+        normalised_condition(res.information, c_ref, prepared.radius),
         estimate.own_covariance,
         c,
         disagreement,
