@@ -231,6 +231,21 @@ def test_catalogue_entry_with_a_non_finite_centre_or_side_is_refused(tmp_path, c
     _one_line(exc, tmp_path / "cat.json", "entry 0 ('front')", field, "finite")
 
 
+def test_a_boolean_for_a_number_is_refused_in_a_config_and_a_catalogue(tmp_path):
+    # Pydantic reads true as 1.0: an ok condition of one would flag every frame, a side of one
+    # metre would name no rectangle. Switches still take booleans.
+    path = tmp_path / "tracker.yaml"
+    path.write_text("health:\n  ok_condition: true\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(TrackerConfig, path)
+    _one_line(exc, path, "health.ok_condition", "yes/no")
+    assert TrackerConfig(use_background_removal=True).use_background_removal
+    other = _entry(name="side", center=[1, 0, 0], a=0.3, b=0.9)
+    with pytest.raises(ConfigError) as exc:
+        parse_catalogue([_entry(a=True), other], source=tmp_path / "cat.json")
+    _one_line(exc, tmp_path / "cat.json", "entry 0 ('front')", "a", "yes/no")
+
+
 def test_points_per_frame_below_the_health_minimum_is_refused():
     assert TrackerConfig().points_per_frame == 3000
     assert TrackerConfig(points_per_frame=100).points_per_frame == 100

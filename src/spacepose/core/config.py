@@ -12,10 +12,11 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, TypeVar
+from types import UnionType
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, ValidationError, ValidationInfo, field_validator
 
 from spacepose.errors import ConfigError
 
@@ -30,6 +31,11 @@ class StageConfig(BaseModel):
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_boolean_numbers(cls, value: Any, info: ValidationInfo) -> Any:
+        return refuse_boolean(cls, value, info)
 
     def __init__(self, /, **data: Any) -> None:
         try:
@@ -47,6 +53,33 @@ class StageConfig(BaseModel):
 
 
 C = TypeVar("C", bound=BaseModel)
+
+
+def admits_boolean(annotation: Any) -> bool:
+    """Whether a field annotated ``annotation`` may hold ``True`` / ``False``."""
+    if annotation is bool or annotation is Any:
+        return True
+    origin, args = get_origin(annotation), get_args(annotation)
+    if origin is Annotated:
+        return admits_boolean(args[0])
+    if origin is Literal:
+        return any(isinstance(a, bool) for a in args)
+    if origin is Union or origin is UnionType:
+        return any(admits_boolean(a) for a in args)
+    return False
+
+
+def refuse_boolean(model: type[BaseModel], value: Any, info: ValidationInfo) -> Any:
+    """``value`` unchanged, unless it is a boolean for a field that takes none.
+
+    Pydantic reads ``true`` as 1 for a number field: in a file, ``ok_condition: true`` or a side
+    ``a: yes`` (YAML 1.1) is a slip, never the number one.
+    """
+    if isinstance(value, bool) and not admits_boolean(
+        model.model_fields[info.field_name].annotation
+    ):
+        raise ValueError(f"{str(value).lower()} is a yes/no, not a value of this field")
+    return value
 
 
 def config_error(

@@ -41,9 +41,16 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, refuse_boolean
 from spacepose.core.rectangle_measurement import RectangleMeasurement, fill_ratio
 
 __all__ = [
@@ -85,6 +92,11 @@ class CatalogueEntry(BaseModel):
     ]
     a: float = Field(gt=0)
     b: float = Field(gt=0)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _no_boolean_numbers(cls, value: object, info: ValidationInfo) -> object:
+        return refuse_boolean(cls, value, info)
 
     @field_validator("R_model_plane")
     @classmethod
