@@ -244,6 +244,9 @@ def test_a_boolean_for_a_number_is_refused_in_a_config_and_a_catalogue(tmp_path)
     with pytest.raises(ConfigError) as exc:
         parse_catalogue([_entry(a=True), other], source=tmp_path / "cat.json")
     _one_line(exc, tmp_path / "cat.json", "entry 0 ('front')", "a", "yes/no")
+    with pytest.raises(ConfigError) as exc:
+        parse_catalogue([_entry(center=[True, 0, 0]), other], source=tmp_path / "cat.json")
+    _one_line(exc, tmp_path / "cat.json", "entry 0 ('front')", "center", "yes/no")
 
 
 def test_points_per_frame_below_the_health_minimum_is_refused():

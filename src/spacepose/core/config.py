@@ -64,20 +64,25 @@ def admits_boolean(annotation: Any) -> bool:
         return admits_boolean(args[0])
     if origin is Literal:
         return any(isinstance(a, bool) for a in args)
-    if origin is Union or origin is UnionType:
-        return any(admits_boolean(a) for a in args)
+    if origin is Union or origin is UnionType or origin in (tuple, list):
+        # A container admits one when any of its element types does.
+        return any(admits_boolean(a) for a in args if a is not Ellipsis)
     return False
 
 
+def _holds_boolean(value: Any) -> bool:
+    if isinstance(value, (list, tuple)):
+        return any(_holds_boolean(v) for v in value)
+    return isinstance(value, bool)
+
+
 def refuse_boolean(model: type[BaseModel], value: Any, info: ValidationInfo) -> Any:
-    """``value`` unchanged, unless it is a boolean for a field that takes none.
+    """``value`` unchanged, unless it is or holds a boolean for a field that takes none.
 
     Pydantic reads ``true`` as 1 for a number field: in a file, ``ok_condition: true`` or a side
-    ``a: yes`` (YAML 1.1) is a slip, never the number one.
+    ``a: yes`` (YAML 1.1) or a centre ``[true, 0, 0]`` is a slip, never the number one.
     """
-    if isinstance(value, bool) and not admits_boolean(
-        model.model_fields[info.field_name].annotation
-    ):
+    if _holds_boolean(value) and not admits_boolean(model.model_fields[info.field_name].annotation):
         raise ValueError(f"{str(value).lower()} is a yes/no, not a value of this field")
     return value
 
