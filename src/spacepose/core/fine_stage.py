@@ -103,9 +103,11 @@ class FineStage:
                 ref = self.frames.visible_model(self.sensor_model, T_init)
             T_init = self.registrar.approach(prepared, ref, T_init, wide_gate)
             estimate = self._fine(prepared, ref, T_init, tracking_model)
-            shifted = None if self.model_based else self.frames.shifted_source(prepared)
+            shifted = self.frames.shifted_source(prepared)
             if shifted is not None:
-                estimate = window_registration.with_grid_spread(self.registrar, shifted, estimate)
+                estimate = window_registration.with_grid_spread(
+                    self.registrar, shifted, estimate, tracking_model
+                )
         except SpaceposeError as exc:
             return None, "lost", (f"fine registration failed: {exc}",)
         return (estimate, *self.check(estimate, prepared, prediction))

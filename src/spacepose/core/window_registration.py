@@ -239,7 +239,10 @@ def _edge_onto(
 
 
 def with_grid_spread(
-    registrar: FrameRegistrar, shifted: PreparedCloud, estimate: FineEstimate
+    registrar: FrameRegistrar,
+    shifted: PreparedCloud,
+    estimate: FineEstimate,
+    robust: bool = False,
 ) -> FineEstimate:
     """``estimate`` with the voxel grid's share of its error in its covariance.
 
@@ -251,12 +254,16 @@ def with_grid_spread(
     pose is left as it is: its error and ``d`` are correlated (a sampling far from the
     surface's own pose moves ``d`` with it), which a mean of the two would lose.
 
-    A registration of the shifted frame that fails leaves the estimate as it is.
+    ``robust``: the shifted frame weighed as the estimate's registration was (against a
+    model, by a redescending kernel). A registration of the shifted frame that fails leaves
+    the estimate as it is.
     """
     ref = estimate.reference
     T_k_ref = se3.invert(estimate.result.T_target_source)
     try:
-        pair = registrar.register(shifted, ref, T_k_ref @ ref.T_ref_target, measure=False)
+        pair = registrar.register(
+            shifted, ref, T_k_ref @ ref.T_ref_target, measure=False, robust=robust
+        )
     except SpaceposeError:
         return estimate
     T_ref_k_shifted = pair.result.T_target_source
