@@ -140,6 +140,51 @@ def test_foreign_bytes_and_folders_are_named_as_such(tmp_path):
         read_cloud(tmp_path)
 
 
+def test_headers_promising_more_data_than_a_camera_gives_are_refused_before_allocating(tmp_path):
+    """A .npy whose header asks for 10¹¹ rows (terabytes) and a PNG claiming 20000 × 20000
+    pixels are one-line file errors, not a numpy allocation failure or Pillow's bomb guard."""
+    from spacepose.tools.depth_io import image_size, read_depth_image
+
+    huge = tmp_path / "huge.npy"
+    with huge.open("wb") as fh:
+        header = {"descr": "<f8", "fortran_order": False, "shape": (99999999999, 3)}
+        np.lib.format.write_array_header_1_0(fh, header)
+        fh.write(np.zeros(15).tobytes())
+    with pytest.raises(
+        FileFormatError,
+        match=r"huge\.npy: truncated \.npy: its header says float64 \(99999999999, 3\)",
+    ) as info:
+        read_cloud(huge)
+    assert "\n" not in str(info.value)
+    good = tmp_path / "good.npy"
+    np.save(good, np.zeros((5, 3)))
+    raw = good.read_bytes()
+    short = tmp_path / "short.npy"
+    short.write_bytes(raw[:-8])
+    with pytest.raises(FileFormatError, match=r"short\.npy: truncated"):
+        read_cloud(short)
+    # A PNG header of 20000 x 20000 pixels over a few bytes of data.
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    ihdr = struct.pack(">IIBBBBB", 20000, 20000, 16, 0, 0, 0, 0)
+    bomb = tmp_path / "bomb.png"
+    bomb.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+        + chunk(b"IEND", b"")
+    )
+    assert image_size(bomb) is None
+    with pytest.raises(FileFormatError, match=r"bomb\.png: refused: .*pixels"):
+        read_depth_image(bomb)
+
+
 def test_depth_images_without_intrinsics_say_so(tmp_path, capsys):
     Image.fromarray(np.full((8, 8), 1000, dtype=np.uint16)).save(tmp_path / "000000.png")
     assert main(["track", str(tmp_path), "--out", str(tmp_path / "out" / "e.tum")]) == 1

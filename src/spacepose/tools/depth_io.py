@@ -68,6 +68,8 @@ def read_depth_image(path: str | Path) -> NDArray:
         raise FileFormatError("file not found", path) from None
     except UnidentifiedImageError:
         raise FileFormatError("not an image Pillow can decode", path) from None
+    except Image.DecompressionBombError as exc:  # a header claiming more pixels than any camera
+        raise FileFormatError(f"refused: {exc}", path) from None
     except (OSError, SyntaxError, ValueError) as exc:
         raise FileFormatError(f"cannot decode the image: {exc}", path) from None
     if mode not in _DEPTH_MODES or values.ndim != 2:
@@ -89,7 +91,7 @@ def image_size(path: str | Path) -> tuple[int, int] | None:
     try:
         with Image.open(path) as image:
             return image.size
-    except (OSError, SyntaxError, ValueError):
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError):
         return None
 
 

@@ -205,8 +205,10 @@ def navigate_run(
             why = f"no frame navigated: the tracker gave no ok pose (see {health_csv})"
         if unreadable:
             k = min(unreadable)
-            why = f"{len(unreadable)} of {len(rows)} frames could not be read (frame {k}: "
-            why += f"{unreadable[k]}); {why}"
+            why = (
+                f"{len(unreadable)} of {len(rows)} frames could not be read (frame {k}: "
+                f"{unreadable[k]}); {why}"
+            )
         raise InputError(why, input_dir)
     return NavigationSummary(
         nav_csv,

@@ -37,6 +37,30 @@ def _numpy_problem(exc: ValueError, kind: str) -> str:
     return f"bad or truncated {kind}: {exc}"
 
 
+def _check_size(path: Path) -> None:
+    """Refuse a ``.npy`` whose header describes more data than the file holds, before
+    ``np.load`` allocates what the header says (a shape of 10¹¹ rows asks for terabytes)."""
+    with path.open("rb") as fh:
+        version = np.lib.format.read_magic(fh)
+        read_header = (
+            np.lib.format.read_array_header_1_0
+            if version == (1, 0)
+            else np.lib.format.read_array_header_2_0
+        )
+        shape, _, dtype = read_header(fh, max_header_size=100_000)
+        start = fh.tell()
+    if dtype.hasobject:
+        return  # refused by np.load without pickles
+    needed = start + int(np.prod(shape, dtype=object)) * dtype.itemsize
+    size = path.stat().st_size
+    if size < needed:
+        raise FileFormatError(
+            f"truncated .npy: its header says {dtype} {shape} ({needed:,} bytes), "
+            f"the file has {size:,}",
+            path,
+        )
+
+
 def load_npy(path: Path) -> NDArray:
     """The array of a ``.npy`` file, as stored (never unpickled).
 
@@ -52,7 +76,10 @@ def load_npy(path: Path) -> NDArray:
     except OSError as exc:  # a folder, a read refused: this file fails, not the run
         raise FileFormatError(f"cannot read: {exc.strerror or exc}", path) from None
     try:
+        _check_size(path)
         return np.load(path, allow_pickle=False)
+    except FileFormatError:
+        raise
     except ValueError as exc:
         raise FileFormatError(_numpy_problem(exc, ".npy"), path) from None
     except (OSError, EOFError) as exc:
