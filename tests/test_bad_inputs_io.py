@@ -414,3 +414,23 @@ def test_an_orbit_standoff_inside_the_target_is_refused(tmp_path, capsys):
     assert main(["simulate", "orbit", "--frames", "1", "--range", "1e-9", "--out", out]) == 1
     assert "standoff of 1e-09 m puts the chaser within the target's reach" in _one_line(capsys)
     assert not (tmp_path / "o" / "frames").exists()
+
+
+def test_an_output_onto_an_input_file_is_refused_before_any_work(frames, tmp_path, capsys):
+    """Written onto a frame, the timestamps or a run's truth, the output would destroy the
+    input before it is read (or the truth a later evaluate compares with); through a link
+    too. A new output inside the input folder is fine."""
+    root = _copy(frames, tmp_path / "in")
+    (root / "timestamps.txt").write_text("".join(f"{k}\n" for k in range(5)))
+    before = {p.name: p.read_bytes() for p in root.iterdir()}
+    (tmp_path / "link.tum").symlink_to(root / "timestamps.txt")
+    for out in (root / "f003.ply", root / "timestamps.txt", tmp_path / "link.tum"):
+        assert main(["track", str(root), "--out", str(out)]) == 1
+        assert "would overwrite the input" in _one_line(capsys)
+    cmd = ["register", str(root / "f000.ply"), str(root / "f001.ply")]
+    assert main([*cmd, "--out", str(root / "f001.ply")]) == 1
+    assert re.search(r"f001\.ply: would overwrite the input .*f001\.ply", _one_line(capsys))
+    assert {p.name: p.read_bytes() for p in root.iterdir()} == before
+    est = root / "out" / "est.tum"
+    assert main(["track", str(root), "--out", str(est)]) == 0
+    assert main(["track", str(root), "--out", str(est)]) == 0  # its own output, again

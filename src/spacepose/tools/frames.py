@@ -38,7 +38,7 @@ from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.outputs import check_writable
+from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.text_io import read_text
 from spacepose.tools.trajectory_io import tum_lines
 
@@ -183,6 +183,25 @@ def open_frames(
     if not paths:
         raise InputError(f"no frame files ({', '.join(CLOUD_SUFFIXES)}) in the folder", root)
     return FrameSequence(paths, _folder_timestamps(root, len(paths)))
+
+
+def input_files(path: str | Path, frames: Frames) -> list[Path]:
+    """The files reading ``path`` through ``frames`` (:func:`open_frames`) takes from: the
+    input itself when a file, each frame file, and a folder's description (its run files,
+    timestamps, depth list and intrinsics; every file of a bag folder). Not all need exist.
+    An output must not be one of them (:func:`~spacepose.tools.outputs.check_spares_inputs`).
+    """
+    from spacepose.tools.runs import GROUNDTRUTH, MODEL_CLOUD, SCENARIO, TRUTH
+
+    root = Path(path)
+    if not root.is_dir():
+        return [root]
+    files = [*getattr(frames, "paths", ()), *([frames.model_path] if frames.model_path else [])]
+    names = (SCENARIO, GROUNDTRUTH, TRUTH, MODEL_CLOUD, "model.obj", TIMESTAMPS_FILE)
+    files += [root / name for name in (*names, depth_io.TUM_DEPTH_LIST, *depth_io.INTRINSICS_FILES)]
+    if not hasattr(frames, "paths"):  # a bag folder: its metadata and storage files
+        files += [p for p in root.iterdir() if p.is_file()]
+    return files
 
 
 def _folder_timestamps(root: Path, n_frames: int) -> NDArray[np.float64]:
@@ -408,6 +427,8 @@ def track_folder(
     """
     check_output(out)
     frames = open_frames(input, intrinsics=intrinsics, topic=topic)
+    given = [p for p in (model, intrinsics) if p is not None]
+    check_spares_inputs(output_paths(out), [*input_files(input, frames), *given])
     model_cloud = None if model is None else read_cloud(model)
     tum, health, config_path, scale_path = output_paths(out)
     tracker = Tracker(config, model_cloud, workers)

@@ -33,8 +33,8 @@ from spacepose.core.navigation import NavigationConfig, navigate
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.frames import Frames, open_frames, write_health_csv
-from spacepose.tools.outputs import check_writable
+from spacepose.tools.frames import Frames, input_files, open_frames, write_health_csv
+from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.runs import SCENARIO, read_run
 from spacepose.tools.text_io import read_text
 
@@ -145,8 +145,11 @@ def navigate_run(
     out = Path(out)
     companions = [".config.json", ".candidates.csv"]
     companions += [".health.csv"] if measurements != "rectangles" else []
-    check_writable(out, *(out.with_suffix(c) for c in companions))
+    outputs = (out, *(out.with_suffix(c) for c in companions))
+    check_writable(*outputs)
     frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
+    given = [p for p in (scenario, model, intrinsics) if p is not None]
+    check_spares_inputs(outputs, [*input_files(input_dir, frames), *given])
     if scenario is not None:
         source = str(scenario)
         description = _read_mapping(Path(scenario))

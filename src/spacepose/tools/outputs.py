@@ -7,6 +7,7 @@ the work; so every command that writes checks its outputs first (:func:`check_wr
 from __future__ import annotations
 
 import os
+from collections.abc import Iterable
 from pathlib import Path
 
 from spacepose.errors import InputError
@@ -54,3 +55,24 @@ def check_writable(*paths: str | Path) -> None:
             while folder != existing and folder.is_dir() and not any(folder.iterdir()):
                 folder.rmdir()
                 folder = folder.parent
+
+
+def check_spares_inputs(outputs: Iterable[str | Path], inputs: Iterable[str | Path]) -> None:
+    """Refuse an output that is one of the input files (the same file, through any link).
+
+    An existing output is overwritten: written onto a run's ``groundtruth.tum`` it would
+    replace the truth that a later ``evaluate`` compares with, onto a frame it destroys the
+    frame before it is read.
+
+    Raises
+    ------
+    InputError
+        One line naming the output and the input it would overwrite.
+    """
+    sources = [Path(p) for p in inputs]
+    for out in map(Path, outputs):
+        if not out.is_file():
+            continue  # a new file overwrites nothing
+        for source in sources:
+            if source.is_file() and os.path.samefile(out, source):
+                raise InputError(f"would overwrite the input {source}: write it elsewhere", out)

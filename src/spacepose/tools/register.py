@@ -57,7 +57,7 @@ from spacepose.tools.depth_io import (
     read_depth_cloud,
     read_intrinsics,
 )
-from spacepose.tools.outputs import check_writable
+from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.text_io import read_text
 
 Method = Literal["point_to_plane", "point_to_point", "gicp"]
@@ -393,6 +393,8 @@ def register_files(
     """
     if out is not None:
         check_writable(out)
+        given = (source_path, target_path, init_path, intrinsics)
+        check_spares_inputs([out], [p for p in given if p is not None])
     source = _read_input(source_path, intrinsics)
     target = _read_input(target_path, intrinsics)
     init = None if init_path is None else read_transform(init_path)
