@@ -67,13 +67,17 @@ def test_l3_quick_table_layout(tmp_path):
     table = run_experiment("li-l3", tmp_path, QUICK)
     saved = json.loads((tmp_path / "li-l3.json").read_text())
     assert saved["seeds"] == [0, 1]  # quick: 2 seeds
-    assert set(saved["methods"]) == set(METHODS) == {
-        "point_to_point",
-        "point_to_plane",
-        "gicp",
-        "jicp",
-        "keyframe",
-    }
+    assert (
+        set(saved["methods"])
+        == set(METHODS)
+        == {
+            "point_to_point",
+            "point_to_plane",
+            "gicp",
+            "jicp",
+            "keyframe",
+        }
+    )
     assert set(saved["variants"]) == {"tof-clean", "tof-paper+mls"}
     clean = saved["variants"]["tof-clean"]
     assert clean["table"].keys() == set(AXES)

@@ -124,9 +124,7 @@ def normal_consistency_experiment(out_dir: Path, options: ExperimentOptions) -> 
         "seeds": list(seeds),
         "share_below_20deg": {k: _mean_std(v) for k, v in shares.items()},
         "improvement_points": {
-            p: _mean_std(
-                100 * (np.array(shares[f"{p} mpp-MLS"]) - np.array(shares[f"{p} raw"]))
-            )
+            p: _mean_std(100 * (np.array(shares[f"{p} mpp-MLS"]) - np.array(shares[f"{p} raw"])))
             for p in PROFILES
         },
         "paper": {"raw_share_below_20deg": 0.2, "mpp_mls_share_below_20deg": 0.8},
