@@ -220,6 +220,11 @@ def test_repeated_timestamps_and_corrupt_translations_are_refused(tmp_path):
     (tmp_path / "timestamps.txt").write_text("0.0\n0.1\n0.1\n0.2\n")
     with pytest.raises(InputError, match=r"must increase: frame 2 repeats 0.1"):
         read_timestamps(tmp_path / "timestamps.txt", 4)
+    from spacepose.tools.depth_io import read_tum_depth_list
+
+    (tmp_path / "depth.txt").write_text("0.0 a.png\n0.1 b.png\n0.1 c.png\n")
+    with pytest.raises(InputError, match=r"depth\.txt: timestamps must increase: frame 2 repeats"):
+        read_tum_depth_list(tmp_path / "depth.txt")
     (tmp_path / "far.tum").write_text("0 0 0 0 0 0 0 1\n1 1e300 0 0 0 0 0 1\n")
     with pytest.raises(InputError, match=r"far\.tum: line 2: pose 1 has a translation beyond"):
         read_tum(tmp_path / "far.tum")

@@ -281,6 +281,27 @@ def test_bad_messages_are_lost_and_the_rest_tracked(lab, tmp_path):
     assert len(read_tum(tmp_path / "est.tum")) == N_FRAMES
 
 
+def test_a_frame_stamped_out_of_order_is_lost_and_the_rest_tracked(lab, tmp_path):
+    """Header stamps are read as the frames come: frame 2 stamped as frame 1 (a repeat) and
+    frame 4 as frame 0 (a step back) are lost with the reason and left out of the trajectory,
+    whose times rise; every other frame is tracked as in order."""
+    stamps = {2: 1, 4: 0}
+    messages = []
+    for k in range(N_FRAMES):
+        msg = _pointcloud2(ROS2, k, lab["grids"][k])
+        msg.header = _header(ROS2, stamps.get(k, k))
+        messages.append(("/points", PC2, msg))
+    bag = _write(tmp_path / "stamps_bag", messages)
+    summary = track_folder(bag, tmp_path / "est.tum", tracker_config())
+    assert (summary["frames"], summary["lost"]) == (N_FRAMES, 2)
+    health = (tmp_path / "est.health.csv").read_text().splitlines()[1:]
+    assert "repeats the last tracked one" in health[2] and ",lost," in health[2]
+    assert "does not come after the last tracked one" in health[4] and ",lost," in health[4]
+    assert [row.split(",")[2] for row in health].count("lost") == 2
+    times = read_tum(tmp_path / "est.tum").timestamps
+    assert len(times) == N_FRAMES - 2 and np.all(np.diff(times) > 0)
+
+
 @pytest.mark.parametrize("content", [b"", b"not a bag at all\n"])
 def test_unreadable_bag_is_one_line(tmp_path, capsys, content):
     (tmp_path / "run.bag").write_bytes(content)

@@ -109,6 +109,17 @@ def test_bad_run_folders(tmp_path, lab_sim, orbit_sim) -> None:
     with pytest.raises(InputError, match="run folder does not exist"):
         read_run(tmp_path / "nowhere")
     write_run(tmp_path / "lab", lab_sim)
+    gt = tmp_path / "lab" / "groundtruth.tum"
+    rows = gt.read_text().splitlines()
+    stamp = rows[1].split()[0]
+    gt.write_text(
+        "\n".join([rows[0], rows[1], stamp + rows[2][len(rows[2].split()[0]) :], *rows[3:]])
+    )
+    with pytest.raises(
+        InputError, match=r"groundtruth\.tum: timestamps must increase: frame 2 rep"
+    ):
+        read_run(tmp_path / "lab")
+    write_run(tmp_path / "lab", lab_sim)
     (tmp_path / "lab" / "frames" / "000003.ply").unlink()
     with pytest.raises(InputError, match="3 frame files in frames/ but 4 poses"):
         read_run(tmp_path / "lab")

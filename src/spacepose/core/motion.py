@@ -44,6 +44,18 @@ def next_timestamp(timestamp: float, last: float) -> float:
     return t
 
 
+def order_problem(timestamps: ArrayLike) -> str | None:
+    """Why a sequence's timestamps (s) cannot time its frames, or None: each must come after
+    the one before (two frames at one time leave the motion between them undefined)."""
+    stamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    steps = np.diff(stamps)
+    if not np.any(steps <= 0):
+        return None
+    k = int(np.argmax(steps <= 0))
+    what = "repeats" if steps[k] == 0 else "goes back to"
+    return f"timestamps must increase: frame {k + 1} {what} {stamps[k + 1]}"
+
+
 def predict_pose(
     history: list[tuple[float, NDArray[np.float64]]], timestamp: float
 ) -> NDArray[np.float64] | None:

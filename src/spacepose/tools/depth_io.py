@@ -22,6 +22,7 @@ from PIL import Image, UnidentifiedImageError
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
+from spacepose.core.motion import order_problem
 from spacepose.errors import ConfigError, FileFormatError, InputError
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.npy_io import load_npy, npy_shape
@@ -302,6 +303,7 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     if not paths:
         raise InputError("lists no depth image", path)
     timestamps = np.asarray(stamps, dtype=np.float64)
-    if np.any(np.diff(timestamps) < 0):
-        raise InputError("timestamps decrease", path)
+    problem = order_problem(timestamps)
+    if problem is not None:
+        raise InputError(problem, path)
     return tuple(paths), timestamps

@@ -33,6 +33,8 @@ from numpy.typing import NDArray
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, load_config, validate_config
 from spacepose.core.depth import DepthCamera
+from spacepose.core.motion import order_problem
+from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError
@@ -275,12 +277,9 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
     if len(values) != n_frames:
         raise InputError(f"{len(values)} timestamps for {n_frames} frame files", path)
     stamps = np.asarray(values, dtype=np.float64)
-    steps = np.diff(stamps)
-    if np.any(steps <= 0):
-        # Two frames at one time leave the motion between them undefined.
-        k = int(np.argmax(steps <= 0))
-        what = "repeats" if steps[k] == 0 else "goes back to"
-        raise InputError(f"timestamps must increase: frame {k + 1} {what} {stamps[k + 1]}", path)
+    problem = order_problem(stamps)
+    if problem is not None:
+        raise InputError(problem, path)
     return stamps
 
 
@@ -368,6 +367,13 @@ def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path]:
     )
 
 
+def _out_of_order(frame: FrameInput, last_time: float) -> TrackResult:
+    """The ``lost`` result of a frame whose time does not come after the frame before's."""
+    what = "repeats" if frame.timestamp == last_time else "does not come after"
+    reason = f"timestamp {frame.timestamp} {what} the last tracked one ({last_time}): not tracked"
+    return lost_result(frame.index, frame.timestamp, None, (reason,), dict.fromkeys(STAGES, 0.0))
+
+
 def check_output(out: str | Path) -> None:
     """Refuse an output location that cannot be written, before any work is done: each of the
     four output files (:func:`~spacepose.tools.outputs.check_writable`).
@@ -406,7 +412,8 @@ def track_folder(
         A bag, run folder, depth image folder or folder of frame files (see
         :func:`open_frames`).
     out
-        The TUM trajectory to write (one line per input frame, methods.md §0); ``.health.csv``,
+        The TUM trajectory to write (one line per input frame, methods.md §0, but for a frame
+        whose time does not come after the last tracked one's); ``.health.csv``,
         ``.config.json`` and (once a frame has set the scale) ``.scale.json``, the lengths
         derived from the first frame, are written beside it with the same stem.
     config
@@ -441,14 +448,19 @@ def track_folder(
     with tum.open("w") as tum_fh, health.open("w", newline="") as health_fh:
         writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
         writer.writeheader()
+        last_time = -np.inf
         for frame in frames:
-            try:
+            if not frame.timestamp > last_time:
+                # A bag's header stamps, read as the frames come: a repeat or a step back is
+                # this frame's fault, not the run's; the trajectory skips it (TUM times rise).
+                result = _out_of_order(frame, last_time)
+                tracker.continue_at(frame.index + 1)
+            else:
                 result = tracker.track_frame(frame.cloud, frame.timestamp)
-            except InputError as exc:  # a timestamp out of order: name the frame it came from
-                raise InputError(f"frame {frame.index}: {exc}", frame.source) from None
+                last_time = frame.timestamp
+                tum_fh.write(tum_lines(Trajectory([result.timestamp], [result.T_sensor_target])))
             if frame.error is not None:  # the read error says more than the tracker's "no points"
                 result = dataclasses.replace(result, reasons=(frame.error,))
-            tum_fh.write(tum_lines(Trajectory([result.timestamp], [result.T_sensor_target])))
             writer.writerow(health_row(result))
             tum_fh.flush()
             health_fh.flush()

@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import load_structured, not_text
+from spacepose.core.motion import order_problem
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS, Simulation
 from spacepose.core.sim.targets import Rectangle
 from spacepose.core.trajectory import Trajectory
@@ -174,6 +175,9 @@ def read_run(path: str | Path) -> Run:
     if not isinstance(scenario, dict):
         raise FileFormatError("must hold a JSON object", root / SCENARIO)
     groundtruth = read_tum(root / GROUNDTRUTH)
+    problem = order_problem(groundtruth.timestamps)
+    if problem is not None:  # the run's frames are timed by it
+        raise InputError(problem, root / GROUNDTRUTH)
     frame_paths = tuple(sorted((root / FRAMES_DIR).glob("[0-9]*.ply")))
     if len(frame_paths) != len(groundtruth):
         raise InputError(
