@@ -52,6 +52,27 @@ def test_small_gicp_python_test_from_identity(pair, method: str) -> None:
     assert np.all(np.linalg.eigvalsh(out.covariance) > 0)
 
 
+@pytest.mark.parametrize("method", ["gicp", "point_to_plane"])
+def test_the_pair_far_from_the_origin_passes_the_same_test(pair, method: str) -> None:
+    """The pair moved 1,000 km out (a map in world coordinates): about that origin each
+    rotation is a 10⁶ m lever arm and the normal equations' condition passes 10¹⁵ (ICP called
+    the surfaces degenerate at 1 km). Solved about the target's centre and moved back, the
+    pose passes small_gicp's test, and its covariance about the cloud is the unmoved run's
+    (the voxel grid falls elsewhere on the points, so not to the bit)."""
+    source, target, T_ref = pair
+    far = se3.make_transform(np.eye(3), [1.0e6, -5.0e5, 2.0e3])
+    config = RegisterConfig(method=method)
+    out = register(source.transformed(far), target.transformed(far), config=config, workers=2)
+    assert not out.degeneracy.degenerate
+    T = se3.invert(far) @ out.result.T_target_source @ far
+    t, r = error(T, T_ref)
+    assert t < 0.05 and r < 0.05, (t, np.degrees(r))
+    near = register(source, target, config=config, workers=2)
+    Ad = se3.adjoint(se3.invert(far))  # the far run's twist, about the cloud's own origin
+    ratio = np.sqrt(np.diag(Ad @ out.covariance @ Ad.T) / np.diag(near.covariance))
+    assert np.all(np.abs(ratio - 1.0) < 0.25), ratio
+
+
 def test_small_gicp_cpp_test_from_perturbations(pair) -> None:
     # small_gicp's C++ test: starts perturbed by up to ±0.5 m per axis and ±10° from the
     # reference, forward and inverse, within 0.2 m and 2.5°. Two seeded starts each way.

@@ -59,7 +59,9 @@ def test_well_conditioned_pairs_are_not_flagged_and_keep_their_covariance() -> N
         assert not out.degeneracy.degenerate, (method, out.degeneracy.condition)
         assert out.degeneracy.condition < HealthConfig().ok_condition
         own = out.result.covariance(sigma=1.0 if method == "gicp" else None)
-        assert np.array_equal(out.covariance, own)
+        # Computed about the target's centre and moved back: equal to rounding, not widened
+        # (a widening adds the radius squared, metres², along a free direction).
+        np.testing.assert_allclose(out.covariance, own, rtol=1e-8, atol=1e-15)
         summary = out.to_dict()
         assert summary["degenerate"] is False and summary["unconstrained"] == []
 

@@ -27,7 +27,7 @@ import json
 import math
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -270,7 +270,13 @@ def register(
             downsampled.append(PointCloud(voxel_cells(cloud.points, voxel)[0], source=cloud.source))
         except InputError as exc:  # a voxel far too fine for the cloud's extent
             raise InputError(f"voxel {voxel:.4g} m: {exc.reason}", cloud.source) from None
-    src, tgt = downsampled
+    # Solved about the target's centre: about a far origin (a map in world coordinates, 1 km
+    # out) each rotation is a lever arm of that distance, and the normal equations lose the
+    # surfaces' information to rounding (their condition passed 10¹⁵ and ICP called them
+    # degenerate). ``S`` moves the centre to the origin; every pose and covariance goes back.
+    S = se3.make_transform(np.eye(3), -np.mean(target.points, axis=0))
+    src, tgt = (c.transformed(S) for c in downsampled)
+    T = S @ T @ se3.invert(S)
     for cloud in (src, tgt):
         if len(cloud) < 3:
             raise InputError(
@@ -290,24 +296,39 @@ def register(
     for gate in gates:
         result = fine(T, gate, gate == gates[-1])
         T, iterations = result.T_target_source, iterations + result.iterations
-    # GICP's information is noise-weighted already; ICP's scales by its residual σ.
-    covariance = result.covariance(sigma=1.0 if config.method == "gicp" else None)
     radius = max(s.radius for s in scales)
     degeneracy = surface_degeneracy(src.points, tgt.points, T, radius, workers=workers)
+    # GICP's information is noise-weighted already; ICP's scales by its residual σ.
+    covariance = result.covariance(sigma=1.0 if config.method == "gicp" else None)
     if degeneracy.degenerate:  # the registration's own information claims too much there
         covariance = degeneracy.widen(covariance)
+    # Back where the clouds were: the covariance moved, not inverted from a moved information
+    # (about a far origin that information is as ill-conditioned as the system was).
+    back = se3.adjoint(se3.invert(S))  # a left twist about the centre -> about the origin
+    centroid = se3.transform_points(se3.invert(S), degeneracy.centroid[None])[0]
     return RegisterResult(
-        result,
-        covariance,
+        _moved_back(result, S),
+        back @ covariance @ back.T,
         iterations,
         time.perf_counter() - tic,
         voxel,
         gates,
         len(src),
         len(tgt),
-        degeneracy,
-        coarse,
+        replace(degeneracy, centroid=centroid),
+        None if coarse is None else _moved_back(coarse, S),
     )
+
+
+def _moved_back(result: RegistrationResult, S: NDArray[np.float64]) -> RegistrationResult:
+    """``result`` of clouds moved by ``S`` (4, 4), for the clouds where they were: the pose
+    ``S⁻¹ T S`` and the information of the twist about the original origin."""
+    T = se3.invert(S) @ result.T_target_source @ S  # S is a shift: R is kept to the bit
+    information = result.information
+    if information is not None:
+        Ad = se3.adjoint(S)
+        information = Ad.T @ information @ Ad
+    return replace(result, T_target_source=T, information=information)
 
 
 def _fine_registration(
