@@ -376,3 +376,27 @@ def test_merge_keys_and_equal_keys_in_separate_mappings_stay_legal(tmp_path):
     path.write_text("icp: {max_iterations: 5}\ngicp: {max_iterations: 5}\n")
     config = load_config(TrackerConfig, path)
     assert config.icp.max_iterations == config.gicp.max_iterations == 5
+
+
+def test_a_boolean_for_a_number_is_refused_in_an_init_transform_and_a_scenario(tmp_path):
+    """numpy reads true as 1: an init translation of true is a metre, a mean motion of true
+    one radian a second. Both are refused, naming the file."""
+    from spacepose.core.nav_start import scenario_geometry
+    from spacepose.errors import InputError
+    from spacepose.tools.register import read_transform
+
+    init = tmp_path / "init.json"
+    rows = np.eye(4).tolist()
+    rows[0][3] = True
+    init.write_text(json.dumps({"T_target_source": rows}))
+    with pytest.raises(FileFormatError, match=r"init\.json: expected 16 numbers"):
+        read_transform(init)
+    rows[0][3] = 1.0
+    init.write_text(json.dumps({"T_target_source": rows}))
+    assert read_transform(init)[0, 3] == 1.0
+    with pytest.raises(InputError, match=r"s\.json: mean_motion holds a yes/no"):
+        scenario_geometry({"mean_motion": True, "R_O_C": np.eye(3).tolist()}, "s.json")
+    with pytest.raises(InputError, match=r"s\.json: R_O_C holds a yes/no"):
+        scenario_geometry(
+            {"mean_motion": 0.001, "R_O_C": [[True, 0, 0], [0, 1, 0], [0, 0, 1]]}, "s.json"
+        )

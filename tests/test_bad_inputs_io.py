@@ -119,6 +119,21 @@ def test_a_ply_header_promising_more_rows_than_its_bytes_is_refused(tmp_path, te
     assert "huge.ply" in str(info.value) and "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize("binary", [True, False])
+def test_a_ply_holding_rows_beyond_its_header_count_is_refused(tmp_path, binary):
+    """A header counting 400 of 500 rows would drop the last 100 without a word; a trailing
+    newline is no row."""
+    path = write_cloud(
+        tmp_path / "c.ply", np.random.default_rng(3).normal(size=(500, 3)), binary=binary
+    )
+    raw = path.read_bytes()
+    path.write_bytes(raw + b"\n")
+    assert len(read_cloud(path)) == 500
+    path.write_bytes(raw.replace(b"element vertex 500", b"element vertex 400"))
+    with pytest.raises(FileFormatError, match=r"c\.ply: .*beyond its header|c\.ply: .*counts 400"):
+        read_cloud(path)
+
+
 def test_foreign_bytes_and_folders_are_named_as_such(tmp_path):
     rng = np.random.default_rng(6)
     for name in ("r.npy", "r.npz", "r.ply"):

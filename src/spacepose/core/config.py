@@ -70,9 +70,11 @@ def admits_boolean(annotation: Any) -> bool:
     return False
 
 
-def _holds_boolean(value: Any) -> bool:
+def holds_boolean(value: Any) -> bool:
+    """Whether ``value`` is a boolean or a list / tuple holding one at any depth (a number
+    read from a file as ``true`` is a slip: numpy and pydantic would take it for 1)."""
     if isinstance(value, (list, tuple)):
-        return any(_holds_boolean(v) for v in value)
+        return any(holds_boolean(v) for v in value)
     return isinstance(value, bool)
 
 
@@ -82,7 +84,7 @@ def refuse_boolean(model: type[BaseModel], value: Any, info: ValidationInfo) -> 
     Pydantic reads ``true`` as 1 for a number field: in a file, ``ok_condition: true`` or a side
     ``a: yes`` (YAML 1.1) or a centre ``[true, 0, 0]`` is a slip, never the number one.
     """
-    if _holds_boolean(value) and not admits_boolean(model.model_fields[info.field_name].annotation):
+    if holds_boolean(value) and not admits_boolean(model.model_fields[info.field_name].annotation):
         raise ValueError(f"{str(value).lower()} is a yes/no, not a value of this field")
     return value
 

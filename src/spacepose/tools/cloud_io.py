@@ -13,6 +13,7 @@ import io
 import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import plyfile
@@ -174,7 +175,10 @@ def write_cloud(
 def _read_ply(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
     try:
         with path.open("rb") as fh:
-            _check_ply_counts(plyfile.PlyData._parse_header(fh), path.stat().st_size - fh.tell())
+            header = plyfile.PlyData._parse_header(fh)
+            body_bytes = path.stat().st_size - fh.tell()
+            _check_ply_counts(header, body_bytes)
+            _check_ply_rest(header, fh, body_bytes)
             fh.seek(0)
             ply = plyfile.PlyData.read(fh, mmap=False)
     except plyfile.PlyParseError as exc:
@@ -215,6 +219,40 @@ def _check_ply_counts(header: plyfile.PlyData, body_bytes: int) -> None:
                 f"the header promises {element.count:,} '{element.name}' rows, more than the "
                 f"file's {body_bytes:,} bytes of data can hold"
             )
+
+
+def _check_ply_rest(header: plyfile.PlyData, fh: BinaryIO, body_bytes: int) -> None:
+    """Refuse a body holding whole rows beyond the header's counts: read by the counts, they
+    would be dropped without a word (a count written before the last rows were).
+
+    Binary bodies of fixed-size rows are measured by their size (less than a row of trailing
+    bytes is let through); ASCII bodies (``fh`` at the body) by their non-blank lines.
+
+    Raises
+    ------
+    plyfile.PlyParseError
+        Rows beyond the header's counts.
+    """
+    counts = sum(element.count for element in header.elements)
+    if header.text:
+        rows = sum(1 for line in fh if line.strip())
+        if rows > counts:
+            raise plyfile.PlyParseError(
+                f"the file holds {rows:,} rows but its header counts {counts:,}: the rest "
+                "would be dropped"
+            )
+        return
+    if not header.elements or any(
+        hasattr(p, "len_dtype") for e in header.elements for p in e.properties
+    ):
+        return  # rows of lists vary in size
+    sizes = [sum(np.dtype(p.val_dtype).itemsize for p in e.properties) for e in header.elements]
+    extra = body_bytes - sum(e.count * n for e, n in zip(header.elements, sizes, strict=True))
+    if sizes[-1] and extra >= sizes[-1]:
+        raise plyfile.PlyParseError(
+            f"the file holds {extra:,} bytes of data beyond its header's counts (at least "
+            f"{extra // sizes[-1]:,} more rows): they would be dropped"
+        )
 
 
 def _write_ply(
