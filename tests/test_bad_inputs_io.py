@@ -454,3 +454,22 @@ def test_an_output_onto_an_input_file_is_refused_before_any_work(frames, tmp_pat
     est = root / "out" / "est.tum"
     assert main(["track", str(root), "--out", str(est)]) == 0
     assert main(["track", str(root), "--out", str(est)]) == 0  # its own output, again
+
+
+def test_frames_named_without_padding_come_in_the_numbers_order(tmp_path):
+    """frame0, frame5, frame10, frame15 sorted as text would track 0, 10, 15, 5: a jump back
+    the motion model takes for a turn. Numbers by value; a fraction's digits as text, so that
+    TUM-style times keep their order (1.25 before 1.5)."""
+    from spacepose.tools.depth_io import frame_entries
+
+    names = ["frame10.ply", "frame5.ply", "frame15.ply", "frame0.ply", ".frame1.ply", "notes.md"]
+    for name in names:
+        (tmp_path / name).write_bytes(b"")
+    found = [p.name for p in frame_entries(tmp_path, (".ply",))]
+    assert found == ["frame0.ply", "frame5.ply", "frame10.ply", "frame15.ply"]
+    times = tmp_path / "times"
+    times.mkdir()
+    for name in ("1.5.png", "1.25.png", "0.75.png", "10.0.png", "2.png"):
+        (times / name).write_bytes(b"")
+    found = [p.name for p in frame_entries(times, (".png",))]
+    assert found == ["0.75.png", "1.25.png", "1.5.png", "2.png", "10.0.png"]

@@ -13,6 +13,7 @@ folder).
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -228,18 +229,29 @@ def is_depth_folder(root: str | Path) -> bool:
     return (Path(root) / TUM_DEPTH_LIST).is_file() or find_intrinsics(root) is not None
 
 
+def _name_order(path: Path) -> list[int | str]:
+    """Sort key of a frame's name: its runs of digits by value (``frame5`` before
+    ``frame10``), but those after a dot, a fraction's digits, as text (``1.25`` before
+    ``1.5``); the same order as the names' where the numbers are zero-padded."""
+    chunks: list[int | str] = re.split(r"(\d+)", path.name)
+    for i in range(1, len(chunks), 2):
+        if not str(chunks[i - 1]).endswith("."):
+            chunks[i] = int(chunks[i])
+    return chunks
+
+
 def frame_entries(root: Path, suffixes: tuple[str, ...]) -> tuple[Path, ...]:
-    """A folder's entries named as frames (a suffix of ``suffixes``, any case), sorted by name.
+    """A folder's entries named as frames (a suffix of ``suffixes``, any case), sorted by name
+    with its numbers by value (:func:`_name_order`).
 
     Not only regular files: a folder or a broken link named as a frame is a frame that cannot
     be read (reported lost), not one to skip and shift the rest. Hidden entries (a leading
     dot: macOS's ``._000000.ply`` resource forks, editors' swap files) are not frames.
     """
-    return tuple(
-        sorted(
-            p for p in root.iterdir() if p.suffix.lower() in suffixes and not p.name.startswith(".")
-        )
+    entries = (
+        p for p in root.iterdir() if p.suffix.lower() in suffixes and not p.name.startswith(".")
     )
+    return tuple(sorted(entries, key=_name_order))
 
 
 def depth_files(root: str | Path) -> tuple[Path, ...]:
