@@ -31,16 +31,27 @@ numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
+def thread_count(workers: int) -> int:
+    """The threads ``workers`` asks for (-1: all cores), at most the cores numba has.
+
+    Raises
+    ------
+    InputError
+        Neither -1 nor a positive integer (a stateful user, the tracker, checks it when built:
+        a run's outputs are not started on a count its first kernel would refuse).
+    """
+    available = numba.config.NUMBA_NUM_THREADS
+    if workers == -1:
+        return available
+    if isinstance(workers, int | np.integer) and not isinstance(workers, bool) and workers >= 1:
+        return min(int(workers), available)
+    raise InputError(f"workers must be -1 (all cores) or a positive count, got {workers}")
+
+
 @contextmanager
 def numba_threads(workers: int) -> Iterator[None]:
     """Run the enclosed kernels on ``workers`` threads (-1: all cores), then restore the count."""
-    available = numba.config.NUMBA_NUM_THREADS
-    if workers == -1:
-        count = available
-    elif isinstance(workers, int | np.integer) and workers >= 1:
-        count = min(int(workers), available)
-    else:
-        raise InputError(f"workers must be -1 (all cores) or a positive count, got {workers}")
+    count = thread_count(workers)
     before = numba.get_num_threads()
     numba.set_num_threads(count)
     try:

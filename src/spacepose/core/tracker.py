@@ -49,6 +49,7 @@ from spacepose.core.relocalise import Checked, Relocaliser
 from spacepose.core.scale import DataScale
 from spacepose.core.scene_follower import SCENE_NOTE, SceneFollower
 from spacepose.core.support import SupportSeparation
+from spacepose.core.threads import thread_count
 from spacepose.core.track_result import (
     STAGES,
     TrackResult,
@@ -90,6 +91,7 @@ class Tracker:
                 raise ConfigError(f"config must be a TrackerConfig, got {type(config).__name__}")
             config = TrackerConfig.model_validate(config)
         self.config = config
+        thread_count(workers)  # refused now, not on the first frame's first kernel
         self.workers = workers
         self._index = 0
         self._last_timestamp = -np.inf
