@@ -302,6 +302,18 @@ def test_a_frame_stamped_out_of_order_is_lost_and_the_rest_tracked(lab, tmp_path
     assert len(times) == N_FRAMES - 2 and np.all(np.diff(times) > 0)
 
 
+def test_a_topic_without_messages_says_so(tmp_path, capsys):
+    """A frame topic declared but never published: one line, and no outputs begun."""
+    path = tmp_path / "empty_bag"
+    with Writer2(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        writer.add_connection("/points", PC2, typestore=ROS2)
+    out = tmp_path / "out" / "est.tum"
+    assert main(["track", str(path), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("empty_bag: no messages on /points: the bag holds no frame"), err
+    assert not out.parent.exists()
+
+
 @pytest.mark.parametrize("content", [b"", b"not a bag at all\n"])
 def test_unreadable_bag_is_one_line(tmp_path, capsys, content):
     (tmp_path / "run.bag").write_bytes(content)

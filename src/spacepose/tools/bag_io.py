@@ -263,6 +263,8 @@ def open_bag(
             raise InputError(f"topic {topic} is {what}; frame topics: {listing}", path)
         connections = [c for c in reader.connections if c.topic == topic]
         count = sum(c.msgcount for c in connections)
+        if count == 0:  # a topic declared but never published
+            raise InputError(f"no messages on {topic}: the bag holds no frame", path)
         if candidates[topic] == IMAGE and camera is None:
             camera = _bag_camera(reader, topic, path)
     return BagFrames(path, topic, candidates[topic], count, camera)
