@@ -314,7 +314,7 @@ def test_tracker_and_normals_arguments_are_checked():
     with pytest.raises(ConfigError, match="config must be a TrackerConfig, got list"):
         Tracker([1])
     for workers in (0, -2, 1.5, True):  # refused when built, before a run writes anything
-        with pytest.raises(InputError, match="workers must be -1 .* or a positive count"):
+        with pytest.raises(InputError, match=r"workers must be -1 .* or a positive count"):
             Tracker(workers=workers)
     for viewpoint, message in (((0, 0), "3 numbers"), ((np.nan, 0, 0), "finite")):
         with pytest.raises(InputError, match=f"viewpoint must be {message}"):

@@ -212,7 +212,7 @@ def test_tum_depth_list(tmp_path):
     with pytest.raises(InputError, match="line 2"):
         read_tum_depth_list(tmp_path / "depth.txt")
     (tmp_path / "depth.txt").write_text("2.0 a.png\n1.0 b.png\n")
-    with pytest.raises(InputError, match="must increase: frame 1 goes back to 1.0"):
+    with pytest.raises(InputError, match=r"must increase: frame 1 goes back to 1\.0"):
         read_tum_depth_list(tmp_path / "depth.txt")
 
 
