@@ -321,6 +321,14 @@ def test_tracker_and_normals_arguments_are_checked():
             estimate_normals(pts, viewpoint=viewpoint)
     with pytest.raises(ConfigError, match="max_nn"):
         FPFHConfig(max_nn=10**7)
+    # A normal over 5,000 neighbours took 16 s a frame, over 10⁸ it never came back.
+    from spacepose.core.gicp import GICPConfig
+    from spacepose.core.normals import NormalsConfig
+
+    with pytest.raises(ConfigError, match="less than or equal to 1000"):
+        NormalsConfig(k=5000)
+    with pytest.raises(ConfigError, match="less than or equal to 1000"):
+        GICPConfig(k_covariance=10**8)
     tracker = Tracker()
     tracker.track_frame(pts, 0.0)
     with pytest.raises(InputError, match="prior must be a pair"):

@@ -49,7 +49,8 @@ class GICPConfig(RobustConfig):
     Attributes
     ----------
     k_covariance
-        Neighbours (the point itself included) behind each point's covariance.
+        Neighbours (the point itself included) behind each point's covariance (at most 1,000,
+        as a normal's).
     epsilon
         Regularised eigenvalue along the normal, relative to 1 in the tangent plane.
     max_correspondence_distance
@@ -70,7 +71,7 @@ class GICPConfig(RobustConfig):
         ``"none"`` is plain least squares.
     """
 
-    k_covariance: int = Field(20, ge=3)
+    k_covariance: int = Field(20, ge=3, le=1000)
     epsilon: float = Field(1e-3, gt=0, le=1)
     max_correspondence_distance: float = Field(0.05, gt=0)
     max_iterations: int = Field(30, ge=1)

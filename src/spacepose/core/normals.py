@@ -32,12 +32,14 @@ class NormalsConfig(StageConfig):
     ----------
     k
         Number of nearest neighbours (the point included); with ``radius`` set, the cap on the
-        neighbours inside the radius (Open3D's hybrid search).
+        neighbours inside the radius (Open3D's hybrid search). At most 1,000: a wider
+        neighbourhood is no longer local (a ToF frame's normals take 10-50), and its search
+        grows as k per point.
     radius
         Search radius in metres, or None for a pure k-nearest search.
     """
 
-    k: int = Field(default=30, ge=3)
+    k: int = Field(default=30, ge=3, le=1000)
     radius: PositiveFloat | None = None
 
 
