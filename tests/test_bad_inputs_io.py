@@ -484,3 +484,15 @@ def test_frames_named_without_padding_come_in_the_numbers_order(tmp_path):
         (times / name).write_bytes(b"")
     found = [p.name for p in frame_entries(times, (".png",))]
     assert found == ["0.75.png", "1.25.png", "1.5.png", "2.png", "10.0.png"]
+
+
+def test_a_multi_page_tiff_is_not_read_as_its_first_page(tmp_path):
+    """Four depth maps stacked in one TIFF were read as the first, the rest dropped."""
+    from spacepose.tools.depth_io import read_depth_image
+
+    pages = [Image.fromarray(np.full((6, 8), 1000 + k, dtype=np.uint16)) for k in range(4)]
+    pages[0].save(tmp_path / "stack.tif", save_all=True, append_images=pages[1:])
+    with pytest.raises(FileFormatError, match=r"stack\.tif: holds 4 images; a depth map is one"):
+        read_depth_image(tmp_path / "stack.tif")
+    pages[0].save(tmp_path / "one.tif")
+    assert read_depth_image(tmp_path / "one.tif")[0, 0] == 1000

@@ -63,6 +63,7 @@ def read_depth_image(path: str | Path) -> NDArray:
         return values
     try:
         with Image.open(path) as image:
+            pages = getattr(image, "n_frames", 1)
             image.load()
             mode = image.mode
             values = np.array(image)
@@ -74,6 +75,8 @@ def read_depth_image(path: str | Path) -> NDArray:
         raise FileFormatError(f"refused: {exc}", path) from None
     except (OSError, SyntaxError, ValueError) as exc:
         raise FileFormatError(f"cannot decode the image: {exc}", path) from None
+    if pages != 1:  # a stack would be read as its first page, the rest dropped
+        raise FileFormatError(f"holds {pages} images; a depth map is one (one file a frame)", path)
     if mode not in _DEPTH_MODES or values.ndim != 2:
         raise FileFormatError(
             f"a depth map must be one channel of 16-bit integers or 32-bit floats, "
