@@ -394,6 +394,8 @@ def test_a_boolean_for_a_number_is_refused_in_an_init_transform_and_a_scenario(t
     rows[0][3] = 1.0
     init.write_text(json.dumps({"T_target_source": rows}))
     assert read_transform(init)[0, 3] == 1.0
+    with pytest.raises(InputError, match=r"s\.json: mean_motion 1e\+30 rad/s .* no body is dense"):
+        scenario_geometry({"mean_motion": 1e30, "R_O_C": np.eye(3).tolist()}, "s.json")
     with pytest.raises(InputError, match=r"s\.json: mean_motion holds a yes/no"):
         scenario_geometry({"mean_motion": True, "R_O_C": np.eye(3).tolist()}, "s.json")
     with pytest.raises(InputError, match=r"s\.json: R_O_C holds a yes/no"):

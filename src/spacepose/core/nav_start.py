@@ -29,6 +29,11 @@ from spacepose.errors import InputError
 __all__ = ["scenario_geometry", "start_filter"]
 
 
+# The fastest orbit about any body: √(Gρ·4π/3) at its surface is 1.2e-3 rad/s for the Earth
+# (ρ 5.5 g/cm³) and below 2e-3 rad/s for iron; a mean motion ten times that is a wrong unit.
+_MAX_MEAN_MOTION = 0.02
+
+
 def scenario_geometry(
     scenario: Mapping[str, Any], source: str = "scenario.json"
 ) -> tuple[float, NDArray[np.float64]]:
@@ -52,6 +57,12 @@ def scenario_geometry(
         raise InputError(f"mean_motion / R_O_C are not numeric: {exc}", source) from None
     if not np.isfinite(n) or n <= 0:
         raise InputError(f"mean_motion must be positive, got {n}", source)
+    if n > _MAX_MEAN_MOTION:
+        raise InputError(
+            f"mean_motion {n:.4g} rad/s is an orbit of {2 * np.pi / n:.3g} s: no body is dense "
+            f"enough (at most {_MAX_MEAN_MOTION} rad/s; rad/s, not rad/min or deg/s?)",
+            source,
+        )
     if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise InputError("R_O_C must be a 3x3 rotation matrix", source)
     return n, R
