@@ -88,6 +88,11 @@ def test_simulate_errors_are_one_line(tmp_path, capsys) -> None:
     assert "--background applies to the lab scenario only" in capsys.readouterr().err
     assert main(["simulate", "orbit", "--out", out, "--motion", "tumbling-3"]) == 1
     assert "--motion applies to the lab scenario only" in capsys.readouterr().err
+    # A scale with nothing to scale was taken without a word (nan included).
+    assert main(["simulate", "orbit", "--out", out, "--model-scale", "nan"]) == 1
+    assert "--model-scale applies to a --model's coordinates, and no --model" in (
+        capsys.readouterr().err
+    )
     assert main(["simulate", "orbit", "--out", out, "--target-size", "0"]) == 1
     assert "--target-size applies to the lab scenario only" in capsys.readouterr().err
     assert main(["simulate", "lab", "--out", out, "--model", str(tmp_path / "none.obj")]) == 1

@@ -23,7 +23,9 @@ def simulate(
     ),
     noise_scale: float | None = typer.Option(None, help="Noise multiplier; 0 = noise-free."),
     model: Path | None = typer.Option(None, help="Mesh file (OBJ/STL/PLY/GLB) as the target."),
-    model_scale: float = typer.Option(1.0, help="Scale applied to --model coordinates."),
+    model_scale: float | None = typer.Option(
+        None, help="Scale applied to --model coordinates (default 1)."
+    ),
     background: bool = typer.Option(False, help="lab: add a wall and the turntable."),
     turntable: bool = typer.Option(
         True, help="lab, with --background: the turntable under the target (off: the wall alone)."
@@ -54,6 +56,9 @@ def simulate(
 
     if grid and scenario != "lab":
         raise ConfigError(f"--grid builds lab scenes only, not {scenario!r}")
+    if model_scale is not None and (model is None or grid):
+        why = "the grid scales its target by --range" if grid else "no --model is given"
+        raise ConfigError(f"--model-scale applies to a --model's coordinates, and {why}")
     # Named, not truthy: --target-size 0 is given (0.0 == False would hide it).
     lab_only = {"--background": background or None, "--motion": motion}
     lab_only["--target-size"] = target_size
@@ -84,7 +89,7 @@ def simulate(
             fields["frames"] = frames
         if model is not None:
             fields["model"] = str(model)
-            fields["model_scale"] = model_scale
+            fields["model_scale"] = 1.0 if model_scale is None else model_scale
         if background:
             fields |= {"background": True, "turntable": turntable}
         if motion is not None:
