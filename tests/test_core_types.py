@@ -40,6 +40,16 @@ def test_pointcloud_rejects_bad_points_naming_the_source(points, match: str) -> 
     assert "scan_07.ply" in str(info.value)
 
 
+def test_finite_points_with_no_finite_normal_say_so() -> None:
+    # "No finite point" would send the user to coordinates that are fine.
+    with pytest.raises(
+        InputError,
+        match=r"no row with finite points and normals \(the points "
+        r"alone are finite on 5 of 5 rows\)",
+    ):
+        PointCloud(np.ones((5, 3)), normals=np.full((5, 3), np.nan), source="n.npz")
+
+
 def test_pointcloud_rejects_mismatched_normals_and_sigma() -> None:
     with pytest.raises(InputError, match="2 normals for 3 points"):
         PointCloud(np.zeros((3, 3)), normals=np.zeros((2, 3)))

@@ -80,6 +80,13 @@ class PointCloud:
             n_keep = int(np.count_nonzero(keep))
             if n_keep == 0:
                 what = "is empty" if n == 0 else f"has no finite point (all {n} rows NaN/inf)"
+                if n and np.any(_finite_rows(pts)):  # the points are fine: say what is not
+                    bad = [k for k, v in (("normals", normals), ("sigma", sigma)) if v is not None]
+                    finite = int(np.count_nonzero(_finite_rows(pts)))
+                    what = (
+                        f"has no row with finite {' and '.join(['points', *bad])} (the points "
+                        f"alone are finite on {finite} of {n} rows)"
+                    )
                 raise InputError(f"point cloud {what}", self.source)
             if n_keep < n:
                 # Fresh arrays: the private copies below need not copy them again.
