@@ -131,3 +131,15 @@ def test_render_then_backproject_round_trip_with_distortion():
     organised = backproject(image, WIDE.model_copy(update={"depth_scale": 1.0}))
     np.testing.assert_allclose(organised.points[v, u], points, atol=1e-12)
     assert organised.valid.sum() == 300
+
+
+def test_a_camera_matrix_with_nan_or_the_wrong_size_says_which():
+    """'needs 9 finite numbers, got 9' named the count, not the NaN."""
+    from spacepose.core.depth import matrix_fields
+    from spacepose.errors import InputError
+
+    K = [[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]
+    with pytest.raises(InputError, match="holds non-finite numbers"):
+        matrix_fields([[np.nan, 0, 320], *K[1:]], [0, 0, 0, 0])
+    with pytest.raises(InputError, match="needs 9 numbers, got 8"):
+        matrix_fields(np.ravel(K)[:8], [0, 0, 0, 0])

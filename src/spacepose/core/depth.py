@@ -116,8 +116,10 @@ def matrix_fields(
         d = np.asarray(D, dtype=np.float64).ravel()
     except (TypeError, ValueError):
         raise InputError("the camera matrix and distortion must be numbers") from None
-    if k.size != 9 or not np.all(np.isfinite(k)):
-        raise InputError(f"a camera matrix needs 9 finite numbers, got {k.size}")
+    if k.size != 9:
+        raise InputError(f"a camera matrix needs 9 numbers, got {k.size}")
+    if not np.all(np.isfinite(k)):
+        raise InputError(f"the camera matrix holds non-finite numbers: {k.tolist()}")
     if k[0] <= 0 or k[4] <= 0:
         raise InputError(f"the camera matrix has no focal length (fx {k[0]:g}, fy {k[4]:g})")
     # A skewed or projective matrix is not a pinhole with square pixel axes.
