@@ -425,7 +425,10 @@ def _scalar_column(
 ) -> NDArray[np.float64]:
     """One property as an (N,) float64 column; a list property (one array per point) is refused."""
     try:
-        column = np.asarray(data[name], dtype=np.float64)
+        # Signalling-NaN bit patterns (a file of the other byte order) warn on the cast; the
+        # NaN rows are dropped and counted with the cloud, and its span is warned about.
+        with np.errstate(invalid="ignore"):
+            column = np.asarray(data[name], dtype=np.float64)
     except (TypeError, ValueError):
         column = None
     if column is None or column.ndim != 1:
