@@ -126,3 +126,7 @@ def test_errors_are_one_line_and_exit_code_1(scene, tmp_path, capsys):
     assert "collinear" in capsys.readouterr().err
     assert main(["planes", str(path), "--threshold", "-1"]) == 1
     assert "distance_threshold" in capsys.readouterr().err
+    # A noise as large as the cloud (a wrong unit) printed every side as 0.000.
+    assert main(["planes", str(path), "--sigma", "10"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "noise sigma 10 m is as large as the cloud itself" in err and "\n" not in err

@@ -21,6 +21,7 @@ from spacepose.core.moments import distribution, is_collinear, normalised_weight
 from spacepose.core.planes import Plane, PlaneConfig, dense_support, extract_planes
 from spacepose.core.rectangle_measurement import RectangleMeasurement, measure_rectangle
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, recognise
+from spacepose.errors import InputError
 
 __all__ = ["FoundPlane", "MeasuredPlane", "find_rectangles", "measure_planes"]
 
@@ -127,7 +128,22 @@ def find_rectangles(
     Returns
     -------
     One :class:`FoundPlane` per extracted plane, in extraction order.
+
+    Raises
+    ------
+    InputError
+        ``config.sigma`` as large as the cloud's RMS radius (every side would measure 0).
     """
+    pts = as_points(cloud_or_points, min_points=3)
+    rms_radius = float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
+    if config.sigma >= rms_radius:
+        # Every side would come out as 0 (its variance less the noise's): a σ in the wrong
+        # unit, or the target's size given for the noise.
+        raise InputError(
+            f"noise sigma {config.sigma:g} m is as large as the cloud itself (RMS radius "
+            f"{rms_radius:.3g} m): sigma is the points' noise",
+            getattr(cloud_or_points, "source", None),
+        )
     return [
         FoundPlane(
             f.plane,
