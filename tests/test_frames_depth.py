@@ -9,6 +9,7 @@ voxel. Both must track to the same poses (to 1e-9; measured 4e-17).
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ from spacepose.core.depth import DepthCamera, render_depth
 from spacepose.core.metrics import evaluate
 from spacepose.core.sim import scenario_config, simulate
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import InputError
+from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.depth_io import read_depth_image, write_depth_image
 from spacepose.tools.frames import FrameSequence, open_frames, track_folder, tracker_config
 from spacepose.tools.trajectory_io import read_tum
@@ -153,6 +154,25 @@ def test_hidden_files_are_not_frames(folders, tmp_path):
         frames = open_frames(copy)
         assert len(frames) == N_FRAMES
         assert not any(p.name.startswith(".") for p in frames.paths)
+
+
+def test_cloud_files_in_a_depth_folder_are_named_not_dropped_silently(folders, tmp_path):
+    """A .ply beside the depth images is no frame of a depth folder: said once, by name;
+    TUM's text lists beside them are no clouds and say nothing."""
+    copy = tmp_path / "depth"
+    copy.mkdir()
+    for path in folders["depth"].iterdir():
+        (copy / path.name).write_bytes(path.read_bytes())
+    (copy / "rgb.txt").write_text("# timestamp filename\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert len(open_frames(copy)) == N_FRAMES
+    assert not [w for w in caught if issubclass(w.category, SpaceposeWarning)]
+    (copy / "extra.ply").write_bytes(b"ply\n")
+    with pytest.warns(
+        SpaceposeWarning, match=r"1 point cloud file\(s\) \(extra\.ply\) are not read"
+    ):
+        assert len(open_frames(copy)) == N_FRAMES
 
 
 def test_bad_depth_image_is_lost_with_its_reason(folders, tmp_path):

@@ -20,6 +20,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import warnings
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -37,7 +38,7 @@ from spacepose.core.motion import order_problem
 from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import InputError
+from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.outputs import check_spares_inputs, check_writable
@@ -233,6 +234,19 @@ def _open_depth_folder(root: Path, camera: DepthCamera | None) -> FrameSequence:
     else:
         paths = depth_io.depth_files(root)
         timestamps = _folder_timestamps(root, len(paths))
+    # Cloud-only formats: text files beside depth images are lists (TUM's rgb.txt), and a
+    # .npy may be a depth map.
+    clouds = depth_io.frame_entries(root, (".ply", ".pcd", ".npz"))
+    if clouds:  # read as depth images, the folder's cloud files are no frames
+        names = ", ".join(p.name for p in clouds[:3]) + (", ..." if len(clouds) > 3 else "")
+        warnings.warn(
+            SpaceposeWarning(
+                f"a depth-image folder: its {len(clouds)} point cloud file(s) ({names}) are not "
+                "read as frames",
+                root,
+            ),
+            stacklevel=3,
+        )
     loader = partial(depth_io.read_depth_cloud, camera=_sized(camera, paths))
     return FrameSequence(paths, timestamps, loader=loader)
 
