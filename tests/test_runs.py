@@ -138,6 +138,12 @@ def test_bad_run_folders(tmp_path, lab_sim, orbit_sim) -> None:
     (orbit / "truth.csv").write_text("\n".join(truth.splitlines()[:-1]) + "\n")
     with pytest.raises(FileFormatError, match="expected 5 rows"):
         read_run(orbit)
+    rows = truth.splitlines()
+    cells = rows[2].split(",")
+    cells[3] = "nan"
+    (orbit / "truth.csv").write_text("\n".join([*rows[:2], ",".join(cells), *rows[3:]]) + "\n")
+    with pytest.raises(FileFormatError, match=r"truth\.csv: row 2: .* is nan; the truth must be"):
+        read_run(orbit)
     (orbit / "truth.csv").write_text(truth.replace("\n0,", "\nzero,", 1))
     with pytest.raises(FileFormatError, match=r"truth\.csv: bad row"):
         read_run(orbit)

@@ -217,4 +217,12 @@ def _read_truth(path: Path, n_frames: int) -> NDArray[np.float64]:
         raise FileFormatError(
             f"expected {n_frames} rows of {len(TRUTH_COLUMNS)} values, got {table.shape}", path
         )
+    bad = ~np.isfinite(table)
+    if bad.any():  # a truth with a hole scores every estimate against NaN
+        row, column = np.argwhere(bad)[0]
+        raise FileFormatError(
+            f"row {row + 1}: {TRUTH_COLUMNS[column]} is {table[row, column]}; the truth must be "
+            "finite",
+            path,
+        )
     return table
