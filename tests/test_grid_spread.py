@@ -53,18 +53,10 @@ def test_a_model_based_frame_carries_the_grid_spread_too(monkeypatch):
     frame's voxel sampling biases its registration onto the model as onto a keyframe. Over 20
     frames (seed 0) 19 are ok either way, at the same poses; without the term 16 of them lie
     within 3σ on every axis, with it 18 (frame 3: 3.3 → 2.4σ, frame 7: 3.0 → 1.6σ)."""
-    from spacepose.core.sim import OrbitConfig, sensor_config, simulate_orbit
-    from spacepose.tools.experiments.fusion import _MODELS
+    from spacepose.core.sim import simulate_orbit
+    from test_tracker import hubble_at_close_range
 
-    config = OrbitConfig(
-        frames=20,
-        seed=0,
-        model=str(_MODELS / "hubble_model_kit.obj"),
-        model_scale=0.02,
-        standoff_m=5.0,
-        sensor=sensor_config("tof"),
-    )
-    sim = simulate_orbit(config)
+    sim = simulate_orbit(hubble_at_close_range(20))
 
     def track(with_spread: bool):
         if not with_spread:

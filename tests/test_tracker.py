@@ -704,24 +704,31 @@ def test_the_default_orbit_target_is_never_ok_on_its_twin():
     assert started == 5
 
 
+def hubble_at_close_range(frames: int, seed: int = 0):
+    """The orbit run of the Hubble kit scaled to 2 m, 5 m from the ToF camera."""
+    from spacepose.core.sim import OrbitConfig, sensor_config
+    from spacepose.tools.experiments.fusion import _MODELS
+
+    return OrbitConfig(
+        frames=frames,
+        seed=seed,
+        model=str(_MODELS / "hubble_model_kit.obj"),
+        model_scale=0.02,
+        standoff_m=5.0,
+        sensor=sensor_config("tof"),
+    )
+
+
 def test_model_based_tracking_of_a_mesh_at_close_range_with_the_tof_camera():
     """The Hubble kit scaled to 2 m, 5 m from the ToF camera (σ 13 mm, flying pixels between
     its parts). Registered onto its model at the frame's voxel, with every candidate's noise
     in the gate, 28-34 of 40 frames were ok, 0.11-0.13° off in roll with a σ of 0.045°
     (tracker NEES median 24-30). Measured now (seeds 0-2, 40 frames): 39 ok, rotation RMS
     0.04-0.09°, position RMS 0.4-1.2 mm, NEES median 15-16, 0-2 ok frames beyond 5σ."""
-    from spacepose.core.sim import OrbitConfig, sensor_config, simulate_orbit
-    from spacepose.tools.experiments.fusion import _MODELS, tracker_errors
+    from spacepose.core.sim import simulate_orbit
+    from spacepose.tools.experiments.fusion import tracker_errors
 
-    config = OrbitConfig(
-        frames=20,
-        seed=0,
-        model=str(_MODELS / "hubble_model_kit.obj"),
-        model_scale=0.02,
-        standoff_m=5.0,
-        sensor=sensor_config("tof"),
-    )
-    sim = simulate_orbit(config)
+    sim = simulate_orbit(hubble_at_close_range(20))
     tracker = Tracker(TrackerConfig(), sim.model_cloud())
     errors = []
     for k in range(len(sim)):
