@@ -157,7 +157,10 @@ def test_a_ros_camera_info_yaml_is_an_intrinsics_file(tmp_path):
     ("change", "problem"),
     [
         (("data: [505.2, 0, 318.7", "data: [505.2, 3.0, 318.7"), "must be"),  # skew
-        (("data: [505.2, 0, 318.7, 0, 506.9, 241.3, 0, 0, 1]", "data: [505.2, 0]"), "needs 9 numbers, got 2"),
+        (
+            ("data: [505.2, 0, 318.7, 0, 506.9, 241.3, 0, 0, 1]", "data: [505.2, 0]"),
+            "needs 9 numbers, got 2",
+        ),
         (("data: [505.2, 0, 318.7", "data: [0, 0, 318.7"), "no focal length"),
         (("plumb_bob", "equidistant"), "equidistant"),
         (("data: [-0.12,", "data: [x,"), "numbers"),
