@@ -465,6 +465,11 @@ def test_an_output_onto_an_input_file_is_refused_before_any_work(frames, tmp_pat
     est = root / "out" / "est.tum"
     assert main(["track", str(root), "--out", str(est)]) == 0
     assert main(["track", str(root), "--out", str(est)]) == 0  # its own output, again
+    # Beside the frames, its tables are no frames of the next run (5 timestamps, 5 frames).
+    assert main(["track", str(root), "--out", str(root / "est.tum")]) == 0
+    assert (root / "est.health.csv").is_file()
+    assert main(["track", str(root), "--out", str(root / "est.tum")]) == 0
+    assert len((root / "est.health.csv").read_text().splitlines()) == 1 + 5
 
 
 def test_frames_named_without_padding_come_in_the_numbers_order(tmp_path):

@@ -63,6 +63,9 @@ HEALTH_COLUMNS: tuple[str, ...] = (
 )
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
 TIMESTAMPS_FILE = "timestamps.txt"
+# Tables spacepose writes beside its outputs: an output written into a folder of frames is no
+# frame of the next run over it.
+_OWN_TABLES = (".health.csv", ".candidates.csv")
 
 
 @dataclass(frozen=True)
@@ -178,7 +181,9 @@ def open_frames(
     if camera is not None or depth_io.is_depth_folder(root):
         return _open_depth_folder(root, camera)
     paths = tuple(
-        p for p in depth_io.frame_entries(root, CLOUD_SUFFIXES) if p.name != TIMESTAMPS_FILE
+        p
+        for p in depth_io.frame_entries(root, CLOUD_SUFFIXES)
+        if p.name != TIMESTAMPS_FILE and not p.name.endswith(_OWN_TABLES)
     )
     if not paths and depth_io.frame_entries(root, depth_io.DEPTH_SUFFIXES):
         # Images without intrinsics: say what is missing, not that there is nothing.
