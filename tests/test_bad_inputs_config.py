@@ -24,10 +24,10 @@ from spacepose.core.planes import PlaneConfig
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.errors import ConfigError, FileFormatError, SpaceposeWarning
 from spacepose.tools.catalogue import load_catalogue, parse_catalogue
-from spacepose.tools.frames import tracker_config
 from spacepose.tools.navigation_io import prior_quaternion
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run
+from spacepose.tools.tracking_io import tracker_config
 
 # What the fuzzer fed: a UTF-16 byte order mark and bytes that are no UTF-8.
 BINARY = b"\xff\xfe\x00\xc0garbage\x81\n"

@@ -23,9 +23,9 @@ from spacepose.errors import (
 )
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import read_depth_cloud
-from spacepose.tools.frames import track_folder
 from spacepose.tools.outputs import check_writable
 from spacepose.tools.register import register_files
+from spacepose.tools.tracking_io import track_folder
 
 
 @pytest.fixture(scope="module")

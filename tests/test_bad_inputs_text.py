@@ -15,8 +15,9 @@ import pytest
 from spacepose.cli import main
 from spacepose.errors import FileFormatError
 from spacepose.tools.cloud_io import write_cloud
-from spacepose.tools.frames import open_frames, read_timestamps, track_folder
+from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.register import read_transform
+from spacepose.tools.tracking_io import track_folder
 from spacepose.tools.trajectory_io import read_trajectory, read_tum
 
 _TUM = "0 0 0 1 0 0 0 1\n1 0.01 0 1 0 0 0 1\n"

@@ -17,14 +17,9 @@ from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import ConfigError, InputError
 from spacepose.tools.cloud_io import write_cloud
-from spacepose.tools.frames import (
-    HEALTH_COLUMNS,
-    open_frames,
-    read_timestamps,
-    track_folder,
-    tracker_config,
-)
+from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.runs import write_run
+from spacepose.tools.tracking_io import HEALTH_COLUMNS, track_folder, tracker_config
 from spacepose.tools.trajectory_io import read_tum
 
 N_FRAMES = 4
@@ -183,7 +178,7 @@ class _NoTracking:
 
 
 def test_out_at_a_folder_fails_before_tracking(frame_dir, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("spacepose.tools.frames.Tracker", _NoTracking)
+    monkeypatch.setattr("spacepose.tools.tracking_io.Tracker", _NoTracking)
     (tmp_path / "est.tum").mkdir()
     code = main(["track", str(frame_dir), "--out", str(tmp_path / "est.tum")])
     assert code == 1
@@ -195,7 +190,7 @@ def test_out_at_a_folder_fails_before_tracking(frame_dir, tmp_path, capsys, monk
 
 
 def test_out_under_a_regular_file_fails_before_tracking(frame_dir, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr("spacepose.tools.frames.Tracker", _NoTracking)
+    monkeypatch.setattr("spacepose.tools.tracking_io.Tracker", _NoTracking)
     (tmp_path / "notes.txt").write_text("a file, not a folder")
     out = tmp_path / "notes.txt" / "runs" / "est.tum"
     assert main(["track", str(frame_dir), "--out", str(out)]) == 1

@@ -22,7 +22,8 @@ from spacepose.core.sim import scenario_config, simulate
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.depth_io import read_depth_image, write_depth_image
-from spacepose.tools.frames import FrameSequence, open_frames, track_folder, tracker_config
+from spacepose.tools.frames import FrameSequence, open_frames
+from spacepose.tools.tracking_io import track_folder, tracker_config
 from spacepose.tools.trajectory_io import read_tum
 
 N_FRAMES = 6

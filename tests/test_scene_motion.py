@@ -20,7 +20,7 @@ from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.errors import ConfigError
-from spacepose.tools.frames import track_folder
+from spacepose.tools.tracking_io import track_folder
 
 NOTE = SCENE_NOTE
 # A quarter of the camera's pixels in each direction keeps the test fast.

@@ -50,7 +50,7 @@ def track(
 
     Without --model the first frame defines the target frame (its pose is the identity).
     """
-    from spacepose.tools.frames import track_folder, tracker_config
+    from spacepose.tools.tracking_io import track_folder, tracker_config
 
     if method in _DEPRECATED:
         new = _DEPRECATED[method]

@@ -31,10 +31,10 @@ from spacepose.core.sim import scenario_config, simulate
 from spacepose.tools.experiments import ExperimentOptions, run_experiment
 from spacepose.tools.experiments.li import AXES, METHODS, PAPER_TABLE2
 from spacepose.tools.experiments.yu_nav import navigation_config
-from spacepose.tools.frames import track_folder, tracker_config
 from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run, write_run
+from spacepose.tools.tracking_io import track_folder, tracker_config
 from spacepose.tools.trajectory_io import read_tum
 
 # Yu et al. 2019 (methods.md §2.5, Y4): accuracy the paper reports after convergence, per axis.

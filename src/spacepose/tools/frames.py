@@ -1,6 +1,5 @@
-"""Tracking input and output: frames from a run folder, a folder of point cloud files or depth
-images, or a ROS bag; the estimated trajectory, per-frame health table and effective config
-written beside each other, row by row as the run goes.
+"""Tracking input: frames from a run folder, a folder of point cloud files or depth images, or a
+ROS bag (their outputs: :mod:`spacepose.tools.tracking_io`).
 
 :func:`open_frames` recognises, in this order: a ROS 1 / ROS 2 bag
 (:mod:`spacepose.tools.bag_io`); a run folder (written by ``spacepose simulate``, recognised by
@@ -17,50 +16,25 @@ tracker reports it ``lost`` and the run goes on.
 
 from __future__ import annotations
 
-import csv
-import dataclasses
-import json
 import warnings
 from collections import Counter
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import dump_config, load_config, validate_config
 from spacepose.core.depth import DepthCamera
 from spacepose.core.motion import order_problem
-from spacepose.core.track_result import STAGES, lost_result
-from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
-from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.text_io import read_text
-from spacepose.tools.trajectory_io import tum_lines
 
-HEALTH_COLUMNS: tuple[str, ...] = (
-    "frame",
-    "timestamp",
-    "status",
-    "fitness",
-    "rmse",
-    "iterations",
-    "time_ms",
-    "sig_rx",
-    "sig_ry",
-    "sig_rz",
-    "sig_tx",
-    "sig_ty",
-    "sig_tz",
-    "reasons",
-)
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
 TIMESTAMPS_FILE = "timestamps.txt"
 # Tables spacepose writes beside its outputs: an output written into a folder of frames is no
@@ -313,198 +287,3 @@ def _open_run(root: Path) -> FrameSequence:
         np.asarray(run.timestamps, dtype=np.float64),
         model if model.is_file() else None,
     )
-
-
-# --------------------------------------------------------------------------------------------
-# Tracking a folder
-
-
-def tracker_config(
-    path: str | Path | None = None,
-    *,
-    method: str | None = None,
-    mls: bool | None = None,
-    background: bool = False,
-) -> TrackerConfig:
-    """The tracker config from an optional file, with command-line overrides applied.
-
-    ``method`` and ``mls`` override the file when given; ``background`` switches background
-    removal on.
-
-    Raises
-    ------
-    ConfigError
-        Unreadable or invalid file, or an override out of range (e.g. an unknown method).
-    """
-    data: dict[str, Any] = {} if path is None else load_config(TrackerConfig, path).model_dump()
-    if method is not None:
-        data["method"] = method
-    if mls is not None:
-        data["use_mls"] = mls
-    if background:
-        data["use_background_removal"] = True
-    return validate_config(TrackerConfig, data, path)
-
-
-def health_row(result: TrackResult) -> dict[str, object]:
-    """One row of :data:`HEALTH_COLUMNS` (σ in rad and m, RMSE in m, time in ms; the reasons a
-    frame is not ``ok`` joined by ``; ``)."""
-    return {
-        "frame": result.index,
-        "timestamp": repr(result.timestamp),
-        "status": result.status,
-        "fitness": f"{result.fitness:.6g}",
-        "rmse": f"{result.rmse:.6g}",
-        "iterations": result.iterations,
-        "time_ms": f"{result.time_ms.get('total', float('nan')):.3f}",
-        **{c: f"{v:.6g}" for c, v in zip(HEALTH_COLUMNS[7:13], result.sigma, strict=True)},
-        "reasons": "; ".join(result.reasons),
-    }
-
-
-def write_health_csv(path: str | Path, results: Sequence[TrackResult]) -> Path:
-    """Write the per-frame health table (:data:`HEALTH_COLUMNS`) as CSV."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=HEALTH_COLUMNS)
-        writer.writeheader()
-        writer.writerows(health_row(r) for r in results)
-    return path
-
-
-def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path]:
-    """``EST.tum`` -> (``EST.tum``, ``EST.health.csv``, ``EST.config.json``,
-    ``EST.scale.json``)."""
-    out = Path(out)
-    stem = out.with_suffix("")
-    return (
-        out,
-        Path(f"{stem}.health.csv"),
-        Path(f"{stem}.config.json"),
-        Path(f"{stem}.scale.json"),
-    )
-
-
-def _out_of_order(frame: FrameInput, last_time: float) -> TrackResult:
-    """The ``lost`` result of a frame whose time does not come after the frame before's."""
-    what = "repeats" if frame.timestamp == last_time else "does not come after"
-    reason = f"timestamp {frame.timestamp} {what} the last tracked one ({last_time}): not tracked"
-    return lost_result(frame.index, frame.timestamp, None, (reason,), dict.fromkeys(STAGES, 0.0))
-
-
-def check_output(out: str | Path) -> None:
-    """Refuse an output location that cannot be written, before any work is done: each of the
-    four output files (:func:`~spacepose.tools.outputs.check_writable`).
-
-    Raises
-    ------
-    InputError
-        An output is an existing folder, a parent is a regular file, or a file cannot be
-        written there.
-    """
-    if Path(out).name in ("", ".", ".."):
-        raise InputError(f"--out needs a file name such as EST.tum, got {str(out)!r}")
-    check_writable(*output_paths(out))
-
-
-def track_folder(
-    input: str | Path,
-    out: str | Path,
-    config: TrackerConfig = TrackerConfig(),
-    model: str | Path | None = None,
-    workers: int = -1,
-    progress: Callable[[int, int, str], None] | None = None,
-    *,
-    intrinsics: str | Path | None = None,
-    topic: str | None = None,
-) -> dict[str, Any]:
-    """Track every frame of an input and write the trajectory, health table, config and scale.
-
-    The output location is checked and the input opened before tracking starts; the
-    trajectory and health rows are written (and flushed) frame by frame, so an interrupted run
-    keeps every frame done. A frame that cannot be read is reported ``lost`` with its reason.
-
-    Parameters
-    ----------
-    input
-        A bag, run folder, depth image folder or folder of frame files (see
-        :func:`open_frames`).
-    out
-        The TUM trajectory to write (one line per input frame, methods.md §0, but for a frame
-        whose time does not come after the last tracked one's); ``.health.csv``,
-        ``.config.json`` and (once a frame has set the scale) ``.scale.json``, the lengths
-        derived from the first frame, are written beside it with the same stem.
-    config
-        Tracker config (written out as the effective config).
-    model
-        Optional reference model cloud file (model-based tracking).
-    workers
-        Threads for neighbour searches.
-    progress
-        Called after each frame with (frames done, total, status).
-    intrinsics, topic
-        Depth image intrinsics file and bag topic (see :func:`open_frames`).
-
-    Returns
-    -------
-    Summary: frames, ok / degraded / lost counts, the first lost frame and its reasons (None
-    when none is lost), mean time per frame (ms), output paths.
-    """
-    check_output(out)
-    frames = open_frames(input, intrinsics=intrinsics, topic=topic)
-    given = [p for p in (model, intrinsics) if p is not None]
-    check_spares_inputs(output_paths(out), [*input_files(input, frames), *given])
-    model_cloud = None if model is None else read_cloud(model)
-    tum, health, config_path, scale_path = output_paths(out)
-    tracker = Tracker(config, model_cloud, workers)
-    dump_config(config, config_path)  # creates the folder
-    scale_path.unlink(missing_ok=True)  # a former run's lengths are not this run's
-    statuses: list[str] = []
-    times: list[float] = []
-    first_lost = None
-    written_scale = None
-    with tum.open("w") as tum_fh, health.open("w", newline="") as health_fh:
-        writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
-        writer.writeheader()
-        last_time = -np.inf
-        for frame in frames:
-            if not frame.timestamp > last_time:
-                # A bag's header stamps, read as the frames come: a repeat or a step back is
-                # this frame's fault, not the run's; the trajectory skips it (TUM times rise).
-                result = _out_of_order(frame, last_time)
-                tracker.continue_at(frame.index + 1)
-            else:
-                result = tracker.track_frame(frame.cloud, frame.timestamp)
-                last_time = frame.timestamp
-                tum_fh.write(tum_lines(Trajectory([result.timestamp], [result.T_sensor_target])))
-            if frame.error is not None:  # the read error says more than the tracker's "no points"
-                result = dataclasses.replace(result, reasons=(frame.error,))
-            writer.writerow(health_row(result))
-            tum_fh.flush()
-            health_fh.flush()
-            if tracker.scale is not None and tracker.scale is not written_scale:
-                # The lengths derived from the first usable frame, as soon as it sets them (an
-                # interrupted run keeps them), and again when the whole scene becomes the
-                # target: what a new sensor's user checks.
-                written_scale = tracker.scale
-                lengths = tracker.scale.to_dict() | tracker.lengths.to_dict()
-                scale_path.write_text(json.dumps(lengths, indent=2) + "\n")
-            statuses.append(result.status)
-            times.append(result.time_ms["total"])
-            if result.status == "lost" and first_lost is None:
-                first_lost = f"frame {len(statuses) - 1}: {'; '.join(result.reasons)}"
-            if progress is not None:
-                progress(len(statuses), len(frames), result.status)
-    return {
-        "frames": len(statuses),
-        "ok": statuses.count("ok"),
-        "degraded": statuses.count("degraded"),
-        "lost": statuses.count("lost"),
-        "first_lost": first_lost,
-        "mean_time_ms": float(np.mean(times)) if times else float("nan"),
-        "trajectory": str(tum),
-        "health": str(health),
-        "config": str(config_path),
-        "scale": str(scale_path) if tracker.scale is not None else None,
-    }

@@ -33,10 +33,11 @@ from spacepose.core.navigation import NavigationConfig, navigate
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.frames import Frames, input_files, open_frames, write_health_csv
+from spacepose.tools.frames import Frames, input_files, open_frames
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.runs import SCENARIO, read_run
 from spacepose.tools.text_io import read_text
+from spacepose.tools.tracking_io import write_health_csv
 
 
 @dataclass(frozen=True)
