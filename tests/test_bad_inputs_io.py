@@ -479,10 +479,12 @@ def test_frames_named_without_padding_come_in_the_numbers_order(tmp_path):
     from spacepose.tools.depth_io import frame_entries
 
     names = ["frame10.ply", "frame5.ply", "frame15.ply", "frame0.ply", ".frame1.ply", "notes.md"]
+    names += ["frame05.ply", "frame5b.ply"]  # equal numbers: by text; a name that goes on
     for name in names:
         (tmp_path / name).write_bytes(b"")
     found = [p.name for p in frame_entries(tmp_path, (".ply",))]
-    assert found == ["frame0.ply", "frame5.ply", "frame10.ply", "frame15.ply"]
+    expected = ["frame0.ply", "frame05.ply", "frame5.ply", "frame5b.ply", "frame10.ply"]
+    assert found == [*expected, "frame15.ply"]
     times = tmp_path / "times"
     times.mkdir()
     for name in ("1.5.png", "1.25.png", "0.75.png", "10.0.png", "2.png"):

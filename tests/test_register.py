@@ -70,7 +70,7 @@ def test_the_pair_far_from_the_origin_passes_the_same_test(pair, method: str) ->
     near = register(source, target, config=config, workers=2)
     Ad = se3.adjoint(se3.invert(far))  # the far run's twist, about the cloud's own origin
     ratio = np.sqrt(np.diag(Ad @ out.covariance @ Ad.T) / np.diag(near.covariance))
-    assert np.all(np.abs(ratio - 1.0) < 0.25), ratio
+    assert np.all(np.abs(ratio - 1.0) < 0.05), ratio  # measured within 1.6 %
 
 
 def test_small_gicp_cpp_test_from_perturbations(pair) -> None:

@@ -232,15 +232,16 @@ def is_depth_folder(root: str | Path) -> bool:
     return (Path(root) / TUM_DEPTH_LIST).is_file() or find_intrinsics(root) is not None
 
 
-def _name_order(path: Path) -> list[int | str]:
+def _name_order(path: Path) -> tuple[tuple[int | str, ...], str]:
     """Sort key of a frame's name: its runs of digits by value (``frame5`` before
     ``frame10``), but those after a dot, a fraction's digits, as text (``1.25`` before
-    ``1.5``); the same order as the names' where the numbers are zero-padded."""
+    ``1.5``); the same order as the names' where the numbers are zero-padded. Names of equal
+    value (``frame1``, ``frame01``) follow as text, so the order never rests on the folder's."""
     chunks: list[int | str] = re.split(r"(\d+)", path.name)
     for i in range(1, len(chunks), 2):
         if not str(chunks[i - 1]).endswith("."):
             chunks[i] = int(chunks[i])
-    return chunks
+    return tuple(chunks), path.name
 
 
 def frame_entries(root: Path, suffixes: tuple[str, ...]) -> tuple[Path, ...]:
