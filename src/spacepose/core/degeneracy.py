@@ -22,6 +22,7 @@ from spacepose.core.correspondences import find_correspondences
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.health import normalised_condition, normalising_map
 from spacepose.core.icp_systems import point_to_plane_system
+from spacepose.core.moments import distribution, is_collinear
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.scale import rms_radius
 from spacepose.core.tracker_config import HealthConfig
@@ -119,9 +120,43 @@ def _vector(x: NDArray[np.float64], decimals: int) -> str:
     return "[" + " ".join(f"{v:.{decimals}f}" for v in np.round(x, decimals) + 0.0) + "]"
 
 
+@dataclass(frozen=True)
+class CoarseSurface:
+    """A target cloud at the coarse voxel of the check, with its normals (once per target: a
+    tracker judges every frame against the same keyframe or model).
+
+    Attributes
+    ----------
+    voxel
+        The coarse voxel edge (m): :data:`COARSE_FRACTION` of the radius it was made for.
+    cloud
+        (M, 3) coarse cells with normals (target frame); fewer than 3 cells: no normals.
+    index
+        Their neighbour index.
+    """
+
+    voxel: float
+    cloud: PointCloud
+    index: VoxelIndex
+
+    @classmethod
+    def of(
+        cls, target_points: NDArray[np.float64], radius: float, workers: int = -1
+    ) -> CoarseSurface:
+        """The coarse surface of ``target_points`` (M, 3) for clouds of ``radius`` (m)."""
+        voxel = COARSE_FRACTION * radius
+        cloud = PointCloud(voxel_cells(target_points, voxel)[0])
+        # Fewer coarse cells than a plane needs, or all on a line: nothing is constrained.
+        if len(cloud) >= 3 and not is_collinear(distribution(cloud.points)[1]):
+            k = min(_NORMAL_NEIGHBOURS, len(cloud))
+            config = NormalsConfig(k=k, radius=_GATE_VOXELS * voxel)
+            cloud = estimate_normals(cloud, config, workers=workers)
+        return cls(voxel, cloud, VoxelIndex(cloud.points))
+
+
 def surface_degeneracy(
     source_points: NDArray[np.float64],
-    target_points: NDArray[np.float64],
+    target_points: NDArray[np.float64] | CoarseSurface,
     T_target_source: NDArray[np.float64],
     radius: float,
     health: HealthConfig = HealthConfig(),
@@ -131,12 +166,15 @@ def surface_degeneracy(
 
     Parameters
     ----------
-    source_points, target_points
-        (N, 3), (M, 3) clouds, each in its own frame (m).
+    source_points
+        (N, 3) cloud in its own frame (m).
+    target_points
+        (M, 3) cloud in its own frame (m), or its :class:`CoarseSurface` made once.
     T_target_source
         (4, 4) the registration's result.
     radius
-        Radius of the clouds (m); the coarse voxel is :data:`COARSE_FRACTION` of it.
+        Radius of the clouds (m); the coarse voxel is :data:`COARSE_FRACTION` of it (a given
+        coarse surface keeps its own).
     health
         ``lost_condition`` (degenerate above it) and ``ok_condition`` (the free directions are
         those below ``1 / ok_condition`` of the best observed one).
@@ -147,18 +185,19 @@ def surface_degeneracy(
     -------
     Degeneracy
     """
-    voxel = COARSE_FRACTION * radius
+    surface = target_points
+    if not isinstance(surface, CoarseSurface):
+        surface = CoarseSurface.of(np.asarray(target_points, dtype=np.float64), radius, workers)
+    voxel, tgt = surface.voxel, surface.cloud
+    source_points = np.asarray(source_points, dtype=np.float64)
     src = se3.transform_points(T_target_source, voxel_cells(source_points, voxel)[0])
-    tgt = PointCloud(voxel_cells(target_points, voxel)[0])
-    moved = se3.transform_points(T_target_source, source_points)
-    centroid, r = moved.mean(axis=0), rms_radius(moved)
+    # A rigid motion moves the centroid and keeps the radius: no need to move every point.
+    centroid = se3.transform_points(T_target_source, source_points.mean(axis=0)[None])[0]
+    r = rms_radius(source_points)
     H = np.zeros((6, 6))
-    if len(tgt) >= 3:  # fewer coarse cells than a plane needs: nothing is constrained
-        k = min(_NORMAL_NEIGHBOURS, len(tgt))
-        tgt = estimate_normals(
-            tgt, NormalsConfig(k=k, radius=_GATE_VOXELS * voxel), workers=workers
-        )
-        s, t, _ = find_correspondences(VoxelIndex(tgt.points), src, _GATE_VOXELS * voxel, workers)
+    if tgt.normals is not None:
+        gate = _GATE_VOXELS * voxel
+        s, t, _ = find_correspondences(surface.index, src, gate, workers)
         H = point_to_plane_system(src[s], tgt.points[t], tgt.normals[t])[0]
     condition = normalised_condition(H, centroid, r)
     free = np.zeros((6, 0))

@@ -14,13 +14,14 @@ has set every length: a tracker that adopts another's state (the whole scene's,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from spacepose.core import window_registration
+from spacepose.core import se3, window_registration
 from spacepose.core.cloud import PointCloud
+from spacepose.core.degeneracy import CoarseSurface, surface_degeneracy
 from spacepose.core.frame_check import CheckContext, check_frame, health_bounds
 from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.frame_registration import FrameRegistrar
@@ -108,6 +109,7 @@ class FineStage:
                 estimate = window_registration.with_grid_spread(
                     self.registrar, shifted, estimate, tracking_model
                 )
+            estimate = self._free_directions(estimate, prepared)
         except SpaceposeError as exc:
             return None, "lost", (f"fine registration failed: {exc}",)
         return (estimate, *self.check(estimate, prepared, prediction))
@@ -130,6 +132,35 @@ class FineStage:
             return window_registration.li_step(self.registrar, prepared, references, T_init)
         equal = cfg.keyframe_graph.weighting == "equal"
         return window_registration.joint(self.registrar, prepared, references, T_init, equal)
+
+    def _free_directions(self, estimate: FineEstimate, prepared: PreparedCloud) -> FineEstimate:
+        """The estimate with its covariance widened along the directions the surfaces leave
+        free (:func:`~spacepose.core.degeneracy.surface_degeneracy`, judged against the model or
+        the estimate's keyframe at a coarse voxel, where the normals' noise cannot pass for
+        shape). A plate slid along itself fits a keyframe with a condition of about 500 at
+        the fine voxel, under the ok bound, while the coarse check gives 1e6; the robustness
+        grid's frames score at most 5.5e3 (satellite_panels at 25 m)."""
+        ref = self.model if self.model is not None else estimate.reference
+        workers = self.registrar.workers
+        if ref.coarse is None:
+            points = ref.registration_target.cloud.points
+            ref.coarse = CoarseSurface.of(points, ref.prepared.radius, workers)
+        T_ref_k = estimate.result.T_target_source
+        found = surface_degeneracy(
+            prepared.cloud.points, ref.coarse, T_ref_k, prepared.radius, self.config.health, workers
+        )
+        if not found.degenerate:
+            return estimate
+        # Widened in the reference frame, carried into frame k's sensor frame as the
+        # registration's own covariance is (window_registration.single).
+        Ad = se3.adjoint(se3.invert(T_ref_k))
+        wide = Ad @ found.widen(np.zeros((6, 6))) @ Ad.T
+        return replace(
+            estimate,
+            covariance=estimate.covariance + wide,
+            own_covariance=estimate.own_covariance + wide,
+            degeneracy=found,
+        )
 
     def check(
         self, estimate: FineEstimate, prepared: PreparedCloud, prediction: Prediction | None

@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.health import (
+    CONDITION,
     HealthBounds,
     Status,
     assess_health,
@@ -94,6 +95,17 @@ def check_frame(
         structure=estimate.structure,
         influence=estimate.influence,
     )
+    free = estimate.degeneracy
+    if free is not None and status != "lost":
+        # The reason starts as the fine condition's does: the keyframe policy takes either
+        # for a slide the data could not see.
+        names = ", ".join(free.names()) or "every direction"
+        reasons = (
+            *reasons,
+            f"{CONDITION} of the coarse surfaces {free.condition:.3g} > {free.bound:.3g}: "
+            f"{names} unconstrained",
+        )
+        status = "degraded"
     if status == "ok" and not model_based and estimate.reference.unobserved:
         return "degraded", (UNOBSERVED_CHAIN,)
     if status == "ok" and not model_based:

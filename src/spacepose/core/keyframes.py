@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
+from spacepose.core.degeneracy import CoarseSurface, Degeneracy
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.health import pose_disagreement
 from spacepose.core.normals import NormalsConfig, estimate_normals
@@ -103,6 +104,9 @@ class Keyframe:
         Whether the keyframe's pose rests on a registration that left a direction unobserved
         (its own frame's, or one along the chain of keyframes before it): the data could not
         see a slide there, and a frame registered onto it is never ``ok``.
+    coarse
+        Its surface at the coarse voxel of the degeneracy check (made on the first frame
+        judged against it; None before).
     """
 
     index: int
@@ -114,6 +118,7 @@ class Keyframe:
     timestamp: float = float("nan")
     dense: PreparedCloud | None = None
     unobserved: bool = False
+    coarse: CoarseSurface | None = None
 
     @property
     def registration_target(self) -> PreparedCloud:
@@ -148,6 +153,9 @@ class FineEstimate:
     influence
         :func:`~spacepose.core.part_influence.part_influence` of that registration (None: not
         measured).
+    degeneracy
+        The directions the surfaces leave free, when they leave some (``covariance`` and
+        ``own_covariance`` are widened along them); None otherwise.
     """
 
     T_sensor_target: NDArray[np.float64]
@@ -162,6 +170,7 @@ class FineEstimate:
     drift: NDArray[np.float64] | None = None
     structure: float | None = None
     influence: PartInfluence | None = None
+    degeneracy: Degeneracy | None = None
 
     def in_reference(self, point_k: NDArray[np.float64]) -> NDArray[np.float64]:
         """A frame-k point (3,) expressed in the reference frame (where the information is)."""

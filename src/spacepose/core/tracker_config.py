@@ -114,8 +114,11 @@ class HealthConfig(StageConfig):
     ok_condition, lost_condition
         Condition number of the registration information at the cloud centroid, rotations
         taken as displacements at the radius (unit-free). The lab mock-up gives 45-100 at 0.5,
-        1.2 and 3 m; a plane, which leaves three directions unobserved, 1.3e4 (its normals'
-        noise puts a false information on them): lost.
+        1.2 and 3 m; a plane, which leaves three directions unobserved, 55-1.3e4 by its noise
+        (its normals' noise puts a false information on them). The same condition of the
+        surfaces at a coarse voxel (:mod:`spacepose.core.degeneracy`), 1e6 and more on a
+        plane, is held to ``lost_condition``: above it the frame is degraded and its σ widened
+        along the free directions.
     ok_sigma_translation, ok_sigma_rotation
         Largest 1-σ of the frame's own registration (voxels; rotation at the radius).
     ok_prediction_translation, ok_prediction_rotation
