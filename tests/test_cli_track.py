@@ -277,3 +277,48 @@ def test_tracker_config_overrides(tmp_path):
     path.write_text('{"use_mls": "maybe"}')
     with pytest.raises(ConfigError, match=r"c\.json"):
         tracker_config(path)
+
+
+def test_an_unreadable_frame_whose_name_is_not_utf8_is_lost_and_the_run_goes_on(
+    frame_dir, tmp_path, capsys
+):
+    """A frame file named with a byte that is not UTF-8 (Linux allows any bytes) and holding
+    garbage: its reason quotes the name, which used to end the run with a UnicodeEncodeError
+    when the health row was written, the later frames untracked. The name is written with a
+    backslash escape and every frame has its row."""
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for p in sorted(frame_dir.glob("*.ply")):
+        (bad / p.name).write_bytes(p.read_bytes())
+    name = b"f001x\xff.ply"
+    with open(bytes(bad) + b"/" + name, "wb") as fh:
+        fh.write(b"not a point cloud\n")
+    out = tmp_path / "e.tum"
+    assert main(["track", str(bad), "--out", str(out), "--no-mls"]) == 0, capsys.readouterr().err
+    with (tmp_path / "e.health.csv").open(encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == N_FRAMES + 1
+    assert [r["status"] for r in rows].count("lost") == 1
+    lost = next(r for r in rows if r["status"] == "lost")
+    assert "f001x\\udcff.ply" in lost["reasons"], lost["reasons"]
+    assert len(read_tum(out).timestamps) == N_FRAMES + 1
+
+
+@pytest.mark.parametrize("name", ["est.txt", "EST.CSV", "est.ply"])
+def test_a_trajectory_named_as_a_frame_among_the_frames_is_refused(
+    frame_dir, tmp_path, capsys, monkeypatch, name
+):
+    """``--out FRAMES/est.txt`` made the next run over the folder read the trajectory as a
+    fifth frame (lost, exit 0): refused before tracking, as one line; ``.tum`` there is fine."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for p in frame_dir.glob("*.ply"):
+        (folder / p.name).write_bytes(p.read_bytes())
+    with monkeypatch.context() as patch:
+        patch.setattr("spacepose.tools.tracking_io.Tracker", _NoTracking)
+        assert main(["track", str(folder), "--out", str(folder / name)]) == 1
+    err = _one_line_error(capsys)
+    assert name in err and "would be read as a frame" in err and ".tum" in err
+    assert not (folder / name).exists()
+    assert main(["track", str(folder), "--out", str(folder / "est.tum"), "--no-mls"]) == 0
+    assert len(read_tum(folder / "est.tum").timestamps) == N_FRAMES

@@ -209,3 +209,16 @@ def test_report_skips_corrupt_files_names_them_and_builds_the_rest(tmp_path: Pat
     assert nav_row and float(nav_row.group(1)) == pytest.approx(expected["nav_rho_x_mm"], rel=1e-6)
     assert "histogram" in page and "health flags" not in page
     assert "report written" in out
+
+
+def test_a_run_folder_named_with_bytes_that_are_not_utf8_is_reported(tmp_path: Path) -> None:
+    """A folder name with a byte that is not UTF-8 (Linux allows any bytes) went into the
+    figures' titles and ended the report with a TypeError from matplotlib's text; it is now
+    shown with a backslash escape, and every figure is drawn."""
+    root = Path(bytes(tmp_path).decode("utf-8", "surrogateescape")) / (
+        b"demo\xff".decode("utf-8", "surrogateescape")
+    )
+    _make_run(root)
+    page = build_report(root, out=tmp_path / "r.html").read_text(encoding="utf-8")
+    assert "demo\\udcff" in page
+    assert len(re.findall(r'src="data:image/png;base64,', page)) == 1 + 1 + 1 + 6 + 1

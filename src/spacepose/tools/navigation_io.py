@@ -37,7 +37,7 @@ from spacepose.tools.frames import Frames, input_files, open_frames
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.runs import SCENARIO, read_run
 from spacepose.tools.text_io import read_text
-from spacepose.tools.tracking_io import write_health_csv
+from spacepose.tools.tracking_io import open_table, write_health_csv
 
 
 @dataclass(frozen=True)
@@ -59,7 +59,7 @@ def write_nav_csv(path: str | Path, rows: Sequence[NavRow]) -> Path:
     path = Path(path)
     columns, values = nav_table(rows)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as fh:
+    with open_table(path) as fh:
         writer = csv.writer(fh)
         writer.writerow(columns)
         writer.writerows(
@@ -75,7 +75,7 @@ def write_candidates_csv(path: str | Path, rows: Sequence[NavRow]) -> Path:
     """Write the candidates of every ``ambiguous`` row, one line each, best first
     (columns :data:`CANDIDATE_COLUMNS`: ρ in m and q_I_B scalar-last, as in NAV.csv)."""
     path = Path(path)
-    with path.open("w", newline="") as fh:
+    with open_table(path) as fh:
         writer = csv.writer(fh)
         writer.writerow(CANDIDATE_COLUMNS)
         for row in rows:

@@ -50,6 +50,12 @@ img { max-width: 100%; display: block; margin: 0.5em 0; }
 """
 
 
+def shown(name: str) -> str:
+    """A file name as text any writer and font takes: bytes that are not UTF-8 (Python holds
+    them as surrogates) become backslash escapes."""
+    return name.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
 def _table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
     def cell(v: object) -> str:
         if isinstance(v, float):
@@ -158,9 +164,10 @@ def _mls_section(run: Path) -> str:
         return ""
     raw = read_cloud(frames[0])
     smooth = mpp_mls(raw, MLS_VIEW)
+    voxel, h = 1e3 * MLS_VIEW.voxel_size, 1e3 * MLS_VIEW.h
     fig = plots.cloud_views(
         {"raw frame": raw.points, "after mpp-MLS": smooth.points},
-        f"{run.name}, frame 0 (voxel {1e3 * MLS_VIEW.voxel_size:g} mm, h {1e3 * MLS_VIEW.h:g} mm)",
+        f"{shown(run.name)}, frame 0 (voxel {voxel:g} mm, h {h:g} mm)",
     )
     return "<h3>mpp-MLS before / after</h3>" + _figure(plots.figure_png(fig), "mpp-MLS")
 
@@ -209,7 +216,7 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
     parts.append("<p class='muted'>mean (std) of the absolute per-frame errors</p>")
     parts.append(_table(header, rows))
     if curves:
-        fig = plots.pose_error_curves(t, curves, f"{run.name}: pose errors")
+        fig = plots.pose_error_curves(t, curves, f"{shown(run.name)}: pose errors")
         parts.append(_figure(plots.figure_png(fig), "per-axis errors against time"))
     if health:
         parts.append(_figure(plots.figure_png(plots.health_timeline(t, health)), "health flags"))
@@ -357,5 +364,5 @@ def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
         f"{''.join(body)}</body></html>"
     )
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(page)
+    out_path.write_text(page, encoding="utf-8", errors="backslashreplace")
     return out_path

@@ -11,7 +11,7 @@ import dataclasses
 import json
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.frames import FrameInput, input_files, open_frames
+from spacepose.tools.frames import CLOUD_SUFFIXES, FrameInput, Frames, input_files, open_frames
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.trajectory_io import tum_lines
 
@@ -86,11 +86,18 @@ def health_row(result: TrackResult) -> dict[str, object]:
     }
 
 
+def open_table(path: Path) -> TextIO:
+    """A CSV table opened for writing as UTF-8. A reason quotes a frame's file name, which on
+    Linux need not be UTF-8 (Python holds such bytes as surrogates): those are written as
+    backslash escapes, not a UnicodeEncodeError that ends the run."""
+    return path.open("w", newline="", encoding="utf-8", errors="backslashreplace")
+
+
 def write_health_csv(path: str | Path, results: Sequence[TrackResult]) -> Path:
     """Write the per-frame health table (:data:`HEALTH_COLUMNS`) as CSV."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w", newline="") as fh:
+    with open_table(path) as fh:
         writer = csv.DictWriter(fh, fieldnames=HEALTH_COLUMNS)
         writer.writeheader()
         writer.writerows(health_row(r) for r in results)
@@ -130,6 +137,27 @@ def check_output(out: str | Path) -> None:
     if Path(out).name in ("", ".", ".."):
         raise InputError(f"--out needs a file name such as EST.tum, got {str(out)!r}")
     check_writable(*output_paths(out))
+
+
+def _check_not_a_frame(tum: Path, frames: Frames) -> None:
+    """Refuse a trajectory written among the frames under a frame file's suffix: the next run
+    over the folder would read it as a frame (one more frame, lost), and a folder of depth
+    images would be read as a folder of point-cloud files.
+
+    Raises
+    ------
+    InputError
+        One line naming the output and the suffix to use.
+    """
+    if tum.suffix.lower() not in CLOUD_SUFFIXES:
+        return
+    folders = {p.parent.resolve() for p in getattr(frames, "paths", ())}
+    if tum.parent.resolve() in folders:
+        raise InputError(
+            f"a trajectory named {tum.suffix} among the frames would be read as a frame by "
+            "the next run over the folder: name it .tum or write it elsewhere",
+            tum,
+        )
 
 
 def track_folder(
@@ -179,6 +207,7 @@ def track_folder(
     frames = open_frames(input, intrinsics=intrinsics, topic=topic)
     given = [p for p in (model, intrinsics) if p is not None]
     check_spares_inputs(output_paths(out), [*input_files(input, frames), *given])
+    _check_not_a_frame(Path(out), frames)
     model_cloud = None if model is None else read_cloud(model)
     tum, health, config_path, scale_path = output_paths(out)
     tracker = Tracker(config, model_cloud, workers)
@@ -188,7 +217,7 @@ def track_folder(
     times: list[float] = []
     first_lost = None
     written_scale = None
-    with tum.open("w") as tum_fh, health.open("w", newline="") as health_fh:
+    with tum.open("w") as tum_fh, open_table(health) as health_fh:
         writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
         writer.writeheader()
         last_time = -np.inf
