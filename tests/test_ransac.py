@@ -178,6 +178,11 @@ def test_bad_correspondences_and_voxel_raise():
         ransac_correspondences(pts, pts, np.array([[0, 0], [1, 1]]))
     with pytest.raises(InputError, match="voxel_size"):
         global_registration(PointCloud(pts), PointCloud(pts), 0.0)
+    # A voxel wider than the cloud (metres given for millimetres): refused at once, as
+    # `spacepose register --voxel` refuses it, not 79 s of RANSAC on whole-cloud features.
+    wide = pts * [1.0, 1.0, 0.0]  # the target flat: its radius, 0.38 m, is the smaller
+    with pytest.raises(InputError, match=r"wider than the target cloud \(RMS radius 0.3822 m\)"):
+        global_registration(pts, wide, 0.42)
 
 
 def test_coverage_counts_match_brute_force_distances():

@@ -37,6 +37,7 @@ from spacepose.core.icp import as_registration_cloud
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.ransac_scoring import coverage_counts, evaluate_alignment, squared_residuals
 from spacepose.core.registration import RegistrationResult, kabsch
+from spacepose.core.scale import rms_radius
 from spacepose.errors import InputError, RegistrationError
 
 
@@ -370,9 +371,18 @@ def global_registration(
     normals = normals or NormalsConfig(k=30, radius=2.0 * voxel_size)
     fpfh = fpfh or FPFHConfig(radius=5.0 * voxel_size, max_nn=100)
     ransac = ransac or RansacConfig(max_correspondence_distance=1.5 * voxel_size)
+    given = (as_cloud(source, "source"), as_cloud(target, "target"))
+    for name, cloud in zip(("source", "target"), given, strict=True):
+        radius = rms_radius(cloud.points)
+        if voxel_size > radius:
+            # Every feature would span the whole cloud, and every point its neighbour: slow,
+            # and a "fit" of a few centroids.
+            raise InputError(
+                f"voxel_size {voxel_size:.4g} m is wider than the {name} cloud "
+                f"(RMS radius {radius:.4g} m): give the point spacing"
+            )
     clouds = [
-        c if c.has_normals else estimate_normals(c, normals, viewpoint, workers)
-        for c in (as_cloud(source, "source"), as_cloud(target, "target"))
+        c if c.has_normals else estimate_normals(c, normals, viewpoint, workers) for c in given
     ]
     features = [compute_fpfh(c, fpfh, workers) for c in clouds]
     return feature_ransac(clouds[0], clouds[1], features[0], features[1], ransac, workers)
