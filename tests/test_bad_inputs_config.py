@@ -249,6 +249,32 @@ def test_a_boolean_for_a_number_is_refused_in_a_config_and_a_catalogue(tmp_path)
     _one_line(exc, tmp_path / "cat.json", "entry 0 ('front')", "center", "yes/no")
 
 
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        (
+            "health:\n  ok_fitness: 0.3\n  lost_fitness: 0.9\n",
+            ("lost_fitness 0.9", "ok_fitness 0.3"),
+        ),
+        ("health:\n  ok_rmse: 5\n  lost_rmse: 0.1\n", ("ok_rmse 5", "lost_rmse 0.1")),
+        ("health:\n  ok_condition: 1e5\n", ("ok_condition 100000", "lost_condition 10000")),
+        (
+            "use_mls: true\nmls:\n  min_neighbors: 200\n  max_neighbors: 10\n",
+            ("min_neighbors 200", "max_neighbors 10"),
+        ),
+    ],
+)
+def test_an_ok_bound_beyond_its_lost_bound_is_refused_at_load(tmp_path, text, words):
+    """An ok bound past its lost bound let a run go on with overlapping statuses (1 ok and 3
+    lost where the defaults give 3 ok); more MLS neighbours needed than taken lost every frame
+    with a reason that did not name the config."""
+    path = tmp_path / "tracker.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        load_config(TrackerConfig, path)
+    _one_line(exc, path, *words)
+
+
 def test_points_per_frame_below_the_health_minimum_is_refused():
     assert TrackerConfig().points_per_frame == 3000
     assert TrackerConfig(points_per_frame=100).points_per_frame == 100

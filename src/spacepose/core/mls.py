@@ -27,7 +27,7 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import Field, PositiveFloat
+from pydantic import Field, PositiveFloat, model_validator
 
 from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import StageConfig
@@ -73,6 +73,16 @@ class MLSConfig(StageConfig):
     projection_iterations: int = Field(default=3, ge=1)
     min_neighbors: int = Field(default=12, ge=3)
     max_neighbors: int = Field(default=100, ge=3)
+
+    @model_validator(mode="after")
+    def _neighbour_order(self) -> MLSConfig:
+        # No point could keep more than max_neighbors: every one would be dropped.
+        if self.min_neighbors > self.max_neighbors:
+            raise ValueError(
+                f"min_neighbors {self.min_neighbors} must not exceed max_neighbors "
+                f"{self.max_neighbors}"
+            )
+        return self
 
 
 @dataclass(frozen=True)

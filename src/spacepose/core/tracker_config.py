@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from pydantic import Field, PositiveFloat
+from pydantic import Field, PositiveFloat, model_validator
 
 from spacepose.core.background import BackgroundConfig
 from spacepose.core.config import StageConfig
@@ -179,6 +179,20 @@ class HealthConfig(StageConfig):
     max_motion: PositiveFloat = 0.5
     model_error_sigmas: PositiveFloat = 3.0
     max_reference_factor: float = Field(2.0, ge=1)
+
+    @model_validator(mode="after")
+    def _ok_inside_lost(self) -> HealthConfig:
+        # An ok bound beyond its lost bound would let a frame be both: the statuses would
+        # hang on the order of the checks.
+        for name, ok, lost in (
+            ("fitness", self.lost_fitness, self.ok_fitness),
+            ("rmse", self.ok_rmse, self.lost_rmse),
+            ("condition", self.ok_condition, self.lost_condition),
+        ):
+            if ok > lost:
+                first, second = ("lost", "ok") if name == "fitness" else ("ok", "lost")
+                raise ValueError(f"{first}_{name} {ok:g} must not exceed {second}_{name} {lost:g}")
+        return self
 
 
 class TrackerConfig(StageConfig):
