@@ -126,3 +126,24 @@ def test_simulate_motion_range_and_grid_options(tmp_path, capsys) -> None:
     assert "--grid builds lab scenes only" in capsys.readouterr().err
     assert main(["simulate", "lab", "--out", str(out), "--motion", "wobble"]) == 1
     assert "unknown motion 'wobble'" in capsys.readouterr().err
+
+
+def test_simulate_refuses_a_folder_that_holds_something_else(tmp_path, capsys) -> None:
+    """Into a folder of the user's own files, a run overwrote its groundtruth.tum and mixed
+    its frames with theirs (exit 0): refused before the scene is built, nothing touched. An
+    earlier run is still rewritten in place, and an empty folder taken."""
+    victim = tmp_path / "mine"
+    (victim / "frames").mkdir(parents=True)
+    (victim / "frames" / "mydata.ply").write_text("keep")
+    (victim / "groundtruth.tum").write_text("0 0 0 0 0 0 0 1\n")
+    assert main(["simulate", "lab", "--out", str(victim), "--frames", "2"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "not a spacepose run" in err and str(victim) in err, err
+    assert sorted(p.name for p in victim.rglob("*")) == ["frames", "groundtruth.tum", "mydata.ply"]
+    assert (victim / "groundtruth.tum").read_text() == "0 0 0 0 0 0 0 1\n"
+    run = tmp_path / "run"
+    assert main(["simulate", "lab", "--out", str(run), "--frames", "3"]) == 0
+    assert main(["simulate", "lab", "--out", str(run), "--frames", "2"]) == 0
+    assert len(read_run(run).frame_paths) == 2
+    (tmp_path / "empty").mkdir()
+    assert main(["simulate", "lab", "--out", str(tmp_path / "empty"), "--frames", "2"]) == 0

@@ -52,8 +52,9 @@ def simulate(
     from spacepose.core.sim import simulate as build
     from spacepose.core.sim.grid import grid_scenario, motion_fields
     from spacepose.errors import ConfigError
-    from spacepose.tools.runs import write_run
+    from spacepose.tools.runs import check_run_out, write_run
 
+    check_run_out(out)  # before the scene is built
     if grid and scenario != "lab":
         raise ConfigError(f"--grid builds lab scenes only, not {scenario!r}")
     if model_scale is not None and (model is None or grid):

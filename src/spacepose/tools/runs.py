@@ -95,6 +95,25 @@ class Run:
         return (read_cloud(p) for p in self.frame_paths)
 
 
+def check_run_out(out_dir: str | Path) -> None:
+    """Refuse to write a run into a folder that holds something else: a run rewrites its
+    ground truth, model and scenario and removes frame files it did not write, so only a new
+    or empty folder, or an earlier run (its scenario file), is safe to write into.
+
+    Raises
+    ------
+    InputError
+        One line naming the folder.
+    """
+    out = Path(out_dir)
+    if out.is_dir() and not (out / SCENARIO).is_file() and any(out.iterdir()):
+        raise InputError(
+            f"not empty and not a spacepose run (no {SCENARIO}): a run would overwrite or "
+            "remove what it holds; give a new or empty folder",
+            out,
+        )
+
+
 def write_run(
     out_dir: str | Path,
     sim: Simulation,
@@ -106,7 +125,8 @@ def write_run(
     ----------
     out_dir
         Created if needed; frame files left from an earlier, longer run there are removed so the
-        folder describes this run only.
+        folder describes this run only (a folder that is neither empty nor a run is refused:
+        :func:`check_run_out`).
     sim
         The simulation (see :mod:`spacepose.core.sim`).
     progress
@@ -118,6 +138,7 @@ def write_run(
     """
     from spacepose import __version__
 
+    check_run_out(out_dir)
     out = Path(out_dir)
     frames_dir = out / FRAMES_DIR
     frames_dir.mkdir(parents=True, exist_ok=True)
