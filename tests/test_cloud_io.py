@@ -413,3 +413,26 @@ def test_real_outdoor_lidar_in_metres_is_not_taken_for_millimetres() -> None:
         assert check.extent > 50.0 and check.spacing < 0.02 and not check.millimetres
         mm = check_scale(cloud.points * 1e3)
         assert mm.millimetres and mm.spacing == pytest.approx(1e3 * check.spacing)
+
+
+def test_normals_of_zero_length_are_refused_and_others_made_unit(tmp_path: Path) -> None:
+    """A file's normals of zero length have no direction: refused, naming the file. Normals
+    of another length (5 here) weighed their points' residuals by it; they are read as
+    their directions, with a warning. Unit normals are kept bit for bit."""
+    p = np.random.default_rng(0).uniform(0, 1, (100, 3))
+    zero = tmp_path / "zero.npy"
+    np.save(zero, np.c_[p, np.zeros_like(p)])
+    with pytest.raises(FileFormatError, match=r"zero.npy: 100 normals have zero length"):
+        read_cloud(zero)
+    long = tmp_path / "long.xyz"
+    long.write_text("".join(f"{x:.6f} {y:.6f} {z:.6f} 0 0 5\n" for x, y, z in p))
+    with pytest.warns(SpaceposeWarning, match=r"long.xyz: 100 normals are not of unit length"):
+        cloud = read_cloud(long)
+    np.testing.assert_array_equal(cloud.normals, np.tile([0.0, 0.0, 1.0], (100, 1)))
+    n = np.random.default_rng(1).normal(size=(100, 3))
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    unit = tmp_path / "unit.npy"
+    np.save(unit, np.c_[p, n])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_array_equal(read_cloud(unit).normals, n)

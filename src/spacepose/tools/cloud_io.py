@@ -92,6 +92,8 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
         points, normals = reader(path)
     except OSError as exc:  # refused by the system: this file fails (a frame is lost), not the run
         raise FileFormatError(f"cannot read: {exc.strerror or exc}", path) from None
+    if normals is not None:
+        normals = _unit_normals(normals, path)
     cloud = PointCloud(points * scale, normals, source=str(path))
     if scale == 1.0:
         warn_if_not_metres(cloud, path)
@@ -99,6 +101,32 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
 
 
 _RESCALE = "scale the file by 0.001 (read_cloud(..., scale=1e-3))"
+
+
+def _unit_normals(normals: NDArray[np.float64], path: Path) -> NDArray[np.float64]:
+    """A file's normals as unit vectors: one of zero length has no direction (refused), one
+    of another length is read as its direction, with a warning (a registration weighs a
+    point-to-plane residual by its normal's length)."""
+    length = np.linalg.norm(normals, axis=1)
+    finite = np.isfinite(length)
+    zero = np.flatnonzero(finite & (length < 1e-6))
+    if len(zero):
+        raise FileFormatError(
+            f"{len(zero)} normals have zero length (first at point {zero[0]}): a normal needs a "
+            "direction; write the file without normals to have them estimated",
+            path,
+        )
+    off = np.flatnonzero(finite & (np.abs(length - 1.0) > 1e-3))
+    if len(off):
+        k = off[0]
+        problem = (
+            f"{len(off)} normals are not of unit length (point {k}: {length[k]:.4g}); "
+            "read as their directions"
+        )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=3)
+        normals = normals.copy()
+        normals[off] /= length[off, None]
+    return normals
 
 
 def warn_if_not_metres(cloud: PointCloud, source: str | Path, remedy: str = _RESCALE) -> None:
