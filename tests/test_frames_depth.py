@@ -291,3 +291,18 @@ def test_register_takes_depth_images(sim, camera, tmp_path, capsys):
     (tmp_path / "intrinsics.yaml").unlink()
     assert main(["register", str(paths[1]), str(paths[0])]) == 1
     assert "needs --intrinsics" in capsys.readouterr().err
+
+
+def test_two_intrinsics_files_in_one_folder_are_refused(folders, tmp_path, capsys):
+    """intrinsics.yaml (the right camera) beside an intrinsics.json of another: one was taken
+    by a rule the user could not see, and the run went on (exit 0). Refused, naming both."""
+    copy = tmp_path / "depth"
+    copy.mkdir()
+    for path in sorted(folders["depth"].iterdir()):
+        (copy / path.name).write_bytes(path.read_bytes())
+    (copy / "intrinsics.json").write_text('{"fx": 10, "fy": 10, "cx": 31.5, "cy": 23.5}')
+    with pytest.raises(InputError, match=r"2 intrinsics files \(intrinsics.yaml, intrinsics.j"):
+        open_frames(copy)
+    assert main(["track", str(copy), "--out", str(tmp_path / "e.tum")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "keep one" in err and str(copy) in err, err

@@ -220,11 +220,21 @@ def _matrix_data(entry: object, name: str) -> object:
 
 
 def find_intrinsics(root: str | Path) -> Path | None:
-    """The intrinsics file in a folder (see :data:`INTRINSICS_FILES`), or None."""
-    for name in INTRINSICS_FILES:
-        if (Path(root) / name).is_file():
-            return Path(root) / name
-    return None
+    """The intrinsics file in a folder (see :data:`INTRINSICS_FILES`), or None.
+
+    Raises
+    ------
+    InputError
+        The folder holds more than one.
+    """
+    found = [Path(root) / name for name in INTRINSICS_FILES if (Path(root) / name).is_file()]
+    if len(found) > 1:
+        # Which one a reader takes would be a rule of ours the user cannot see.
+        raise InputError(
+            f"holds {len(found)} intrinsics files ({', '.join(p.name for p in found)}): keep one",
+            root,
+        )
+    return found[0] if found else None
 
 
 def is_depth_folder(root: str | Path) -> bool:
