@@ -15,7 +15,7 @@ from spacepose.core.normals import (
     normals_from_covariances,
     plane_offsets,
 )
-from spacepose.errors import ConfigError, InputError
+from spacepose.errors import ConfigError, DegenerateGeometryError, InputError
 
 
 def _noisy_sphere(n: int, seed: int, sigma: float = 0.002) -> np.ndarray:
@@ -104,6 +104,17 @@ def test_bad_input_raises():
         validate_config(NormalsConfig, {"k": 2})
     with pytest.raises(ConfigError, match="radius"):
         validate_config(NormalsConfig, {"radius": -1.0})
+    # A cloud on one line, or at one place, has no surface: its normals were an arbitrary
+    # axis ([1, 0, 0] and [0, -1, 0] here), returned without a word.
+    line = np.c_[np.linspace(0, 1, 100), np.zeros(100), np.ones(100)]
+    for cloud in (line, np.tile([[0.1, 0.2, 1.0]], (100, 1))):
+        with pytest.raises(DegenerateGeometryError, match="all 100 points lie on a line"):
+            estimate_normals(cloud)
+    # A thin strip (1 mm across 1 m) is a surface still.
+    strip = (
+        line + np.c_[np.zeros(100), np.random.default_rng(0).uniform(0, 1e-3, 100), np.zeros(100)]
+    )
+    assert np.all(np.isfinite(estimate_normals(strip).normals))
 
 
 def _spectra_stack(rng: np.random.Generator) -> np.ndarray:

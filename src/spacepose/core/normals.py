@@ -17,9 +17,10 @@ from pydantic import Field, PositiveFloat
 
 from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.core.config import StageConfig
+from spacepose.core.moments import distribution, is_collinear
 from spacepose.core.neighbors import SearchIndex, hybrid, knn, row_moments
 from spacepose.core.threads import numba_threads
-from spacepose.errors import InputError
+from spacepose.errors import DegenerateGeometryError, InputError
 
 # Matrices per unit of parallel work: amortises scheduling, balances the two threads.
 _CHUNK_ROWS = 256
@@ -326,6 +327,11 @@ def estimate_normals(
     -------
     A new :class:`PointCloud` with the same points and σ and the estimated normals.
 
+    Raises
+    ------
+    DegenerateGeometryError
+        Every point on one line or at one place.
+
     Notes
     -----
     A point with fewer than 3 neighbours inside ``radius`` has no defined plane; it gets the
@@ -337,6 +343,12 @@ def estimate_normals(
         raise InputError(f"normal estimation needs at least 3 points, got {len(pts)}", cloud.source)
     if tree is not None and tree.n != len(pts):
         raise InputError(f"the tree holds {tree.n} points, the cloud {len(pts)}", cloud.source)
+    if is_collinear(distribution(pts)[1]):
+        # Every neighbourhood is a line or a point: any normal would be an arbitrary axis.
+        raise DegenerateGeometryError(
+            f"all {len(pts)} points lie on a line or at one place: no surface to take normals of",
+            cloud.source,
+        )
     k = min(config.k, len(pts))
     # Without a tree, the search builds the index that suits it.
     searched = pts if tree is None else tree
