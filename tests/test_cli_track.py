@@ -322,3 +322,15 @@ def test_a_trajectory_named_as_a_frame_among_the_frames_is_refused(
     assert not (folder / name).exists()
     assert main(["track", str(folder), "--out", str(folder / "est.tum"), "--no-mls"]) == 0
     assert len(read_tum(folder / "est.tum").timestamps) == N_FRAMES
+
+
+def test_an_error_leaves_stdout_empty(tmp_path, capsys):
+    """Off a terminal the progress line is not drawn: an error used to leave an empty line on
+    stdout before its one line on stderr (track and simulate)."""
+    assert main(["track", str(tmp_path / "missing"), "--out", str(tmp_path / "e.tum")]) == 1
+    printed = capsys.readouterr()
+    assert printed.out == "" and printed.err.strip().endswith("does not exist")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep")
+    assert main(["simulate", "lab", "--out", str(tmp_path / "mine"), "--frames", "2"]) == 1
+    assert capsys.readouterr().out == ""

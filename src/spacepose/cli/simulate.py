@@ -102,7 +102,10 @@ def simulate(
         config = scenario_config(scenario, sensor=sensor, noise_scale=noise_scale, **fields)
     sim = build(config)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn())
-    with Progress(*columns, TimeElapsedColumn(), console=console, transient=True) as bar:
+    shown = console.is_terminal  # off a terminal rich would still print an empty line
+    with Progress(
+        *columns, TimeElapsedColumn(), console=console, transient=True, disable=not shown
+    ) as bar:
         task = bar.add_task(f"simulating {scenario}", total=len(sim))
         write_run(out, sim, progress=lambda _k: bar.advance(task))
     console.print(f"wrote {len(sim)} {scenario} frames to {out}")

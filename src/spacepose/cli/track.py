@@ -65,6 +65,8 @@ def track(
         TimeRemainingColumn(),
         console=console,
         transient=True,
+        # Off a terminal rich would still end its (invisible) line: an empty line on stdout.
+        disable=not console.is_terminal,
     ) as progress:
         task = progress.add_task("track", total=None, status="")
 
