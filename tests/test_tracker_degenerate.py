@@ -1,4 +1,5 @@
-"""The tracker on surfaces that leave its pose partly free: never ``ok``, σ widened there."""
+"""The tracker on surfaces that leave its pose partly free (never ``ok``, σ widened there), and
+on a model it cannot use."""
 
 from __future__ import annotations
 
@@ -68,3 +69,15 @@ def test_a_coarse_surface_made_once_judges_as_the_one_call_does() -> None:
     b = surface_degeneracy(source, once, T, radius, workers=1)
     assert a.condition == b.condition and np.array_equal(a.free, b.free)
     assert a.degenerate and a.free.shape[1] == 3
+
+
+def test_a_model_in_absurd_units_is_named_in_the_reason() -> None:
+    """A model read with coordinates near 1e20 m lost every frame with a reason about the
+    frame's cells; the reason now names the model and says it is the model's."""
+    from spacepose.core.cloud import PointCloud
+
+    rng = np.random.default_rng(0)
+    model = PointCloud(plate_frame(rng)[:2000] * 1e20, source="huge.ply")
+    result = Tracker(TrackerConfig(), model=model, workers=1).track_frame(plate_frame(rng), 0.0)
+    assert result.status == "lost"
+    assert "huge.ply: the model at the frame's voxel: cells of" in result.reasons[0], result.reasons

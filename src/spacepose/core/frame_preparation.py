@@ -189,7 +189,11 @@ class FramePreparer:
         cfg = self.config
         pc = model
         if not cfg.use_mls:
-            pc = voxel_downsample(pc, self.lengths.voxel)
+            try:
+                pc = voxel_downsample(pc, self.lengths.voxel)
+            except InputError as exc:
+                # The model's fault, not the frame's (a model in other units or corrupt): say so.
+                raise InputError(f"the model at the frame's voxel: {exc}", model.source) from None
         if len(pc) < cfg.health.min_points:
             raise InputError(
                 f"model has {len(pc)} points at the frame's voxel (< {cfg.health.min_points})",
