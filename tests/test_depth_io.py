@@ -108,6 +108,12 @@ def test_intrinsics_file(tmp_path):
     (tmp_path / "neg.json").write_text('{"fx": -5, "fy": 525, "cx": 1, "cy": 1}')
     with pytest.raises(ConfigError, match="fx"):
         read_intrinsics(tmp_path / "neg.json")
+    # Focal lengths no pinhole depth camera has (a unit mistake): 1e300 px put every point at
+    # one place, 1e-300 px overflowed the coordinates; both lost every frame, exit 0 or 1.
+    for fx, bound in ((1e300, "less than or equal to 1000000"), (1e-300, "greater than or equal")):
+        (tmp_path / "odd.json").write_text(f'{{"fx": {fx}, "fy": 525, "cx": 1, "cy": 1}}')
+        with pytest.raises(ConfigError, match=rf"odd\.json.*fx: Input should be {bound}"):
+            read_intrinsics(tmp_path / "odd.json")
 
 
 # ROS camera_calibration's camera_info YAML (a 640×480 camera, plumb-bob distortion).

@@ -51,8 +51,11 @@ class DepthCamera(StageConfig):
     or the range along the pixel's ray (``range``); read as the wrong kind, a flat wall bends.
     """
 
-    fx: float = Field(gt=0, description="Focal length along x (columns), pixels.")
-    fy: float = Field(gt=0, description="Focal length along y (rows), pixels.")
+    # Below a pixel a pinhole sees more than a half-space across two pixels; above 1e6 pixels
+    # a 1280-pixel image spans 0.07°, a telescope's view: either is a unit mistake (fx 1e300
+    # put every point at one place, 1e-300 overflowed the coordinates).
+    fx: float = Field(ge=1, le=1e6, description="Focal length along x (columns), pixels.")
+    fy: float = Field(ge=1, le=1e6, description="Focal length along y (rows), pixels.")
     cx: float = Field(description="Principal point, column (pixel centres at integers).")
     cy: float = Field(description="Principal point, row.")
     depth_scale: float = Field(0.001, gt=0, description="Metres per stored depth unit.")
