@@ -131,7 +131,7 @@ def test_simulate_motion_range_and_grid_options(tmp_path, capsys) -> None:
 def test_simulate_refuses_a_folder_that_holds_something_else(tmp_path, capsys) -> None:
     """Into a folder of the user's own files, a run overwrote its groundtruth.tum and mixed
     its frames with theirs (exit 0): refused before the scene is built, nothing touched. An
-    earlier run is still rewritten in place, and an empty folder taken."""
+    earlier run is still rewritten in place, and a folder without files taken."""
     victim = tmp_path / "mine"
     (victim / "frames").mkdir(parents=True)
     (victim / "frames" / "mydata.ply").write_text("keep")
@@ -147,3 +147,6 @@ def test_simulate_refuses_a_folder_that_holds_something_else(tmp_path, capsys) -
     assert len(read_run(run).frame_paths) == 2
     (tmp_path / "empty").mkdir()
     assert main(["simulate", "lab", "--out", str(tmp_path / "empty"), "--frames", "2"]) == 0
+    # What a run that failed on its first frame leaves: an empty frames folder, no file.
+    (tmp_path / "failed" / "frames").mkdir(parents=True)
+    assert main(["simulate", "lab", "--out", str(tmp_path / "failed"), "--frames", "2"]) == 0

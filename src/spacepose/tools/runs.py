@@ -98,7 +98,7 @@ class Run:
 def check_run_out(out_dir: str | Path) -> None:
     """Refuse to write a run into a folder that holds something else: a run rewrites its
     ground truth, model and scenario and removes frame files it did not write, so only a new
-    or empty folder, or an earlier run (its scenario file), is safe to write into.
+    folder, one without files, or an earlier run (its scenario file), is safe to write into.
 
     Raises
     ------
@@ -106,7 +106,10 @@ def check_run_out(out_dir: str | Path) -> None:
         One line naming the folder.
     """
     out = Path(out_dir)
-    if out.is_dir() and not (out / SCENARIO).is_file() and any(out.iterdir()):
+    # Empty folders alone hold nothing to lose (a run that failed on its first frame leaves
+    # its frames folder): the first file found decides.
+    holds = out.is_dir() and any(p.is_file() for p in out.rglob("*"))
+    if holds and not (out / SCENARIO).is_file():
         raise InputError(
             f"not empty and not a spacepose run (no {SCENARIO}): a run would overwrite or "
             "remove what it holds; give a new or empty folder",
