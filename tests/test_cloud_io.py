@@ -436,3 +436,19 @@ def test_normals_of_zero_length_are_refused_and_others_made_unit(tmp_path: Path)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         np.testing.assert_array_equal(read_cloud(unit).normals, n)
+
+
+def test_an_ascii_ply_is_read_without_leaving_a_file_open(tmp_path: Path) -> None:
+    """plyfile read an ASCII body through a text wrapper left open on the file: a
+    ResourceWarning each time one was collected."""
+    import gc
+
+    path = tmp_path / "a.ply"
+    points = np.random.default_rng(0).uniform(size=(50, 3))
+    write_cloud(path, points, binary=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cloud = read_cloud(path)
+        gc.collect()
+    assert not [w for w in caught if issubclass(w.category, ResourceWarning)], caught
+    np.testing.assert_allclose(cloud.points, points, atol=1e-6)

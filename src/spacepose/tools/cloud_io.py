@@ -208,7 +208,10 @@ def _read_ply(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | No
             _check_ply_counts(header, body_bytes)
             _check_ply_rest(header, fh, body_bytes)
             fh.seek(0)
-            ply = plyfile.PlyData.read(fh, mmap=False)
+            # plyfile reads an ASCII body through a text wrapper it leaves open on the file,
+            # which warns when collected: it gets the bytes instead (an ASCII cloud is small).
+            source = io.BytesIO(fh.read()) if header.text else fh
+            ply = plyfile.PlyData.read(source, mmap=False)
     except plyfile.PlyParseError as exc:
         raise FileFormatError(f"bad or truncated PLY: {exc}", path) from None
     except UnicodeDecodeError:
