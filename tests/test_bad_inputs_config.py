@@ -275,6 +275,24 @@ def test_an_ok_bound_beyond_its_lost_bound_is_refused_at_load(tmp_path, text, wo
     _one_line(exc, path, *words)
 
 
+def test_a_number_written_as_text_is_refused_in_a_config(tmp_path):
+    """Pydantic reads "0.5" as 0.5: a quoted number (or one with its unit, "5 mm") was taken
+    in silence. Refused, naming the field; text fields still take text."""
+    path = tmp_path / "tracker.yaml"
+    path.write_text('gate: "0.5"\nhealth:\n  ok_rmse: "0.67"\n')
+    with pytest.raises(ConfigError) as exc:
+        load_config(TrackerConfig, path)
+    _one_line(exc, path, "gate: Value error, '0.5' is text", "health.ok_rmse", "unquoted")
+    with pytest.raises(ConfigError, match="points_per_frame"):
+        TrackerConfig.model_validate({"points_per_frame": "3000"})
+    assert TrackerConfig.model_validate({"method": "gicp"}).method == "gicp"
+    assert BackgroundConfig.model_validate({"range_max": None}).range_max is None
+    # PyYAML (YAML 1.1) reads 1e5 and 1.0e5 as text; unquoted they are numbers, as in YAML 1.2.
+    path.write_text("health:\n  lost_condition: 1e5\n  ok_condition: 2.5e3\n")
+    health = load_config(TrackerConfig, path).health
+    assert (health.lost_condition, health.ok_condition) == (1e5, 2500.0)
+
+
 def test_points_per_frame_below_the_health_minimum_is_refused():
     assert TrackerConfig().points_per_frame == 3000
     assert TrackerConfig(points_per_frame=100).points_per_frame == 100

@@ -11,6 +11,7 @@ file; a file that does not parse is named with the line and column of the proble
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from types import UnionType
 from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
@@ -35,7 +36,7 @@ class StageConfig(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_boolean_numbers(cls, value: Any, info: ValidationInfo) -> Any:
-        return refuse_boolean(cls, value, info)
+        return refuse_text_number(cls, refuse_boolean(cls, value, info), info)
 
     def __init__(self, /, **data: Any) -> None:
         try:
@@ -86,6 +87,34 @@ def refuse_boolean(model: type[BaseModel], value: Any, info: ValidationInfo) -> 
     """
     if holds_boolean(value) and not admits_boolean(model.model_fields[info.field_name].annotation):
         raise ValueError(f"{str(value).lower()} is a yes/no, not a value of this field")
+    return value
+
+
+def admits_text(annotation: Any) -> bool:
+    """Whether a field annotated ``annotation`` may be given as text (a name, a path, a choice
+    of words)."""
+    if annotation in (str, Path, Any) or (
+        isinstance(annotation, type) and issubclass(annotation, str)
+    ):
+        return True
+    origin, args = get_origin(annotation), get_args(annotation)
+    if origin is Annotated:
+        return admits_text(args[0])
+    if origin is Literal:
+        return any(isinstance(a, str) for a in args)
+    if origin is Union or origin is UnionType:
+        return any(admits_text(a) for a in args)
+    return False
+
+
+def refuse_text_number(model: type[BaseModel], value: Any, info: ValidationInfo) -> Any:
+    """``value`` unchanged, unless it is text for a field that takes no text.
+
+    Pydantic reads ``"0.5"`` as 0.5 for a number field: in a file, ``gate: "0.5"`` is a value
+    quoted by mistake (or a unit written in: ``"5 mm"``), not a number the user meant as text.
+    """
+    if isinstance(value, str) and not admits_text(model.model_fields[info.field_name].annotation):
+        raise ValueError(f"{value!r} is text, not a value of this field (write it unquoted)")
     return value
 
 
@@ -164,6 +193,14 @@ def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool
 
 
 _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+# YAML 1.1, which PyYAML follows, reads 1e5 and 1.0e5 (an exponent without a dot, or without a
+# sign) as text; YAML 1.2 and every user read them as numbers. A number given as text is
+# refused (refuse_text_number), so these are numbers here, as in YAML 1.2.
+_UniqueKeyLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)[eE][-+]?[0-9]+$"),
+    list("-+.0123456789"),
+)
 
 
 def _unique_pairs(text: str) -> Any:
