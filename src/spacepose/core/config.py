@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Callable
 from pathlib import Path
 from types import UnionType
 from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
@@ -56,19 +57,27 @@ class StageConfig(BaseModel):
 C = TypeVar("C", bound=BaseModel)
 
 
-def admits_boolean(annotation: Any) -> bool:
-    """Whether a field annotated ``annotation`` may hold ``True`` / ``False``."""
-    if annotation is bool or annotation is Any:
+def _admits(annotation: Any, leaf: Callable[[Any], bool], kind: type, through: tuple) -> bool:
+    """Whether a field annotated ``annotation`` may hold a value of ``kind``: a ``leaf`` type,
+    a ``Literal`` with one, or any member of the ``through`` generics (unions; containers)."""
+    if leaf(annotation):
         return True
     origin, args = get_origin(annotation), get_args(annotation)
     if origin is Annotated:
-        return admits_boolean(args[0])
+        return _admits(args[0], leaf, kind, through)
     if origin is Literal:
-        return any(isinstance(a, bool) for a in args)
-    if origin is Union or origin is UnionType or origin in (tuple, list):
-        # A container admits one when any of its element types does.
-        return any(admits_boolean(a) for a in args if a is not Ellipsis)
+        return any(isinstance(a, kind) for a in args)
+    if origin in through:
+        return any(_admits(a, leaf, kind, through) for a in args if a is not Ellipsis)
     return False
+
+
+def admits_boolean(annotation: Any) -> bool:
+    """Whether a field annotated ``annotation`` may hold ``True`` / ``False`` (a container
+    admits one when any of its element types does)."""
+    return _admits(
+        annotation, lambda a: a is bool or a is Any, bool, (Union, UnionType, tuple, list)
+    )
 
 
 def holds_boolean(value: Any) -> bool:
@@ -93,18 +102,11 @@ def refuse_boolean(model: type[BaseModel], value: Any, info: ValidationInfo) -> 
 def admits_text(annotation: Any) -> bool:
     """Whether a field annotated ``annotation`` may be given as text (a name, a path, a choice
     of words)."""
-    if annotation in (str, Path, Any) or (
-        isinstance(annotation, type) and issubclass(annotation, str)
-    ):
-        return True
-    origin, args = get_origin(annotation), get_args(annotation)
-    if origin is Annotated:
-        return admits_text(args[0])
-    if origin is Literal:
-        return any(isinstance(a, str) for a in args)
-    if origin is Union or origin is UnionType:
-        return any(admits_text(a) for a in args)
-    return False
+
+    def text(a: Any) -> bool:
+        return a in (Path, Any) or (isinstance(a, type) and issubclass(a, str))
+
+    return _admits(annotation, text, str, (Union, UnionType))
 
 
 def refuse_text_number(model: type[BaseModel], value: Any, info: ValidationInfo) -> Any:
