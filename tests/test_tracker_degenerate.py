@@ -81,3 +81,22 @@ def test_a_model_in_absurd_units_is_named_in_the_reason() -> None:
     result = Tracker(TrackerConfig(), model=model, workers=1).track_frame(plate_frame(rng), 0.0)
     assert result.status == "lost"
     assert "huge.ply: the model at the frame's voxel: cells of" in result.reasons[0], result.reasons
+
+
+def test_a_first_frame_on_a_line_is_lost_and_the_next_one_starts_the_run() -> None:
+    """A first frame whose points all lie on one line has no normals: the tracker raised out
+    of track_frame (after normal estimation began refusing such clouds), and before that it
+    derived its lengths from the line. It is lost with its reason; the next frame starts the
+    run with the lengths it would have had first."""
+    sim = simulate(LabConfig(frames=4, seed=0))
+    line = np.c_[np.linspace(-0.3, 0.3, 2000), np.zeros(2000), np.full(2000, 1.5)]
+    tracker = Tracker(TrackerConfig(), workers=1)
+    first = tracker.track_frame(line, -0.1)
+    assert first.status == "lost" and "lie on a line" in first.reasons[0], first.reasons
+    statuses = [
+        tracker.track_frame(sim.frame(k).cloud, sim.frame(k).timestamp).status for k in range(4)
+    ]
+    assert statuses == ["ok", "degraded", "ok", "ok"], statuses
+    fresh = Tracker(TrackerConfig(), workers=1)
+    fresh.track_frame(sim.frame(0).cloud, sim.frame(0).timestamp)
+    assert tracker.scale.voxel == fresh.scale.voxel

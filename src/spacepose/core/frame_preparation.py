@@ -22,6 +22,7 @@ from spacepose.core.correspondences import find_correspondences
 from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
+from spacepose.core.moments import distribution, is_collinear
 from spacepose.core.neighbors import knn
 from spacepose.core.normals import estimate_normals, plane_offsets
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
@@ -35,7 +36,7 @@ from spacepose.core.segmentation import (
 )
 from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
 from spacepose.core.voxel import voxel_cells, voxel_downsample
-from spacepose.errors import InputError
+from spacepose.errors import DegenerateGeometryError, InputError
 
 # A crop: center (3,) and radius (m), sensor frame.
 Sphere = tuple[NDArray[np.float64], float]
@@ -107,6 +108,13 @@ class FramePreparer:
             pc = pc.select(np.flatnonzero(valid))
         if cfg.use_background_removal:
             pc, _ = remove_background(pc, cfg.background)
+        if self.scale is None and len(pc) >= 3 and is_collinear(distribution(pc.points)[1]):
+            # Not a first frame: its lengths and region would be a line's, and the next
+            # frame, which may see a surface, would inherit them.
+            raise DegenerateGeometryError(
+                "all points lie on a line or at one place: no surface to derive lengths from",
+                pc.source,
+            )
         sphere = None
         if cfg.isolate_target:
             if self.scene_test is not None:

@@ -209,7 +209,10 @@ class Tracker:
             return self._lost(index, timestamp, prediction, (f"unusable frame: {exc}",), times)
         times["preprocess"] = elapsed_ms(tic)
         if not self.model_based and not self._window:
-            return self._start(index, timestamp, prepared, times)
+            try:
+                return self._start(index, timestamp, prepared, times)
+            except SpaceposeError as exc:  # no keyframe from it (all on a line): the next may
+                return self._lost(index, timestamp, prediction, (f"unusable frame: {exc}",), times)
 
         checked: Checked = (None, "lost", ("no prior pose",))
         if prediction is not None:
