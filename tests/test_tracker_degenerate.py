@@ -100,3 +100,20 @@ def test_a_first_frame_on_a_line_is_lost_and_the_next_one_starts_the_run() -> No
     fresh = Tracker(TrackerConfig(), workers=1)
     fresh.track_frame(sim.frame(0).cloud, sim.frame(0).timestamp)
     assert tracker.scale.voxel == fresh.scale.voxel
+
+
+def test_a_frame_on_a_line_mid_run_is_lost_and_the_run_goes_on() -> None:
+    """Model-free and against the model: a frame whose points lie on one line fails fine
+    registration and then its coarse features (no normals on a line), which raised out of
+    track_frame. It is lost with both reasons; the frames after it are tracked."""
+    sim = simulate(LabConfig(frames=5, seed=0))
+    line = np.c_[np.linspace(-0.3, 0.3, 2000), np.zeros(2000), np.full(2000, 1.2)]
+    for model in (None, sim.model_cloud()):
+        tracker = Tracker(TrackerConfig(), model=model, workers=1)
+        results = [
+            tracker.track_frame(line if k == 2 else sim.frame(k).cloud, sim.frame(k).timestamp)
+            for k in range(5)
+        ]
+        assert results[2].status == "lost", results[2].reasons
+        assert results[2].reasons[-1] == "coarse registration found no consensus"
+        assert [r.status for r in results[3:]] == ["ok", "ok"], [r.reasons for r in results]

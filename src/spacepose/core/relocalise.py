@@ -71,10 +71,10 @@ def coarse_pose(
     workers: int = -1,
 ) -> NDArray[np.float64] | None:
     """Initial ``T_sensor_target`` (4, 4) of a frame by FPFH + RANSAC onto ``ref``, or None when
-    RANSAC finds no consensus."""
-    src, src_f = coarse_features(prepared, lengths, False, workers)
-    tgt, tgt_f = coarse_features(ref.prepared, lengths, ref_is_model, workers)
+    RANSAC finds no consensus (or the frame has no surface to describe: all on a line)."""
     try:
+        src, src_f = coarse_features(prepared, lengths, False, workers)
+        tgt, tgt_f = coarse_features(ref.prepared, lengths, ref_is_model, workers)
         res = feature_ransac(src, tgt, src_f, tgt_f, lengths.ransac, workers=workers)
     except SpaceposeError:
         return None
