@@ -22,7 +22,7 @@ from spacepose.core.correspondences import find_correspondences
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.health import normalised_condition, normalising_map
 from spacepose.core.icp_systems import point_to_plane_system
-from spacepose.core.moments import distribution, is_collinear
+from spacepose.core.moments import on_a_line
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.scale import rms_radius
 from spacepose.core.tracker_config import HealthConfig
@@ -147,7 +147,7 @@ class CoarseSurface:
         voxel = COARSE_FRACTION * radius
         cloud = PointCloud(voxel_cells(target_points, voxel)[0])
         # Fewer coarse cells than a plane needs, or all on a line: nothing is constrained.
-        if len(cloud) >= 3 and not is_collinear(distribution(cloud.points)[1]):
+        if len(cloud) >= 3 and not on_a_line(cloud.points):
             k = min(_NORMAL_NEIGHBOURS, len(cloud))
             config = NormalsConfig(k=k, radius=_GATE_VOXELS * voxel)
             cloud = estimate_normals(cloud, config, workers=workers)

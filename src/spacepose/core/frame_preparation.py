@@ -22,7 +22,7 @@ from spacepose.core.correspondences import find_correspondences
 from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
-from spacepose.core.moments import distribution, is_collinear
+from spacepose.core.moments import on_a_line
 from spacepose.core.neighbors import knn
 from spacepose.core.normals import estimate_normals, plane_offsets
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
@@ -108,7 +108,7 @@ class FramePreparer:
             pc = pc.select(np.flatnonzero(valid))
         if cfg.use_background_removal:
             pc, _ = remove_background(pc, cfg.background)
-        if self.scale is None and len(pc) >= 3 and is_collinear(distribution(pc.points)[1]):
+        if self.scale is None and len(pc) >= 3 and on_a_line(pc.points):
             # Not a first frame: its lengths and region would be a line's, and the next
             # frame, which may see a surface, would inherit them.
             raise DegenerateGeometryError(

@@ -90,6 +90,14 @@ def is_collinear(eigenvalues: NDArray[np.float64]) -> bool:
     return bool(eigenvalues[1] <= _COLLINEAR_RTOL * max(eigenvalues[2], 1e-300))
 
 
+def on_a_line(points: NDArray[np.float64]) -> bool:
+    """Whether every point (N ≥ 3, 3) lies on one line or at one place. A strided sample of
+    about a thousand points clears almost every cloud (0.22 ms on 30,000 points, against 1.4 ms
+    for all of them); only a sample on a line is confirmed on all of them."""
+    sample = points[:: max(1, len(points) // 1024)]
+    return is_collinear(distribution(sample)[1]) and is_collinear(distribution(points)[1])
+
+
 def fit_plane(points: ArrayLike) -> tuple[NDArray[np.float64], float]:
     """Least-squares plane (PCA) through points (N, 3).
 
