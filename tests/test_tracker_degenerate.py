@@ -40,8 +40,9 @@ def test_a_plate_is_never_ok_and_its_free_directions_get_its_size_as_sigma() -> 
         assert np.all(sigma[3:5] > 0.3) and np.degrees(sigma[2]) > 50, sigma
         # What the plate does fix: its depth and tilts, to the registration's own σ.
         assert sigma[5] < 1e-3 and np.all(np.degrees(sigma[:2]) < 0.1), sigma
-        err_z = r.T_sensor_target[2, 3]  # the plate never moved
-        assert abs(err_z) < 3 * sigma[5] + 5e-4, (err_z, sigma[5])
+        # The plate never moved: its centre's depth error, within 3σ (measured 0.84-1.01σ).
+        err_z = (r.T_sensor_target @ np.r_[centre, 1.0])[2] - centre[2]
+        assert abs(err_z) < 3 * sigma[5], (err_z, sigma[5])
 
 
 def test_the_lab_target_is_not_flagged() -> None:
