@@ -1,42 +1,55 @@
-"""Directions of a registered pose that the surfaces leave free (a plane, two planes sliding).
+"""Directions of a registered pose that the surfaces leave free (a plane sliding or turning
+about its normal, a sphere turning, a cylinder turning about its axis).
 
 A registration's own information can claim what the data cannot give: GICP's regularised
-covariances and the normals' noise put information on the in-plane translations of a plane and
-its rotation about its normal. :func:`surface_degeneracy` judges the pair instead by the
-point-to-plane information at the result, with the target's normals taken at a coarse voxel
-(:data:`COARSE_FRACTION` of the radius) where their noise cannot pass for shape, made unit-free
-as the tracker's health check does (:func:`~spacepose.core.health.normalised_condition`) and
-held to the tracker's bounds (:class:`~spacepose.core.tracker_config.HealthConfig`).
+covariances and the normals' noise put information on every direction, free ones included, and
+when a curved surface is paired across a distance the pairing itself adds some (a point matched
+to a sample farther along the curve has a lever arm about the axis). :func:`surface_degeneracy`
+judges the pair instead by rows taken at points of the target's surface with normals centred on
+them, at a coarse scale (:class:`CoarseSurface`), and counts a row on a direction only as far as
+it leans on it by more than the normals' noise and tilt can (:func:`aligned_information`). The
+result is made unit-free as the tracker's health check does
+(:func:`~spacepose.core.health.normalising_map`) and held to the tracker's bounds
+(:class:`~spacepose.core.tracker_config.HealthConfig`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.correspondences import find_correspondences
 from spacepose.core.grid import VoxelIndex
-from spacepose.core.health import normalised_condition, normalising_map
-from spacepose.core.icp_systems import point_to_plane_system
+from spacepose.core.health import normalising_map
 from spacepose.core.moments import on_a_line
-from spacepose.core.normals import NormalsConfig, estimate_normals
+from spacepose.core.neighbors import hybrid
 from spacepose.core.scale import rms_radius
 from spacepose.core.tracker_config import HealthConfig
 from spacepose.core.voxel import voxel_cells
 
-# Voxel of the check as a fraction of the cloud's radius R. The information a plane's normals
-# put on its free directions is their scatter, which falls as the square of the neighbourhood:
-# a 0.5 m plane with 3 mm noise scores 59 with the normals of its 6 mm registration voxels (a
-# satellite mock-up scores 45-100), 1.4e6-1.8e7 at R/4 (R/6: 1.4e4-3.4e4); the lab, simulated
-# and real pairs 7-49. Noise near the fine voxel (6 mm at 7 mm) brings a plane down to 8e3-1.4e4.
-COARSE_FRACTION = 0.25
-# Neighbours of a coarse normal and gate of the coarse matches, in coarse voxels (the fine
-# point-to-plane stage's rule).
-_NORMAL_NEIGHBOURS = 20
+# Sampling cell and normal neighbourhood as fractions of the cloud's radius R. The plane fit
+# of the points within R/4 of a sample leans on a free direction by its noise, by the cells it
+# is summed over (_MOMENT_CELLS) and, at the rim of the visible surface, by the tilt of a
+# one-sided neighbourhood: on a sphere, a cylinder and a plane at 1.5 m (3 seeds each), at most
+# 0.054 / 0.067 / 0.007 under 2 mm of range noise, 0.052 / 0.069 / 0.024 under 6 mm, and
+# 0.09-0.17 on the curved ones under 12 mm.
+SAMPLE_FRACTION = 0.125
+NORMAL_FRACTION = 0.25
+# A sample's normal sums the points' moments over cells of R/16 (a quarter of its reach), at
+# most the 96 nearest cells (a surface crossing the ball fills about 50, at most 78 on a lab
+# keyframe).
+_MOMENT_CELLS = 4
+_NORMAL_CAP = 96
+# Sine of the angle by which a row must lean on a direction to count there (5.7°): 1.45 times
+# what 6 mm of noise (3x the ToF camera's at 1.5 m) gives a free direction, below what the
+# grid's targets give their weakest one (methods.md §5.3).
+ALIGNMENT = 0.1
+# Gate of the coarse matches, in sampling cells.
 _GATE_VOXELS = 3.0
 # A free direction is named a rotation (translation) when it lies within 45° of one.
 _NAMED_COSINE = 0.5**0.5
@@ -49,7 +62,8 @@ class Degeneracy:
     Attributes
     ----------
     condition
-        Normalised condition number of the coarse point-to-plane information (unit-free).
+        Largest over smallest :func:`aligned_information` of the coarse surface the frame
+        overlaps (unit-free); inf when some direction gets none.
     bound
         The tracker's ``lost_condition``: above it the pose is degenerate.
     free
@@ -107,12 +121,37 @@ class Degeneracy:
         )
 
     def to_dict(self) -> dict:
-        """JSON-ready flag, condition number and the free directions' names."""
+        """JSON-ready flag, condition number (None when infinite: JSON has no infinity) and the
+        free directions' names."""
         return {
             "degenerate": self.degenerate,
-            "condition_number": self.condition,
+            "condition_number": self.condition if np.isfinite(self.condition) else None,
             "unconstrained": self.names(),
         }
+
+
+def aligned_information(
+    rows: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The information of point-to-plane rows along their principal directions, each row
+    counting only as far as it leans on the direction by more than :data:`ALIGNMENT`.
+
+    Parameters
+    ----------
+    rows
+        (K, 6) unit-free rows (``h`` in the twist ``(ρ, v_c)`` of
+        :func:`~spacepose.core.health.normalising_map`).
+
+    Returns
+    -------
+    information, directions
+        (6,) ``Σ max(0, (h·u)² − ALIGNMENT² |h|²)`` along each direction ``u``; (6, 6) the
+        directions, columns: the eigenvectors of ``Σ h hᵀ``, weakest first.
+    """
+    directions = np.linalg.eigh(rows.T @ rows)[1]
+    along = (rows @ directions) ** 2
+    size = np.sum(rows**2, axis=1, keepdims=True)
+    return np.sum(np.maximum(0.0, along - ALIGNMENT**2 * size), axis=0), directions
 
 
 def _vector(x: NDArray[np.float64], decimals: int) -> str:
@@ -122,41 +161,120 @@ def _vector(x: NDArray[np.float64], decimals: int) -> str:
 
 @dataclass(frozen=True)
 class CoarseSurface:
-    """A target cloud at the coarse voxel of the check, with its normals (once per target: a
-    tracker judges every frame against the same keyframe or model).
+    """A target cloud's surface as the check reads it: in each of its cells of
+    :data:`SAMPLE_FRACTION` of the radius, the point nearest the cell's centroid, with the
+    plane fitted to the target's points within :data:`NORMAL_FRACTION` of the radius around it
+    (made once per target: a tracker judges every frame against the same keyframe or model).
+
+    Each sample's point-to-plane row ``h = (p × n, n)`` is taken at its own point with a normal
+    centred on it: a sphere, a cylinder or a plane then gives their free directions nothing, up
+    to the fit's noise (which falls with the neighbourhood's size) and, at the visible
+    surface's rim, the tilt of a one-sided neighbourhood.
 
     Attributes
     ----------
     voxel
-        The coarse voxel edge (m): :data:`COARSE_FRACTION` of the radius it was made for.
-    cloud
-        (M, 3) coarse cells with normals (target frame); fewer than 3 cells: no normals.
+        The sampling cell's edge (m).
+    points
+        (M, 3) the samples (target frame, m): what frames are matched to.
+    rows
+        (M, 6) their rows ``(p × n, n)`` about the target frame's origin (zero for a sample
+        with fewer than 3 points around it); None when the cloud has no surface (under 3
+        points, or all on a line).
     index
-        Their neighbour index.
+        Neighbour index of ``points``.
     """
 
     voxel: float
-    cloud: PointCloud
+    points: NDArray[np.float64]
+    rows: NDArray[np.float64] | None
     index: VoxelIndex
 
     @classmethod
-    def of(
-        cls, target_points: NDArray[np.float64], radius: float, workers: int = -1
-    ) -> CoarseSurface:
-        """The coarse surface of ``target_points`` (M, 3) for clouds of ``radius`` (m)."""
-        voxel = COARSE_FRACTION * radius
-        cloud = PointCloud(voxel_cells(target_points, voxel)[0])
-        # Fewer coarse cells than a plane needs, or all on a line: nothing is constrained.
-        if len(cloud) >= 3 and not on_a_line(cloud.points):
-            k = min(_NORMAL_NEIGHBOURS, len(cloud))
-            config = NormalsConfig(k=k, radius=_GATE_VOXELS * voxel)
-            cloud = estimate_normals(cloud, config, workers=workers)
-        return cls(voxel, cloud, VoxelIndex(cloud.points))
+    def of(cls, target: PointCloud | ArrayLike, radius: float, workers: int = -1) -> CoarseSurface:
+        """The coarse surface of ``target`` (its points; normals are not used) for clouds of
+        ``radius`` (m)."""
+        points = as_cloud(target, "target").points
+        voxel = SAMPLE_FRACTION * radius
+        samples = _nearest_to_centroids(points, voxel)
+        rows = None
+        if len(points) >= 3 and not on_a_line(points):
+            reach = NORMAL_FRACTION * radius
+            normals, count = _ball_normals(points, samples, reach, workers)
+            rows = np.c_[np.cross(samples, normals), normals]
+            rows[count < 3] = 0.0
+        return cls(voxel, samples, rows, VoxelIndex(samples))
+
+
+def _nearest_to_centroids(points: NDArray[np.float64], voxel: float) -> NDArray[np.float64]:
+    """(M, 3) in each occupied cell of ``voxel`` (m) the point nearest the cell's centroid: a
+    point of the surface, where a curved one's centroid lies inside it."""
+    centroids, cell = voxel_cells(points, voxel)
+    return points[_nearest_in_cells(np.sum((points - centroids[cell]) ** 2, axis=1), cell)]
+
+
+@numba.njit(cache=True)
+def _nearest_in_cells(d2, cell):
+    """Per cell, the index of its point of least ``d2`` (the first of equals)."""
+    m = cell.max() + 1
+    best = np.full(m, np.inf)
+    index = np.zeros(m, dtype=np.int64)
+    for i in range(len(d2)):
+        if d2[i] < best[cell[i]]:
+            best[cell[i]], index[cell[i]] = d2[i], i
+    return index
+
+
+def _ball_normals(
+    points: NDArray[np.float64], centres: NDArray[np.float64], reach: float, workers: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The normals of the plane fits of the ``points`` (N, 3) within about ``reach`` (m) of each
+    centre (K, 3), (K, 3) unit, and (K,) how many points each took.
+
+    The points' moments are summed per cell of ``reach / _MOMENT_CELLS`` once, and a centre's
+    neighbourhood is the cells whose centroids lie within ``reach``: a search among a few
+    hundred cells, not among every point (a capped search for each centre's 400 nearest points
+    took 39 ms on a lab keyframe; the whole :meth:`CoarseSurface.of` takes 5.5 ms).
+    """
+    # Moments about the cloud's mean: about a far sensor origin the second moments would
+    # cancel the spread they hold.
+    origin = points.mean(axis=0)
+    centroids, cell = voxel_cells(points, reach / _MOMENT_CELLS)
+    local = points - origin
+    m = len(centroids)
+    # Per cell: the count, the sum of the points and the sums of their products xx, xy, xz, yy,
+    # yz, zz.
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    columns = [np.ones(len(points)), *local.T, *(local[:, a] * local[:, b] for a, b in pairs)]
+    sums = np.empty((m, 10))
+    for j, column in enumerate(columns):
+        sums[:, j] = np.bincount(cell, column, m)
+    idx, _ = hybrid(centroids, centres, reach, _NORMAL_CAP, workers)
+    ball = _sum_rows(sums, idx)
+    total = ball[:, 0]
+    mean = ball[:, 1:4] / np.maximum(total, 1.0)[:, None]
+    covariance = np.empty((len(centres), 3, 3))
+    for j, (a, b) in enumerate(pairs):
+        covariance[:, a, b] = covariance[:, b, a] = ball[:, 4 + j] - total * mean[:, a] * mean[:, b]
+    return np.linalg.eigh(covariance)[1][:, :, 0], total
+
+
+@numba.njit(cache=True)
+def _sum_rows(rows, idx):
+    """(K, C) row sums of ``rows`` (M, C) over each line of ``idx`` (K, L), up to its first -1
+    (a gathered (K, L, C) copy cost more than the search)."""
+    out = np.zeros((idx.shape[0], rows.shape[1]))
+    for k in range(idx.shape[0]):
+        for j in idx[k]:
+            if j < 0:
+                break
+            out[k] += rows[j]
+    return out
 
 
 def surface_degeneracy(
     source_points: NDArray[np.float64],
-    target_points: NDArray[np.float64] | CoarseSurface,
+    target_points: PointCloud | ArrayLike | CoarseSurface,
     T_target_source: NDArray[np.float64],
     radius: float,
     health: HealthConfig = HealthConfig(),
@@ -169,15 +287,16 @@ def surface_degeneracy(
     source_points
         (N, 3) cloud in its own frame (m).
     target_points
-        (M, 3) cloud in its own frame (m), or its :class:`CoarseSurface` made once.
+        (M, 3) cloud in its own frame (m; a PointCloud's normals are not used), or its
+        :class:`CoarseSurface` made once.
     T_target_source
         (4, 4) the registration's result.
     radius
-        Radius of the clouds (m); the coarse voxel is :data:`COARSE_FRACTION` of it (a given
+        Radius of the clouds (m); the sampling cell is :data:`SAMPLE_FRACTION` of it (a given
         coarse surface keeps its own).
     health
         ``lost_condition`` (degenerate above it) and ``ok_condition`` (the free directions are
-        those below ``1 / ok_condition`` of the best observed one).
+        those whose :func:`aligned_information` is below ``1 / ok_condition`` of the best).
     workers
         Threads for the neighbour searches.
 
@@ -187,22 +306,22 @@ def surface_degeneracy(
     """
     surface = target_points
     if not isinstance(surface, CoarseSurface):
-        surface = CoarseSurface.of(np.asarray(target_points, dtype=np.float64), radius, workers)
-    voxel, tgt = surface.voxel, surface.cloud
+        surface = CoarseSurface.of(target_points, radius, workers)
+    voxel = surface.voxel
     source_points = np.asarray(source_points, dtype=np.float64)
     src = se3.transform_points(T_target_source, voxel_cells(source_points, voxel)[0])
     # A rigid motion moves the centroid and keeps the radius: no need to move every point.
     centroid = se3.transform_points(T_target_source, source_points.mean(axis=0)[None])[0]
     r = rms_radius(source_points)
-    H = np.zeros((6, 6))
-    if tgt.normals is not None:
-        gate = _GATE_VOXELS * voxel
-        s, t, _ = find_correspondences(surface.index, src, gate, workers)
-        H = point_to_plane_system(src[s], tgt.points[t], tgt.normals[t])[0]
-    condition = normalised_condition(H, centroid, r)
+    rows = np.zeros((0, 6))
+    if surface.rows is not None:
+        # The target's samples the frame overlaps, each as often as a frame cell matches it.
+        _, t, _ = find_correspondences(surface.index, src, _GATE_VOXELS * voxel, workers)
+        rows = surface.rows[t]
+    information, directions = aligned_information(rows @ normalising_map(centroid, r))
+    best = information.max()
+    condition = float(best / information.min()) if information.min() > 0 else float("inf")
     free = np.zeros((6, 0))
     if not condition <= health.lost_condition:
-        M = normalising_map(centroid, r)
-        ev, vectors = np.linalg.eigh(M.T @ H @ M)
-        free = vectors[:, ev <= ev[-1] / health.ok_condition]
+        free = directions[:, information <= best / health.ok_condition]
     return Degeneracy(condition, health.lost_condition, free, centroid, r)

@@ -136,16 +136,17 @@ class FineStage:
     def _free_directions(self, estimate: FineEstimate, prepared: PreparedCloud) -> FineEstimate:
         """The estimate with its covariance widened along the directions the surfaces leave
         free (:func:`~spacepose.core.degeneracy.surface_degeneracy`, judged against the model or
-        the estimate's keyframe at a coarse voxel, where the normals' noise cannot pass for
+        the estimate's keyframe at a coarse scale, where the normals' noise cannot pass for
         shape). A plate slid along itself fits a keyframe with a condition of about 500 at
-        the fine voxel, under the ok bound, while the coarse check gives 1e6; satellite_panels
-        at 25 m, the grid's nearest target to the bound, scores 1.6e3 (median, seeds 0-4), one
-        frame of 907 above 1e4 (methods.md §5.3)."""
+        the fine voxel, under the ok bound; a sphere and a cylinder scored 559 and 752 with the
+        former coarse check. All three are infinite now, while the grid's targets score at
+        most 480 (lab mock-up, 99th percentile) and 7.2e3 (satellite_panels at 25 m, seed 0;
+        methods.md §5.3)."""
         ref = self.model if self.model is not None else estimate.reference
         workers = self.registrar.workers
         if ref.coarse is None:
-            points = ref.registration_target.cloud.points
-            ref.coarse = CoarseSurface.of(points, ref.prepared.radius, workers)
+            target = ref.registration_target.cloud
+            ref.coarse = CoarseSurface.of(target, ref.prepared.radius, workers)
         T_ref_k = estimate.result.T_target_source
         found = surface_degeneracy(
             prepared.cloud.points, ref.coarse, T_ref_k, prepared.radius, self.config.health, workers

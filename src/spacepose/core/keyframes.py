@@ -105,8 +105,8 @@ class Keyframe:
         (its own frame's, or one along the chain of keyframes before it): the data could not
         see a slide there, and a frame registered onto it is never ``ok``.
     coarse
-        Its surface at the coarse voxel of the degeneracy check (made on the first frame
-        judged against it; None before).
+        Its surface as the degeneracy check samples it (made on the first frame judged
+        against it; None before).
     """
 
     index: int

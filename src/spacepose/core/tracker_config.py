@@ -115,10 +115,11 @@ class HealthConfig(StageConfig):
         Condition number of the registration information at the cloud centroid, rotations
         taken as displacements at the radius (unit-free). The lab mock-up gives 45-100 at 0.5,
         1.2 and 3 m; a plane, which leaves three directions unobserved, 55-1.3e4 by its noise
-        (its normals' noise puts a false information on them). The same condition of the
-        surfaces at a coarse voxel (:mod:`spacepose.core.degeneracy`), 1e6 and more on a
-        plane, is held to ``lost_condition``: above it the frame is degraded and its σ widened
-        along the free directions.
+        (its normals' noise puts a false information on them). The surfaces' condition at a
+        coarse scale (:mod:`spacepose.core.degeneracy`: medians 7-262 and 99th percentiles
+        15-7.2e3 over the seed-0 grid's targets, infinite on a plane, a sphere or a cylinder)
+        is held to ``lost_condition``: above it the frame is degraded and its σ widened along
+        the free directions.
     ok_sigma_translation, ok_sigma_rotation
         Largest 1-σ of the frame's own registration (voxels; rotation at the radius).
     ok_prediction_translation, ok_prediction_rotation
