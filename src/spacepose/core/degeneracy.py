@@ -95,22 +95,33 @@ class Degeneracy:
         return covariance + self.radius**2 * D @ D.T
 
     def names(self) -> list[str]:
-        """The free rotations (about an axis through the centroid) and translations, in words
-        (target frame)."""
+        """The free rotations (about an axis through a point on it) and translations, in
+        words (target frame)."""
         out = []
-        through = f" through {_vector(self.centroid, 3)} m"
-        for block, kind, where in (
-            (self.free[:3], "rotation about", through),
-            (self.free[3:], "translation along", ""),
+        for block, kind in (
+            (self.free[:3], "rotation about"),
+            (self.free[3:], "translation along"),
         ):
             # Principal directions of the free subspace's rotation (translation) part: a
             # singular value near 1 is a pure rotation (translation) about (along) that axis.
-            axes, cosines, _ = np.linalg.svd(block)
-            for axis, cosine in zip(axes.T, cosines, strict=False):
+            axes, cosines, mix = np.linalg.svd(block)
+            for axis, cosine, coefficients in zip(axes.T, cosines, mix, strict=False):
                 if cosine > _NAMED_COSINE:
                     axis = axis * np.sign(axis[np.argmax(np.abs(axis))])
+                    where = ""
+                    if kind == "rotation about":
+                        where = f" through {_vector(self._on_axis(coefficients / cosine), 3)} m"
                     out.append(f"{kind} {_vector(axis, 2)}{where}")
         return out
+
+    def _on_axis(self, coefficients: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The point nearest the centroid on the axis of the free twist ``free @ coefficients``
+        (a unit rotation part): a sphere's free turns pass through its centre, a cylinder's
+        through its axis, not through the centroid of the part in view."""
+        twist = self.free @ coefficients
+        omega, v_c = twist[:3] / self.radius, twist[3:]
+        # A turn ω about an axis through p moves the centroid c by ω × (c − p).
+        return self.centroid - np.cross(v_c, omega) / (omega @ omega)
 
     def summary(self) -> str:
         """One sentence: the condition against its bound, the free directions and their σ."""
