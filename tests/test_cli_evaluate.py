@@ -164,3 +164,22 @@ def test_warns_on_a_model_free_track_compared_without_rebase_first(
     captured = capsys.readouterr()
     assert captured.err == ""
     assert json.loads(captured.out)["ate_translation_rmse_mm"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_warns_on_an_estimate_in_millimetres(
+    tmp_path: Path, random_trajectory: Trajectory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An estimate written in millimetres against metres scored the whole distance as error,
+    silently. It now warns in one line with the factor (1000); the same file in metres does
+    not. (Relative poses, --rebase-first, are not checked: a nearly static truth against an
+    estimate's noise can differ by that factor with no unit wrong.)"""
+    mm = random_trajectory.poses.copy()
+    mm[:, :3, 3] *= 1e3
+    est = write_tum(tmp_path / "mm.tum", Trajectory(random_trajectory.timestamps, mm))
+    gt = write_tum(tmp_path / "gt.tum", random_trajectory)
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith(f"warning: {est}: its poses lie "), err
+    assert "1e+03 times as far: are both in metres?" in err, err
+    assert main(["evaluate", str(gt), str(gt), "--json"]) == 0
+    assert capsys.readouterr().err == ""

@@ -29,6 +29,10 @@ from spacepose.tools.trajectory_io import read_trajectory
 # A pose counts as the identity (a model-free track's first pose) within this much rotation
 # (rad) and translation (in the file's units): far below any real offset, far above rounding.
 _IDENTITY_TOLERANCE = 1e-9
+# Median distances of paired absolute poses differing by this factor or more are taken for a
+# unit mismatch (cm 100, inch 39.4, mm 1000): a tracking error, even a lost track, rarely moves
+# a pose that far from where its truth lies.
+_UNIT_FACTOR = 30.0
 
 
 @dataclass(frozen=True)
@@ -100,7 +104,8 @@ def compare_trajectory_files(
     Warns
     -----
     SpaceposeWarning
-        Different lengths, repeated pairings, or a model-free estimate compared as it is.
+        Different lengths, repeated pairings, a model-free estimate compared as it is, or
+        absolute poses whose distances differ by a unit's factor (mm against m).
     """
     est_path, gt_path = Path(est_path), Path(gt_path)
     est, gt = read_trajectory(est_path), read_trajectory(gt_path)
@@ -130,9 +135,24 @@ def compare_trajectory_files(
             f"frame) but {gt_path.name}'s is not, so every error includes that offset; "
             "compare with --rebase-first (rebase_first=True)"
         )
+    elif not rebase_first:
+        notes.extend(_unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name))
     for note in notes:
         warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
     return TrajectoryComparison(table, len(est), len(gt), rebase_first, tuple(notes))
+
+
+def _unit_mismatch(est: np.ndarray, gt: np.ndarray, gt_name: str) -> list[str]:
+    """A note when the paired poses' distances (N, 4, 4 each, absolute: not rebased) differ by
+    a factor a unit would explain (a trajectory in millimetres against one in metres scores
+    errors of the whole distance), else nothing."""
+    d_est, d_gt = (float(np.median(np.linalg.norm(T[:, :3, 3], axis=1))) for T in (est, gt))
+    if d_est <= 0.0 or d_gt <= 0.0 or 1.0 / _UNIT_FACTOR < d_est / d_gt < _UNIT_FACTOR:
+        return []
+    return [
+        f"its poses lie {d_est:.4g} (median distance) from the origin and {gt_name}'s "
+        f"{d_gt:.4g}, {d_est / d_gt:.3g} times as far: are both in metres?"
+    ]
 
 
 def starts_at_identity(T_first: np.ndarray) -> bool:
