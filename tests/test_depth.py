@@ -47,6 +47,20 @@ def test_pixel_rays_project_back_onto_their_pixels():
     assert not rays.flags.writeable
 
 
+def test_a_distortion_that_folds_most_of_the_image_is_refused_naming_the_file() -> None:
+    """k1 = 1e300 (a unit or exponent slip in an intrinsics file) left no pixel invertible:
+    every frame came out empty, with overflow warnings and a reason about the frame. The
+    camera is now refused in one line naming the image and the coefficients; a strong but
+    real barrel (k1 = -5: 3 % of the pixels fold) still back-projects."""
+    depth = np.full((120, 160), 1500, dtype=np.uint16)
+    broken = PINHOLE.model_copy(update={"k1": 1e300})
+    with pytest.raises(InputError, match=r"cannot be inverted at 100 % of its 160x120") as info:
+        backproject(depth, broken, source="frame_0001.png")
+    assert str(info.value).startswith("frame_0001.png: ") and "k1..k6 1e+300" in str(info.value)
+    barrel = backproject(depth, PINHOLE.model_copy(update={"k1": -5.0}))
+    assert 0.95 < barrel.valid.mean() < 1.0
+
+
 def test_pinhole_backprojection_closed_form():
     depth = np.zeros((120, 160), dtype=np.uint16)
     depth[10, 20] = 2000  # 2 m

@@ -34,6 +34,8 @@ from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.config import StageConfig
 from spacepose.errors import InputError
 
+# Share of an image's pixels whose distortion may fail to invert before the camera is refused.
+_MOST_PIXELS = 0.5
 # Newton's method on the distortion model: iterations, and the residual (normalised image units,
 # about 1e-6 pixel for a 500-pixel focal length) below which a pixel's inverse counts as found.
 _NEWTON_ITERATIONS = 50
@@ -189,22 +191,22 @@ def undistort(camera: DepthCamera, xd: ArrayLike, yd: ArrayLike) -> tuple[NDArra
     xd, yd = np.asarray(xd, dtype=np.float64), np.asarray(yd, dtype=np.float64)
     p1, p2 = camera.p1, camera.p2
     x, y = xd.copy(), yd.copy()
-    for _ in range(_NEWTON_ITERATIONS):
-        fx_, fy_ = distort(camera, x, y)
-        radial, dradial = _radial(camera, x * x + y * y)
-        j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
-        j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y  # the Jacobian is symmetric
-        j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
-        with np.errstate(divide="ignore", invalid="ignore"):
+    # Where the inverse fails the iterates overflow or divide by zero: they end as NaN, the
+    # documented result, not as warnings.
+    with np.errstate(all="ignore"):
+        for _ in range(_NEWTON_ITERATIONS):
+            fx_, fy_ = distort(camera, x, y)
+            radial, dradial = _radial(camera, x * x + y * y)
+            j11 = radial + 2 * x * x * dradial + 2 * p1 * y + 6 * p2 * x
+            j12 = 2 * x * y * dradial + 2 * p1 * x + 2 * p2 * y  # the Jacobian is symmetric
+            j22 = radial + 2 * y * y * dradial + 6 * p1 * y + 2 * p2 * x
             det = j11 * j22 - j12 * j12
             step_x = (j22 * (fx_ - xd) - j12 * (fy_ - yd)) / det
             step_y = (j11 * (fy_ - yd) - j12 * (fx_ - xd)) / det
             x, y = x - step_x, y - step_y
-            largest = np.nanmax(np.abs(step_x) + np.abs(step_y), initial=0.0)
-        if largest <= _NEWTON_TOLERANCE:
-            break
-    xr, yr = distort(camera, x, y)
-    with np.errstate(invalid="ignore"):
+            if np.nanmax(np.abs(step_x) + np.abs(step_y), initial=0.0) <= _NEWTON_TOLERANCE:
+                break
+        xr, yr = distort(camera, x, y)
         bad = ~(np.hypot(xr - xd, yr - yd) <= _ACCEPT_RESIDUAL)
     return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
 
@@ -224,6 +226,15 @@ def _pixel_rays(camera: DepthCamera, height: int, width: int) -> NDArray[np.floa
     v = (np.arange(height, dtype=np.float64) - camera.cy) / camera.fy
     xd, yd = np.meshgrid(u, v)
     rays = np.stack(undistort(camera, xd, yd) if camera.distorted else (xd, yd), axis=-1)
+    lost = float(np.mean(np.isnan(rays[..., 0])))
+    if lost > _MOST_PIXELS:
+        # A lens folds its image beyond a corner at most: coefficients that fold most of it
+        # are a unit or sign mistake, and every frame would come out all but empty.
+        raise InputError(
+            f"the camera's distortion cannot be inverted at {100 * lost:.0f} % of its "
+            f"{width}x{height} pixels (k1..k6 {camera.k1:g} {camera.k2:g} {camera.k3:g} "
+            f"{camera.k4:g} {camera.k5:g} {camera.k6:g}, p1 p2 {camera.p1:g} {camera.p2:g})"
+        )
     rays.setflags(write=False)
     return rays
 
@@ -314,7 +325,10 @@ def backproject(depth: ArrayLike, camera: DepthCamera, source: str | None = None
             source,
         )
     z = values.astype(np.float64) * camera.depth_scale
-    rays = pixel_rays(camera, height, width)
+    try:
+        rays = pixel_rays(camera, height, width)
+    except InputError as exc:
+        raise InputError(exc.reason, source) from None
     with np.errstate(invalid="ignore"):
         valid = (z > 0) & np.isfinite(z) & np.isfinite(rays[..., 0])
         if np.issubdtype(values.dtype, np.integer):
