@@ -157,6 +157,25 @@ def test_a_coarse_surface_made_once_judges_as_the_one_call_does() -> None:
     assert a.degenerate and a.free.shape[1] == 3
 
 
+@pytest.mark.parametrize(
+    ("T", "radius", "message"),
+    [
+        (np.eye(3), 0.4, "T_target_source must be a 4x4 matrix"),
+        (np.eye(4), 0.0, "radius must be a positive finite number of metres, got 0"),
+        (np.eye(4), float("nan"), "got nan"),
+        (np.eye(4), "wide", "got nan"),
+    ],
+)
+def test_surface_degeneracy_refuses_a_bad_pose_or_radius(T, radius, message) -> None:
+    """A 3x3 pose raised an IndexError, and a radius of 0 or NaN an error about a cell
+    size; each is now a one-line InputError naming the argument."""
+    from spacepose.errors import InputError
+
+    points = plate_frame(np.random.default_rng(1))[:500]
+    with pytest.raises(InputError, match=re.escape(message)):
+        surface_degeneracy(points, points, T, radius, workers=1)
+
+
 def test_a_model_in_absurd_units_is_named_in_the_reason() -> None:
     """A model read with coordinates near 1e20 m lost every frame with a reason about the
     frame's cells; the reason now names the model and says it is the model's."""

@@ -31,6 +31,7 @@ from spacepose.core.neighbors import hybrid
 from spacepose.core.scale import rms_radius
 from spacepose.core.tracker_config import HealthConfig
 from spacepose.core.voxel import voxel_cells
+from spacepose.errors import InputError
 
 # Sampling cell and normal neighbourhood as fractions of the cloud's radius R. The plane fit
 # of the points within R/4 of a sample leans on a free direction by its noise, by the cells it
@@ -314,7 +315,20 @@ def surface_degeneracy(
     Returns
     -------
     Degeneracy
+
+    Raises
+    ------
+    InputError
+        ``T_target_source`` not a 4x4 rigid transform, ``radius`` not a positive length, or
+        an empty cloud.
     """
+    T_target_source = se3.as_transform(T_target_source, "T_target_source")
+    try:
+        radius = float(radius)
+    except (TypeError, ValueError):
+        radius = float("nan")
+    if not (np.isfinite(radius) and radius > 0):
+        raise InputError(f"radius must be a positive finite number of metres, got {radius:g}")
     surface = target_points
     if not isinstance(surface, CoarseSurface):
         surface = CoarseSurface.of(target_points, radius, workers)
