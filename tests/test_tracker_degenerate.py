@@ -131,6 +131,17 @@ def test_aligned_information_ignores_rows_that_lean_less_than_its_bound(
     assert abs(directions[5, np.argmax(information)]) > 0.99
 
 
+@pytest.mark.parametrize("rows", [np.ones((4, 5)), np.ones(6), np.full((3, 6), np.nan)])
+def test_aligned_information_refuses_rows_that_are_not_finite_k_by_6(rows) -> None:
+    """Rows of 5 columns went into a 5x5 eigen-problem and came back as 5 directions; a flat
+    row or NaN reached numpy. Each is one InputError."""
+    from spacepose.core.degeneracy import aligned_information
+    from spacepose.errors import InputError
+
+    with pytest.raises(InputError, match=r"rows must be a finite \(K, 6\) array"):
+        aligned_information(rows)
+
+
 def test_the_lab_target_is_not_flagged() -> None:
     """The lab mock-up on its slide scores 60-100 at the coarse voxel (the bound is 1e4): no
     frame of a short default run is held back by it."""

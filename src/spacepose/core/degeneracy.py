@@ -28,6 +28,7 @@ from spacepose.core.grid import VoxelIndex
 from spacepose.core.health import normalising_map
 from spacepose.core.moments import on_a_line
 from spacepose.core.neighbors import hybrid
+from spacepose.core.normals import normals_from_covariances
 from spacepose.core.scale import rms_radius
 from spacepose.core.tracker_config import HealthConfig
 from spacepose.core.voxel import voxel_cells
@@ -159,7 +160,15 @@ def aligned_information(
     information, directions
         (6,) ``Σ max(0, (h·u)² − ALIGNMENT² |h|²)`` along each direction ``u``; (6, 6) the
         directions, columns: the eigenvectors of ``Σ h hᵀ``, weakest first.
+
+    Raises
+    ------
+    InputError
+        ``rows`` not a finite (K, 6) array.
     """
+    rows = np.asarray(rows, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != 6 or not np.isfinite(rows).all():
+        raise InputError(f"rows must be a finite (K, 6) array, got shape {rows.shape}")
     directions = np.linalg.eigh(rows.T @ rows)[1]
     along = (rows @ directions) ** 2
     size = np.sum(rows**2, axis=1, keepdims=True)
@@ -268,7 +277,7 @@ def _ball_normals(
     covariance = np.empty((len(centres), 3, 3))
     for j, (a, b) in enumerate(pairs):
         covariance[:, a, b] = covariance[:, b, a] = ball[:, 4 + j] - total * mean[:, a] * mean[:, b]
-    return np.linalg.eigh(covariance)[1][:, :, 0], total
+    return normals_from_covariances(covariance, workers)[0], total
 
 
 @numba.njit(cache=True)
