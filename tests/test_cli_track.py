@@ -11,6 +11,7 @@ import pytest
 
 from spacepose.cli import main
 from spacepose.core.config import load_config
+from spacepose.core.frame_check import UNTESTED_MODEL
 from spacepose.core.metrics import evaluate
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.tracker_config import TrackerConfig
@@ -157,15 +158,17 @@ def test_unreadable_frame_is_lost_and_the_others_written(frame_dir, tmp_path, ca
     code = main(["track", str(bad), "--out", str(out), "--method", "icp", "--no-mls"])
     assert code == 0, capsys.readouterr().err
     printed = capsys.readouterr()
-    # The second frame (f001) has no velocity yet to confirm it: degraded.
-    assert "2 ok, 1 degraded, 1 lost" in " ".join(printed.out.split())
+    # The second frame (f001) has no velocity yet to confirm it, and after the lost f002 no
+    # frame has yet tested the motion model that predicts f003: both degraded.
+    assert "1 ok, 2 degraded, 1 lost" in " ".join(printed.out.split())
     assert "warning: --method icp is deprecated: use point_to_plane" in printed.err
     with (tmp_path / "e.health.csv").open() as fh:
         rows = list(csv.DictReader(fh))
-    assert [r["status"] for r in rows] == ["ok", "degraded", "lost", "ok"]
+    assert [r["status"] for r in rows] == ["ok", "degraded", "lost", "degraded"]
     assert "f002.ply" in rows[2]["reasons"] and "\n" not in rows[2]["reasons"]
     assert rows[1]["reasons"] == "no velocity yet to confirm the pose"
-    assert [r["reasons"] for r in (rows[0], rows[3])] == ["", ""]
+    assert rows[0]["reasons"] == ""
+    assert rows[3]["reasons"] == UNTESTED_MODEL
     est = read_tum(out)
     np.testing.assert_allclose(est.timestamps, 100.0 + 0.5 * np.arange(N_FRAMES))
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from spacepose.core.frame_check import FAR_KEYFRAME
+from spacepose.core.frame_check import FAR_KEYFRAME, UNTESTED_MODEL
 from spacepose.core.health import CONDITION, Status
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
 from spacepose.core.tracker_config import TrackerConfig
@@ -90,8 +90,12 @@ class KeyframeWindow:
         status, reasons = health
         # A frame degraded only by the distance to its keyframe passed every check of its own
         # registration: promoting it is how the tracker gets back to ok after a re-initialisation.
-        far_only = bool(reasons) and all(r.startswith(FAR_KEYFRAME) for r in reasons)
-        trusted = status == "ok" or far_only
+        # One degraded only because the motion model is untested did too: it is kept as an ok
+        # frame would be, and only its flag waits for the model.
+        pending = bool(reasons) and all(
+            r.startswith(FAR_KEYFRAME) or r == UNTESTED_MODEL for r in reasons
+        )
+        trusted = status == "ok" or pending
         if trusted:
             for kf, T_kf, cov_kf in estimate.window_poses:
                 kf.T_ref_target, kf.covariance = T_kf, cov_kf
