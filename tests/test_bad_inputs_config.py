@@ -383,6 +383,19 @@ def test_structured_files_nested_too_deeply_are_one_line(tmp_path, capsys, name)
     assert f"{path}: not valid" in _cli_error(capsys)
 
 
+@pytest.mark.parametrize("name", ["long.json", "long.yaml"])
+def test_an_integer_too_long_to_read_is_one_line(tmp_path, name):
+    """Python's int() refuses more than 4,300 digits: a ValueError traceback before."""
+    path = tmp_path / name
+    digits = "9" * 5000
+    path.write_text(
+        f'{{"points_per_frame": {digits}}}' if name.endswith(".json") else f"a: {digits}\n"
+    )
+    with pytest.raises(ConfigError, match="more digits than can be read") as info:
+        load_config(TrackerConfig, path)
+    _one_line(info, path)
+
+
 def test_a_run_whose_scenario_json_is_nested_too_deeply(tmp_path, capsys):
     run = _orbit_run(tmp_path / "run", b"")
     (run / "scenario.json").write_text(DEEP)

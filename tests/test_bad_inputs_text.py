@@ -156,3 +156,26 @@ def test_a_folder_named_as_a_depth_frame_is_lost_in_its_place(tmp_path):
     assert summary["frames"] == 3
     status, reason = _statuses(tmp_path / "o" / "e.health.csv")[1]
     assert status == "lost" and "000001.npy: a folder" in reason
+
+
+def test_an_init_json_nested_too_deeply_is_one_line(tmp_path):
+    """json.loads was called directly: a RecursionError traceback."""
+    init = tmp_path / "deep.json"
+    init.write_text('{"a":' * 50_000 + "1" + "}" * 50_000)
+    with pytest.raises(FileFormatError, match=r"deep\.json: expected 16 numbers"):
+        read_transform(init)
+
+
+def test_a_run_folder_without_its_scenario_is_refused(tmp_path, capsys):
+    """Without scenario.json a run folder was read as a folder of clouds: its model.ply was
+    tracked as the one frame (exit 0), and frames/ left out."""
+    from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+    from spacepose.errors import InputError
+    from spacepose.tools.runs import write_run
+
+    run = write_run(tmp_path / "run", simulate_lab(LabConfig(frames=2, seed=0)))
+    (run / "scenario.json").unlink()
+    with pytest.raises(InputError, match=r"has a frames/ folder but no scenario\.json"):
+        open_frames(run)
+    assert main(["track", str(run), "--out", str(tmp_path / "e.tum")]) == 1
+    assert "no scenario.json" in _one_line(capsys)

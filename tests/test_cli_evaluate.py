@@ -171,8 +171,9 @@ def test_warns_on_an_estimate_in_millimetres(
 ) -> None:
     """An estimate written in millimetres against metres scored the whole distance as error,
     silently. It now warns in one line with the factor (1000); the same file in metres does
-    not. (Relative poses, --rebase-first, are not checked: a nearly static truth against an
-    estimate's noise can differ by that factor with no unit wrong.)"""
+    not. With --rebase-first too, where the motions are compared: there the factor must be a
+    unit's and both must turn alike, since a nearly static truth against an estimate's noise
+    can differ by any factor with no unit wrong."""
     mm = random_trajectory.poses.copy()
     mm[:, :3, 3] *= 1e3
     est = write_tum(tmp_path / "mm.tum", Trajectory(random_trajectory.timestamps, mm))
@@ -183,3 +184,49 @@ def test_warns_on_an_estimate_in_millimetres(
     assert "1e+03 times as far: are both in metres?" in err, err
     assert main(["evaluate", str(gt), str(gt), "--json"]) == 0
     assert capsys.readouterr().err == ""
+    assert main(["evaluate", str(est), str(gt), "--json", "--rebase-first"]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "from its first pose" in err and "1e+03 times" in err, err
+    # A static truth against an estimate's noise: distances 1000 times apart, turns not alike.
+    rng = np.random.default_rng(3)
+    n = len(random_trajectory)
+    static = np.repeat(random_trajectory.poses[:1], n, axis=0)
+    noisy = static.copy()
+    noisy[:, :3, 3] += rng.normal(0.0, 1e-3, (n, 3))
+    for k in range(n):
+        noisy[k, :3, :3] = (
+            Rotation.from_rotvec(rng.normal(0.0, 1e-3, 3)).as_matrix() @ static[k, :3, :3]
+        )
+    static[:, :3, 3] += rng.normal(0.0, 1e-6, (n, 3))
+    est = write_tum(tmp_path / "noisy.tum", Trajectory(random_trajectory.timestamps, noisy))
+    gt = write_tum(tmp_path / "static.tum", Trajectory(random_trajectory.timestamps, static))
+    assert main(["evaluate", str(est), str(gt), "--json", "--rebase-first"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_lost_frames_of_the_health_table_are_left_out(
+    tmp_path: Path, random_trajectory: Trajectory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A lost frame's pose in EST.tum is the motion model's prediction; scored, it counted as
+    the tracker's error. The frames EST.health.csv marks lost are left out, with a warning."""
+    gt = write_tum(tmp_path / "gt.tum", random_trajectory)
+    poses = random_trajectory.poses.copy()
+    poses[2] = np.eye(4)  # a placeholder far from the truth
+    est = write_tum(tmp_path / "e.tum", Trajectory(random_trajectory.timestamps, poses))
+    status = ["ok"] * len(poses)
+    status[2] = "lost"
+    (tmp_path / "e.health.csv").write_text(
+        "frame,status\n" + "".join(f"{k},{s}\n" for k, s in enumerate(status))
+    )
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    assert out["ate_translation_rmse_mm"] == pytest.approx(0.0, abs=1e-6)
+    assert out["n"] == len(poses) - 1
+    assert "1 frame(s) lost in e.health.csv left out" in captured.err
+    # A table that does not match the poses leaves every pose scored, and says so.
+    (tmp_path / "e.health.csv").write_text("frame,status\n0,lost\n")
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["ate_translation_rmse_mm"] > 1.0
+    assert "has 1 rows for" in captured.err

@@ -452,3 +452,22 @@ def test_an_ascii_ply_is_read_without_leaving_a_file_open(tmp_path: Path) -> Non
         gc.collect()
     assert not [w for w in caught if issubclass(w.category, ResourceWarning)], caught
     np.testing.assert_allclose(cloud.points, points, atol=1e-6)
+
+
+def test_pcd_count_too_large_and_a_field_named_twice(tmp_path: Path) -> None:
+    """A COUNT of 10⁹ raised numpy's ValueError (a dtype larger than a C int) out of the
+    reader, and stopped a whole `track` run; a second ``x`` was read in place of the first."""
+    header = "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1000000000\n"
+    path = tmp_path / "big.pcd"
+    path.write_bytes(f"{header}WIDTH 0\nHEIGHT 1\nPOINTS 0\nDATA binary\n".encode())
+    with _raises_naming(path, "a point of 4000000008 bytes"):
+        read_cloud(path)
+    path.write_bytes(f"{header}WIDTH 1\nHEIGHT 1\nPOINTS 1\nDATA binary\n".encode() + bytes(12))
+    with _raises_naming(path, "truncated binary PCD"):
+        read_cloud(path)
+    path = tmp_path / "dup.pcd"
+    path.write_text(
+        "FIELDS x y z x\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\nPOINTS 1\nDATA ascii\n1 2 3 9\n"
+    )
+    with _raises_naming(path, "names field 'x' twice"):
+        read_cloud(path)

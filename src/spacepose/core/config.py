@@ -225,7 +225,8 @@ def load_structured(text: str, kind: str) -> Any:
 
     Both parsers recurse once per level of nesting, so ``[[[[…`` a few thousand deep ends in a
     RecursionError; it is raised as the parser's own error (``nested too deeply``), which every
-    reader already turns into one line naming its file.
+    reader already turns into one line naming its file. So is the ValueError of an integer
+    too long for Python's int() (over 4,300 digits).
     """
     try:
         if kind == "json":
@@ -235,6 +236,14 @@ def load_structured(text: str, kind: str) -> Any:
         if kind == "json":
             raise json.JSONDecodeError("nested too deeply", text, 0) from None
         raise yaml.YAMLError("nested too deeply") from None
+    except ValueError as exc:
+        if isinstance(exc, json.JSONDecodeError):
+            raise
+        # Python's int() refuses an integer of more than 4,300 digits, inside either parser.
+        what = "a number of more digits than can be read" if "digits" in str(exc) else str(exc)
+        if kind == "json":
+            raise json.JSONDecodeError(what, text, 0) from None
+        raise yaml.YAMLError(what) from None
 
 
 def parse_structured(text: str, source: str | Path, kind: str | None = None) -> Any:

@@ -86,12 +86,16 @@ def pointcloud2_points(msg: Any) -> NDArray[np.float64]:
     Raises
     ------
     FileFormatError
-        No ``x``/``y``/``z`` field, an unknown datatype, or less data than the header says.
+        No ``x``/``y``/``z`` field or one named twice, an unknown datatype, or less data than the
+        header says.
     """
     fields = {f.name: f for f in msg.fields}
     missing = [name for name in "xyz" if name not in fields]
     if missing:
         raise FileFormatError(f"PointCloud2 without field(s) {', '.join(missing)}")
+    twice = [name for name in "xyz" if sum(f.name == name for f in msg.fields) > 1]
+    if twice:
+        raise FileFormatError(f"PointCloud2 names field {twice[0]} twice")
     order = ">" if msg.is_bigendian else "<"
     names, formats, offsets = [], [], []
     for name in "xyz":

@@ -15,6 +15,7 @@ Its JSON form states its units in every key (``_mm``, ``_deg``) and in a ``units
 
 from __future__ import annotations
 
+import csv
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from spacepose.core.metrics import TIMESTAMP_TOLERANCE, ErrorTable, associate, evaluate
+from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.trajectory_io import read_trajectory
 
@@ -33,6 +35,12 @@ _IDENTITY_TOLERANCE = 1e-9
 # unit mismatch (cm 100, inch 39.4, mm 1000): a tracking error, even a lost track, rarely moves
 # a pose that far from where its truth lies.
 _UNIT_FACTOR = 30.0
+# Rebased poses are motions, and a nearly static truth against an estimate's noise can differ
+# by any factor: there only a unit's own factor (mm 1000, cm 100, inch 39.37, or their
+# inverses) within this ratio counts, and only when both turn alike (within 2x: a unit does
+# not touch rotations).
+_UNIT_FACTORS = (1000.0, 100.0, 1.0 / 0.0254)
+_UNIT_MATCH = 1.25
 
 
 @dataclass(frozen=True)
@@ -104,17 +112,20 @@ def compare_trajectory_files(
     Warns
     -----
     SpaceposeWarning
-        Different lengths, repeated pairings, a model-free estimate compared as it is, or
-        absolute poses whose distances differ by a unit's factor (mm against m).
+        Lost frames left out (``EST.health.csv`` beside the estimate), different lengths,
+        repeated pairings, a model-free estimate compared as it is, or
+        poses whose distances (from the origin, or rebased from the first) differ by a unit's
+        factor (mm against m).
     """
     est_path, gt_path = Path(est_path), Path(gt_path)
     est, gt = read_trajectory(est_path), read_trajectory(gt_path)
+    est, lost_note = _without_lost_frames(est_path, est)
     try:
         _, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
         table = evaluate(est, gt, rebase_first=rebase_first, tolerance=tolerance)
     except InputError as exc:
         raise InputError(f"against {gt_path.name}: {exc.reason}", est_path) from None
-    notes = []
+    notes = [] if lost_note is None else [lost_note]
     if len(est) != len(gt):
         notes.append(
             f"{len(est)} poses against {len(gt)} in {gt_path.name}: only the {len(est)} "
@@ -135,24 +146,85 @@ def compare_trajectory_files(
             f"frame) but {gt_path.name}'s is not, so every error includes that offset; "
             "compare with --rebase-first (rebase_first=True)"
         )
-    elif not rebase_first:
-        notes.extend(_unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name))
+    else:
+        notes.extend(_unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name, rebase_first))
     for note in notes:
         warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
     return TrajectoryComparison(table, len(est), len(gt), rebase_first, tuple(notes))
 
 
-def _unit_mismatch(est: np.ndarray, gt: np.ndarray, gt_name: str) -> list[str]:
-    """A note when the paired poses' distances (N, 4, 4 each, absolute: not rebased) differ by
-    a factor a unit would explain (a trajectory in millimetres against one in metres scores
-    errors of the whole distance), else nothing."""
+def _without_lost_frames(est_path: Path, est: Trajectory) -> tuple[Trajectory, str | None]:
+    """The estimate without the poses its tracker's health table (``EST.health.csv`` beside
+    it, one row a pose) marks ``lost``, and a note saying so; unchanged without a table.
+
+    A lost frame's pose in ``EST.tum`` is the motion model's prediction, written so that no
+    frame goes missing, not a measurement: scored, it counts the tracker's guess as its
+    error."""
+    from spacepose.tools.tracking_io import output_paths  # the tracker's own file names
+
+    health = output_paths(est_path)[1]
+    if not health.is_file():
+        return est, None
+    try:
+        with health.open(newline="") as fh:
+            status = [row.get("status") for row in csv.DictReader(fh)]
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return est, f"{health.name} is unreadable: lost frames, if any, are scored"
+    if len(status) != len(est):
+        return est, (
+            f"{health.name} has {len(status)} rows for {len(est)} poses: lost frames, if any, "
+            "are scored"
+        )
+    lost = np.array([s == "lost" for s in status])
+    if not lost.any():
+        return est, None
+    if lost.all():
+        return est, f"every frame is lost in {health.name}: the scores are of predictions"
+    kept = Trajectory(est.timestamps[~lost], est.poses[~lost])
+    return kept, (
+        f"{int(lost.sum())} frame(s) lost in {health.name} left out (their poses are the "
+        "motion model's predictions)"
+    )
+
+
+def _unit_mismatch(
+    est: np.ndarray, gt: np.ndarray, gt_name: str, rebase_first: bool = False
+) -> list[str]:
+    """A note when the paired poses' distances (N, 4, 4 each) differ by a factor a unit would
+    explain (a trajectory in millimetres against one in metres scores errors of the whole
+    distance), else nothing. Absolute poses are measured from the origin. With
+    ``rebase_first`` each pose is measured from its trajectory's first: then the factor must
+    be a unit's, and the two must turn alike."""
+    where = "from the origin"
+    if rebase_first:
+        est, gt = (np.linalg.inv(T[0]) @ T[1:] for T in (est, gt))
+        where = "from its first pose"
+    if len(est) == 0:
+        return []
     d_est, d_gt = (float(np.median(np.linalg.norm(T[:, :3, 3], axis=1))) for T in (est, gt))
     if d_est <= 0.0 or d_gt <= 0.0 or 1.0 / _UNIT_FACTOR < d_est / d_gt < _UNIT_FACTOR:
         return []
+    if rebase_first and not _a_unit_apart(est, gt, d_est / d_gt):
+        return []
     return [
-        f"its poses lie {d_est:.4g} (median distance) from the origin and {gt_name}'s "
+        f"its poses lie {d_est:.4g} (median distance) {where} and {gt_name}'s "
         f"{d_gt:.4g}, {d_est / d_gt:.3g} times as far: are both in metres?"
     ]
+
+
+def _a_unit_apart(est: np.ndarray, gt: np.ndarray, ratio: float) -> bool:
+    """Whether motions (N, 4, 4 each) whose distances differ by ``ratio`` turn alike and
+    ``ratio`` is a unit's factor."""
+    angles = [
+        float(
+            np.median(np.arccos(np.clip((np.trace(T[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+        )
+        for T in (est, gt)
+    ]
+    if min(angles) <= 0.0 or max(angles) > 2.0 * min(angles):
+        return False
+    factor = max(ratio, 1.0 / ratio)
+    return any(1.0 / _UNIT_MATCH < factor / unit < _UNIT_MATCH for unit in _UNIT_FACTORS)
 
 
 def starts_at_identity(T_first: np.ndarray) -> bool:

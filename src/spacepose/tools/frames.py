@@ -132,9 +132,9 @@ def open_frames(
     Raises
     ------
     InputError
-        The path does not exist, is not a folder or bag, holds no frame, a bag topic cannot be
-        chosen, a depth folder has no intrinsics, or ``timestamps.txt`` does not hold one finite
-        number per frame.
+        The path does not exist, is not a folder or bag, holds no frame, is a run folder without
+        its scenario.json, a bag topic cannot be chosen, a depth folder has no intrinsics, or
+        ``timestamps.txt`` does not hold one finite number per frame.
     ConfigError
         The intrinsics file is invalid.
     """
@@ -152,6 +152,14 @@ def open_frames(
         raise InputError("not a folder of frames (or a run folder, or a ROS bag)", root)
     if (root / "scenario.json").is_file():
         return _open_run(root)
+    if (root / "frames").is_dir():
+        # A run folder that lost its scenario: its own files (model.ply) would be tracked as
+        # the frames, and frames/ left out without a word.
+        raise InputError(
+            "has a frames/ folder but no scenario.json: restore the run's scenario.json, "
+            "or give the frames/ folder itself",
+            root,
+        )
     if camera is not None or depth_io.is_depth_folder(root):
         return _open_depth_folder(root, camera)
     paths = tuple(

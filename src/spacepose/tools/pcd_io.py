@@ -17,6 +17,9 @@ from numpy.typing import NDArray
 
 from spacepose.errors import FileFormatError
 
+# Largest point record numpy can describe (its dtype sizes are C ints).
+_MAX_RECORD = 2**31 - 1
+
 _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
     (kind, size): f"{code}{size}"
     for kind, code in (("I", "i"), ("U", "u"))
@@ -45,15 +48,20 @@ def read_pcd_table(path: Path) -> dict[str, NDArray[np.float64]]:
         formats.append((code, count))
     mode = header["DATA"][0].lower() if header["DATA"] else ""
     if mode == "binary":
-        # Field names may repeat (e.g. the "_" padding field), so read into positional names.
-        dt = np.dtype([(f"f{i}", "<" + code, (count,)) for i, (code, count) in enumerate(formats)])
-        if len(body) != n_points * dt.itemsize:
-            what = "truncated" if len(body) < n_points * dt.itemsize else "inconsistent"
+        record = sum(size * count for size, count in zip(sizes, counts, strict=True))
+        if len(body) != n_points * record:
+            what = "truncated" if len(body) < n_points * record else "inconsistent"
             raise FileFormatError(
-                f"{what} binary PCD: POINTS {n_points} of {dt.itemsize} bytes need "
-                f"{n_points * dt.itemsize} bytes of data, file has {len(body)}",
+                f"{what} binary PCD: POINTS {n_points} of {record} bytes need "
+                f"{n_points * record} bytes of data, file has {len(body)}",
                 path,
             )
+        if record > _MAX_RECORD:
+            raise FileFormatError(
+                f"binary PCD: SIZE x COUNT make a point of {record} bytes (COUNT too large)", path
+            )
+        # Field names may repeat (e.g. the "_" padding field), so read into positional names.
+        dt = np.dtype([(f"f{i}", "<" + code, (count,)) for i, (code, count) in enumerate(formats)])
         data = np.frombuffer(body, dtype=dt, count=n_points)
         table = np.column_stack([data[f"f{i}"].astype(np.float64) for i in range(len(fields))])
     elif mode == "ascii":
@@ -110,6 +118,11 @@ def _check_header(
     if missing:
         raise FileFormatError(f"PCD header lacks {', '.join(missing)}", path)
     fields = header["FIELDS"]
+    # "_" pads a record and may repeat; a coordinate or any other field named twice would leave
+    # the reader to pick one copy silently.
+    twice = sorted({f for f in fields if f != "_" and fields.count(f) > 1})
+    if twice:
+        raise FileFormatError(f"PCD header names field {twice[0]!r} twice", path)
     listed = {k: header[k] for k in ("FIELDS", "SIZE", "TYPE", "COUNT") if k in header}
     empty = [k for k, v in listed.items() if not v]
     if empty:

@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.config import StageConfig, holds_boolean
+from spacepose.core.config import StageConfig, holds_boolean, load_structured
 from spacepose.core.degeneracy import Degeneracy, surface_degeneracy
 from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.gicp_covariances import compute_covariances
@@ -386,7 +386,11 @@ def read_transform(path: str | Path) -> NDArray[np.float64]:
     path = Path(path)
     text = read_text(path, "the transform")
     try:
-        values = json.loads(text)["T_target_source"] if path.suffix == ".json" else text.split()
+        values = (
+            load_structured(text, "json")["T_target_source"]
+            if path.suffix == ".json"
+            else text.split()
+        )
         if holds_boolean(values):  # numpy would read true as 1
             raise ValueError("a yes/no where a number goes")
         T = np.asarray(values, dtype=np.float64).reshape(4, 4)
