@@ -247,6 +247,11 @@ def test_a_boolean_for_a_number_is_refused_in_a_config_and_a_catalogue(tmp_path)
     with pytest.raises(ConfigError) as exc:
         parse_catalogue([_entry(center=[True, 0, 0]), other], source=tmp_path / "cat.json")
     _one_line(exc, tmp_path / "cat.json", "entry 0 ('front')", "center", "yes/no")
+    # Quoted numbers were read as numbers, where configs refuse them.
+    for quoted in ({"a": "0.3"}, {"center": ["0", 0, 0]}):
+        with pytest.raises(ConfigError) as exc:
+            parse_catalogue([_entry(**quoted), other], source=tmp_path / "cat.json")
+        _one_line(exc, tmp_path / "cat.json", "entry 0 ('front')", "holds text", "unquoted")
 
 
 @pytest.mark.parametrize(
@@ -455,6 +460,8 @@ def test_a_boolean_for_a_number_is_refused_in_an_init_transform_and_a_scenario(t
         scenario_geometry({"mean_motion": 1e30, "R_O_C": np.eye(3).tolist()}, "s.json")
     with pytest.raises(InputError, match=r"s\.json: mean_motion holds a yes/no"):
         scenario_geometry({"mean_motion": True, "R_O_C": np.eye(3).tolist()}, "s.json")
+    with pytest.raises(InputError, match=r"s\.json: mean_motion holds text"):
+        scenario_geometry({"mean_motion": "0.0011", "R_O_C": np.eye(3).tolist()}, "s.json")
     with pytest.raises(InputError, match=r"s\.json: R_O_C holds a yes/no"):
         scenario_geometry(
             {"mean_motion": 0.001, "R_O_C": [[True, 0, 0], [0, 1, 0], [0, 0, 1]]}, "s.json"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from spacepose.cli import main
-from spacepose.errors import FileFormatError
+from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.register import read_transform
@@ -170,7 +170,6 @@ def test_a_run_folder_without_its_scenario_is_refused(tmp_path, capsys):
     """Without scenario.json a run folder was read as a folder of clouds: its model.ply was
     tracked as the one frame (exit 0), and frames/ left out."""
     from spacepose.core.sim.scenarios import LabConfig, simulate_lab
-    from spacepose.errors import InputError
     from spacepose.tools.runs import write_run
 
     run = write_run(tmp_path / "run", simulate_lab(LabConfig(frames=2, seed=0)))
@@ -179,3 +178,14 @@ def test_a_run_folder_without_its_scenario_is_refused(tmp_path, capsys):
         open_frames(run)
     assert main(["track", str(run), "--out", str(tmp_path / "e.tum")]) == 1
     assert "no scenario.json" in _one_line(capsys)
+
+
+def test_one_frame_name_twice_is_refused(tmp_path, capsys):
+    """000001.ply and 000001.npy were both tracked, and the later frames timed one too far."""
+    rng = np.random.default_rng(0)
+    for name in ("000000.ply", "000001.ply", "000001.npy", "000002.ply"):
+        write_cloud(tmp_path / name, rng.normal(size=(200, 3)) * 0.1 + [0, 0, 1])
+    with pytest.raises(InputError, match=r"000001\.npy and 000001\.ply are one frame name twice"):
+        open_frames(tmp_path)
+    assert main(["track", str(tmp_path), "--out", str(tmp_path / "o" / "e.tum")]) == 1
+    assert "one frame name twice" in _one_line(capsys)

@@ -341,9 +341,11 @@ def test_incompatible_or_foreign_folder_is_refused(tmp_path):
         cp.prepare_out_dir(config.model_copy(update={"out": foreign}))
     with pytest.raises(ConfigError, match="must be a folder"):
         cp.prepare_out_dir(config.model_copy(update={"out": foreign / "notes.txt"}))
-    (tmp_path / "run" / "campaign.json").write_text("{broken")
-    with pytest.raises(ConfigError, match="unreadable campaign record"):
-        cp.prepare_out_dir(config)
+    # Hand-edited records: an AttributeError or RecursionError traceback before.
+    for text in ("{broken", '{"config": [1]}', '{"config": {"grid": [1]}}', "[" * 50_000):
+        (tmp_path / "run" / "campaign.json").write_text(text)
+        with pytest.raises(ConfigError, match="unreadable campaign record"):
+            cp.prepare_out_dir(config)
 
 
 def test_damaged_part_is_a_file_format_error(tmp_path):

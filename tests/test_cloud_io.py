@@ -471,3 +471,13 @@ def test_pcd_count_too_large_and_a_field_named_twice(tmp_path: Path) -> None:
     )
     with _raises_naming(path, "names field 'x' twice"):
         read_cloud(path)
+
+
+def test_a_text_file_with_a_header_and_no_rows_is_one_error_and_no_warning(tmp_path: Path):
+    """numpy's loadtxt warned "input contained no data" naming its buffer before the error."""
+    path = tmp_path / "h.csv"
+    path.write_text("x,y,z\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with _raises_naming(path, "no point rows"):
+            read_cloud(path)

@@ -187,6 +187,14 @@ def test_report_skips_corrupt_files_names_them_and_builds_the_rest(tmp_path: Pat
     (root / "bench.json").write_text("[1, 2")
     (root / "experiments" / "li-l1" / "table.json").write_text("{oops}")
     _write_csv(root / "lab" / "tracks" / "icp.health.csv", ["frame", "timestamp"], [[0, 0.0]])
+    # A folder named as a figure aborted the whole report ("Is a directory"); a health table
+    # longer than the ground truth dropped every track's timeline, blaming groundtruth.tum.
+    (root / "experiments" / "li-l1" / "broken.png").mkdir()
+    _write_csv(
+        root / "lab" / "tracks" / "gicp.health.csv",
+        ["frame", "timestamp", "status"],
+        [[i, float(i), "ok"] for i in range(12)],
+    )
     assert main(["report", str(root)]) == 0
     out, err = capsys.readouterr()
     page = (root / "report.html").read_text()
@@ -196,6 +204,8 @@ def test_report_skips_corrupt_files_names_them_and_builds_the_rest(tmp_path: Pat
         "bench.json": "not valid JSON: line 1:6: Expecting ',' delimiter",
         "experiments/li-l1/table.json": "not valid JSON: line 1:2: Expecting property name",
         "lab/tracks/icp.health.csv": "CSV file has no status column",
+        "experiments/li-l1/broken.png": "Is a directory",
+        "lab/tracks/gicp.health.csv": "12 rows for 10 ground-truth frames",
     }
     lines = err.strip().splitlines()
     assert len(lines) == len(bad) and "Traceback" not in err

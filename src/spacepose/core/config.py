@@ -120,6 +120,14 @@ def refuse_text_number(model: type[BaseModel], value: Any, info: ValidationInfo)
     return value
 
 
+def holds_text(value: Any) -> bool:
+    """Whether ``value`` is text or a list / tuple holding text at any depth (a number quoted
+    in a file: pydantic and numpy would read ``"1.8"`` as 1.8)."""
+    if isinstance(value, (list, tuple)):
+        return any(holds_text(v) for v in value)
+    return isinstance(value, str)
+
+
 def config_error(
     model: type[BaseModel], exc: ValidationError, source: str | Path | None = None
 ) -> ConfigError:

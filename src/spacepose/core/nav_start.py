@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import dynamics
-from spacepose.core.config import holds_boolean
+from spacepose.core.config import holds_boolean, holds_text
 from spacepose.core.ekf import RelativeNavEKF
 from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.nav_state import NavState
@@ -50,6 +50,8 @@ def scenario_geometry(
     for key in ("mean_motion", "R_O_C"):
         if holds_boolean(scenario[key]):
             raise InputError(f"{key} holds a yes/no where a number goes", source)
+        if holds_text(scenario[key]):
+            raise InputError(f"{key} holds text where a number goes (write it unquoted)", source)
     try:
         n = float(scenario["mean_motion"])
         R = np.asarray(scenario["R_O_C"], dtype=np.float64)

@@ -50,7 +50,7 @@ from pydantic import (
     model_validator,
 )
 
-from spacepose.core.config import StageConfig, refuse_boolean
+from spacepose.core.config import StageConfig, holds_text, refuse_boolean
 from spacepose.core.rectangle_measurement import RectangleMeasurement, fill_ratio
 
 __all__ = [
@@ -96,7 +96,10 @@ class CatalogueEntry(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_boolean_numbers(cls, value: object, info: ValidationInfo) -> object:
-        return refuse_boolean(cls, value, info)
+        value = refuse_boolean(cls, value, info)
+        if info.field_name != "name" and holds_text(value):
+            raise ValueError(f"{value!r} holds text where numbers go (write them unquoted)")
+        return value
 
     @field_validator("R_model_plane")
     @classmethod

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from spacepose.core.config import load_structured
 from spacepose.errors import ConfigError, FileFormatError, SpaceposeError
 from spacepose.tools.campaign_cases import CaseFunction, Metrics, Scalar, get_runner
 from spacepose.tools.campaign_spec import (
@@ -147,7 +148,9 @@ def prepare_out_dir(config: CampaignConfig) -> Path:
         raise ConfigError(f"{out}: campaign output must be a folder, this is a file")
     if record_path.exists():
         try:
-            old = json.loads(record_path.read_text())["config"]
+            old = load_structured(record_path.read_text(), "json")["config"]
+            if not isinstance(old, dict) or not isinstance(old.get("grid", {}), dict):
+                raise TypeError("its config is not a mapping with a grid mapping")
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise ConfigError(f"{record_path}: unreadable campaign record: {exc}") from None
         new = config.model_dump(mode="json")

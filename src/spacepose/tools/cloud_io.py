@@ -342,9 +342,12 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
     header = not _is_number(head[0])  # a header line such as "x,y,z" or CloudCompare's "//X,Y,Z"
     skip = first + 1 if header else 0
     try:
-        table = np.loadtxt(
-            io.StringIO(text), delimiter=delimiter, comments="#", skiprows=skip, ndmin=2
-        )
+        with warnings.catch_warnings():
+            # A header without rows: numpy warns naming its buffer; the error below names the file.
+            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+            table = np.loadtxt(
+                io.StringIO(text), delimiter=delimiter, comments="#", skiprows=skip, ndmin=2
+            )
     except ValueError:
         raise FileFormatError(_first_bad_line(lines[skip:], skip), path) from None
     if table.shape[0] == 0:

@@ -261,11 +261,32 @@ def frame_entries(root: Path, suffixes: tuple[str, ...]) -> tuple[Path, ...]:
     Not only regular files: a folder or a broken link named as a frame is a frame that cannot
     be read (reported lost), not one to skip and shift the rest. Hidden entries (a leading
     dot: macOS's ``._000000.ply`` resource forks, editors' swap files) are not frames.
+
+    Raises
+    ------
+    InputError
+        Two entries share a name but for the suffix.
     """
-    entries = (
-        p for p in root.iterdir() if p.suffix.lower() in suffixes and not p.name.startswith(".")
+    entries = tuple(
+        sorted(
+            (
+                p
+                for p in root.iterdir()
+                if p.suffix.lower() in suffixes and not p.name.startswith(".")
+            ),
+            key=_name_order,
+        )
     )
-    return tuple(sorted(entries, key=_name_order))
+    # Two files of one frame name (000001.ply and 000001.npy) would both be tracked, and every
+    # later frame numbered, and timed, one too far.
+    seen: dict[str, Path] = {}
+    for p in entries:
+        if p.stem in seen:
+            raise InputError(
+                f"{seen[p.stem].name} and {p.name} are one frame name twice: keep one", root
+            )
+        seen[p.stem] = p
+    return entries
 
 
 def depth_files(root: str | Path) -> tuple[Path, ...]:

@@ -96,6 +96,8 @@ class _Skipped:
             )
             if isinstance(exc, KeyError):
                 reason = f"missing key or column {exc}"
+            elif isinstance(exc, OSError) and exc.strerror:
+                reason = exc.strerror  # the path is named once, by the warning
             self.files.append((path, reason))
             warnings.warn(SpaceposeWarning(f"left out of the report: {reason}", path), stacklevel=2)
             return ""
@@ -202,7 +204,11 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
         return "ok"
 
     def flags(path: Path) -> str:
-        health[path.stem] = _read_csv(path, ("status",))["status"]
+        status = _read_csv(path, ("status",))["status"]
+        # The timeline is drawn against the ground truth's times, one flag a frame.
+        if len(status) != len(t):
+            raise FileFormatError(f"{len(status)} rows for {len(t)} ground-truth frames", path)
+        health[path.stem] = status
         return "ok"
 
     for path in tracks:
@@ -274,7 +280,8 @@ def _experiments_section(root: Path, skipped: _Skipped) -> str:
             if text:
                 parts.append(f"<pre class='muted'>{html.escape(text)}</pre>")
         for png in sorted(folder.glob("*.png")):
-            parts.append(_figure(png.read_bytes(), png.stem))
+            # A folder or a broken link named as a figure: left out, not the whole report.
+            parts.append(skipped.guard(png, lambda p=png: _figure(p.read_bytes(), p.stem)))
     return "".join(parts)
 
 
