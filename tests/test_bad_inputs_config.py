@@ -240,6 +240,11 @@ def test_a_boolean_for_a_number_is_refused_in_a_config_and_a_catalogue(tmp_path)
         load_config(TrackerConfig, path)
     _one_line(exc, path, "health.ok_condition", "yes/no")
     assert TrackerConfig(use_background_removal=True).use_background_removal
+    # The other way round: a number for a switch (pydantic reads 1 as true).
+    path.write_text("use_mls: 1\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(TrackerConfig, path)
+    _one_line(exc, path, "use_mls", "is a number, not a yes/no")
     other = _entry(name="side", center=[1, 0, 0], a=0.3, b=0.9)
     with pytest.raises(ConfigError) as exc:
         parse_catalogue([_entry(a=True), other], source=tmp_path / "cat.json")

@@ -37,6 +37,10 @@ class StageConfig(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _no_boolean_numbers(cls, value: Any, info: ValidationInfo) -> Any:
+        # The other way round too: pydantic reads ``use_mls: 1`` as true; a switch is a yes/no.
+        is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
+        if is_number and cls.model_fields[info.field_name].annotation is bool:
+            raise ValueError(f"{value!r} is a number, not a yes/no (write true or false)")
         return refuse_text_number(cls, refuse_boolean(cls, value, info), info)
 
     def __init__(self, /, **data: Any) -> None:
