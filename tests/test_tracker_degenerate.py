@@ -188,6 +188,19 @@ def test_surface_degeneracy_refuses_a_bad_pose_or_radius(T, radius, message) -> 
         surface_degeneracy(points, points, T, radius, workers=1)
 
 
+def test_surface_degeneracy_refuses_bad_source_points_and_takes_one_repeated() -> None:
+    """Source points as text raised numpy's ValueError, and points all at one place a
+    ZeroDivisionError (their radius 0 scaled the rotations); the first is now an InputError,
+    the second a pose whose every direction is free (nothing to register)."""
+    from spacepose.errors import InputError
+
+    target = plate_frame(np.random.default_rng(1))[:500]
+    with pytest.raises(InputError, match="source points"):
+        surface_degeneracy("abc", target, np.eye(4), 0.4, workers=1)
+    one = surface_degeneracy([[0.0, 0.0, 1.2]] * 5, target, np.eye(4), 0.4, workers=1)
+    assert one.condition == np.inf and one.free.shape[1] == 6 and one.radius == 0.4
+
+
 def test_a_model_in_absurd_units_is_named_in_the_reason() -> None:
     """A model read with coordinates near 1e20 m lost every frame with a reason about the
     frame's cells; the reason now names the model and says it is the model's."""

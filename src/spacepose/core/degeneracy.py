@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud, as_cloud
+from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.core.correspondences import find_correspondences
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.health import normalising_map
@@ -342,11 +342,12 @@ def surface_degeneracy(
     if not isinstance(surface, CoarseSurface):
         surface = CoarseSurface.of(target_points, radius, workers)
     voxel = surface.voxel
-    source_points = np.asarray(source_points, dtype=np.float64)
+    source_points = as_points(source_points, "source points")
     src = se3.transform_points(T_target_source, voxel_cells(source_points, voxel)[0])
     # A rigid motion moves the centroid and keeps the radius: no need to move every point.
     centroid = se3.transform_points(T_target_source, source_points.mean(axis=0)[None])[0]
-    r = rms_radius(source_points)
+    # Points all at one place have no radius to scale rotations by: the given one stands in.
+    r = rms_radius(source_points) or radius
     rows = np.zeros((0, 6))
     if surface.rows is not None:
         # The target's samples the frame overlaps, each as often as a frame cell matches it.
