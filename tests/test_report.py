@@ -112,6 +112,30 @@ def test_report_holds_the_tables_and_every_figure(tmp_path: Path) -> None:
     assert "share_below_20deg" in page and "<script" not in page
 
 
+def test_a_lost_frames_prediction_is_not_scored_in_the_report(tmp_path: Path) -> None:
+    """The tracker writes a lost frame's pose as the motion model's guess so no frame goes
+    missing; its health table marks it. Scored, a guess 0.5 m off moved the icp row's x mean
+    from 2 mm to 52 mm; the report leaves it out, as `evaluate` does, and says so."""
+    expected = _make_run(tmp_path / "demo")
+    tracks = tmp_path / "demo" / "lab" / "tracks"
+    t = np.arange(10.0)
+    gt = np.stack(
+        [
+            se3.make_transform(
+                Rotation.from_euler("y", k, degrees=True), [0.01 * k + 0.002, 0, 1.2]
+            )
+            for k in t
+        ]
+    )
+    gt[4, 0, 3] += 0.5  # frame 4, lost in icp.health.csv: a prediction 0.5 m off
+    write_tum(tracks / "icp.tum", Trajectory(t, gt))
+    page = build_report(tmp_path / "demo").read_text()
+    icp_row = re.search(r"<tr><td>icp</td><td>([\d.]+) \(([\d.]+)\)", page)
+    assert icp_row and float(icp_row.group(1)) == pytest.approx(expected["icp_x_mm"], abs=1e-3)
+    assert float(icp_row.group(2)) == pytest.approx(0.0, abs=1e-3)
+    assert "icp: 1 frame(s) lost in icp.health.csv left out" in page
+
+
 def test_report_cli_and_errors(tmp_path: Path, capsys) -> None:
     _make_run(tmp_path / "demo")
     assert main(["report", str(tmp_path / "demo"), "--out", str(tmp_path / "r.html")]) == 0

@@ -119,7 +119,7 @@ def compare_trajectory_files(
     """
     est_path, gt_path = Path(est_path), Path(gt_path)
     est, gt = read_trajectory(est_path), read_trajectory(gt_path)
-    est, lost_note = _without_lost_frames(est_path, est)
+    est, _, lost_note = without_lost_frames(est_path, est)
     try:
         _, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
         table = evaluate(est, gt, rebase_first=rebase_first, tolerance=tolerance)
@@ -153,9 +153,22 @@ def compare_trajectory_files(
     return TrajectoryComparison(table, len(est), len(gt), rebase_first, tuple(notes))
 
 
-def _without_lost_frames(est_path: Path, est: Trajectory) -> tuple[Trajectory, str | None]:
-    """The estimate without the poses its tracker's health table (``EST.health.csv`` beside
-    it, one row a pose) marks ``lost``, and a note saying so; unchanged without a table.
+def without_lost_frames(
+    est_path: Path, est: Trajectory
+) -> tuple[Trajectory, np.ndarray | None, str | None]:
+    """The estimate read from ``est_path`` without the poses :func:`lost_frames` marks (all
+    of them kept when every frame is lost: nothing else can be scored), the mask and its
+    note."""
+    lost, note = lost_frames(est_path, len(est))
+    if lost is None or lost.all():
+        return est, lost, note
+    return Trajectory(est.timestamps[~lost], est.poses[~lost]), lost, note
+
+
+def lost_frames(est_path: Path, count: int) -> tuple[np.ndarray | None, str | None]:
+    """Which of the ``count`` poses of ``est_path`` its tracker's health table
+    (``EST.health.csv`` beside it, one row a pose) marks ``lost`` ((count,) bool; None without
+    a usable table or a lost frame), and a note saying what is left out or why nothing is.
 
     A lost frame's pose in ``EST.tum`` is the motion model's prediction, written so that no
     frame goes missing, not a measurement: scored, it counts the tracker's guess as its
@@ -164,24 +177,23 @@ def _without_lost_frames(est_path: Path, est: Trajectory) -> tuple[Trajectory, s
 
     health = output_paths(est_path)[1]
     if not health.is_file():
-        return est, None
+        return None, None
     try:
         with health.open(newline="") as fh:
             status = [row.get("status") for row in csv.DictReader(fh)]
     except (OSError, UnicodeDecodeError, csv.Error):
-        return est, f"{health.name} is unreadable: lost frames, if any, are scored"
-    if len(status) != len(est):
-        return est, (
-            f"{health.name} has {len(status)} rows for {len(est)} poses: lost frames, if any, "
+        return None, f"{health.name} is unreadable: lost frames, if any, are scored"
+    if len(status) != count:
+        return None, (
+            f"{health.name} has {len(status)} rows for {count} poses: lost frames, if any, "
             "are scored"
         )
     lost = np.array([s == "lost" for s in status])
     if not lost.any():
-        return est, None
+        return None, None
     if lost.all():
-        return est, f"every frame is lost in {health.name}: the scores are of predictions"
-    kept = Trajectory(est.timestamps[~lost], est.poses[~lost])
-    return kept, (
+        return lost, f"every frame is lost in {health.name}: the scores are of predictions"
+    return lost, (
         f"{int(lost.sum())} frame(s) lost in {health.name} left out (their poses are the "
         "motion model's predictions)"
     )

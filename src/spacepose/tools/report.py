@@ -32,7 +32,7 @@ from spacepose.core.mls import MLSConfig, mpp_mls
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools import plots
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.evaluation import starts_at_identity
+from spacepose.tools.evaluation import starts_at_identity, without_lost_frames
 from spacepose.tools.outputs import check_writable
 from spacepose.tools.trajectory_io import read_tum
 
@@ -180,14 +180,18 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
     if not gt_path.exists() or not tracks:
         return ""
     gt = read_tum(gt_path)
-    parts, rows, curves, health = [], [], {}, {}
+    parts, rows, curves, health, notes = [], [], {}, {}, []
     t = gt.timestamps - gt.timestamps[0]
 
     def score(path: Path) -> str:
         est = read_tum(path)
         rebase = starts_at_identity(est.poses[0])  # model-free: score it re-based
-        table: ErrorTable = evaluate(est, gt, rebase_first=rebase)
+        # A lost frame's pose is the motion model's guess, not a measurement (as `evaluate`).
+        scored, lost, note = without_lost_frames(path, est)
+        table: ErrorTable = evaluate(scored, gt, rebase_first=rebase)
         d = table.to_dict()
+        if note is not None:
+            notes.append(html.escape(f"{shown(path.stem)}: {note}"))
         rows.append(
             (
                 path.stem,
@@ -200,7 +204,10 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
         if len(est) == len(gt_eval):
             dt, de = pose_errors(est.poses, gt_eval.poses)
             # Columns: x, y, z (mm), then pitch, yaw, roll (deg) as in Li's Table 2.
-            curves[path.stem] = np.c_[1e3 * dt, np.degrees(de[:, [1, 0, 2]])]
+            curve = np.c_[1e3 * dt, np.degrees(de[:, [1, 0, 2]])]
+            if lost is not None and not lost.all():
+                curve[lost] = np.nan  # a gap where the frame was lost
+            curves[path.stem] = curve
         return "ok"
 
     def flags(path: Path) -> str:
@@ -221,6 +228,7 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
     header = ("method", "x mm", "y mm", "z mm", "pitch °", "yaw °", "roll °", "ATE mm", "ATE °")
     parts.append("<p class='muted'>mean (std) of the absolute per-frame errors</p>")
     parts.append(_table(header, rows))
+    parts.extend(f"<p class='muted'>{n}</p>" for n in notes)
     if curves:
         fig = plots.pose_error_curves(t, curves, f"{shown(run.name)}: pose errors")
         parts.append(_figure(plots.figure_png(fig), "per-axis errors against time"))
