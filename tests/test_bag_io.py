@@ -16,6 +16,7 @@ from spacepose.core.depth import DepthCamera, render_depth
 from spacepose.core.sim import scenario_config, simulate
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.bag_io import camera_from_info, open_bag, pointcloud2_points
+from spacepose.tools.depth_io import read_intrinsics
 from spacepose.tools.tracking_io import track_folder, tracker_config
 from spacepose.tools.trajectory_io import read_tum
 
@@ -181,6 +182,24 @@ def test_topic_must_be_chosen_among_the_frame_topics(lab, tmp_path, capsys):
     with pytest.raises(InputError, match=r"/nope is not in the bag; frame topics: /tof/depth"):
         open_bag(lab["bag"], topic="/nope")
     assert not (tmp_path / "x.tum").exists()
+
+
+def test_intrinsics_for_a_pointcloud2_topic_are_refused(lab, tmp_path, capsys):
+    """They used to be ignored without a word: a user who meant the depth topic got the
+    points tracked and believed their intrinsics applied."""
+    intrinsics = tmp_path / "intrinsics.yaml"
+    intrinsics.write_text("fx: 500\nfy: 500\ncx: 320\ncy: 240\ndepth_scale: 0.001\n")
+    out = tmp_path / "x.tum"
+    args = ["track", str(lab["bag"]), "--out", str(out), "--topic", "/tof/points"]
+    assert main([*args, "--intrinsics", str(intrinsics)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(
+        "ros2_bag: intrinsics apply to depth images, and /tof/points is a PointCloud2 (points "
+        "in metres): leave out --intrinsics, or choose an Image topic"
+    ), err
+    assert "\n" not in err and not out.exists()
+    frames = open_bag(lab["bag"], "/tof/depth/image_raw", read_intrinsics(intrinsics))
+    assert frames.camera.fx == 500.0  # an Image topic takes them over its CameraInfo
 
 
 def test_image_topic_uses_camera_info(lab):

@@ -243,8 +243,8 @@ def open_bag(
     ------
     InputError
         The topic is missing or not a frame type, several frame topics and none chosen, no
-        frame topic at all, or an Image topic without CameraInfo or intrinsics. The message
-        lists the bag's frame topics.
+        frame topic at all, an Image topic without CameraInfo or intrinsics, or intrinsics
+        for a PointCloud2 topic. The message lists the bag's frame topics.
     FileFormatError
         The bag cannot be opened.
     """
@@ -269,6 +269,13 @@ def open_bag(
         count = sum(c.msgcount for c in connections)
         if count == 0:  # a topic declared but never published
             raise InputError(f"no messages on {topic}: the bag holds no frame", path)
+        if candidates[topic] == POINTCLOUD2 and camera is not None:
+            # Its points are metres already: intrinsics given for it are a mistake, not a no-op.
+            raise InputError(
+                f"intrinsics apply to depth images, and {topic} is a PointCloud2 (points in "
+                "metres): leave out --intrinsics, or choose an Image topic",
+                path,
+            )
         if candidates[topic] == IMAGE and camera is None:
             camera = _bag_camera(reader, topic, path)
     return BagFrames(path, topic, candidates[topic], count, camera)
