@@ -303,6 +303,24 @@ def test_a_number_written_as_text_is_refused_in_a_config(tmp_path):
     assert (health.lost_condition, health.ok_condition) == (1e5, 2500.0)
 
 
+@pytest.mark.parametrize(
+    ("written", "value"),
+    [("010", 10), ("0x1F", 31), ("0o17", 15), ("+7", 7), ("1_000", None), ("1:30", None)],
+)
+def test_yaml_numbers_are_read_as_yaml_1_2_reads_them(tmp_path, written, value):
+    """YAML 1.1 (PyYAML) read max_iterations: 010 as 8 (octal), 1:30 as 90 (base 60) and
+    1_000 as 1000: values the user did not write, or did not mean. As YAML 1.2 reads them,
+    010 is 10, and 1:30 and 1_000 are text, which a number field refuses in one line."""
+    path = tmp_path / "tracker.yaml"
+    path.write_text(f"icp:\n  max_iterations: {written}\n")
+    if value is not None:
+        assert load_config(TrackerConfig, path).icp.max_iterations == value
+        return
+    with pytest.raises(ConfigError) as exc:
+        load_config(TrackerConfig, path)
+    _one_line(exc, path, f"icp.max_iterations: Value error, '{written}' is text")
+
+
 def test_points_per_frame_below_the_health_minimum_is_refused():
     assert TrackerConfig().points_per_frame == 3000
     assert TrackerConfig(points_per_frame=100).points_per_frame == 100

@@ -207,14 +207,37 @@ def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool
 
 
 _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
-# YAML 1.1, which PyYAML follows, reads 1e5 and 1.0e5 (an exponent without a dot, or without a
-# sign) as text; YAML 1.2 and every user read them as numbers. A number given as text is
-# refused (refuse_text_number), so these are numbers here, as in YAML 1.2.
+# Numbers as YAML 1.2's core schema reads them, not YAML 1.1's, which PyYAML follows: 1.1 reads
+# 1e5 as text, 010 as 8 (octal), 1:30 as 90 (base 60) and 1_000 as 1000. Here 1e5 is a number,
+# 010 is 10, and 1:30 and 1_000 are text, which a config then refuses as a number given as
+# text (refuse_text_number) instead of reading a value the user did not write.
+_INT, _FLOAT = "tag:yaml.org,2002:int", "tag:yaml.org,2002:float"
+_UniqueKeyLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag not in (_INT, _FLOAT)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
 _UniqueKeyLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)[eE][-+]?[0-9]+$"),
+    _INT, re.compile(r"^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$"), list("-+0123456789")
+)
+_UniqueKeyLoader.add_implicit_resolver(
+    _FLOAT,
+    re.compile(
+        r"^(?:[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?"
+        r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+    ),
     list("-+.0123456789"),
 )
+
+
+def _core_int(loader: _UniqueKeyLoader, node: yaml.ScalarNode) -> int:
+    """An integer as YAML 1.2 writes it: decimal (leading zeros too), 0o octal, 0x hex."""
+    text = loader.construct_scalar(node)
+    if text[:2] in ("0o", "0x"):
+        return int(text[2:], 8 if text[1] == "o" else 16)
+    return int(text, 10)
+
+
+_UniqueKeyLoader.add_constructor(_INT, _core_int)
 
 
 def _unique_pairs(text: str) -> Any:
