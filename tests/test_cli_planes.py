@@ -123,7 +123,11 @@ def test_errors_are_one_line_and_exit_code_1(scene, tmp_path, capsys):
     line = tmp_path / "line.npy"
     np.save(line, np.outer(np.linspace(0, 1, 100), [1.0, 2.0, 3.0]))
     assert main(["planes", str(line)]) == 1
-    assert "collinear" in capsys.readouterr().err
+    assert "line.npy: all 100 points are collinear: no plane to fit" in capsys.readouterr().err
+    # One repeated point: it used to be told its noise was as large as the cloud.
+    np.save(line, np.ones((100, 3)))
+    assert main(["planes", str(line)]) == 1
+    assert "line.npy: all 100 points are at one place: no plane to fit" in capsys.readouterr().err
     assert main(["planes", str(path), "--threshold", "-1"]) == 1
     assert "distance_threshold" in capsys.readouterr().err
     # A noise as large as the cloud (a wrong unit) printed every side as 0.000.

@@ -249,7 +249,8 @@ def test_assign_along_rays_bad_input():
         (np.array([[0, 0, 1], [1, 0, 1], [np.nan, 0, 1.0]]), InputError, "NaN"),
         (np.zeros((5, 2)), InputError, r"shape \(N, 3\)"),
         (np.outer(np.linspace(0, 1, 50), [1.0, 2.0, 3.0]), DegenerateGeometryError, "collinear"),
-        (np.ones((10, 3)), DegenerateGeometryError, "collinear"),
+        # One repeated point was called "collinear".
+        (np.ones((10, 3)), DegenerateGeometryError, "all 10 points are at one place"),
     ],
 )
 def test_bad_input_raises_package_errors(points, error, match):

@@ -90,6 +90,14 @@ def is_collinear(eigenvalues: NDArray[np.float64]) -> bool:
     return bool(eigenvalues[1] <= _COLLINEAR_RTOL * max(eigenvalues[2], 1e-300))
 
 
+def no_plane(points: NDArray[np.float64], source: object = None) -> DegenerateGeometryError:
+    """The error for points (N, 3) that span no plane (:func:`is_collinear`), saying whether
+    they lie on one line or all at one place ("collinear" misled for one repeated point);
+    ``source`` names the file."""
+    where = "at one place" if np.ptp(points, axis=0).max() == 0.0 else "collinear"
+    return DegenerateGeometryError(f"all {len(points)} points are {where}: no plane to fit", source)
+
+
 def on_a_line(points: NDArray[np.float64]) -> bool:
     """Whether every point (N ≥ 3, 3) lies on one line or at one place. A strided sample of
     about a thousand points clears almost every cloud (0.22 ms on 30,000 points, against 1.4 ms
@@ -117,7 +125,7 @@ def fit_plane(points: ArrayLike) -> tuple[NDArray[np.float64], float]:
     """
     centroid, eigenvalues, eigenvectors = distribution(points)
     if is_collinear(eigenvalues):
-        raise DegenerateGeometryError("points are collinear or coincident: no unique plane")
+        raise no_plane(np.asarray(points, dtype=np.float64))
     normal = eigenvectors[:, 0]
     offset = float(normal @ centroid)
     # Face the sensor (origin): a visible surface's normal points back along the ray.

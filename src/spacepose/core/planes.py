@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.config import StageConfig
-from spacepose.core.moments import distribution, fit_plane, is_collinear
+from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane
 from spacepose.core.ransac import sample_triples
 from spacepose.errors import DegenerateGeometryError, InputError
 
@@ -241,9 +241,8 @@ def ransac_plane(
         All points collinear.
     """
     pts = as_points(points, min_points=3)
-    _, eigenvalues, _ = distribution(pts)
-    if is_collinear(eigenvalues):
-        raise DegenerateGeometryError(f"all {len(pts)} points are collinear: no plane to fit")
+    if is_collinear(distribution(pts)[1]):
+        raise no_plane(pts)
     rng = np.random.default_rng(config.seed) if rng is None else rng
     n_hyp = config.max_iterations
     if config.outlier_ratio is not None:
@@ -386,10 +385,7 @@ def extract_planes(
     """
     pts = as_points(cloud_or_points, min_points=3)
     if is_collinear(distribution(pts)[1]):
-        raise DegenerateGeometryError(
-            f"all {len(pts)} points are collinear: no plane to fit",
-            getattr(cloud_or_points, "source", None),
-        )
+        raise no_plane(pts, getattr(cloud_or_points, "source", None))
     rng = np.random.default_rng(config.seed)
     remaining = np.arange(len(pts))
     planes: list[Plane] = []

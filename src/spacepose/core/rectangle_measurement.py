@@ -21,8 +21,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from spacepose.core.moments import distribution, is_collinear, normalised_weights
-from spacepose.errors import DegenerateGeometryError
+from spacepose.core.moments import distribution, is_collinear, no_plane, normalised_weights
 
 __all__ = ["RectangleMeasurement", "distribution", "fill_ratio", "measure_rectangle"]
 
@@ -120,7 +119,7 @@ def measure_rectangle(
     w = None if weights is None else normalised_weights(weights, len(pts))
     centroid, eigenvalues, V = distribution(pts, w)
     if is_collinear(eigenvalues):
-        raise DegenerateGeometryError("rectangle points are collinear or coincident: no plane")
+        raise no_plane(pts)
     normal = V[:, 0]
     if normal @ centroid > 0:  # face the sensor, which sits at the origin
         normal = -normal

@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, as_points
-from spacepose.core.moments import distribution, is_collinear, normalised_weights
+from spacepose.core.moments import distribution, is_collinear, no_plane, normalised_weights
 from spacepose.core.planes import Plane, PlaneConfig, dense_support, extract_planes
 from spacepose.core.rectangle_measurement import RectangleMeasurement, measure_rectangle
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, recognise
@@ -133,8 +133,12 @@ def find_rectangles(
     ------
     InputError
         ``config.sigma`` as large as the cloud's RMS radius (every side would measure 0).
+    DegenerateGeometryError
+        The points span no plane (all on a line or at one place).
     """
     pts = as_points(cloud_or_points, min_points=3)
+    if is_collinear(distribution(pts)[1]):
+        raise no_plane(pts, getattr(cloud_or_points, "source", None))
     rms_radius = float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
     if config.sigma >= rms_radius:
         # Every side would come out as 0 (its variance less the noise's): a σ in the wrong
