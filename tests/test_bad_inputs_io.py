@@ -103,6 +103,12 @@ def test_text_columns_follow_their_header(tmp_path):
     np.savetxt(path, xyz, delimiter=",", header="x,y", comments="")
     with pytest.raises(FileFormatError, match=r"names 2 columns .* rows hold 3"):
         read_cloud(path)
+    # A first row with a malformed number is a bad row, not a header that fails to name x, y, z.
+    for bad in ("0x1", "1.0d0"):
+        path.write_text(f"{bad},2,3\n1,2,3\n4,5,6\n")
+        with pytest.raises(FileFormatError) as info:
+            read_cloud(path)
+        assert str(info.value).endswith(f"zyx.csv: line 1: not a number in ['{bad}', '2', '3']")
 
 
 @pytest.mark.parametrize("text", [False, True])

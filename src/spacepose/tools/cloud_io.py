@@ -339,7 +339,9 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
         raise FileFormatError("no point rows in text file", path)
     delimiter = "," if "," in lines[first] else None
     head = lines[first].replace(",", " ").split()
-    header = not _is_number(head[0])  # a header line such as "x,y,z" or CloudCompare's "//X,Y,Z"
+    # A header line names its columns ("x,y,z", CloudCompare's "//X,Y,Z"); a row with a number
+    # in it is a row, however malformed its first field ("0x1 2 3" was taken for a header).
+    header = not any(_is_number(token) for token in head)
     skip = first + 1 if header else 0
     try:
         with warnings.catch_warnings():
