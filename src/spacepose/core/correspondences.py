@@ -209,7 +209,7 @@ class Correspondences:
 def _checked(n_matched: int, n_source: int, gate: float) -> None:
     if n_matched < 3:
         raise RegistrationError(
-            f"ICP found {n_matched} correspondences within {gate} m (of {n_source} source "
+            f"ICP found {n_matched} correspondences within {gate:.3g} m (of {n_source} source "
             "points); the initial guess is too far off or the gate too small"
         )
 

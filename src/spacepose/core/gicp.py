@@ -260,7 +260,7 @@ class _GICPPass:
         count = int(total[-2])
         if count < 3:
             raise RegistrationError(
-                f"GICP found {count} correspondences within {self.gate} m (of {n} source "
+                f"GICP found {count} correspondences within {self.gate:.3g} m (of {n} source "
                 "points); the initial guess is too far off or the gate too small"
             )
         if singular:

@@ -287,7 +287,7 @@ def ransac_correspondences(
     if best_T is None:
         raise RegistrationError(
             f"RANSAC found no consensus: best hypothesis has {most} of {len(pairs)} "
-            f"correspondences within {gate} m after {drawn} hypotheses "
+            f"correspondences within {gate:.3g} m after {drawn} hypotheses "
             f"(need {config.min_inliers})"
         )
     inliers = np.sum((se3.transform_points(best_T, src_c) - tgt_c) ** 2, axis=1) < eps2
