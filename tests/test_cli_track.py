@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +70,14 @@ def test_track_writes_tum_health_and_config(frame_dir, lab, tmp_path, capsys):
     assert [int(r["frame"]) for r in rows] == list(range(N_FRAMES))
     assert {r["status"] for r in rows} <= {"ok", "degraded"}
     assert all(float(r["sig_tx"]) >= 0 for r in rows)
+    # The residual structure each model-free frame was checked on (frame 0 defines the target
+    # frame: none); a frame degraded by it quotes the same value.
+    structure = [float(r["structure"]) for r in rows]
+    assert np.isnan(structure[0]) and np.all(np.isfinite(structure[1:]))
+    assert 0.0 < min(structure[1:])
+    for r, value in zip(rows, structure, strict=True):
+        quoted = re.findall(r"residual structure ([\d.]+) > 5: part", r["reasons"])
+        assert quoted == ([f"{value:.1f}"] if value > 5.0 else []), (r, value)
 
     config = json.loads((tmp_path / "est.config.json").read_text())
     assert config["method"] == "point_to_plane" and config["use_mls"] is False

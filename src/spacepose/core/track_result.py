@@ -59,6 +59,11 @@ class TrackResult:
         Whether coarse registration ran for this frame.
     keyframe
         Whether the frame became a keyframe.
+    structure
+        Residual structure of the registration onto its latest reference
+        (:func:`~spacepose.core.residual_structure.residual_structure`: 1 for white residuals;
+        model-free, above ``health.ok_structure`` the frame is degraded); NaN where it was not
+        measured (against a model, a first or a lost frame).
     """
 
     index: int
@@ -75,6 +80,7 @@ class TrackResult:
     reference_index: int = -1
     coarse: bool = False
     keyframe: bool = False
+    structure: float = float("nan")
 
     @property
     def sigma(self) -> NDArray[np.float64]:
@@ -136,6 +142,7 @@ def accepted_result(
         reference_index=estimate.reference.index,
         coarse=coarse,
         keyframe=keyframe,
+        structure=float("nan") if estimate.structure is None else estimate.structure,
     )
 
 

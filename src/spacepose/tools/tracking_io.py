@@ -39,6 +39,7 @@ HEALTH_COLUMNS: tuple[str, ...] = (
     "sig_tx",
     "sig_ty",
     "sig_tz",
+    "structure",
     "reasons",
 )
 
@@ -71,8 +72,8 @@ def tracker_config(
 
 
 def health_row(result: TrackResult) -> dict[str, object]:
-    """One row of :data:`HEALTH_COLUMNS` (σ in rad and m, RMSE in m, time in ms; the reasons a
-    frame is not ``ok`` joined by ``; ``)."""
+    """One row of :data:`HEALTH_COLUMNS` (σ in rad and m, RMSE in m, time in ms, the residual
+    structure unit-free; the reasons a frame is not ``ok`` joined by ``; ``)."""
     return {
         "frame": result.index,
         "timestamp": repr(result.timestamp),
@@ -82,6 +83,7 @@ def health_row(result: TrackResult) -> dict[str, object]:
         "iterations": result.iterations,
         "time_ms": f"{result.time_ms.get('total', float('nan')):.3f}",
         **{c: f"{v:.6g}" for c, v in zip(HEALTH_COLUMNS[7:13], result.sigma, strict=True)},
+        "structure": f"{result.structure:.4g}",
         "reasons": "; ".join(result.reasons),
     }
 
