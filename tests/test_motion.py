@@ -40,3 +40,22 @@ def test_prediction_and_its_covariance():
     # A restart forgets the velocity.
     m.accept(3.0, D, np.zeros((6, 6)), None, restart=True)
     assert not m.predict(4.0, 0, (0.01, 0.1)).velocity_known
+
+
+def test_a_velocity_is_tested_once_it_has_predicted_a_frame_and_again_after_a_restart():
+    """The first velocity, and the first after a coarse restart, is one registered step that
+    nothing confirmed; the errors kept from before a restart are of another velocity, so they
+    do not count (the tracker holds such a frame back from `ok`)."""
+    m = MotionModel()
+    pose, cov = np.eye(4), np.zeros((6, 6))
+    m.accept(0.0, pose, cov, None, restart=True)  # the first frame
+    m.accept(1.0, pose, cov, None, restart=False)  # no velocity yet to predict with
+    assert not m.tested
+    m.accept(2.0, pose, cov, (0.002, 0.01), restart=False)  # predicted and measured
+    assert m.tested
+    m.accept(3.0, pose, cov, (0.001, 0.01), restart=False)
+    m.accept(4.0, pose, cov, None, restart=True)  # a coarse restart
+    m.accept(5.0, pose, cov, None, restart=False)
+    assert not m.tested and m.model_error() is not None  # the old errors stay, as bounds
+    m.accept(6.0, pose, cov, (0.003, 0.02), restart=False)
+    assert m.tested

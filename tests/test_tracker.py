@@ -409,6 +409,24 @@ def test_a_frame_predicted_by_an_untested_motion_model_is_not_ok():
     assert rows[3]["status"] == "ok" and rows[3]["nsigma_max"] < 3.0
 
 
+def test_after_a_coarse_restart_the_new_velocity_is_tested_before_a_frame_is_ok():
+    """Frames 7-19 of a 10°-a-frame tumble are skipped: frame 20 is found again by coarse
+    registration, which drops the velocity. Frame 22's velocity is then frame 21's step alone,
+    unconfirmed, while the model errors kept from before the restart were of another velocity:
+    frame 22 was `ok` on that untested velocity; it is now held as the run's third frame is."""
+    from spacepose.core.sim import simulate
+    from spacepose.core.sim.grid import grid_scenario
+
+    sim = simulate(grid_scenario(motion="tumbling-10", frames=24))
+    tracker = Tracker()
+    results = {}
+    for k in [0, 1, 2, 3, 4, 5, 6, 20, 21, 22, 23]:
+        results[k] = tracker.track_frame(sim.frame(k).cloud, sim.timestamps[k])
+    assert results[20].coarse and not results[21].coarse
+    assert results[22].status == "degraded" and results[22].reasons == (UNTESTED_MODEL,)
+    assert results[23].status == "ok"
+
+
 def test_a_fast_tumble_is_tracked_ok_within_sigma():
     """10° a frame about a turning axis: every frame a keyframe, none 'far' from the one before.
     Measured (12 frames): 8 ok; frame 1 degraded (no step seen yet), frame 2 (the motion model

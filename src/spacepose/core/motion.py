@@ -157,12 +157,17 @@ class MotionModel:
         The last two accepted ``(timestamp, T_sensor_target, covariance)``.
     errors
         Recent model errors: (centroid displacement m, rotation rad) per accepted frame.
+    tested
+        Whether the present velocity's model has predicted a frame since the first pose or the
+        last restart: until then nothing has confirmed the step it extrapolates (the errors
+        kept from before a restart are of another velocity).
     """
 
     history: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = field(
         default_factory=list
     )
     errors: list[tuple[float, float]] = field(default_factory=list)
+    tested: bool = False
 
     def predict(
         self, timestamp: float, frames_missed: int, fallback_error: tuple[float, float]
@@ -205,3 +210,4 @@ class MotionModel:
         self.history = [*kept, (timestamp, T_sensor_target, covariance)]
         if error is not None:
             self.errors = [*self.errors[-(_ERROR_WINDOW - 1) :], error]
+        self.tested = error is not None or (self.tested and not restart)
