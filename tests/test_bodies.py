@@ -196,6 +196,48 @@ def test_noise_correlated_over_patches_is_not_a_second_motion(seed):
     assert split_motion(frame, ref, _compromise(ref, frame), SIGMA, REACH, NEAR, workers=1) is None
 
 
+def _table(rng, n):
+    """A table under the target: its top seen from above (normal -y) and, one point in
+    eight, its left side (normal -x), the only part that shows the table standing still
+    while the target slides over it."""
+    side = rng.random(n) < 0.125
+    top = np.c_[rng.uniform(-0.5, 0.5, n), np.zeros(n), rng.uniform(-0.5, 0.5, n)]
+    left = np.c_[np.full(n, -0.5), rng.uniform(0.0, 0.3, n), rng.uniform(-0.5, 0.5, n)]
+    normals = np.where(side[:, None], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0])
+    centre = np.array([0.1, 0.03, 1.2])
+    return np.where(side[:, None], left, top) + centre, normals
+
+
+# The target slides 2 cm over the table and turns 3° about the table's normal.
+SLIDE_TURN = _about(TARGET_CENTRE, [0.0, 3.0, 0.0], [0.02, 0.0, 0.0])
+# A compromise that follows the target but is pulled 0.36° / 2 mm off by the table.
+PULLED = _about(TARGET_CENTRE, [0.3, 0.0, 0.2], [0.0, 0.002, 0.0]) @ se3.invert(SLIDE_TURN)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_support_standing_still_is_split_off_with_its_motion_held(seed):
+    ref, frame, on = _frames(seed, SLIDE_TURN, np.eye(4), support=_table)
+    split = split_motion(frame, ref, PULLED, SIGMA, REACH, NEAR, workers=1, second=np.eye(4))
+    assert split is not None
+    np.testing.assert_array_equal(split.T_ref_frame_support, np.eye(4))
+    deg, m = _error(split.T_ref_frame, se3.invert(SLIDE_TURN), TARGET_CENTRE)
+    assert deg < 0.05 and m < 5e-4, (deg, m)
+    # The table's side goes with the table; its top slides along itself under the target's
+    # motion and may go either way.
+    side = ~on & (frame[:, 0] < -0.39)
+    assert np.mean(~split.frame_target[side]) > 0.97
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_support_that_moves_is_not_split_off_as_standing_still(seed):
+    """The still hypothesis on frames where nothing stands still: one body, or a support that
+    slides (a hand-held sensor sees no part still)."""
+    for M_support in (TURNING, SLIDING):
+        ref, frame, _ = _frames(seed, TURNING, M_support)
+        T = _compromise(ref, frame)
+        assert split_motion(frame, ref, T, SIGMA, REACH, NEAR, workers=1, second=np.eye(4)) is None
+
+
 def test_clutter_body_predicts_at_constant_velocity_and_masks_its_points():
     """The support's reference is the reference's support box; it slides one step a second."""
     on_ref = np.r_[np.ones(4000, bool), np.zeros(4000, bool)]

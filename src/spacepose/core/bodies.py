@@ -12,12 +12,13 @@ two have hardly parted. On the few frames the tracker looks (:mod:`spacepose.cor
 
 1. the points the compromise leaves unexplained (point-to-plane residual beyond three residual
    σ, or no surface within reach) are registered alone from it, with a redescending kernel of
-   adaptive scale (a wide basin);
-2. a two-model EM over parts of the frame (cubes of a quarter of its RMS radius): each motion is
-   refitted, with the kernel at the sensor's σ, on the parts it explains clearly better than the
-   other (capped squared residuals below :data:`FIT_RATIO` of the other's). Parts both explain
-   (a surface sliding along itself) are left out of both fits, or they would hold the compromise
-   in place;
+   adaptive scale (a wide basin), unless the second motion is known (a support standing still
+   before a still sensor: the identity), which is then held;
+2. a two-model EM over parts of the frame (cubes of a quarter of its RMS radius): each motion
+   (the first only, when the second is known) is refitted, with the kernel at the sensor's σ,
+   on the parts it explains clearly better than the other (capped squared residuals below
+   :data:`FIT_RATIO` of the other's). Parts both explain (a surface sliding along itself) are
+   left out of both fits, or they would hold the compromise in place;
 3. each part goes to the motion that explains it better. The split stands when each body holds
    :data:`MIN_BODY_SHARE` of the points and fits its own motion clearly better than the other's.
    A frame of one rigid body, even with noise correlated over patches, has one motion that
@@ -135,6 +136,7 @@ def split_motion(
     reach: float,
     near: float,
     workers: int = -1,
+    second: ArrayLike | None = None,
 ) -> MotionSplit | None:
     """Look for a second rigid motion among a frame's points (module docstring).
 
@@ -157,6 +159,11 @@ def split_motion(
         point spacing.
     workers
         Threads of the searches.
+    second
+        (4, 4) the second motion (``T_ref_frame`` of the support) when it is known: held, only
+        the first is refitted. None: fitted to the points the one-motion registration leaves
+        unexplained (step 1). The identity is a support standing still before a sensor that
+        stands still too.
 
     Returns
     -------
@@ -197,17 +204,20 @@ def split_motion(
     # A body may be half explained by the compromise: half its share is enough to start from.
     if unexplained.sum() < 0.5 * MIN_BODY_SHARE * len(points):
         return None
-    # The second motion may lie far from the compromise: its first fit takes the adaptive scale
-    # (wide basin), the rounds after it the sensor's.
-    T_b = _fit(
-        points[unexplained], ref, T_a, config.model_copy(update={"robust_scale": None}), workers
-    )
+    if second is not None:
+        T_b = se3.as_transform(second, "second")
+    else:
+        # The second motion may lie far from the compromise: its first fit takes the adaptive
+        # scale (wide basin), the rounds after it the sensor's.
+        wide = config.model_copy(update={"robust_scale": None})
+        T_b = _fit(points[unexplained], ref, T_a, wide, workers)
     for _ in range(_EM_ROUNDS):
         (_, c_a), (_, c_b) = cell_costs(T_a), cell_costs(T_b)
         # Each motion is refitted on the parts it explains clearly better: parts both explain
         # (a surface sliding along itself) would hold a compromise in place.
         T_a = _fit(points[(c_a < FIT_RATIO * c_b)[cell]], ref, T_a, config, workers)
-        T_b = _fit(points[(c_b < FIT_RATIO * c_a)[cell]], ref, T_b, config, workers)
+        if second is None:
+            T_b = _fit(points[(c_b < FIT_RATIO * c_a)[cell]], ref, T_b, config, workers)
     (r_a, c_a), (r_b, c_b) = cell_costs(T_a), cell_costs(T_b)
     on_b = (c_b < c_a)[cell]
     share_b = float(on_b.mean())

@@ -123,8 +123,8 @@ class Tracker:
 
     @property
     def support_found_at(self) -> float | None:
-        """Time (s) of the frame on which a support moving otherwise was split off the target
-        (model-free, methods.md §5.8); None while there is none."""
+        """Time (s) of the frame on which a support (moving otherwise, or standing still) was
+        last split off the target (model-free, methods.md §5.8); None while there is none."""
         return None if self._support is None else self._support.found_at
 
     @property
