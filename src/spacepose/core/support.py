@@ -185,12 +185,12 @@ class SupportSeparation:
         second: NDArray[np.float64] | None = None,
     ) -> tuple[PreparedCloud, NDArray[np.float64]] | None:
         """Split the frame and the first keyframe into the target and a support moving
-        otherwise.
+        otherwise (or, with ``second`` the identity, standing still).
 
         The first keyframe, not the latest: the keyframes made while the compromise was
         followed carry its error in their poses, and a split against one of them would keep
-        it. On success the first keyframe keeps its target points only, and the support is
-        followed from now on.
+        it. On success the first keyframe keeps its target points only, and the support
+        (:attr:`support`, or :attr:`still`) is followed from now on.
 
         Parameters
         ----------
