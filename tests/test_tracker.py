@@ -739,7 +739,7 @@ def test_a_still_split_waits_for_the_second_look():
     """The lab mock-up at 0.5 m tumbling 2° a frame on its turntable before the wall and table
     (noise ×1, seed 1, 12 frames). Tried on the first look, one step after the first keyframe,
     the still hypothesis split off the table and wall alone; the turntable left with the
-    target turns under it and failed the support's test until frame 6, and 0 frames were
+    target turns under it and failed the support's test until frame 7, and 0 frames were
     ``ok`` (9 before). From the second look on, the fitted split of frame 2 comes first, as
     before: frames 3-11 ``ok``, every one within 3σ (methods.md §5.8)."""
     from spacepose.tools.experiments.robustness import run_cell
