@@ -221,7 +221,8 @@ def test_a_support_standing_still_is_split_off_with_its_motion_held(seed):
     assert split is not None
     np.testing.assert_array_equal(split.T_ref_frame_support, np.eye(4))
     deg, m = _error(split.T_ref_frame, se3.invert(SLIDE_TURN), TARGET_CENTRE)
-    assert deg < 0.05 and m < 5e-4, (deg, m)
+    # Measured over seeds 0-7: at most 0.029° and 0.09 mm.
+    assert deg < 0.05 and m < 2e-4, (deg, m)
     # The table's side goes with the table; its top slides along itself under the target's
     # motion and may go either way.
     side = ~on & (frame[:, 0] < -0.39)

@@ -239,7 +239,9 @@ def split_motion(
         _shift_cost(ref, points[~on_b], T_a, cap, reach, workers),
         _shift_cost(ref, points[on_b], T_b, cap, reach, workers),
     )
-    if shift[1] - rigid[1] > shift[0] - rigid[0]:
+    # A known second motion is the support's by hypothesis: a target that slides without
+    # turning over a still table shows no turn either, and the test would pick by noise.
+    if second is None and shift[1] - rigid[1] > shift[0] - rigid[0]:
         T_a, T_b, frame_target, shares, shown = T_b, T_a, on_b, shares[::-1], shown[::-1]
         rigid, shift = rigid[::-1], shift[::-1]
     # The support moves without turning (a slide carries it, or it stands still): a pure shift
