@@ -12,6 +12,7 @@ from spacepose.core.sim.grid import grid_scenario
 from spacepose.core.sim.scenarios import simulate
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig
+from spacepose.errors import InputError
 from spacepose.tools.experiments.robustness_cells import mesh_path
 
 
@@ -198,3 +199,22 @@ def test_a_raw_frame_keeps_its_surfaces_and_not_its_flying_pixels():
     for cloud in (prepared.cloud, frames.keyframe_cloud(prepared).cloud):
         off = surface.query(cloud.points, distance_upper_bound=voxel)[0] > voxel
         assert off.mean() < 0.005
+
+
+def test_a_frame_with_nothing_where_the_target_is_predicted_is_refused_by_name():
+    # The crop keeps only the points within the target's sphere carried by the prediction: a
+    # frame whose points all lie elsewhere is unusable (a typed error naming the frame), and
+    # the frame after it, back where the target is, is prepared as before.
+    plane, _, _ = _noisy_plane(0, 0.002)
+    # A wall 1 m behind it: the frame holds more than the object, so later frames are cropped.
+    wall = np.c_[np.random.default_rng(1).uniform(-1.5, 1.5, (20000, 2)), np.full(20000, 2.5)]
+    pts = np.r_[plane, wall]
+    frames = FramePreparer(TrackerConfig(), None, workers=1)
+    first = frames.prepare(pts, None)
+    assert first.cloud.points[:, 2].max() < 2.0  # the plane, not the wall
+    away = se3.make_transform(np.eye(3), [5.0, 0.0, 0.0])
+    elsewhere = PointCloud(se3.transform_points(away, pts), source="frame_0042.ply")
+    with pytest.raises(InputError, match=r"frame_0042\.ply.*no point within .* m of where"):
+        frames.prepare(elsewhere, np.eye(4))
+    again = frames.prepare(pts, np.eye(4))
+    np.testing.assert_array_equal(again.cloud.points, first.cloud.points)

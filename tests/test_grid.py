@@ -278,28 +278,19 @@ def test_a_moved_grid_groups_as_a_numpy_reference_does(voxel):
         voxel_downsample(pts, voxel, origin=[0.0, np.nan, 0.0])
 
 
-@pytest.mark.parametrize("voxel", [0.002, 0.01])
-def test_voxel_downsample_within_a_sphere_equals_cropping_first(voxel):
-    # The compiled crop must keep exactly crop_sphere's points (one on the sphere included)
-    # and sum them in the same order: the same bits as downsampling the cropped cloud.
-    rng = np.random.default_rng(5)
+def test_crop_sphere_keeps_what_numpy_keeps_to_the_bit():
+    # The compiled crop sums the squared distance as numpy sums a row ((dx² + dy²) + dz²): a
+    # point whose squared distance is the radius squared to the bit is kept, as numpy keeps it.
     pts = _surface(6000, seed=6)
-    sigma = rng.uniform(0.001, 0.003, len(pts))
-    cloud = PointCloud(pts, sigma=sigma, source="frame")
     center = pts.mean(axis=0) + np.array([0.05, -0.02, 0.0])
-    # A point whose squared distance is a radius squared to the bit lies on the sphere.
     d2 = ((pts - center) ** 2).sum(axis=1)
     on = next(i for i in np.argsort(d2)[len(pts) // 2 :] if np.sqrt(d2[i]) ** 2 == d2[i])
     radius = float(np.sqrt(d2[on]))
     mask = crop_sphere(pts, center, radius)
+    np.testing.assert_array_equal(mask, d2 <= radius**2)
     assert mask[on] and 0.2 * len(pts) < mask.sum() < 0.9 * len(pts)
-    cropped = voxel_downsample(cloud.select(np.flatnonzero(mask)), voxel)
-    fused = voxel_downsample(cloud, voxel, within=(center, radius))
-    np.testing.assert_array_equal(fused.points, cropped.points)
-    np.testing.assert_array_equal(fused.sigma, cropped.sigma)
-    assert fused.source == "frame"
-    with pytest.raises(InputError, match="no point within"):
-        voxel_downsample(cloud, voxel, within=(center + 10.0, 0.1))
+    # Lists and a column centre are points and a centre too.
+    np.testing.assert_array_equal(crop_sphere(pts.tolist(), center[:, None], radius), mask)
 
 
 @pytest.mark.parametrize("voxel", [0.03, 0.05])
@@ -321,13 +312,6 @@ def test_stray_voxels_are_those_a_numpy_block_count_finds(voxel):
     np.testing.assert_array_equal(kept.points, every.points[solid])
     # Every lone return dropped, every voxel of the sheet kept.
     assert not solid[cell[len(sheet) :]].any() and solid[cell[: len(sheet)]].all()
-    # Cropped in the same pass: the same as cropping first.
-    center, radius = sheet.mean(axis=0), 0.25
-    mask = crop_sphere(pts, center, radius)
-    np.testing.assert_array_equal(
-        voxel_downsample(PointCloud(pts), voxel, (center, radius), 1 / 16).points,
-        voxel_downsample(PointCloud(pts[mask]), voxel, stray_share=1 / 16).points,
-    )
     for share in (float("nan"), 1.0, -0.1):
         with pytest.raises(InputError, match="stray_share"):
             voxel_downsample(PointCloud(pts), voxel, stray_share=share)

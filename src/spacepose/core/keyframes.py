@@ -38,8 +38,8 @@ class PreparedCloud:
 
     ``covariances`` (GICP) is filled once per frame; the normals of ``cloud``, the index and
     ``coarse`` (sparse cloud + FPFH) lazily, when the frame is a registration target or coarse
-    registration needs it. ``raw`` and ``crop`` (center (3,), radius m) are the points ``cloud``
-    was downsampled from and the sphere it kept, from which a keyframe's finer cloud is made
+    registration needs it. ``raw`` holds the points ``cloud`` was downsampled from (cropped to
+    the target), from which a keyframe's finer cloud is made
     (:meth:`~spacepose.core.frame_preparation.FramePreparer.keyframe_cloud`).
     """
 
@@ -47,7 +47,6 @@ class PreparedCloud:
     covariances: NDArray[np.float64] | None = None
     coarse: tuple[PointCloud, NDArray[np.float64]] | None = None
     raw: PointCloud | None = None
-    crop: tuple[NDArray[np.float64], float] | None = None
     _tree: VoxelIndex | None = None
 
     @property

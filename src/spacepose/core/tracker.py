@@ -357,7 +357,7 @@ class Tracker:
         None: the frame's own cloud is), with normals now: it is the next frame's target,
         whose step should not pay for them."""
         dense = self._frames.keyframe_cloud(self._registrar.as_target(prepared))
-        prepared.raw = prepared.crop = None  # the raw frame is not kept with the keyframe
+        prepared.raw = None  # the raw points are not kept with the keyframe
         return dense
 
     def _lost(

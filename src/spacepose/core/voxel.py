@@ -24,8 +24,6 @@ from spacepose.errors import InputError
 
 # Largest key: three cell indices pack into one int64.
 _MAX_KEY = 2.0**62
-# The ``keep`` mask of the kernels that means every point.
-_ALL = np.empty(0, dtype=np.bool_)
 # The grid's default origin: the frame's (cells at multiples of the edge).
 _ORIGIN = np.zeros(3)
 # Cells whose blocks give the median of :func:`stray_voxels`.
@@ -76,7 +74,7 @@ def cell_keys(
     h = _cell_size(cell_size)
     o = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
     # Compiled bounds: numpy's axis-0 min and max cost 0.5 ms each on a lab frame.
-    low, high, _ = _bounds(pts, _ALL)
+    low, high = _bounds(pts)
     _check_span(low - o, high - o, h)
     cells = np.empty(pts.shape, dtype=np.int64)
     low, high = _cells(pts, o, h, cells)
@@ -117,8 +115,7 @@ def _check_span(low: NDArray[np.float64], high: NDArray[np.float64], h: float) -
 
 def bounds(points: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """(3,) smallest and (3,) largest coordinates of the (N, 3) finite points, N >= 1."""
-    low, high, _ = _bounds(_finite_points(points), _ALL)
-    return low, high
+    return _bounds(_finite_points(points))
 
 
 def _finite_points(points: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -145,7 +142,7 @@ def voxel_cells(
         (M, 3) mean point of each occupied cell, ordered by cell key; (N,) cell index of each
         point.
     """
-    centroids, _, first_seen, by_key, _ = _cell_sums(_finite_points(points), voxel_size, None, _ALL)
+    centroids, _, first_seen, by_key, _ = _cell_sums(_finite_points(points), voxel_size, None)
     rank = np.empty_like(by_key)
     rank[by_key] = np.arange(len(by_key))
     return centroids, rank[first_seen]
@@ -155,7 +152,6 @@ def _cell_sums(
     pts: NDArray[np.float64],
     voxel_size: float,
     sigma: NDArray[np.float64] | None,
-    keep: NDArray[np.bool_],
     origin: NDArray[np.float64] = _ORIGIN,
 ) -> tuple[
     NDArray[np.float64], NDArray[np.float64], NDArray[np.int64], NDArray[np.int64], _Occupancy
@@ -164,33 +160,31 @@ def _cell_sums(
     the (N,) cell of each point in order of first appearance, the (M,) key order of those and
     the cells' occupancy (by key).
 
-    ``pts`` are finite and contiguous; ``keep`` (N,) marks the points to take (at least one),
-    or is empty for all of them (the cell of a point left out is undefined); the cells are
-    aligned to ``origin`` (3,) plus multiples of the edge. Sums run point by
-    point in index order: the same bits as a bincount per axis over the points taken.
+    ``pts`` are finite and contiguous (at least one); the cells are aligned to ``origin`` (3,)
+    plus multiples of the edge. Sums run point by point in index order: the same bits as a
+    bincount per axis.
     """
     h = _cell_size(voxel_size)
-    low, high, n_kept = _bounds(pts, keep)
+    low, high = _bounds(pts)
+    n = len(pts)
     low, high = low - origin, high - origin
     _check_span(low, high, h)
     first, last = np.floor(low / h).astype(np.int64), np.floor(high / h).astype(np.int64)
     dims = last - first + 1
     n_cells = float(np.prod(dims.astype(np.float64)))
-    if n_cells <= 2 * n_kept:
+    if n_cells <= 2 * n:
         # Few cells in the box: a slot per cell, one load per lookup.
         table, bits = np.full(int(n_cells), -1, dtype=np.int64), 0
     else:
-        bits = hash_bits(n_kept)
+        bits = hash_bits(n)
         table = np.full(1 << bits, -1, dtype=np.int64)
-    cell = np.empty(len(pts), dtype=np.int64)
-    unique = np.empty(n_kept, dtype=np.int64)
+    cell = np.empty(n, dtype=np.int64)
+    unique = np.empty(n, dtype=np.int64)
     no_sigma = sigma is None
     weights = np.empty(0) if no_sigma else np.ascontiguousarray(sigma, dtype=np.float64)
-    sums = np.zeros((n_kept, 4 if not no_sigma else 3))
-    counts = np.zeros(n_kept)
-    m = _key_and_sum(
-        pts, keep, h, origin, first, dims, table, bits, weights, cell, unique, sums, counts
-    )
+    sums = np.zeros((n, 4 if not no_sigma else 3))
+    counts = np.zeros(n)
+    m = _key_and_sum(pts, h, origin, first, dims, table, bits, weights, cell, unique, sums, counts)
     occupancy = _Occupancy(unique[:m], counts[:m], table, bits, dims, np.argsort(unique[:m]))
     # Rank the occupied cells by key: sorting M cells, not N points.
     by_key = occupancy.by_key
@@ -200,23 +194,17 @@ def _cell_sums(
 
 
 @numba.njit(cache=True)
-def _key_and_sum(
-    points, keep, h, origin, first, dims, table, bits, sigma, cell, unique, sums, counts
-):
-    """Key every point taken (``keep[i]``, or all when ``keep`` is empty; cell
-    ``⌊(p − origin) / h⌋ − first`` packed with ``dims``), number the occupied cells in order of
-    first appearance (``unique`` their keys, ``cell`` each point's) and add each point (and its
-    σ, when ``sigma`` is not empty) to its cell's row of ``sums`` / ``counts``; return the
-    number of cells. A
-    point in the previous point's cell (a scan's neighbouring pixels) skips the lookup."""
+def _key_and_sum(points, h, origin, first, dims, table, bits, sigma, cell, unique, sums, counts):
+    """Key every point (cell ``⌊(p − origin) / h⌋ − first`` packed with ``dims``), number the
+    occupied cells in order of first appearance (``unique`` their keys, ``cell`` each point's)
+    and add each point (and its σ, when ``sigma`` is not empty) to its cell's row of ``sums`` /
+    ``counts``; return the number of cells. A point in the previous point's cell (a scan's
+    neighbouring pixels) skips the lookup."""
     mask = (1 << bits) - 1
     count = 0
     previous, rank = -1, -1
     with_sigma = len(sigma) > 0
-    every = len(keep) == 0
     for i in range(len(points)):
-        if not every and not keep[i]:
-            continue
         cx = np.int64(np.floor((points[i, 0] - origin[0]) / h)) - first[0]
         cy = np.int64(np.floor((points[i, 1] - origin[1]) / h)) - first[1]
         cz = np.int64(np.floor((points[i, 2] - origin[2]) / h)) - first[2]
@@ -245,41 +233,18 @@ def _key_and_sum(
 
 
 @numba.njit(cache=True)
-def _bounds(points, keep):
-    """(3,) smallest and (3,) largest coordinates of the points taken (``keep[i]``, or all
-    when ``keep`` is empty; at least one) and how many there are."""
+def _bounds(points):
+    """(3,) smallest and (3,) largest coordinates of the points (at least one)."""
     # One scalar per axis and side, not a loop over the axes: a third of the time.
-    every = len(keep) == 0
-    start = 0
-    while not every and not keep[start]:
-        start += 1
-    lx = hx = points[start, 0]
-    ly = hy = points[start, 1]
-    lz = hz = points[start, 2]
-    n = 1
-    for i in range(start + 1, len(points)):
-        if not every and not keep[i]:
-            continue
+    lx = hx = points[0, 0]
+    ly = hy = points[0, 1]
+    lz = hz = points[0, 2]
+    for i in range(1, len(points)):
         x, y, z = points[i, 0], points[i, 1], points[i, 2]
         lx, hx = min(lx, x), max(hx, x)
         ly, hy = min(ly, y), max(hy, y)
         lz, hz = min(lz, z), max(hz, z)
-        n += 1
-    return np.array([lx, ly, lz]), np.array([hx, hy, hz]), n
-
-
-@numba.njit(cache=True)
-def _within(points, center, radius2, keep):
-    """``keep[i]``: point i lies within ``radius2`` (squared, m²) of ``center``, with the
-    squared distance summed as numpy sums a row ((dx² + dy²) + dz²); return how many do."""
-    n = 0
-    for i in range(len(points)):
-        dx = points[i, 0] - center[0]
-        dy = points[i, 1] - center[1]
-        dz = points[i, 2] - center[2]
-        keep[i] = dx * dx + dy * dy + dz * dz <= radius2
-        n += keep[i]
-    return n
+    return np.array([lx, ly, lz]), np.array([hx, hy, hz])
 
 
 @numba.njit(cache=True)
@@ -309,19 +274,12 @@ def _pack(cells, low, dims):
 def voxel_downsample(
     cloud: PointCloud | ArrayLike,
     voxel_size: float,
-    within: tuple[ArrayLike, float] | None = None,
     stray_share: float = 0.0,
     origin: ArrayLike | None = None,
 ) -> PointCloud:
     """Centroid of the points in each occupied voxel (edge ``voxel_size`` m), sorted by voxel.
 
     σ (if present) is averaged too; normals are dropped (recompute them on the sparse cloud).
-
-    ``within`` = ``(center (3,), radius m)`` takes only the points within that sphere (distance
-    <= radius, as :func:`~spacepose.core.segmentation.crop_sphere` keeps them) without making
-    the cropped cloud: the same bits as cropping first, in compiled passes (a raw 1280×720
-    frame, 900k points, cropped to the lab target's 170k: 7 ms instead of 38 ms for the crop,
-    the cropped cloud and the downsampling).
 
     ``stray_share`` > 0 drops the voxels whose 3×3×3 block of voxels holds fewer points than
     that share of the median block: stray points, not a surface (:func:`stray_voxels`).
@@ -333,7 +291,7 @@ def voxel_downsample(
     Raises
     ------
     InputError
-        A bad voxel size, no point within the sphere, or a ``stray_share`` outside [0, 1).
+        A bad voxel size or a ``stray_share`` outside [0, 1).
     """
     cloud = as_cloud(cloud, "cloud")
     if not 0.0 <= stray_share < 1.0:
@@ -341,21 +299,10 @@ def voxel_downsample(
         raise InputError(f"stray_share must lie in [0, 1), got {stray_share}", cloud.source)
     # A PointCloud's points are finite (N, 3) float64 already.
     pts = np.ascontiguousarray(cloud.points, dtype=np.float64)
-    keep = _ALL
-    if within is not None:
-        try:
-            center, radius = within
-            center, radius = np.asarray(center, dtype=np.float64).reshape(3), float(radius)
-        except (TypeError, ValueError):
-            raise InputError(f"within must be ((3,) centre, radius), got {within!r}") from None
-        keep = np.empty(len(pts), dtype=np.bool_)
-        # radius**2 as crop_sphere squares it.
-        if _within(pts, center, float(radius) ** 2, keep) == 0:
-            raise InputError(f"no point within {radius} m of {center.tolist()}", cloud.source)
     grid = _ORIGIN if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
     if not np.all(np.isfinite(grid)):
         raise InputError(f"origin must be 3 finite numbers, got {origin!r}", cloud.source)
-    centroids, sigma, _, _, occupancy = _cell_sums(pts, voxel_size, cloud.sigma, keep, grid)
+    centroids, sigma, _, _, occupancy = _cell_sums(pts, voxel_size, cloud.sigma, grid)
     if stray_share > 0.0:
         solid = np.flatnonzero(~stray_voxels(occupancy, stray_share))
         centroids, sigma = centroids[solid], sigma[solid] if len(sigma) else sigma
