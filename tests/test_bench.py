@@ -9,6 +9,7 @@ import contextlib
 import io
 import json
 import math
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -157,6 +158,16 @@ def test_quick_run_memory_scaling_environment(quick_run: tuple[int, dict, str]) 
         ours = series["ours"]
         assert all(_finite_positive(t) for t in ours["median_ms"]), stage
         assert ours["exponent"] == pytest.approx(fit_exponent(scaling["sizes"], ours["median_ms"]))
+    # ICP and GICP report their step counts, and the exponent of the time per step.
+    for stage in ("icp", "gicp"):
+        ours = scaling["stages"][stage]["ours"]
+        steps = ours["iterations"]
+        assert len(steps) == 3 and all(isinstance(n, int) and n >= 1 for n in steps), stage
+        per_step = np.array(ours["median_ms"]) / np.array(steps)
+        assert ours["exponent_per_iteration"] == pytest.approx(
+            fit_exponent(scaling["sizes"], list(per_step))
+        )
+    assert "iterations" not in scaling["stages"]["normals"]["ours"]
     # Denser subsets get a proportionally smaller FPFH radius (same neighbours per point).
     r = np.array(scaling["fpfh_radius_m"])
     assert r * np.sqrt(scaling["sizes"]) == pytest.approx(np.full(3, r[0] * np.sqrt(500)))
@@ -173,6 +184,8 @@ def test_quick_run_prints_tables(quick_run: tuple[int, dict, str]) -> None:
     assert "tracker on 2 raw 160x120 frames: peak RSS" in out
     assert "CRLB" in out
     assert "scaling gicp: t ~ N^b" in out
+    steps = r"\(ours: \d+/\d+/\d+ steps, per step b = -?\d\.\d\d\)"
+    assert re.search(r"scaling icp: t ~ N\^b with b = ours -?\d\.\d\d.* " + steps, out)
     assert "wrote " in out and "BENCH.json" in out
 
 

@@ -52,5 +52,10 @@ def bench(
         )
     for stage, series in result["scaling"]["stages"].items():
         exponents = ", ".join(f"{who} {s['exponent']:.2f}" for who, s in series.items())
-        console.print(f"scaling {stage}: t ~ N^b with b = {exponents}")
+        ours = series["ours"]
+        steps = ""
+        if "iterations" in ours:
+            counts = "/".join(str(n) for n in ours["iterations"])
+            steps = f" (ours: {counts} steps, per step b = {ours['exponent_per_iteration']:.2f})"
+        console.print(f"scaling {stage}: t ~ N^b with b = {exponents}{steps}")
     console.print(f"wrote {write_bench(result, out)}")

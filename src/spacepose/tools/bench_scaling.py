@@ -4,7 +4,8 @@
 ``BenchConfig.scaling_sizes`` points: random subsets of one frame pair rendered at a resolution that
 holds the largest size (:func:`scaling_clouds`). Neighbourhoods are fixed in neighbours, not
 metres, so that every size does the same work per point, and :func:`fit_exponent` gives the
-exponent b of ``t ∝ N^b`` of each contender's median times. :func:`peak_memory` is the tracemalloc
+exponent b of ``t ∝ N^b`` of each contender's median times; for ICP and GICP also our
+step counts and the exponent of the time per step. :func:`peak_memory` is the tracemalloc
 peak of one call of each of our stages.
 """
 
@@ -20,6 +21,8 @@ from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.fpfh import FPFHConfig
+from spacepose.core.gicp import gicp
+from spacepose.core.icp import icp
 from spacepose.core.normals import estimate_normals
 from spacepose.core.sim import Frame
 from spacepose.tools.bench_data import gicp_config, icp_config, render_frames
@@ -38,6 +41,9 @@ if TYPE_CHECKING:
     from spacepose.tools.bench import BenchConfig
 
 SCALING_STAGES: tuple[str, ...] = ("normals", "fpfh", "icp", "gicp")
+# Stages that iterate to a stopping test: their step count is reported beside their time, since
+# a denser cloud may take more steps to meet the same tolerances (the peers' too).
+_ITERATIVE: tuple[str, ...] = ("icp", "gicp")
 # Render the scaling frames with this margin over the largest size, then subsample.
 _RENDER_MARGIN = 1.15
 
@@ -100,6 +106,7 @@ def run_scaling(
     """
     pairs, spacings = scaling_clouds(config.scaling_sizes, base, seed, config.frame_scale)
     series: dict[str, dict[str, list[float]]] = {s: {} for s in SCALING_STAGES}
+    iterations: dict[str, list[int]] = {s: [] for s in _ITERATIVE}
     sizes = []
     for (target, source), spacing in zip(pairs, spacings, strict=True):
         sizes.append(len(source))
@@ -116,16 +123,30 @@ def run_scaling(
             timings = time_interleaved(trials, repeats, config.warmup)
             for name, t in timings.items():
                 series[stage].setdefault(name, []).append(summarize(t.times_ms)["median_ms"])
+        # Untimed: how many steps our registrations took to meet the stopping test.
+        icp_run = icp(source, target_n, np.eye(4), icp_config(config), workers)
+        # Points only, as the GICP trials register them.
+        src, tgt = PointCloud(source.points), PointCloud(target.points)
+        gicp_run = gicp(src, tgt, np.eye(4), gicp_config(config), workers)
+        iterations["icp"].append(icp_run.iterations)
+        iterations["gicp"].append(gicp_run.iterations)
+    stages: dict[str, dict[str, dict]] = {
+        stage: {
+            name: {"median_ms": times, "exponent": fit_exponent(sizes, times)}
+            for name, times in by_name.items()
+        }
+        for stage, by_name in series.items()
+    }
+    for stage, counts in iterations.items():
+        per_step = [t / n for t, n in zip(series[stage]["ours"], counts, strict=True)]
+        stages[stage]["ours"] |= {
+            "iterations": counts,
+            "exponent_per_iteration": fit_exponent(sizes, per_step),
+        }
     return {
         "sizes": sizes,
         "fpfh_radius_m": [config.fpfh_spacing_factor * s for s in spacings],
-        "stages": {
-            stage: {
-                name: {"median_ms": times, "exponent": fit_exponent(sizes, times)}
-                for name, times in by_name.items()
-            }
-            for stage, by_name in series.items()
-        },
+        "stages": stages,
     }
 
 
