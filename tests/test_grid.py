@@ -289,7 +289,8 @@ def test_crop_sphere_keeps_what_numpy_keeps_to_the_bit():
     mask = crop_sphere(pts, center, radius)
     np.testing.assert_array_equal(mask, d2 <= radius**2)
     assert mask[on] and 0.2 * len(pts) < mask.sum() < 0.9 * len(pts)
-    # Lists and a column centre are points and a centre too.
+    # A cloud, lists and a column centre are points and a centre too.
+    np.testing.assert_array_equal(crop_sphere(PointCloud(pts), center, radius), mask)
     np.testing.assert_array_equal(crop_sphere(pts.tolist(), center[:, None], radius), mask)
 
 

@@ -357,7 +357,7 @@ def _cropped(pc: PointCloud, sphere: Sphere | None) -> PointCloud:
     """
     if sphere is None:
         return pc
-    kept = np.flatnonzero(crop_sphere(pc.points, *sphere))
+    kept = np.flatnonzero(crop_sphere(pc, *sphere))
     if len(kept) == 0:
         center, radius = sphere
         raise InputError(
