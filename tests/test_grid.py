@@ -292,6 +292,27 @@ def test_crop_sphere_keeps_what_numpy_keeps_to_the_bit():
     # A cloud, lists and a column centre are points and a centre too.
     np.testing.assert_array_equal(crop_sphere(PointCloud(pts), center, radius), mask)
     np.testing.assert_array_equal(crop_sphere(pts.tolist(), center[:, None], radius), mask)
+    # A negative radius, squared, used to crop as its opposite; a short centre crashed in
+    # numpy's reshape: both are refused by name now, as are NaN and a text radius.
+    for bad_center, bad_radius in (
+        (center, -radius),
+        (center[:2], radius),
+        (center, float("nan")),
+        ([np.inf, 0.0, 0.0], radius),
+        (center, "far"),
+    ):
+        with pytest.raises(InputError, match="a crop needs"):
+            crop_sphere(pts, bad_center, bad_radius)
+
+
+def test_voxel_downsample_options_are_keywords():
+    # A call written for the old third positional (a crop sphere) must not bind it to
+    # stray_share: positional options are refused, and a share that is not a number is named.
+    pts = _surface(2000, seed=3)
+    with pytest.raises(TypeError):
+        voxel_downsample(pts, 0.01, 0.1)  # type: ignore[misc]
+    with pytest.raises(InputError, match="stray_share must be a number"):
+        voxel_downsample(pts, 0.01, stray_share=(np.zeros(3), 0.1))  # type: ignore[arg-type]
 
 
 @pytest.mark.parametrize("voxel", [0.03, 0.05])

@@ -131,7 +131,7 @@ class FramePreparer:
         if cfg.use_mls:
             pc = mpp_mls(pc, L.mls, workers=self.workers)
         else:
-            pc = voxel_downsample(pc, L.voxel, cfg.stray_share)
+            pc = voxel_downsample(pc, L.voxel, stray_share=cfg.stray_share)
         if len(pc) < cfg.health.min_points:
             raise InputError(
                 f"{len(pc)} points after preprocessing (< {cfg.health.min_points})", pc.source
@@ -283,7 +283,7 @@ class FramePreparer:
             return None
         voxel, share = self.lengths.voxel, self.config.stray_share
         half = np.full(3, 0.5 * voxel)
-        pc = voxel_downsample(prepared.raw, voxel, share, origin=-half)
+        pc = voxel_downsample(prepared.raw, voxel, stray_share=share, origin=-half)
         return self.with_covariances(pc)
 
     def with_covariances(self, pc: PointCloud) -> PreparedCloud:

@@ -274,6 +274,7 @@ def _pack(cells, low, dims):
 def voxel_downsample(
     cloud: PointCloud | ArrayLike,
     voxel_size: float,
+    *,
     stray_share: float = 0.0,
     origin: ArrayLike | None = None,
 ) -> PointCloud:
@@ -294,6 +295,8 @@ def voxel_downsample(
         A bad voxel size or a ``stray_share`` outside [0, 1).
     """
     cloud = as_cloud(cloud, "cloud")
+    if isinstance(stray_share, bool) or not isinstance(stray_share, int | float | np.floating):
+        raise InputError(f"stray_share must be a number, got {stray_share!r}", cloud.source)
     if not 0.0 <= stray_share < 1.0:
         # A share of 1 or more can drop every voxel; NaN would silently drop none.
         raise InputError(f"stray_share must lie in [0, 1), got {stray_share}", cloud.source)
