@@ -828,10 +828,14 @@ def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(
     bound: a wall and floor alone let the pose slide along their corner) that becomes a
     keyframe carries that to every frame registered onto it, and on along the chain: none is
     `ok` (a hand-held room run slid 1 m so, and the frames after were `ok` 1 m off). Here
-    frame 3's condition is made to exceed the bound, and degraded frames always promoted."""
+    frame 3's condition is made to exceed the bound, and degraded frames always promoted; the
+    closure onto the first keyframe is switched off to see the mark alone (with it, frame 4
+    closes: tests/test_first_keyframe_closure.py)."""
     from spacepose.core import frame_check
+    from spacepose.core.fine_stage import FineStage
 
     _, frames = lab
+    monkeypatch.setattr(FineStage, "close_on_first", lambda self, prepared, checked, p: checked)
     real = frame_check.normalised_condition
     weak_frame = {"now": False}
 

@@ -58,6 +58,14 @@ class KeyframeWindow:
         self.keyframes = [first]
         self._slid = False
 
+    def snapshot(self) -> tuple[list[Keyframe], bool]:
+        """The window's state, for :meth:`restore` after a trial restart."""
+        return list(self.keyframes), self._slid
+
+    def restore(self, state: tuple[list[Keyframe], bool]) -> None:
+        """Back to a :meth:`snapshot`."""
+        self.keyframes, self._slid = list(state[0]), state[1]
+
     def update(
         self,
         index: int,

@@ -224,6 +224,7 @@ class Tracker:
                 )
             checked = self._fine.register(prepared, T, reach, prediction)
             prepared, checked = self._fine.split_off_support(prepared, checked, timestamp, reach)
+            checked = self._fine.close_on_first(prepared, checked, prediction)
             times["fine"] += elapsed_ms(tic)
         relocaliser = self._relocaliser
         coarse = checked[1] == "lost"
