@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spacepose.core import frame_check, se3
-from spacepose.core.config import validate_config
+from spacepose.core import se3
 from spacepose.core.fine_stage import FineStage
 from spacepose.core.frame_check import FAR_KEYFRAME, UNOBSERVED_CHAIN
 from spacepose.core.health import CONDITION
-from spacepose.core.sim.scenarios import LabConfig, OrbitConfig, simulate_lab, simulate_orbit
+from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.core.tracker import Tracker, TrackerConfig
 from spacepose.tools.experiments.fusion import tracker_errors
 
@@ -59,35 +58,3 @@ def test_without_the_closure_the_chain_stays_marked(orbit, monkeypatch):
     results, _ = _track(orbit)
     for r in results[49:]:
         assert r.status == "degraded" and r.reasons == (UNOBSERVED_CHAIN,)
-
-
-def test_a_lab_frame_marked_by_hand_closes_on_the_next_frame(monkeypatch):
-    """The lab run with frame 3's condition made to exceed the bound (the mark's own test in
-    tests/test_tracker.py): frame 4's chain is marked, its registration onto the first keyframe
-    passes every check and agrees with the chain, so it is ``ok`` on the first keyframe and
-    the frames after it register onto frame 4, ``ok`` and within 3σ of the truth."""
-    sim = simulate_lab(LabConfig(frames=7))
-    real = frame_check.normalised_condition
-    weak = {"now": False}
-
-    def condition(information, centroid, radius):
-        return 5e3 if weak["now"] else real(information, centroid, radius)
-
-    monkeypatch.setattr(frame_check, "normalised_condition", condition)
-    config = validate_config(TrackerConfig, {"keyframe": {"stale_fitness": 1.0}})
-    tracker = Tracker(config, workers=1)
-    T0 = sim.T_sensor_target[0]
-    results = []
-    for k in range(7):
-        weak["now"] = k == 3
-        frame = sim.frame(k)
-        results.append(tracker.track_frame(frame.cloud, frame.timestamp))
-    assert results[3].keyframe and results[3].reasons[0].startswith(CONDITION)
-    assert results[4].reference_index == 0 and results[4].keyframe
-    assert [r.reference_index for r in results[5:]] == [4, 4]
-    for k, r in enumerate(results[4:], start=4):
-        assert r.status == "ok"
-        e, sigma, _ = tracker_errors(
-            r.T_sensor_target, r.covariance, sim.T_sensor_target[k] @ se3.invert(T0)
-        )
-        assert np.all(np.abs(e) < 3.0 * sigma)

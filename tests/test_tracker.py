@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from spacepose.core import frame_registration, se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import validate_config
-from spacepose.core.frame_check import UNTESTED_MODEL
+from spacepose.core.frame_check import UNOBSERVED_CHAIN, UNTESTED_MODEL
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.health import HealthBounds, assess_health, covariance_at, pose_disagreement
 from spacepose.core.keyframes import PreparedCloud
@@ -823,19 +823,11 @@ def test_model_based_tracking_of_a_mesh_at_close_range_with_the_tof_camera():
     assert np.all(rms[3:] < 2e-3), rms[3:]
 
 
-def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(lab, monkeypatch):
-    """A frame whose registration leaves a direction unobserved (its condition above the
-    bound: a wall and floor alone let the pose slide along their corner) that becomes a
-    keyframe carries that to every frame registered onto it, and on along the chain: none is
-    `ok` (a hand-held room run slid 1 m so, and the frames after were `ok` 1 m off). Here
-    frame 3's condition is made to exceed the bound, and degraded frames always promoted; the
-    closure onto the first keyframe is switched off to see the mark alone (with it, frame 4
-    closes: tests/test_first_keyframe_closure.py)."""
+def _track_with_frame_3_unobserved(frames, monkeypatch):
+    """Results of the first 7 frames with frame 3's condition made to exceed the bound (a view
+    that leaves a direction unobserved) and degraded frames always promoted."""
     from spacepose.core import frame_check
-    from spacepose.core.fine_stage import FineStage
 
-    _, frames = lab
-    monkeypatch.setattr(FineStage, "close_on_first", lambda self, prepared, checked, p: checked)
     real = frame_check.normalised_condition
     weak_frame = {"now": False}
 
@@ -849,10 +841,42 @@ def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(
     for k, f in enumerate(frames[:7]):
         weak_frame["now"] = k == 3
         results.append(tracker.track_frame(f.cloud, f.timestamp))
-    assert results[2].reasons == (frame_check.UNTESTED_MODEL,)  # every check of its own passed
     assert results[3].keyframe and any(r.startswith("condition") for r in results[3].reasons)
+    return results
+
+
+def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(lab, monkeypatch):
+    """A frame whose registration leaves a direction unobserved (its condition above the
+    bound: a wall and floor alone let the pose slide along their corner) that becomes a
+    keyframe carries that to every frame registered onto it, and on along the chain: none is
+    `ok` (a hand-held room run slid 1 m so, and the frames after were `ok` 1 m off). The
+    closure onto the first keyframe is switched off to see the mark alone."""
+    from spacepose.core.fine_stage import FineStage
+
+    monkeypatch.setattr(FineStage, "close_on_first", lambda self, prepared, checked, p: checked)
+    results = _track_with_frame_3_unobserved(lab[1], monkeypatch)
+    assert results[2].reasons == (UNTESTED_MODEL,)  # every check of its own passed
     for r in results[4:]:
-        assert r.status == "degraded" and frame_check.UNOBSERVED_CHAIN in r.reasons
+        assert r.status == "degraded" and UNOBSERVED_CHAIN in r.reasons
+
+
+def test_a_marked_lab_chain_closes_onto_the_first_keyframe(lab, monkeypatch):
+    """The same run with the closure (core.fine_stage.close_on_first): frame 4's chain is
+    marked, its registration onto the first keyframe passes every check and agrees with the
+    chain, so it is ``ok`` on the first keyframe, and the frames after it, registered onto
+    frame 4, are ``ok`` and within 3σ of the truth."""
+    from spacepose.tools.experiments.fusion import tracker_errors
+
+    sim, frames = lab
+    results = _track_with_frame_3_unobserved(frames, monkeypatch)
+    assert results[4].reference_index == 0 and results[4].keyframe
+    assert [r.reference_index for r in results[5:]] == [4, 4]
+    T0 = sim.T_sensor_target[0]
+    for k, r in enumerate(results[4:], start=4):
+        assert r.status == "ok"
+        T_true = sim.T_sensor_target[k] @ se3.invert(T0)
+        e, sigma, _ = tracker_errors(r.T_sensor_target, r.covariance, T_true)
+        assert np.all(np.abs(e) < 3.0 * sigma)
 
 
 def test_frame_numbers_continue_where_told_and_never_go_back(lab):
