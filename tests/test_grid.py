@@ -281,17 +281,24 @@ def test_a_moved_grid_groups_as_a_numpy_reference_does(voxel):
 def test_crop_sphere_keeps_what_numpy_keeps_to_the_bit():
     # The compiled crop sums the squared distance as numpy sums a row ((dx² + dy²) + dz²): a
     # point whose squared distance is the radius squared to the bit is kept, as numpy keeps it.
-    pts = _surface(6000, seed=6)
-    center = pts.mean(axis=0) + np.array([0.05, -0.02, 0.0])
+    # Tiled past several chunks of its passes, with no-returns (points at the origin) among
+    # them, the indices are numpy's on every thread count.
+    pts = np.tile(_surface(6000, seed=6), (30, 1))
+    pts[::7] = 0.0
+    center = pts[1:6000].mean(axis=0) + np.array([0.05, -0.02, 0.0])
     d2 = ((pts - center) ** 2).sum(axis=1)
     on = next(i for i in np.argsort(d2)[len(pts) // 2 :] if np.sqrt(d2[i]) ** 2 == d2[i])
     radius = float(np.sqrt(d2[on]))
-    mask = crop_sphere(pts, center, radius)
-    np.testing.assert_array_equal(mask, d2 <= radius**2)
-    assert mask[on] and 0.2 * len(pts) < mask.sum() < 0.9 * len(pts)
+    expected = np.flatnonzero((d2 <= radius**2) & np.any(pts != 0.0, axis=1))
+    kept = crop_sphere(pts, center, radius)
+    np.testing.assert_array_equal(kept, expected)
+    assert on in kept and 0.2 * len(pts) < len(kept) < 0.9 * len(pts)
+    # No return is kept, though the sphere holds the origin.
+    assert not np.isin(np.arange(0, len(pts), 7), crop_sphere(pts, [0.0, 0.0, 0.0], 100.0)).any()
+    np.testing.assert_array_equal(crop_sphere(pts, center, radius, workers=2), kept)
     # A cloud, lists and a column centre are points and a centre too.
-    np.testing.assert_array_equal(crop_sphere(PointCloud(pts), center, radius), mask)
-    np.testing.assert_array_equal(crop_sphere(pts.tolist(), center[:, None], radius), mask)
+    np.testing.assert_array_equal(crop_sphere(PointCloud(pts), center, radius), kept)
+    np.testing.assert_array_equal(crop_sphere(pts.tolist(), center[:, None], radius), kept)
     # A negative radius, squared, used to crop as its opposite; a short centre crashed in
     # numpy's reshape: both are refused by name now, as are NaN and a text radius.
     for bad_center, bad_radius in (

@@ -70,7 +70,7 @@ def test_region_and_crop_closed_form():
     region = region_of(pts)
     np.testing.assert_allclose(region.center, 0.0)
     assert region.radius == pytest.approx(2.0)
-    assert crop_sphere(pts, [1.0, 0, 0], 1.0).tolist() == [True, False, False, False]
+    assert crop_sphere(pts, [1.0, 0, 0], 1.0).tolist() == [0]
 
 
 def test_a_frame_of_many_small_pieces_keeps_the_nearest_one():

@@ -101,29 +101,16 @@ class FramePreparer:
         if cloud is None:
             raise InputError("no points")
         pc = as_cloud(cloud, "frame")
-        # No-returns written as points at the sensor would be a dense object there, and set
-        # the spacing and scale.
-        valid = returns(pc)
-        if not valid.all():
-            pc = pc.select(np.flatnonzero(valid))
-        if cfg.use_background_removal:
-            pc, _ = remove_background(pc, cfg.background)
-        if self.scale is None and len(pc) >= 3 and on_a_line(pc.points):
-            # Not a first frame: its lengths and region would be a line's, and the next
-            # frame, which may see a surface, would inherit them.
-            raise DegenerateGeometryError(
-                "all points lie on a line or at one place: no surface to derive lengths from",
-                pc.source,
-            )
-        sphere = None
-        if cfg.isolate_target:
-            if self.scene_test is not None:
-                self.last_frame = pc
-            pc, sphere = self._isolate(pc, T_predicted, slack)
-        # Cropped once (a compiled pass and a copy of what is kept, 1.5 ms of a 900k-point raw
-        # frame): the frame's downsampling, the grid moved half a voxel and a keyframe's finer
-        # cloud then read the target's points only.
-        pc = _cropped(pc, sphere)
+        sphere = self._predicted_sphere(T_predicted, slack)
+        # A first frame is checked for a line, a background is removed from the whole frame,
+        # and the test of whether the target is the whole scene reads the whole frame.
+        whole = self.scale is None or cfg.use_background_removal or self.scene_test is not None
+        if sphere is None or whole:
+            pc, sphere = self._whole_frame(pc, T_predicted, slack)
+        # Cropped once, the returns kept in the same pass (two compiled passes over a raw
+        # 900k-point frame: 3 ms): the frame's downsampling, the grid moved half a voxel and a
+        # keyframe's finer cloud then read the target's points only.
+        pc = _cropped(pc, sphere, self.workers)
         if self.scale is None:
             self._set_scale(pc)
         L = self.lengths
@@ -297,6 +284,45 @@ class FramePreparer:
             )
         return PreparedCloud(pc, covariances)
 
+    def _predicted_sphere(
+        self, T_predicted: NDArray[np.float64] | None, slack: float
+    ) -> Sphere | None:
+        """Where the prediction puts the target: the sphere around it (its region's, widened by
+        the crop margin and ``slack`` m), or None when the frame is not cropped so (target
+        isolation off, a target alone in view, no region or no prediction yet)."""
+        if not self.config.isolate_target or self.alone:
+            return None
+        if self.region is None or T_predicted is None:
+            return None
+        center = se3.transform_points(T_predicted, self.region.center[None])[0]
+        return center, self.config.crop_margin * self.region.radius + slack
+
+    def _whole_frame(
+        self, pc: PointCloud, T_predicted: NDArray[np.float64] | None, slack: float
+    ) -> tuple[PointCloud, Sphere | None]:
+        """The frame's returns, without a background removed when so configured, and the
+        target's points or the sphere to crop to (:meth:`_isolate`): the steps a frame needs
+        when a predicted sphere alone does not say which points are the target's."""
+        # No-returns written as points at the sensor would be a dense object there, and set
+        # the spacing and scale.
+        valid = returns(pc, self.workers)
+        if not valid.all():
+            pc = pc.select(np.flatnonzero(valid))
+        if self.config.use_background_removal:
+            pc, _ = remove_background(pc, self.config.background)
+        if self.scale is None and len(pc) >= 3 and on_a_line(pc.points):
+            # Not a first frame: its lengths and region would be a line's, and the next
+            # frame, which may see a surface, would inherit them.
+            raise DegenerateGeometryError(
+                "all points lie on a line or at one place: no surface to derive lengths from",
+                pc.source,
+            )
+        if not self.config.isolate_target:
+            return pc, None
+        if self.scene_test is not None:
+            self.last_frame = pc
+        return self._isolate(pc, T_predicted, slack)
+
     def _isolate(
         self, pc: PointCloud, T_predicted: NDArray[np.float64] | None, slack: float
     ) -> tuple[PointCloud, Sphere | None]:
@@ -326,8 +352,7 @@ class FramePreparer:
                         pc.points, mask, spacing, self.config.points_per_frame, min_points
                     )
             return pc.select(np.flatnonzero(mask)), None
-        center = se3.transform_points(T_predicted, self.region.center[None])[0]
-        return pc, (center, self.config.crop_margin * self.region.radius + slack)
+        return pc, self._predicted_sphere(T_predicted, slack)
 
     def _set_scale(self, first: PointCloud) -> None:
         """Derive every length from the first usable frame."""
@@ -347,8 +372,9 @@ def _facing_bin(normals: NDArray[np.float64]) -> NDArray[np.intp]:
     return 2 * axis + positive
 
 
-def _cropped(pc: PointCloud, sphere: Sphere | None) -> PointCloud:
-    """The points of ``pc`` within ``sphere`` (all of them without one).
+def _cropped(pc: PointCloud, sphere: Sphere | None, workers: int) -> PointCloud:
+    """The returns of ``pc`` within ``sphere`` (``pc`` itself without one), on ``workers``
+    threads.
 
     Raises
     ------
@@ -357,7 +383,7 @@ def _cropped(pc: PointCloud, sphere: Sphere | None) -> PointCloud:
     """
     if sphere is None:
         return pc
-    kept = np.flatnonzero(crop_sphere(pc, *sphere))
+    kept = crop_sphere(pc, *sphere, workers)
     if len(kept) == 0:
         center, radius = sphere
         raise InputError(
