@@ -195,7 +195,7 @@ class FineStage:
         keyframe: the frame's keyframe, and the chain after it, rest on the first view again.
 
         A tumbling target shows its first faces again; without this a chain once marked stayed
-        marked (orbit run at 25 m, seed 1: no frame `ok` after frame 36 of 600).
+        marked (orbit run at 25 m, seed 1: no frame `ok` after frame 38 of 600).
         """
         estimate, _, reasons = checked
         first = None if self.support is None else self.support.first
