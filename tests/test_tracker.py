@@ -860,6 +860,33 @@ def test_a_keyframe_that_left_a_direction_unobserved_keeps_later_frames_from_ok(
         assert r.status == "degraded" and UNOBSERVED_CHAIN in r.reasons
 
 
+def test_a_closure_that_does_not_stand_changes_nothing(monkeypatch):
+    """The lab run at 1.2 m with three times the noise (the gate then follows the measured
+    residual σ): frames 4-6 try the closure and it is refused (made to disagree with the
+    chain). The run is the one without the closure to the bit, since the trial's residual noise
+    and design effect are dropped with it (before, they stayed: frames 5 and 6 moved by 0.05
+    and 0.3 mm)."""
+    from spacepose.core import fine_stage
+    from spacepose.tools.experiments.robustness_cells import Cell, cell_scenario
+
+    sim = simulate_lab(cell_scenario(Cell("lab", 1.2, 3.0, "constant", "none", 0), 7))
+    frames = [sim.frame(k) for k in range(7)]
+    runs = []
+    for refuse in (False, True):
+        with monkeypatch.context() as m:
+            if refuse:
+                m.setattr(fine_stage, "_agree", lambda closed, chained: False)
+            else:
+                m.setattr(
+                    fine_stage.FineStage, "close_on_first", lambda self, prep, checked, p: checked
+                )
+            runs.append(_track_with_frame_3_unobserved(frames, m))
+    for off, refused in zip(*runs, strict=True):
+        np.testing.assert_array_equal(off.T_sensor_target, refused.T_sensor_target)
+        np.testing.assert_array_equal(off.covariance, refused.covariance)
+        assert (off.status, off.reasons) == (refused.status, refused.reasons)
+
+
 def test_a_marked_lab_chain_closes_onto_the_first_keyframe(lab, monkeypatch):
     """The same run with the closure (core.fine_stage.close_on_first): frame 4's chain is
     marked, its registration onto the first keyframe passes every check and agrees with the

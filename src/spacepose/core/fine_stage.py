@@ -203,7 +203,9 @@ class FineStage:
             return checked
         if self.config.method != "keyframe" or estimate.reference is first:
             return checked
-        saved = self.window.snapshot()
+        # A closure that does not stand leaves the window, and the frame's residual noise and
+        # design effect, as the chain's registration left them.
+        saved, measured = self.window.snapshot(), self.registrar.set_aside()
         self.window.restart(first)
         closed = self.register(prepared, estimate.T_sensor_target, 0.0, prediction)
         # Far from the first keyframe is the usual case here: such a frame passed every check
@@ -212,6 +214,7 @@ class FineStage:
         if closed[1] != "lost" and own_checks and _agree(closed[0], estimate):
             return closed
         self.window.restore(saved)
+        self.registrar.put_back(measured)
         return checked
 
     def split_off_support(

@@ -139,6 +139,18 @@ class FrameRegistrar:
         target (a keyframe): most frames never are, and sources need none."""
         return prepared.with_normals(self.lengths.normals, self.workers)
 
+    def set_aside(self) -> tuple[list[float], float]:
+        """Take the frame's measurements so far (its pending residual σ, its design effect)
+        out of the registrar before a trial registration, whose own :meth:`put_back` drops."""
+        return self.noise.take(), self._design
+
+    def put_back(self, measured: tuple[list[float], float]) -> None:
+        """Drop a trial registration's measurements and put back those :meth:`set_aside`
+        took."""
+        self.noise.take()
+        pending, self._design = measured
+        self.noise.restore(pending)
+
     def approach(
         self,
         prepared: PreparedCloud,
