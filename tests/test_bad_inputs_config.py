@@ -485,6 +485,9 @@ def test_a_boolean_for_a_number_is_refused_in_an_init_transform_and_a_scenario(t
         scenario_geometry({"mean_motion": True, "R_O_C": np.eye(3).tolist()}, "s.json")
     with pytest.raises(InputError, match=r"s\.json: mean_motion holds text"):
         scenario_geometry({"mean_motion": "0.0011", "R_O_C": np.eye(3).tolist()}, "s.json")
+    # JSON's NaN reaches here as text through the YAML reader: named as not finite.
+    with pytest.raises(InputError, match=r"s\.json: mean_motion must be finite, got 'NaN'"):
+        scenario_geometry({"mean_motion": "NaN", "R_O_C": np.eye(3).tolist()}, "s.json")
     with pytest.raises(InputError, match=r"s\.json: R_O_C holds a yes/no"):
         scenario_geometry(
             {"mean_motion": 0.001, "R_O_C": [[True, 0, 0], [0, 1, 0], [0, 0, 1]]}, "s.json"

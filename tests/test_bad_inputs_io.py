@@ -109,6 +109,21 @@ def test_text_columns_follow_their_header(tmp_path):
         with pytest.raises(FileFormatError) as info:
             read_cloud(path)
         assert str(info.value).endswith(f"zyx.csv: line 1: not a number in ['{bad}', '2', '3']")
+    # Python's float reads 1_000; the table's parser does not (the error had no line).
+    path.write_text("1,2,3\n1_000,2,3\n")
+    with pytest.raises(FileFormatError, match=r"zyx\.csv: line 2: not a number in \['1_000'"):
+        read_cloud(path)
+    # A spreadsheet's trailing comma is an empty field, named with its line.
+    path.write_text("1,2,3,\n4,5,6,\n")
+    with pytest.raises(FileFormatError, match=r"zyx\.csv: line 1: an empty field between commas"):
+        read_cloud(path)
+    # Text in another encoding is named as not UTF-8 at its byte (it read "binary content").
+    latin = tmp_path / "latin.txt"
+    latin.write_bytes("# température\n1 2 3\n".encode("latin-1"))
+    with pytest.raises(
+        FileFormatError, match=r"latin\.txt: not UTF-8 text \(byte 0xe9 at offset 6\)"
+    ):
+        read_cloud(latin)
 
 
 @pytest.mark.parametrize("text", [False, True])

@@ -73,6 +73,10 @@ def test_equal_faces_are_legal_and_listed_as_size_classes():
         ([_e("skew", 1.0, 2.0, [[1, 0, 0], [0, 1, 0.1], [0, 0, 1]])], r"'skew'.*proper rotation"),
         ([_e("mirror", 1.0, 2.0, np.diag([1.0, 1.0, -1.0]).tolist())], r"'mirror'.*rotation"),
         ([_e("neg", -1.0, 2.0)], r"'neg'.*greater than 0"),
+        # NaN is named as such, not by the bound it fails; a centre whose square overflows is
+        # refused (it printed numpy's bare overflow warning and went on).
+        ([_e("nan", float("nan"), 2.0)], r"'nan'.*a: Input should be a finite number"),
+        ([{**_e("far", 1.0, 2.0), "center": [1e300, 0, 0]}], r"'far'.*center: must be finite"),
         ([{"name": "half", "a": 1.0}], r"'half'.*center.*Field required"),
         ([_e("x", 1.0, 2.0), _e("x", 3.0, 4.0)], "duplicate rectangle names: x"),
         # 1.00 x 2.00 and 1.03 x 2.05 with parallel normals, same centre: one face twice.

@@ -245,6 +245,17 @@ def test_pcd_binary_compressed_is_refused(tmp_path: Path) -> None:
         read_cloud(path)
 
 
+def test_a_negative_ply_count_is_named(tmp_path: Path) -> None:
+    # It read as "bytes of data beyond its header's counts".
+    ply = tmp_path / "neg.ply"
+    ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex -5\nproperty float x\nproperty float y\n"
+        "property float z\nend_header\n1 2 3\n"
+    )
+    with _raises_naming(ply, "the header counts -5 'vertex' rows: a count is >= 0"):
+        read_cloud(ply)
+
+
 def test_no_xyz_properties(tmp_path: Path) -> None:
     ply = tmp_path / "abc.ply"
     ply.write_text(
@@ -255,8 +266,13 @@ def test_no_xyz_properties(tmp_path: Path) -> None:
         read_cloud(ply)
     pcd = tmp_path / "abc.pcd"
     pcd.write_text("FIELDS a b c\nSIZE 4 4 4\nTYPE F F F\nPOINTS 1\nDATA ascii\n1 2 3\n")
-    with _raises_naming(pcd, "no x/y/z properties"):
+    with _raises_naming(pcd, r"no x, y and z fields of COUNT 1 \(FIELDS: a \(COUNT 1\)"):
         read_cloud(pcd)
+    # One field of three values is named as such (it read "found []").
+    packed = tmp_path / "packed.pcd"
+    packed.write_text("FIELDS xyz\nSIZE 4\nTYPE F\nCOUNT 3\nPOINTS 1\nDATA ascii\n1 2 3\n")
+    with _raises_naming(packed, r"FIELDS: xyz \(COUNT 3\)"):
+        read_cloud(packed)
     npz = tmp_path / "abc.npz"
     np.savez(npz, xyz=np.zeros((2, 3)))
     with _raises_naming(npz, "no 'points' array"):
@@ -429,6 +445,17 @@ def test_normals_of_zero_length_are_refused_and_others_made_unit(tmp_path: Path)
     with pytest.warns(SpaceposeWarning, match=r"long.xyz: 100 normals are not of unit length"):
         cloud = read_cloud(long)
     np.testing.assert_array_equal(cloud.normals, np.tile([0.0, 0.0, 1.0], (100, 1)))
+    # Of 1e300 they are directions too: their squares overflowed (numpy's bare warning, an inf
+    # length, and the normals kept 1e300 long).
+    huge = tmp_path / "huge.npy"
+    np.save(huge, np.c_[p, np.tile([0.0, 3e300, 4e300], (100, 1))])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cloud = read_cloud(huge)
+    assert [str(w.message) for w in caught] == [
+        f"{huge}: 100 normals are not of unit length (point 0: 5e+300); read as their directions"
+    ]
+    np.testing.assert_allclose(cloud.normals, np.tile([0.0, 0.6, 0.8], (100, 1)), rtol=1e-15)
     n = np.random.default_rng(1).normal(size=(100, 3))
     n /= np.linalg.norm(n, axis=1)[:, None]
     unit = tmp_path / "unit.npy"

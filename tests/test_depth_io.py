@@ -170,6 +170,8 @@ def test_a_ros_camera_info_yaml_is_an_intrinsics_file(tmp_path):
         (("data: [505.2, 0, 318.7", "data: [0, 0, 318.7"), "no focal length"),
         (("plumb_bob", "equidistant"), "equidistant"),
         (("data: [-0.12,", "data: [x,"), "numbers"),
+        # A YAML null (NaN) is named as such: it read "at most 8 ..., got 5".
+        (("data: [-0.12,", "data: [null,"), r"non-finite numbers: \[nan,"),
     ],
 )
 def test_a_camera_matrix_that_is_not_a_pinhole_is_refused_by_name(tmp_path, change, problem):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.trajectory_io import (
     read_kitti,
     read_trajectory,
@@ -93,8 +94,18 @@ def test_tum_matches_evo_reader(tmp_path: Path, random_trajectory: Trajectory) -
 def test_tum_reads_comments_and_unnormalised_quaternions(tmp_path: Path) -> None:
     path = tmp_path / "c.tum"
     path.write_text("# header\n\n1.0 1 2 3 0 0 0 2  # identity, scaled quaternion\n")
-    traj = read_tum(path)
+    # Read as its rotation, with a warning naming the file and line: a quaternion this far
+    # from unit length is more often columns in another order than a scaled rotation.
+    with pytest.warns(
+        SpaceposeWarning, match=r"c\.tum: 1 quaternions are not of unit length \(line 3: 2\)"
+    ):
+        traj = read_tum(path)
     np.testing.assert_allclose(traj.poses[0], se3.make_transform(np.eye(3), [1, 2, 3]))
+    # Written to 4 decimals, a unit quaternion is within the tolerance: no warning.
+    path.write_text("1.0 0 0 0 0.7071 0 0 0.7071\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_tum(path)
 
 
 def test_kitti_round_trip_and_timestamps(tmp_path: Path, random_trajectory: Trajectory) -> None:

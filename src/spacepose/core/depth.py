@@ -130,8 +130,11 @@ def matrix_fields(
     # A skewed or projective matrix is not a pinhole with square pixel axes.
     if k[1] != 0 or k[3] != 0 or np.any(k[6:] != (0.0, 0.0, 1.0)):
         raise InputError("the camera matrix must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
-    if d.size > len(_OPENCV_DISTORTION) or not np.all(np.isfinite(d)):
-        raise InputError(f"expected at most 8 finite distortion coefficients, got {d.size}")
+    if d.size > len(_OPENCV_DISTORTION):
+        raise InputError(f"expected at most 8 distortion coefficients, got {d.size}")
+    if not np.all(np.isfinite(d)):
+        # A YAML null reads as NaN.
+        raise InputError(f"the distortion coefficients hold non-finite numbers: {d.tolist()}")
     if np.any(d) and distortion_model not in (None, "plumb_bob", "rational_polynomial"):
         raise InputError(f"distortion model {distortion_model!r} is not supported")
     fields = {"fx": k[0], "fy": k[4], "cx": k[2], "cy": k[5]}

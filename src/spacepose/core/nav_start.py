@@ -51,6 +51,9 @@ def scenario_geometry(
         if holds_boolean(scenario[key]):
             raise InputError(f"{key} holds a yes/no where a number goes", source)
         if holds_text(scenario[key]):
+            if _spelt_non_finite(scenario[key]):
+                # JSON's NaN and Infinity read as text through YAML.
+                raise InputError(f"{key} must be finite, got {scenario[key]!r}", source)
             raise InputError(f"{key} holds text where a number goes (write it unquoted)", source)
     try:
         n = float(scenario["mean_motion"])
@@ -68,6 +71,16 @@ def scenario_geometry(
     if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise InputError("R_O_C must be a 3x3 rotation matrix", source)
     return n, R
+
+
+def _spelt_non_finite(value: Any) -> bool:
+    """Whether ``value`` (text, or lists of it) spells NaN or an infinity somewhere."""
+    if isinstance(value, list | tuple):
+        return any(_spelt_non_finite(v) for v in value)
+    try:
+        return isinstance(value, str) and not np.isfinite(float(value))
+    except ValueError:
+        return False
 
 
 def start_filter(

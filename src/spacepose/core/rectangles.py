@@ -83,7 +83,8 @@ class CatalogueEntry(BaseModel):
         Full side lengths (m), ``0 < a <= b``.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # NaN and inf are refused as such ("a finite number"), not by the bounds they fail.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     name: str = Field(min_length=1)
     center: tuple[float, float, float]

@@ -25,6 +25,7 @@ from pydantic import ValidationError
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
+from spacepose.core.cloud import MAX_ABS_COORDINATE
 from spacepose.core.config import parse_structured, read_config_text
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, side_tolerance
 from spacepose.errors import ConfigError
@@ -85,11 +86,20 @@ def parse_catalogue(
             raise ConfigError(f"{source}: rectangle {label}: {problems}") from None
         # The model takes inf for a float (and the sides' gt=0 lets +inf through); a face at
         # infinity or of infinite size is no face.
-        infinite = [k for k in ("center", "a", "b") if not np.all(np.isfinite(getattr(entry, k)))]
+        # Beyond a cloud's largest coordinate the squares overflow (numpy's bare warning).
+        infinite = [
+            k
+            for k in ("center", "a", "b")
+            if not np.all(np.abs(getattr(entry, k)) <= MAX_ABS_COORDINATE)
+        ]
         if infinite:
             raise ConfigError(
                 f"{source}: rectangle {label}: "
-                + "; ".join(f"{k}: must be finite, got {getattr(entry, k)}" for k in infinite)
+                + "; ".join(
+                    f"{k}: must be finite and at most {MAX_ABS_COORDINATE:.3g} m, "
+                    f"got {getattr(entry, k)}"
+                    for k in infinite
+                )
             )
         entries.append(entry)
     names = [e.name for e in entries]

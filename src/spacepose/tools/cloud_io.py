@@ -107,8 +107,14 @@ def _unit_normals(normals: NDArray[np.float64], path: Path) -> NDArray[np.float6
     """A file's normals as unit vectors: one of zero length has no direction (refused), one
     of another length is read as its direction, with a warning (a registration weighs a
     point-to-plane residual by its normal's length)."""
-    length = np.linalg.norm(normals, axis=1)
-    finite = np.isfinite(length)
+    # Lengths of rows scaled by their largest component: a normal of 1e300 is a direction too,
+    # and its square must not overflow (numpy's bare warning, and an inf length kept it as is).
+    largest = np.max(np.abs(normals), axis=1)
+    finite = np.isfinite(largest)
+    scaled = normals / np.where(finite & (largest > 0), largest, 1.0)[:, None]
+    unit_length = np.linalg.norm(scaled, axis=1)
+    with np.errstate(over="ignore"):
+        length = largest * unit_length
     zero = np.flatnonzero(finite & (length < 1e-6))
     if len(zero):
         raise FileFormatError(
@@ -125,7 +131,7 @@ def _unit_normals(normals: NDArray[np.float64], path: Path) -> NDArray[np.float6
         )
         warnings.warn(SpaceposeWarning(problem, path), stacklevel=3)
         normals = normals.copy()
-        normals[off] /= length[off, None]
+        normals[off] = scaled[off] / unit_length[off, None]
     return normals
 
 
@@ -235,9 +241,13 @@ def _check_ply_counts(header: plyfile.PlyData, body_bytes: int) -> None:
     Raises
     ------
     plyfile.PlyParseError
-        Rows promised beyond what ``body_bytes`` can hold.
+        A negative count, or rows promised beyond what ``body_bytes`` can hold.
     """
     for element in header.elements:
+        if element.count < 0:
+            raise plyfile.PlyParseError(
+                f"the header counts {element.count:,} '{element.name}' rows: a count is >= 0"
+            )
         if header.text:
             row = 2 * len(element.properties)
         else:
@@ -329,8 +339,13 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
     try:
         # utf-8-sig drops a byte-order mark, which would otherwise hide the first row's number.
         text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError:
-        raise FileFormatError("not a text point file (binary content)", path) from None
+    except UnicodeDecodeError as exc:
+        byte = exc.object[exc.start]
+        raise FileFormatError(
+            f"not UTF-8 text (byte 0x{byte:02x} at offset {exc.start}): binary content, or "
+            "text in another encoding",
+            path,
+        ) from None
     lines = text.splitlines()
     first = next(
         (i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")), None
@@ -351,7 +366,7 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
                 io.StringIO(text), delimiter=delimiter, comments="#", skiprows=skip, ndmin=2
             )
     except ValueError:
-        raise FileFormatError(_first_bad_line(lines[skip:], skip), path) from None
+        raise FileFormatError(_first_bad_line(lines[skip:], skip, delimiter), path) from None
     if table.shape[0] == 0:
         raise FileFormatError("no point rows in text file", path)
     if header:
@@ -392,14 +407,18 @@ def _named_columns(
     return xyz, None
 
 
-def _first_bad_line(lines: list[str], offset: int) -> str:
+def _first_bad_line(lines: list[str], offset: int, delimiter: str | None) -> str:
     """Describe the first row that breaks a numeric table (only called once parsing failed)."""
     width = None
     for i, line in enumerate(lines, start=offset + 1):
-        row = line.split("#", 1)[0].replace(",", " ").split()
+        data = line.split("#", 1)[0]
+        if delimiter is not None and data.strip() and "" in [f.strip() for f in data.split(",")]:
+            return f"line {i}: an empty field between commas (a trailing or doubled ',')"
+        row = data.replace(",", " ").split()
         if not row:
             continue
-        if not all(_is_number(t) for t in row):
+        # Python's float reads "1_000"; the table's parser does not.
+        if not all(_is_number(t) and "_" not in t for t in row):
             return f"line {i}: not a number in {row}"
         if width is not None and len(row) != width:
             return f"line {i}: {len(row)} columns where earlier rows have {width}"

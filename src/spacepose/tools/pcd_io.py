@@ -84,6 +84,10 @@ def read_pcd_table(path: Path) -> dict[str, NDArray[np.float64]]:
         )
     else:
         raise FileFormatError(f"PCD DATA {mode!r} is not ascii or binary", path)
+    single = [name for name, count in zip(fields, counts, strict=True) if count == 1]
+    if not {"x", "y", "z"} <= set(single):
+        listed = ", ".join(f"{n} (COUNT {c})" for n, c in zip(fields, counts, strict=True))
+        raise FileFormatError(f"PCD has no x, y and z fields of COUNT 1 (FIELDS: {listed})", path)
     # Column index of each single-valued field in the flattened table.
     offsets = np.cumsum([0, *counts[:-1]])
     return {

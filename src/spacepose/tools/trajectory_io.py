@@ -7,6 +7,7 @@ write/read round trip reproduces the poses to float64 precision.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -14,8 +15,11 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.text_io import read_text
+
+# Largest |‖q‖ − 1| of a quaternion read without a warning.
+_QUATERNION_TOLERANCE = 1e-3
 
 _TUM_COLUMNS = 8
 _KITTI_COLUMNS = 12
@@ -99,6 +103,16 @@ def read_tum(path: str | Path) -> Trajectory:
     bad = norms < 1e-12
     if bad.any():
         raise FileFormatError(f"line {lines[np.argmax(bad)]}: zero quaternion", path)
+    # Text rounding leaves a unit quaternion within about 1e-6 of unit length; one far from it
+    # is more likely columns in another order, or a corrupt file, than a rotation.
+    off = np.flatnonzero(np.abs(norms - 1.0) > _QUATERNION_TOLERANCE)
+    if len(off):
+        k = off[0]
+        problem = (
+            f"{len(off)} quaternions are not of unit length (line {lines[k]}: {norms[k]:.4g}); "
+            "read as their rotations"
+        )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
     poses = np.zeros((len(rows), 4, 4))
     poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
     poses[:, :3, 3] = rows[:, 1:4]
