@@ -245,23 +245,25 @@ def test_pcd_binary_compressed_is_refused(tmp_path: Path) -> None:
         read_cloud(path)
 
 
+def _ascii_ply(path: Path, count: int, names: str) -> Path:
+    """An ASCII PLY of one row ``1 2 3`` whose header counts ``count`` vertices of float
+    properties ``names`` (space-separated)."""
+    properties = "".join(f"property float {n}\n" for n in names.split())
+    path.write_text(
+        f"ply\nformat ascii 1.0\nelement vertex {count}\n{properties}end_header\n1 2 3\n"
+    )
+    return path
+
+
 def test_a_negative_ply_count_is_named(tmp_path: Path) -> None:
     # It read as "bytes of data beyond its header's counts".
-    ply = tmp_path / "neg.ply"
-    ply.write_text(
-        "ply\nformat ascii 1.0\nelement vertex -5\nproperty float x\nproperty float y\n"
-        "property float z\nend_header\n1 2 3\n"
-    )
+    ply = _ascii_ply(tmp_path / "neg.ply", -5, "x y z")
     with _raises_naming(ply, "the header counts -5 'vertex' rows: a count is >= 0"):
         read_cloud(ply)
 
 
 def test_no_xyz_properties(tmp_path: Path) -> None:
-    ply = tmp_path / "abc.ply"
-    ply.write_text(
-        "ply\nformat ascii 1.0\nelement vertex 1\nproperty float a\nproperty float b\n"
-        "property float c\nend_header\n1 2 3\n"
-    )
+    ply = _ascii_ply(tmp_path / "abc.ply", 1, "a b c")
     with _raises_naming(ply, "no x/y/z properties"):
         read_cloud(ply)
     pcd = tmp_path / "abc.pcd"

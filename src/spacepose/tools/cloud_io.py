@@ -125,14 +125,21 @@ def _unit_normals(normals: NDArray[np.float64], path: Path) -> NDArray[np.float6
     off = np.flatnonzero(finite & (np.abs(length - 1.0) > 1e-3))
     if len(off):
         k = off[0]
-        problem = (
-            f"{len(off)} normals are not of unit length (point {k}: {length[k]:.4g}); "
-            "read as their directions"
-        )
-        warnings.warn(SpaceposeWarning(problem, path), stacklevel=3)
+        warn_not_unit(len(off), "normals", f"point {k}", length[k], "directions", path)
         normals = normals.copy()
         normals[off] = scaled[off] / unit_length[off, None]
     return normals
+
+
+def warn_not_unit(
+    count: int, things: str, first: str, length: float, read_as: str, path: Path
+) -> None:
+    """Warn (naming ``path``) that ``count`` ``things`` of a file are not of unit length, the
+    first at ``first`` with ``length``, and are read as their ``read_as``."""
+    problem = (
+        f"{count} {things} are not of unit length ({first}: {length:.4g}); read as their {read_as}"
+    )
+    warnings.warn(SpaceposeWarning(problem, path), stacklevel=4)
 
 
 def warn_if_not_metres(cloud: PointCloud, source: str | Path, remedy: str = _RESCALE) -> None:

@@ -7,7 +7,6 @@ write/read round trip reproduces the poses to float64 precision.
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +14,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
+from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.cloud_io import warn_not_unit
 from spacepose.tools.text_io import read_text
 
 # Largest |‖q‖ − 1| of a quaternion read without a warning.
@@ -108,11 +108,7 @@ def read_tum(path: str | Path) -> Trajectory:
     off = np.flatnonzero(np.abs(norms - 1.0) > _QUATERNION_TOLERANCE)
     if len(off):
         k = off[0]
-        problem = (
-            f"{len(off)} quaternions are not of unit length (line {lines[k]}: {norms[k]:.4g}); "
-            "read as their rotations"
-        )
-        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
+        warn_not_unit(len(off), "quaternions", f"line {lines[k]}", norms[k], "rotations", path)
     poses = np.zeros((len(rows), 4, 4))
     poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
     poses[:, :3, 3] = rows[:, 1:4]
