@@ -189,10 +189,11 @@ class FineStage:
     ) -> Checked:
         """Model-free: a frame held back only because its keyframe chain passed through a view
         that left a direction unobserved (methods.md §5.4), registered onto the first keyframe,
-        the one reference no slide has touched. When that registration is ``ok`` on its own
-        checks and agrees with the chain's pose within their joint covariance (the chain's
-        drift included), it replaces the chain's and the window restarts at the first
-        keyframe: the frame's keyframe, and the chain after it, rest on the first view again.
+        the one reference no slide has touched. When that registration passes every check of
+        its own (its distance from the first keyframe aside) and agrees with the chain's pose
+        within their summed covariances (the chain's drift included), it replaces the chain's
+        and the window restarts at the first keyframe: the frame's keyframe, and the chain
+        after it, rest on the first view again. Otherwise nothing changes.
 
         A tumbling target shows its first faces again; without this a chain once marked stayed
         marked (orbit run at 25 m, seed 1: no frame `ok` after frame 38 of 600).

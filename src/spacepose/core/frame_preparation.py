@@ -107,9 +107,9 @@ class FramePreparer:
         whole = self.scale is None or cfg.use_background_removal or self.scene_test is not None
         if sphere is None or whole:
             pc, sphere = self._whole_frame(pc, T_predicted, slack)
-        # Cropped once, the returns kept in the same pass (two compiled passes over a raw
-        # 900k-point frame: 3 ms): the frame's downsampling, the grid moved half a voxel and a
-        # keyframe's finer cloud then read the target's points only.
+        # Cropped once, the returns kept in the same compiled pass (a raw 900k-point frame is
+        # read once): the frame's downsampling, the grid moved half a voxel and a keyframe's
+        # finer cloud then read the target's points only.
         pc = _cropped(pc, sphere, self.workers)
         if self.scale is None:
             self._set_scale(pc)
