@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from spacepose.core.depth import DepthCamera, render_depth
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.depth_io import read_depth_image, write_depth_image
-from spacepose.tools.navigation_io import navigate_run
+from spacepose.tools.navigation_io import SCENARIO_KEYS, navigate_run
 from spacepose.tools.runs import write_run
 
 FRAMES = 6
@@ -96,3 +97,27 @@ def test_an_output_that_cannot_be_written_fails_before_navigating(run_dir, tmp_p
     (tmp_path / "out.config.json").mkdir()  # a companion in the way counts too
     with pytest.raises(InputError, match=r"out\.config\.json"):
         navigate_run(run_dir, tmp_path / "out.csv")
+
+
+def test_a_scenario_file_key_no_scenario_holds_is_named(run_dir, tmp_path, monkeypatch):
+    """A misspelt optional key (``rectangle`` for ``rectangles``) used to be ignored without a
+    word. A simulated run's own scenario.json holds no key the warning calls unknown."""
+
+    class Stop(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Stop
+
+    monkeypatch.setattr("spacepose.tools.navigation_io.navigate", stop)
+    scenario = json.loads((run_dir / "scenario.json").read_text())
+    assert set(scenario) <= SCENARIO_KEYS
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(Stop):
+            navigate_run(run_dir, tmp_path / "a.csv", scenario=run_dir / "scenario.json")
+    typo = tmp_path / "typo.json"
+    typo.write_text(json.dumps(scenario | {"rectangle": scenario["rectangles"]}))
+    with pytest.warns(SpaceposeWarning, match=r"typo\.json: unknown keys \['rectangle'\]"):
+        with pytest.raises(Stop):
+            navigate_run(run_dir, tmp_path / "b.csv", scenario=typo)

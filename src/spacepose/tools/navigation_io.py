@@ -39,6 +39,18 @@ from spacepose.tools.runs import SCENARIO, read_run
 from spacepose.tools.text_io import read_text
 from spacepose.tools.tracking_io import open_table, write_health_csv
 
+# What navigation reads from a scenario file (the orbit, the chaser's attitude, the catalogue,
+# a model, the sensor's field of view, the debugging prior), and the rest of what a simulated
+# orbit run's scenario.json holds (a test keeps these in step with the simulator).
+NAVIGATION_KEYS = ("mean_motion", "R_O_C", "rectangles", "model", "sensor_fov_deg")
+SCENARIO_KEYS = frozenset(
+    {
+        *NAVIGATION_KEYS, "initial_q_I_B", "R_O_C_true", "com_offset", "config", "frames",
+        "inertia", "inertia_ratios", "initial_state", "process_noise", "rate_rad_s",
+        "rectangles_true", "scenario", "seed", "spacepose_version", "target",
+    }
+)  # fmt: skip
+
 
 @dataclass(frozen=True)
 class NavigationSummary:
@@ -154,6 +166,7 @@ def navigate_run(
     if scenario is not None:
         source = str(scenario)
         description = _read_mapping(Path(scenario))
+        _warn_unknown_keys(description, source)
     elif (Path(input_dir) / SCENARIO).is_file():
         source = str(Path(input_dir) / SCENARIO)
         description = read_run(input_dir).scenario
@@ -285,6 +298,19 @@ def _why_nothing(rows: Sequence[NavRow], candidates_csv: Path | None, has_model:
         f"no frame navigated: none of the {len(rows)} frames shows a whole rectangle of the "
         "catalogue (check the catalogue's sizes and the plane settings)"
     )
+
+
+def _warn_unknown_keys(description: dict, source: str) -> None:
+    """Warn, naming ``source``, of a scenario file's keys no scenario holds: a misspelt
+    optional key (``rectangle`` for ``rectangles``) would otherwise be ignored without a
+    word."""
+    unknown = sorted(set(description) - SCENARIO_KEYS)
+    if unknown:
+        problem = (
+            f"unknown keys {unknown} ignored (misspelt? navigation reads "
+            f"{', '.join(NAVIGATION_KEYS)})"
+        )
+        warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
 
 
 def _model(
