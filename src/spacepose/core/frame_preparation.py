@@ -300,9 +300,9 @@ class FramePreparer:
     def _whole_frame(
         self, pc: PointCloud, T_predicted: NDArray[np.float64] | None, slack: float
     ) -> tuple[PointCloud, Sphere | None]:
-        """The frame's returns, without a background removed when so configured, and the
-        target's points or the sphere to crop to (:meth:`_isolate`): the steps a frame needs
-        when a predicted sphere alone does not say which points are the target's."""
+        """The frame's returns (its background removed, when so configured), and the target's
+        points or the sphere to crop them to (:meth:`_isolate`): the steps a frame needs when a
+        predicted sphere alone does not say which points are the target's."""
         # No-returns written as points at the sensor would be a dense object there, and set
         # the spacing and scale.
         valid = returns(pc, self.workers)
