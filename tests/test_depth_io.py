@@ -181,6 +181,44 @@ def test_a_camera_matrix_that_is_not_a_pinhole_is_refused_by_name(tmp_path, chan
         read_intrinsics(path)
 
 
+@pytest.mark.parametrize(
+    ("extra", "problem"),
+    [
+        ("fx: 400\n", "fx given twice, by the ROS camera_info layout"),
+        ("k1: 0\n", "k1 given twice"),
+        ("width: 320\n", "width given twice"),
+        ("intrinsic_matrix: [400, 0, 0, 0, 400, 0, 320, 240, 1]\n", "holds both camera_matrix"),
+    ],
+)
+def test_a_field_given_twice_by_a_layout_and_a_key_is_refused(tmp_path, extra, problem):
+    """The key beside the ROS matrix (or the Open3D matrix beside it) used to win, or lose,
+    without a word: a focal length of another camera taken for this one's."""
+    path = tmp_path / "intrinsics.yaml"
+    path.write_text(ROS_CAMERA_INFO + extra)
+    with pytest.raises(ConfigError, match=rf"intrinsics\.yaml: {problem}"):
+        read_intrinsics(path)
+    (tmp_path / "o3d.json").write_text('{"intrinsic_matrix": [400,0,0,0,400,0,20,10,1], "cx": 5}')
+    with pytest.raises(ConfigError, match=r"o3d\.json: cx given twice, by intrinsic_matrix"):
+        read_intrinsics(tmp_path / "o3d.json")
+
+
+@pytest.mark.parametrize("value", ["0.1", "null", "{data: 0.1}"])
+def test_a_ros_matrix_that_is_not_a_list_is_refused(tmp_path, value):
+    """``distortion_coefficients: 0.1`` was read as k1 = 0.1 (numpy takes a lone number for a
+    list of one)."""
+    text = ROS_CAMERA_INFO.split("distortion_coefficients:")[0] + "distortion_coefficients: "
+    path = tmp_path / "camera_info.yaml"
+    path.write_text(text + value + "\n")
+    if value == "null":  # no coefficients at all: no distortion, as before
+        assert not read_intrinsics(path).distorted
+        path.write_text("camera_matrix: null\n")
+        match = "camera_matrix must be a list of numbers"
+    else:
+        match = "distortion_coefficients must be a list of numbers or {rows, cols, data}, got 0.1"
+    with pytest.raises(ConfigError, match=rf"camera_info\.yaml: {match}"):
+        read_intrinsics(path)
+
+
 @pytest.mark.peers
 def test_open3d_intrinsics_json_back_projects_as_open3d_does(tmp_path):
     """Open3D writes the file and back-projects the depth image: the reference."""

@@ -306,3 +306,26 @@ def test_two_intrinsics_files_in_one_folder_are_refused(folders, tmp_path, capsy
     assert main(["track", str(copy), "--out", str(tmp_path / "e.tum")]) == 1
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "keep one" in err and str(copy) in err, err
+
+
+def test_intrinsics_for_point_clouds_are_refused_not_ignored(sim, folders, tmp_path, capsys):
+    """--intrinsics with a run folder (track, navigate) or with two cloud files (register) was
+    ignored without a word: the user believed the clouds were read through them."""
+    from spacepose.tools.runs import write_run
+
+    intrinsics = str(folders["depth"] / "intrinsics.yaml")
+    run = write_run(tmp_path / "run", simulate(scenario_config("lab", frames=2)))
+    with pytest.raises(InputError, match="run: intrinsics apply to depth images, and this is a"):
+        open_frames(run, intrinsics=intrinsics)
+    assert (
+        main(["track", str(run), "--out", str(tmp_path / "e.tum"), "--intrinsics", intrinsics]) == 1
+    )
+    assert "leave out --intrinsics" in capsys.readouterr().err
+    assert not (tmp_path / "e.tum").exists()
+    frames = [str(run / "frames" / f"00000{k}.ply") for k in (0, 1)]
+    assert main(["register", *frames, "--intrinsics", intrinsics]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(
+        "intrinsics.yaml: intrinsics apply to depth images (.png, .tif, .tiff), and neither "
+        "000000.ply nor 000001.ply is one: leave out --intrinsics"
+    ), err

@@ -178,6 +178,11 @@ def read_intrinsics(path: str | Path) -> DepthCamera:
     """
     data = read_mapping(path) or {}
     try:
+        if "camera_matrix" in data and "intrinsic_matrix" in data:
+            # One would be used and the other ignored without a word.
+            raise InputError(
+                "holds both camera_matrix (ROS) and intrinsic_matrix (Open3D): keep one"
+            )
         data = _ros_fields(data) if "camera_matrix" in data else data
         data = _open3d_fields(data) if "intrinsic_matrix" in data else data
     except InputError as exc:
@@ -187,16 +192,36 @@ def read_intrinsics(path: str | Path) -> DepthCamera:
 
 # Keys of ROS's camera_info YAML that describe stereo rectification, not the depth image.
 _ROS_UNUSED = ("camera_name", "rectification_matrix", "projection_matrix")
+# Our fields that the foreign layouts' matrices give (ROS's also the image size, when given).
+_OPEN3D_GIVES = ("fx", "fy", "cx", "cy")
+_ROS_GIVES = (*_OPEN3D_GIVES, "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
 
 
 def _ros_fields(data: dict) -> dict:
     """Our fields from ROS's ``camera_info`` YAML layout (and any of ours beside it)."""
     rest = {k: v for k, v in data.items() if k not in _ROS_UNUSED}
     K = _matrix_data(rest.pop("camera_matrix"), "camera_matrix")
-    D = _matrix_data(rest.pop("distortion_coefficients", None) or {"data": []}, "distortion")
+    D = _matrix_data(
+        rest.pop("distortion_coefficients", None) or {"data": []}, "distortion_coefficients"
+    )
     model = rest.pop("distortion_model", None)
     size = {"width": rest.pop("image_width", None), "height": rest.pop("image_height", None)}
-    return matrix_fields(K, D, model) | {k: v for k, v in size.items() if v} | rest
+    size = {k: v for k, v in size.items() if v}
+    given = (*_ROS_GIVES, *size)
+    return (
+        matrix_fields(K, D, model)
+        | size
+        | _not_given_twice(rest, given, "the ROS camera_info layout")
+    )
+
+
+def _not_given_twice(rest: dict, given: tuple[str, ...], layout: str) -> dict:
+    """``rest`` (our fields beside a foreign layout), refused when it repeats one the layout
+    gives: one of the two would win without a word (a focal length of another camera)."""
+    twice = [k for k in given if k in rest]
+    if twice:
+        raise InputError(f"{', '.join(twice)} given twice, by {layout} and on its own: keep one")
+    return rest
 
 
 def _open3d_fields(data: dict) -> dict:
@@ -207,15 +232,18 @@ def _open3d_fields(data: dict) -> dict:
         K = np.asarray(values, dtype=np.float64).reshape(3, 3).T
     except (TypeError, ValueError):
         raise InputError("intrinsic_matrix must be 9 numbers, column by column") from None
-    return matrix_fields(K) | rest
+    return matrix_fields(K) | _not_given_twice(rest, _OPEN3D_GIVES, "intrinsic_matrix")
 
 
-def _matrix_data(entry: object, name: str) -> object:
+def _matrix_data(entry: object, name: str) -> list:
     """A ROS YAML matrix's numbers: ``{rows, cols, data}`` or a bare list."""
     if isinstance(entry, dict):
         if "data" not in entry:
             raise InputError(f"{name} has no data")
-        return entry["data"]
+        entry = entry["data"]
+    if not isinstance(entry, list):
+        # numpy would read a lone number as a list of one (distortion k1 = that number).
+        raise InputError(f"{name} must be a list of numbers or {{rows, cols, data}}, got {entry!r}")
     return entry
 
 

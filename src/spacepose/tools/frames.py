@@ -133,8 +133,8 @@ def open_frames(
     ------
     InputError
         The path does not exist, is not a folder or bag, holds no frame, is a run folder without
-        its scenario.json, a bag topic cannot be chosen, a depth folder has no intrinsics, or
-        ``timestamps.txt`` does not hold one finite number per frame.
+        its scenario.json or given intrinsics, a bag topic cannot be chosen, a depth folder has
+        no intrinsics, or ``timestamps.txt`` does not hold one finite number per frame.
     ConfigError
         The intrinsics file is invalid.
     """
@@ -151,6 +151,14 @@ def open_frames(
     if not root.is_dir():
         raise InputError("not a folder of frames (or a run folder, or a ROS bag)", root)
     if (root / "scenario.json").is_file():
+        if camera is not None:
+            # Its frames are point clouds in metres: intrinsics given for them are a mistake,
+            # not a no-op (as for a bag's PointCloud2 topic).
+            raise InputError(
+                "intrinsics apply to depth images, and this is a run folder of point clouds: "
+                "leave out --intrinsics",
+                root,
+            )
         return _open_run(root)
     if (root / "frames").is_dir():
         # A run folder that lost its scenario: its own files (model.ply) would be tracked as

@@ -416,8 +416,19 @@ def register_files(
     """Read two cloud files, :func:`register` them and optionally write the JSON summary.
 
     A depth image (16-bit PNG or TIFF) is read through ``intrinsics`` (or the
-    ``intrinsics.yaml`` / ``.json`` beside it) into the camera's sensor frame.
+    ``intrinsics.yaml`` / ``.json`` beside it) into the camera's sensor frame; ``intrinsics``
+    given for two point clouds is refused (InputError), not ignored.
     """
+    depth_inputs = [
+        p for p in (source_path, target_path) if Path(p).suffix.lower() in DEPTH_SUFFIXES
+    ]
+    if intrinsics is not None and not depth_inputs:
+        # Ignored, they would let the user believe the clouds were read through them.
+        raise InputError(
+            f"intrinsics apply to depth images ({', '.join(DEPTH_SUFFIXES)}), and neither "
+            f"{Path(source_path).name} nor {Path(target_path).name} is one: leave out --intrinsics",
+            intrinsics,
+        )
     if out is not None:
         check_writable(out)
         given = (source_path, target_path, init_path, intrinsics)
