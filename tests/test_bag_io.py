@@ -321,6 +321,53 @@ def test_a_frame_stamped_out_of_order_is_lost_and_the_rest_tracked(lab, tmp_path
     assert len(times) == N_FRAMES - 2 and np.all(np.diff(times) > 0)
 
 
+def test_a_message_rosbags_cannot_deserialize_is_lost_and_the_rest_tracked(lab, tmp_path):
+    """A message whose bytes are not a PointCloud2 (here a sqlite3 row overwritten) raised
+    rosbags' AnyReaderError out of the run: a traceback, and the frames after it unwritten."""
+    import sqlite3
+
+    grids = [g[::4, ::4] for g in lab["grids"]]
+    bag = _write(tmp_path / "blob_bag", [("/points", PC2, _pointcloud2(ROS2, k, g))
+                                         for k, g in enumerate(grids)], mcap=False)  # fmt: skip
+    (db,) = bag.glob("*.db3")
+    with sqlite3.connect(db) as con:
+        ids = [row[0] for row in con.execute("SELECT id FROM messages ORDER BY id")]
+        con.execute("UPDATE messages SET data = ? WHERE id = ?", (b"\x00\x01\x00\x00x", ids[2]))
+    out = tmp_path / "est.tum"
+    summary = track_folder(bag, out, tracker_config())
+    assert (summary["frames"], summary["lost"]) == (N_FRAMES, 1)
+    health = (tmp_path / "est.health.csv").read_text().splitlines()
+    assert ",lost," in health[3] and "cannot decode the message: Could not deserialize" in health[3]
+
+
+def test_a_corrupt_chunk_loses_the_frames_it_ends_and_says_so(lab, tmp_path, capsys):
+    """A ROS 1 bag whose third bz2 chunk is damaged: rosbags' reader raised OSError('Invalid
+    data stream') mid-run, printed without the bag's name, and the last frames had no row.
+    Now every frame has its row, those from the damaged chunk on lost with the reason."""
+    grids = [g[::4, ::4] for g in lab["grids"]]
+    path = tmp_path / "run.bag"
+    writer = Writer1(path)
+    writer.set_compression(Writer1.CompressionFormat.BZ2)
+    writer.chunk_threshold = 1  # one message a chunk
+    with writer:
+        conn = writer.add_connection("/points", PC2, typestore=ROS1)
+        for k, g in enumerate(grids):
+            msg = ROS1.serialize_ros1(_pointcloud2(ROS1, k, g), PC2)
+            writer.write(conn, 10**9 + k * 10**8, msg)
+    data = bytearray(path.read_bytes())
+    starts = [i for i in range(len(data)) if data.startswith(b"BZh", i)]
+    data[starts[2] + 10 : starts[2] + 400] = bytes(390)
+    path.write_bytes(bytes(data))
+    out = tmp_path / "est.tum"
+    assert main(["track", str(path), "--out", str(out)]) == 0, capsys.readouterr().err
+    rows = (tmp_path / "est.health.csv").read_text().splitlines()[1:]
+    assert len(rows) == N_FRAMES
+    assert [r.split(",")[2] for r in rows[2:]] == ["lost"] * (N_FRAMES - 2)
+    assert all("cannot read the bag from message #2 on" in r for r in rows[2:])
+    assert [r.split(",")[2] != "lost" for r in rows[:2]] == [True, True]
+    assert len(read_tum(out)) == 2  # the unread frames have no time: no pose is made up
+
+
 def test_a_topic_without_messages_says_so(tmp_path, capsys):
     """A frame topic declared but never published: one line, and no outputs begun."""
     path = tmp_path / "empty_bag"
@@ -331,6 +378,25 @@ def test_a_topic_without_messages_says_so(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.endswith("empty_bag: no messages on /points: the bag holds no frame"), err
     assert not out.parent.exists()
+
+
+def test_a_bag_without_frame_topics_says_so(lab, tmp_path, capsys):
+    """An empty bag, or one of CameraInfo only, told the user to choose among "none" with
+    --topic."""
+    empty = tmp_path / "empty_bag"
+    with Writer2(empty, version=9, storage_plugin=StoragePlugin.MCAP):
+        pass
+    camera = lab["camera"]
+    info_only = _write(
+        tmp_path / "info_bag", [("/cam/info", INFO, _camera_info(ROS2, camera, False))]
+    )
+    for bag, held in ((empty, "none"), (info_only, "/cam/info (CameraInfo)")):
+        assert main(["track", str(bag), "--out", str(tmp_path / "e.tum")]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.endswith(
+            f"no PointCloud2/Image topic: the bag holds no frame (its topics: {held})"
+        ), err
+        assert "--topic" not in err
 
 
 @pytest.mark.parametrize("content", [b"", b"not a bag at all\n"])

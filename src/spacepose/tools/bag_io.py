@@ -10,7 +10,9 @@ A bag is a ``.bag`` file (ROS 1) or a ROS 2 bag folder (``metadata.yaml`` with i
   the image's, else the bag's only one; its first message) or of an intrinsics file.
 
 A frame's time is its header stamp (seconds), or the bag's record time when the stamp is zero.
-A message that cannot be decoded becomes a frame without a cloud and the reason why.
+A message that cannot be decoded becomes a frame without a cloud and the reason why; so does
+every message from a corrupt stretch of the bag on (a chunk that does not decompress ends what
+can be read), with a NaN time.
 """
 
 from __future__ import annotations
@@ -194,11 +196,27 @@ class BagFrames:
         return self.count
 
     def __iter__(self) -> Iterator[FrameInput]:
+        from rosbags.highlevel import AnyReaderError
         from rosbags.serde import SerdeError
 
+        index = 0
         with _open_reader(self.path) as reader:
             connections = [c for c in reader.connections if c.topic == self.topic]
-            for index, (conn, time_ns, raw) in enumerate(reader.messages(connections)):
+            messages = reader.messages(connections)
+            while index < self.count:
+                try:
+                    conn, time_ns, raw = next(messages)
+                except StopIteration:
+                    break
+                except Exception as exc:  # whatever rosbags meets in a bad chunk
+                    # A corrupt chunk ends the stream (a compressed block that does not
+                    # decompress, a damaged record): the frames from here on cannot be read.
+                    problem = " ".join(str(exc).split()) or type(exc).__name__
+                    error = f"cannot read the bag from message #{index} on: {problem}"
+                    for k in range(index, self.count):
+                        source = f"{self.path}:{self.topic}#{k}"
+                        yield FrameInput(k, float("nan"), None, source, error)
+                    return
                 source = f"{self.path}:{self.topic}#{index}"
                 cloud, error, timestamp = None, None, time_ns * 1e-9
                 try:
@@ -209,9 +227,17 @@ class BagFrames:
                         warn_if_not_metres(cloud, source)  # a driver in millimetres
                 except InputError as exc:
                     error = exc.reason
-                except (SerdeError, ValueError, IndexError, TypeError, struct.error) as exc:
+                except (
+                    AnyReaderError,  # rosbags' own wrapping of a message it cannot decode
+                    SerdeError,
+                    ValueError,
+                    IndexError,
+                    TypeError,
+                    struct.error,
+                ) as exc:
                     error = f"cannot decode the message: {exc}"
                 yield FrameInput(index, timestamp, cloud, source, error)
+                index += 1
 
     def _cloud(self, msg: Any, source: str) -> PointCloud:
         if self.msgtype == POINTCLOUD2:
@@ -255,6 +281,13 @@ def open_bag(
         listing = ", ".join(f"{t} ({m.rsplit('/', 1)[-1]})" for t, m in sorted(candidates.items()))
         listing = listing or "none"
         if topic is None:
+            if not candidates:  # nothing to choose with --topic: say what the bag holds
+                held = ", ".join(f"{t} ({m.rsplit('/', 1)[-1]})" for t, m in sorted(types.items()))
+                raise InputError(
+                    f"no PointCloud2/Image topic: the bag holds no frame (its topics: "
+                    f"{held or 'none'})",
+                    path,
+                )
             if len(candidates) != 1:
                 raise InputError(
                     f"{len(candidates)} PointCloud2/Image topics, choose one with --topic: "
