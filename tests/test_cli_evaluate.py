@@ -230,3 +230,20 @@ def test_lost_frames_of_the_health_table_are_left_out(
     captured = capsys.readouterr()
     assert json.loads(captured.out)["ate_translation_rmse_mm"] > 1.0
     assert "has 1 rows for" in captured.err
+
+
+def test_a_ground_truth_with_two_poses_at_one_time_is_refused(
+    tmp_path: Path, random_trajectory: Trajectory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A ground truth holding two different poses at t[3] was used as it came: the estimate
+    there scored against one of them, without a word, exit 0."""
+    est = write_tum(tmp_path / "est.tum", random_trajectory)
+    t, T = random_trajectory.timestamps, random_trajectory.poses
+    other = se3.make_transform(np.eye(3), [0.5, 0.0, 0.0]) @ T[3:4]
+    gt = write_tum(tmp_path / "gt.tum", Trajectory(np.r_[t, t[3]], np.r_[T, other]))
+    assert main(["evaluate", str(est), str(gt)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"error: {gt}: two ground-truth poses at t = {t[3]!r}: which one is the truth? "
+        "(one pose a time)"
+    ), err

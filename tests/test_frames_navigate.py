@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import warnings
 
 import numpy as np
@@ -50,6 +51,41 @@ def test_unreadable_frame_does_not_abort_navigation(run_dir, tmp_path):
     assert ref.rows[3].n_rect > 0 and got.rows[3].status == "predict"
     ref_lines, got_lines = ((tmp_path / n).read_text().splitlines() for n in ("ref.csv", "nav.csv"))
     assert got_lines[:4] == ref_lines[:4]  # header and frames 0-2 untouched by the loss
+
+
+@pytest.mark.parametrize(
+    ("points", "problem"),
+    [
+        ([[0.0, 0.0, 10.0], [0.0, 0.1, 10.0]], "2 point(s): a plane needs 3"),
+        ([[0.0, 0.0, 10.0], [0.0, 0.1, 10.0], [0.0, 0.2, 10.0]], "all 3 points are collinear"),
+        ([[0.0, 0.0, 10.0]] * 50, "all 50 points are at one place"),
+    ],
+)
+@pytest.mark.parametrize("measurements", ["rectangles", "both"])
+def test_a_frame_without_a_plane_does_not_abort_navigation(
+    run_dir, tmp_path, points, problem, measurements
+):
+    """Frame 3 holds 2 points, 3 on a line, or 50 at one place: plane extraction refused it
+    and that ended the whole run (exit 1, nothing written). Now it is navigated as empty,
+    warned about by name, and every row is written."""
+    from spacepose.tools.cloud_io import write_cloud
+
+    bad = tmp_path / "run"
+    for p in run_dir.rglob("*"):
+        if p.is_file():
+            (bad / p.relative_to(run_dir)).parent.mkdir(parents=True, exist_ok=True)
+            (bad / p.relative_to(run_dir)).write_bytes(p.read_bytes())
+    victim = write_cloud(bad / "frames" / "000003.ply", np.array(points))
+    with pytest.warns(SpaceposeWarning, match=rf"frame 3 holds no plane, navigated as empty: "
+                      rf"{victim}: {re.escape(problem)}"):  # fmt: skip
+        got = navigate_run(
+            bad, tmp_path / "nav.csv", prior_q_I_B=_prior(run_dir), measurements=measurements
+        )
+    assert len(got.rows) == FRAMES and got.rows[3].n_rect == 0
+    assert got.rows[3].status == "predict" and got.rows[4].state is not None
+    if measurements == "both":
+        health = (tmp_path / "nav.health.csv").read_text().splitlines()
+        assert ",lost," in health[4] and problem in health[4]
 
 
 def test_depth_folder_navigates_like_its_cloud_folder(run_dir, tmp_path, capsys):

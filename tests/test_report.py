@@ -256,3 +256,31 @@ def test_a_run_folder_named_with_bytes_that_are_not_utf8_is_reported(tmp_path: P
     page = build_report(root, out=tmp_path / "r.html").read_text(encoding="utf-8")
     assert "demo\\udcff" in page
     assert len(re.findall(r'src="data:image/png;base64,', page)) == 1 + 1 + 1 + 6 + 1
+
+
+def test_report_refuses_to_overwrite_a_file_it_reads(tmp_path: Path, capsys) -> None:
+    """``--out RUN/lab/groundtruth.tum`` replaced the run's ground truth with the page (exit 0);
+    the next report or evaluate scored against HTML. A page written before is overwritten."""
+    root = tmp_path / "demo"
+    _make_run(root)
+    gt = root / "lab" / "groundtruth.tum"
+    before = gt.read_bytes()
+    assert main(["report", str(root), "--out", str(gt)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {gt}: would overwrite the input {gt}: write it elsewhere", err
+    assert gt.read_bytes() == before
+    assert main(["report", str(root)]) == 0 and main(["report", str(root)]) == 0
+
+
+def test_tracks_of_a_run_without_ground_truth_are_named_not_dropped(tmp_path: Path, capsys) -> None:
+    """Without groundtruth.tum a run's tracks were left out of the page without a word."""
+    root = tmp_path / "demo"
+    _make_run(root)
+    (root / "lab" / "groundtruth.tum").unlink()
+    assert main(["report", str(root), "--out", str(tmp_path / "r.html")]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"warning: {root / 'lab' / 'groundtruth.tum'}: left out of the report: not found, so "
+        "gicp.tum, icp.tum cannot be scored"
+    ), err
+    assert "gicp.tum, icp.tum cannot be scored" in (tmp_path / "r.html").read_text()

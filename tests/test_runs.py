@@ -151,3 +151,28 @@ def test_bad_run_folders(tmp_path, lab_sim, orbit_sim) -> None:
     with pytest.raises(InputError, match=r"missing truth\.csv"):
         read_run(orbit)
     json.loads((orbit / "scenario.json").read_text())  # the rest of the folder is intact
+
+
+def test_frames_are_paired_with_poses_by_number(tmp_path, lab_sim) -> None:
+    """Frames were sorted as text and never checked against their numbers: a run of 12
+    frames renamed 0.ply ... 11.ply was tracked as 0, 1, 10, 11, 2, ... (each scored against
+    another frame's pose), and one renamed past a gap was taken for the frame before it."""
+    root = tmp_path / "lab"
+    write_run(root, lab_sim)
+    frames = root / "frames"
+    for k in range(4):
+        (frames / f"{k:06d}.ply").rename(frames / f"{k}.ply")
+    (frames / "3.ply").rename(frames / "10.ply")
+    with pytest.raises(
+        InputError, match=r"lab: frames/10\.ply is numbered 10 where frame 3 belongs"
+    ):
+        read_run(root)
+    (frames / "10.ply").rename(frames / "3.ply")
+    run = read_run(root)  # any zero padding, in the numbers' order
+    assert [p.name for p in run.frame_paths] == ["0.ply", "1.ply", "2.ply", "3.ply"]
+    shutil.copy(frames / "2.ply", frames / "002.ply")
+    with pytest.raises(InputError, match=r"frames/2\.ply repeats where frame 3 belongs"):
+        read_run(root)
+    (frames / "002.ply").rename(frames / "2 copy.ply")
+    with pytest.raises(InputError, match=r"frames/2 copy\.ply is not a frame name"):
+        read_run(root)

@@ -107,7 +107,8 @@ def compare_trajectory_files(
     Raises
     ------
     InputError
-        An estimate without a ground-truth pose within ``tolerance``, naming ``est_path``.
+        An estimate without a ground-truth pose within ``tolerance``, naming ``est_path``; a
+        ground truth with two poses within ``tolerance`` of one time, naming ``gt_path``.
 
     Warns
     -----
@@ -119,6 +120,7 @@ def compare_trajectory_files(
     """
     est_path, gt_path = Path(est_path), Path(gt_path)
     est, gt = read_trajectory(est_path), read_trajectory(gt_path)
+    _check_one_truth_per_time(gt.timestamps, tolerance, gt_path)
     est, _, lost_note = without_lost_frames(est_path, est)
     try:
         _, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
@@ -151,6 +153,26 @@ def compare_trajectory_files(
     for note in notes:
         warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
     return TrajectoryComparison(table, len(est), len(gt), rebase_first, tuple(notes))
+
+
+def _check_one_truth_per_time(timestamps: np.ndarray, tolerance: float, path: Path) -> None:
+    """Refuse a ground truth with two poses within ``tolerance`` of one time: an estimate
+    there would be scored against whichever the pairing met first, without a word.
+
+    Raises
+    ------
+    InputError
+        Naming the file and the two times.
+    """
+    t = np.sort(np.asarray(timestamps, dtype=np.float64))
+    close = np.flatnonzero(np.diff(t) <= tolerance)
+    if close.size:
+        a, b = t[close[0]], t[close[0] + 1]
+        when = f"at t = {a!r}" if a == b else f"at t = {a!r} and {b!r}, within {tolerance:g} s"
+        raise InputError(
+            f"two ground-truth poses {when}: which one is the truth? (one pose a time)",
+            path,
+        )
 
 
 def without_lost_frames(

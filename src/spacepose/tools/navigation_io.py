@@ -27,6 +27,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, load_structured, parse_problem
 from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
 from spacepose.core.lost_in_space import with_sensor_fov
+from spacepose.core.moments import distribution, is_collinear, no_plane
 from spacepose.core.nav_result import NavRow, nav_table
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.navigation import NavigationConfig, navigate
@@ -193,7 +194,7 @@ def navigate_run(
         prior = prior_quaternion(prior_q_I_B, prior_name)
         cfg = NavigationConfig.model_validate(cfg.model_dump() | {"prior_q_I_B": prior})
     unreadable: dict[int, str] = {}
-    pairs = _readable_pairs(frames, unreadable)
+    pairs = _readable_pairs(frames, unreadable, planes=measurements != "registration")
     health_csv = None
     if measurements == "rectangles":
         rows = navigate(pairs, catalogue, n, R_O_C, cfg, model)
@@ -269,19 +270,40 @@ def prior_quaternion(values: ArrayLike, name: str) -> tuple[float, float, float,
     return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
-def _readable_pairs(frames: Frames, unreadable: dict[int, str]) -> Iterator[tuple[float, Any]]:
-    """``(timestamp, cloud)`` of each frame; a frame that cannot be read goes in as an empty one
-    (the filter predicts through it), is warned about, and its reason kept in ``unreadable``."""
+def _readable_pairs(
+    frames: Frames, unreadable: dict[int, str], planes: bool = True
+) -> Iterator[tuple[float, Any]]:
+    """``(timestamp, cloud)`` of each frame; a frame that cannot be read, or (``planes``: its
+    rectangles are measured) whose points hold no plane, goes in as an empty one (the filter
+    predicts through it), is warned about, and its reason kept in ``unreadable``."""
     for frame in frames:
+        cloud, what = frame.cloud, "cannot be read"
         if frame.error is not None:
             unreadable[frame.index] = frame.error
+        elif planes and cloud is not None and (problem := _no_plane(cloud)) is not None:
+            # Plane extraction refuses it, and that error ended the whole run.
+            unreadable[frame.index], cloud, what = (
+                f"{frame.source}: {problem}",
+                None,
+                "holds no plane",
+            )
+        if frame.index in unreadable:
             warnings.warn(
                 SpaceposeWarning(
-                    f"frame {frame.index} cannot be read, navigated as empty: {frame.error}"
+                    f"frame {frame.index} {what}, navigated as empty: {unreadable[frame.index]}"
                 ),
                 stacklevel=2,
             )
-        yield frame.timestamp, frame.cloud
+        yield frame.timestamp, cloud
+
+
+def _no_plane(cloud: PointCloud) -> str | None:
+    """Why a frame's points span no plane (fewer than 3, on one line or at one place), or None."""
+    if len(cloud) < 3:
+        return f"{len(cloud)} point(s): a plane needs 3"
+    if is_collinear(distribution(cloud.points)[1]):
+        return no_plane(cloud.points).reason
+    return None
 
 
 def _why_nothing(rows: Sequence[NavRow], candidates_csv: Path | None, has_model: bool) -> str:

@@ -33,7 +33,7 @@ from spacepose.errors import FileFormatError, InputError, SpaceposeError, Spacep
 from spacepose.tools import plots
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.evaluation import starts_at_identity, without_lost_frames
-from spacepose.tools.outputs import check_writable
+from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.trajectory_io import read_tum
 
 # The lab experiments' setting (6 mm voxels and smoothing scale, about the ToF noise at 1.2 m).
@@ -177,8 +177,12 @@ def _mls_section(run: Path) -> str:
 def _tracking_section(run: Path, skipped: _Skipped) -> str:
     gt_path = run / "groundtruth.tum"
     tracks = sorted(p for p in run.rglob("*.tum") if p != gt_path)
-    if not gt_path.exists() or not tracks:
+    if not tracks:
         return ""
+    if not gt_path.exists():  # the tracks cannot be scored: say so, not leave them out unseen
+        raise InputError(
+            f"not found, so {', '.join(p.name for p in tracks)} cannot be scored", gt_path
+        )
     gt = read_tum(gt_path)
     parts, rows, curves, health, notes = [], [], {}, {}, []
     t = gt.timestamps - gt.timestamps[0]
@@ -345,6 +349,11 @@ def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
         raise InputError("not a folder", root)
     out_path = Path(out) if out is not None else root / "report.html"
     check_writable(out_path)
+    # The report reads the folder's files (a run's groundtruth.tum, a track): written onto one
+    # it would destroy it. A page written before (report.html) is no input.
+    check_spares_inputs(
+        [out_path], (p for p in root.rglob("*") if p.suffix.lower() not in (".html", ".htm"))
+    )
     runs = sorted(p.parent for p in root.rglob("scenario.json"))
     skipped = _Skipped()
     body = []

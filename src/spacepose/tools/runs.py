@@ -202,7 +202,7 @@ def read_run(path: str | Path) -> Run:
     problem = order_problem(groundtruth.timestamps)
     if problem is not None:  # the run's frames are timed by it
         raise InputError(problem, root / GROUNDTRUTH)
-    frame_paths = tuple(sorted((root / FRAMES_DIR).glob("[0-9]*.ply")))
+    frame_paths = _numbered_frames(root)
     if len(frame_paths) != len(groundtruth):
         raise InputError(
             f"{len(frame_paths)} frame files in {FRAMES_DIR}/ but {len(groundtruth)} poses in "
@@ -219,6 +219,39 @@ def read_run(path: str | Path) -> Run:
 
 def _frame_name(k: int) -> str:
     return f"{k:06d}.ply"
+
+
+def _numbered_frames(root: Path) -> tuple[Path, ...]:
+    """The frame files of a run, frame ``k`` the one numbered ``k`` (``000000.ply``, or any
+    zero padding), in that order.
+
+    Raises
+    ------
+    InputError
+        A ``.ply`` name in ``frames/`` that is not a number, or numbers that are not 0, 1, 2,
+        ... without a gap or a repeat: frame ``k`` is timed and scored by the ``k``-th pose of
+        ``groundtruth.tum``, and sorted as text (``10.ply`` before ``2.ply``) or past a gap
+        every later frame would be paired with another frame's pose.
+    """
+    numbered: list[tuple[int, Path]] = []
+    for path in (root / FRAMES_DIR).glob("[0-9]*.ply"):
+        if not path.stem.isascii() or not path.stem.isdigit():
+            raise InputError(
+                f"{FRAMES_DIR}/{path.name} is not a frame name (a number, such as "
+                f"{_frame_name(0)}): move it out of the run",
+                root,
+            )
+        numbered.append((int(path.stem), path))
+    numbered.sort(key=lambda item: (item[0], item[1].name))
+    for k, (number, path) in enumerate(numbered):
+        if number != k:
+            what = "repeats" if k and numbered[k - 1][0] == number else f"is numbered {number}"
+            raise InputError(
+                f"{FRAMES_DIR}/{path.name} {what} where frame {k} belongs: frame k is pose k of "
+                f"{GROUNDTRUTH}, so the files are numbered 0, 1, 2, ... without a gap",
+                root,
+            )
+    return tuple(path for _, path in numbered)
 
 
 def _read_truth(path: Path, n_frames: int) -> NDArray[np.float64]:
