@@ -22,7 +22,9 @@ def simulate(
         "gaussian (default: tof for lab, flash-lidar for orbit).",
     ),
     noise_scale: float | None = typer.Option(None, help="Noise multiplier; 0 = noise-free."),
-    model: Path | None = typer.Option(None, help="Mesh file (OBJ/STL/PLY/GLB) as the target."),
+    model: Path | None = typer.Option(
+        None, help="Mesh file (OBJ/STL/PLY/GLB) as the target, or random:K (a generated one)."
+    ),
     model_scale: float | None = typer.Option(
         None, help="Scale applied to --model coordinates (default 1)."
     ),

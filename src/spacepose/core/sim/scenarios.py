@@ -52,6 +52,7 @@ from spacepose.core.sim.orbit_truth import (
     torque_free_attitude,
 )
 from spacepose.core.sim.process_noise import model_defect
+from spacepose.core.sim.random_targets import generated_seed, random_spacecraft
 from spacepose.core.sim.sensors import SENSOR_PRESETS, SensorConfig, scan, sensor_config
 from spacepose.core.sim.targets import Target, lab_target, load_mesh, orbit_target, sample_surface
 from spacepose.core.trajectory import Trajectory
@@ -69,8 +70,12 @@ class _ScenarioConfig(StageConfig):
     frames: int = Field(ge=1, le=1_000_000, description="Number of frames.")
     rate_hz: float = Field(1.0, gt=0, description="Frame rate, Hz.")
     seed: int = Field(0, ge=0, description="Seed of every random draw of the run.")
-    model: str | None = Field(None, description="Mesh file replacing the procedural target.")
-    model_scale: float = Field(1.0, gt=0, description="Scale applied to the mesh file.")
+    model: str | None = Field(
+        None,
+        description="Mesh file replacing the procedural target, or random:K (a generated "
+        "spacecraft, core.sim.random_targets).",
+    )
+    model_scale: float = Field(1.0, gt=0, description="Scale applied to the mesh.")
     model_points: int = Field(20000, ge=100, description="Surface samples in model.ply.")
 
 
@@ -313,7 +318,13 @@ def _offsets(meshes: list[trimesh.Trimesh]) -> list[int]:
 def _target(config: LabConfig | OrbitConfig, procedural: Target) -> Target:
     if config.model is None:
         return procedural
-    return load_mesh(Path(config.model), scale=config.model_scale)
+    seed = generated_seed(config.model)
+    if seed is None:
+        return load_mesh(Path(config.model), scale=config.model_scale)
+    target = random_spacecraft(seed)
+    if config.model_scale == 1.0:
+        return target
+    return sized_target(target, config.model_scale * float(np.max(target.mesh.extents)))
 
 
 def simulate_lab(config: LabConfig | None = None) -> Simulation:

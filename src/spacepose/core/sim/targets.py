@@ -137,15 +137,17 @@ def box_rectangles(
     return out
 
 
-def _box(extents: ArrayLike, center: ArrayLike) -> trimesh.Trimesh:
+def box_part(extents: ArrayLike, center: ArrayLike) -> trimesh.Trimesh:
+    """Box of full sides ``extents`` (3,) along the model axes, centred at ``center`` (3,)."""
     return trimesh.creation.box(extents=extents, transform=se3.make_transform(np.eye(3), center))
 
 
-def _cylinder(radius: float, p0: ArrayLike, p1: ArrayLike) -> trimesh.Trimesh:
+def cylinder_part(radius: float, p0: ArrayLike, p1: ArrayLike) -> trimesh.Trimesh:
+    """Cylinder of ``radius`` from ``p0`` (3,) to ``p1`` (3,)."""
     return trimesh.creation.cylinder(radius=radius, segment=np.array([p0, p1]), sections=_SECTIONS)
 
 
-def _cone(radius: float, height: float, base: ArrayLike, axis: ArrayLike) -> trimesh.Trimesh:
+def cone_part(radius: float, height: float, base: ArrayLike, axis: ArrayLike) -> trimesh.Trimesh:
     """Cone with its base disc centred at ``base`` and its apex at ``base + height * axis``."""
     R = Rotation.align_vectors([axis], [[0.0, 0.0, 1.0]])[0]
     return trimesh.creation.cone(
@@ -153,7 +155,8 @@ def _cone(radius: float, height: float, base: ArrayLike, axis: ArrayLike) -> tri
     )
 
 
-def _assemble(name: str, parts: list[trimesh.Trimesh], rectangles: list[Rectangle]) -> Target:
+def assemble(name: str, parts: list[trimesh.Trimesh], rectangles: list[Rectangle]) -> Target:
+    """The target of closed convex ``parts`` (model frame) and its rectangle catalogue."""
     mesh = trimesh.util.concatenate(parts)
     return Target(name, mesh, tuple(rectangles), tuple(parts))
 
@@ -167,24 +170,24 @@ def lab_target() -> Target:
     """
     bus = (0.20, 0.16, 0.16)
     wing = (0.30, 0.12, 0.005)
-    parts = [_box(bus, (0.0, 0.0, 0.0))]
+    parts = [box_part(bus, (0.0, 0.0, 0.0))]
     rects = box_rectangles("bus", bus, np.eye(4))
     for side, boom in ((1.0, 0.06), (-1.0, 0.03)):
         root = side * bus[0] / 2
         tip = side * (bus[0] / 2 + boom)
-        parts.append(_cylinder(0.006, (root, 0.0, 0.0), (tip, 0.0, 0.0)))
+        parts.append(cylinder_part(0.006, (root, 0.0, 0.0), (tip, 0.0, 0.0)))
         centre = np.array([tip + side * wing[0] / 2, 0.0, 0.0])
-        parts.append(_box(wing, centre))
+        parts.append(box_part(wing, centre))
         label = "wing_right" if side > 0 else "wing_left"
         T = se3.make_transform(np.eye(3), centre)
         rects += box_rectangles(f"{label}", wing, T, faces=("+z", "-z"))
     # Dish: a shallow cone (reflector) on a short mast, off-centre so the +z face is not symmetric.
     mast_base, mast_top = (0.03, -0.02, bus[2] / 2), (0.03, -0.02, bus[2] / 2 + 0.03)
-    parts.append(_cylinder(0.008, mast_base, mast_top))
-    parts.append(_cone(0.06, 0.025, mast_top, (0.0, 0.0, 1.0)))
+    parts.append(cylinder_part(0.008, mast_base, mast_top))
+    parts.append(cone_part(0.06, 0.025, mast_top, (0.0, 0.0, 1.0)))
     # Nozzle: a cone opening away from the bus on the −z face, also off-centre.
-    parts.append(_cone(0.03, 0.05, (-0.04, 0.03, -bus[2] / 2 - 0.05), (0.0, 0.0, 1.0)))
-    return _assemble("lab", parts, _rename_wing_faces(rects))
+    parts.append(cone_part(0.03, 0.05, (-0.04, 0.03, -bus[2] / 2 - 0.05), (0.0, 0.0, 1.0)))
+    return assemble("lab", parts, rename_sheet_faces(rects))
 
 
 def symmetric_orbit_target() -> Target:
@@ -198,10 +201,10 @@ def symmetric_orbit_target() -> Target:
     attitudes apart.
     """
     bus = (2.4, 1.8, 1.4)
-    parts = [_box(bus, (0.0, 0.0, 0.0))]
+    parts = [box_part(bus, (0.0, 0.0, 0.0))]
     rects = box_rectangles("bus", bus, np.eye(4))
     _add_wing(parts, rects, bus)
-    return _assemble("orbit-symmetric", parts, _rename_wing_faces(rects))
+    return assemble("orbit-symmetric", parts, rename_sheet_faces(rects))
 
 
 def orbit_target() -> Target:
@@ -222,35 +225,35 @@ def orbit_target() -> Target:
     (:mod:`spacepose.core.lost_in_space`).
     """
     bus = (2.4, 1.8, 1.4)
-    parts = [_box(bus, (0.0, 0.0, 0.0))]
+    parts = [box_part(bus, (0.0, 0.0, 0.0))]
     rects = box_rectangles("bus", bus, np.eye(4))
     _add_wing(parts, rects, bus)
     panel, mast = (0.04, 0.8, 1.2), 0.6
     root = -bus[1] / 2
-    parts.append(_cylinder(0.04, (0.0, root, 0.5), (0.0, root - mast, 0.5)))
+    parts.append(cylinder_part(0.04, (0.0, root, 0.5), (0.0, root - mast, 0.5)))
     centre = np.array([0.0, root - mast - panel[1] / 2, 0.5])
-    parts.append(_box(panel, centre))
+    parts.append(box_part(panel, centre))
     rects += box_rectangles("antenna", panel, se3.make_transform(np.eye(3), centre), ("+x", "-x"))
     # The boom leaves from the bus edge (+x, −y), so that no face has a hole in its middle.
     root = np.array([bus[0] / 2, -bus[1] / 2, -0.3])
     out = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
     tip = root + 0.8 * out
-    parts.append(_cylinder(0.04, root, tip))
-    parts.append(_box((0.25, 0.25, 0.25), tip + 0.125 * out))
-    return _assemble("orbit", parts, _rename_wing_faces(rects))
+    parts.append(cylinder_part(0.04, root, tip))
+    parts.append(box_part((0.25, 0.25, 0.25), tip + 0.125 * out))
+    return assemble("orbit", parts, rename_sheet_faces(rects))
 
 
 def _add_wing(parts: list[trimesh.Trimesh], rects: list[Rectangle], bus: tuple) -> None:
     """The 6.0 × 2.0 m wing on its 0.5 m boom from the bus's +y face (both wing faces listed)."""
     wing, boom = (2.0, 6.0, 0.04), 0.5
     root = bus[1] / 2
-    parts.append(_cylinder(0.05, (0.0, root, 0.0), (0.0, root + boom, 0.0)))
+    parts.append(cylinder_part(0.05, (0.0, root, 0.0), (0.0, root + boom, 0.0)))
     centre = np.array([0.0, root + boom + wing[1] / 2, 0.0])
-    parts.append(_box(wing, centre))
+    parts.append(box_part(wing, centre))
     rects += box_rectangles("wing", wing, se3.make_transform(np.eye(3), centre), ("+z", "-z"))
 
 
-def _rename_wing_faces(rects: list[Rectangle]) -> list[Rectangle]:
+def rename_sheet_faces(rects: list[Rectangle]) -> list[Rectangle]:
     """Wing and panel faces read better as ``..._front`` (+z, +x) and ``..._back`` (−z, −x)."""
     names = {"+z": "_front", "-z": "_back", "+x": "_front", "-x": "_back"}
     return [

@@ -24,6 +24,7 @@ import spacepose
 from spacepose.core.config import StageConfig, load_config, validate_config
 from spacepose.core.sim import LabConfig, grid_scenario
 from spacepose.core.sim.grid import CLUTTERS, MOTIONS, motion_fields
+from spacepose.core.sim.random_targets import generated_seed
 from spacepose.errors import ConfigError
 
 MODELS_DIR = Path(spacepose.__file__).resolve().parents[2] / "data" / "models"
@@ -78,8 +79,9 @@ class Cell:
 
 
 def mesh_path(target: str) -> str:
-    """``"lab"``, or the mesh file of a target name of :data:`TARGETS` or path."""
-    if target == "lab":
+    """``"lab"`` or ``"random:K"`` (a generated spacecraft), or the mesh file of a target name
+    of :data:`TARGETS` or path."""
+    if target == "lab" or generated_seed(target) is not None:
         return target
     path = MODELS_DIR / TARGETS[target] if target in TARGETS else Path(target)
     if not path.is_file():
@@ -131,8 +133,16 @@ def cell_problem(cell: Cell) -> str | None:
     milliseconds; the range must also lie within the range of the sensor the scenario picks,
     or the target's frames would be empty.
     """
-    if cell.target != "lab" and cell.target not in TARGETS and not Path(cell.target).is_file():
-        return f"unknown target {cell.target!r}; choose lab, {', '.join(TARGETS)} or a mesh file"
+    try:
+        generated = generated_seed(cell.target) is not None
+    except ConfigError as exc:
+        return str(exc)
+    known = generated or cell.target == "lab" or cell.target in TARGETS
+    if not known and not Path(cell.target).is_file():
+        return (
+            f"unknown target {cell.target!r}; choose lab, {', '.join(TARGETS)}, random:K or a "
+            "mesh file"
+        )
     if not (math.isfinite(cell.range) and cell.range > 0):
         return f"range {cell.range:g} is not a positive number of metres"
     if not (math.isfinite(cell.noise) and cell.noise >= 0):
