@@ -448,6 +448,22 @@ def test_a_depth_map_read_with_the_wrong_depth_scale_is_warned_about(tmp_path):
         read_depth_cloud(path, camera.model_copy(update={"depth_scale": 0.001}))
 
 
+def test_a_float_map_in_metres_read_as_millimetres_is_warned_about(tmp_path):
+    # A float TIFF in metres (a wall 2 m away) read with depth_scale 0.001: 2 mm away; it was
+    # lost as "4 points after preprocessing" with no word of the scale.
+    yy, xx = np.mgrid[:48, :64]
+    path = tmp_path / "000000.tiff"
+    Image.fromarray((2.0 + 0.003 * xx + 0.002 * yy).astype(np.float32)).save(path)
+    camera = DepthCamera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, depth_scale=0.001)
+    with pytest.warns(SpaceposeWarning, match="nearer than any depth camera") as caught:
+        cloud = read_depth_cloud(path, camera)
+    assert np.median(cloud.points[:, 2]) < 0.003
+    assert str(path) in str(caught[0].message) and "depth_scale" in str(caught[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_depth_cloud(path, camera.model_copy(update={"depth_scale": 1.0}))
+
+
 def test_a_voxel_refused_for_points_far_out_says_how_far(tmp_path, capsys):
     # 2^63 in every coordinate: one cell, yet past any key; "[1, 1, 1] cells are too many"
     # was all the message said.

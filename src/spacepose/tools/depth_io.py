@@ -14,6 +14,7 @@ folder).
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
 from spacepose.core.motion import order_problem
-from spacepose.errors import ConfigError, FileFormatError, InputError
+from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.npy_io import load_npy, npy_shape
 from spacepose.tools.text_io import not_a_file, read_text
@@ -36,6 +37,9 @@ INTRINSICS_FILES: tuple[str, ...] = ("intrinsics.yaml", "intrinsics.yml", "intri
 TUM_DEPTH_LIST = "depth.txt"
 # Pillow modes of one-channel depth maps: 16-bit unsigned (three byte orders), 32-bit int, float.
 _DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
+
+# No depth camera ranges nearer (m): returns closer than this in the median are a unit error.
+NEAREST_RANGE_M = 0.02
 
 
 def read_depth_image(path: str | Path) -> NDArray:
@@ -147,12 +151,22 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
     Warns
     -----
     SpaceposeWarning
-        The points look like millimetres (a wrong ``depth_scale``), naming the file.
+        The points look like millimetres (a wrong ``depth_scale``), or lie nearer than
+        :data:`NEAREST_RANGE_M` (metres read as millimetres), naming the file.
     """
     cloud = depth_to_cloud(read_depth_image(path), camera, stride, source=str(path))
     # A millimetre map read with depth_scale 1 is a scene 1000 times too large, tracked as such.
     remedy = f"check depth_scale in the intrinsics ({camera.depth_scale:g} m per stored unit)"
     warn_if_not_metres(cloud, path, remedy)
+    # A map in metres read as millimetres (a float TIFF with depth_scale 0.001) is a scene 1000
+    # times too small, which preprocessing then loses as a few points.
+    nearest = float(np.median(np.linalg.norm(cloud.points, axis=1)))
+    if nearest < NEAREST_RANGE_M:
+        problem = (
+            f"the returns lie {1e3 * nearest:.3g} mm from the sensor (median), nearer than any "
+            f"depth camera ranges: metres read as smaller units? {remedy}"
+        )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
     return cloud
 
 
