@@ -56,9 +56,19 @@ def health_bounds(context: CheckContext, model_based: bool) -> HealthBounds:
     )
 
 
+# Least reach of the first pass, in voxels. The fine gate is under a voxel (0.83 v, or three
+# residual σ when wider): a silhouette sample that moved by a sample or more finds no surface
+# within it and pulls nothing, so a registration slides along face-on surfaces no further than
+# the prediction took it. Under an
+# accelerating slide the constant-velocity prediction falls short, the registration with it,
+# and the motion model's error, measured against those poses, stays small (generated
+# spacecraft at 25 m, methods.md §5.5: 70-210 mm short, 5-10 σ, on frames 3-5).
+WIDE_PASS_VOXELS = 2.0
+
+
 def wide_gate(context: CheckContext, prediction: Prediction) -> float:
-    """Gate (m) of the first pass: three model-error σ at the radius (KISS-ICP-like); the
-    largest motion allowed while the velocity is unknown."""
+    """Reach (m) of the prediction: three model-error σ at the radius (KISS-ICP-like); the
+    largest motion allowed while the velocity is unknown; 0 before the error is measured."""
     h, r = context.config.health, context.scale.radius
     if not prediction.velocity_known:
         return h.max_motion * r
@@ -66,6 +76,12 @@ def wide_gate(context: CheckContext, prediction: Prediction) -> float:
     if error is None:
         return 0.0
     return h.model_error_sigmas * (error[0] + r * error[1])
+
+
+def first_pass_gate(context: CheckContext, prediction: Prediction) -> float:
+    """Gate (m) of the fine registration's first pass: the prediction's reach
+    (:func:`wide_gate`), at least :data:`WIDE_PASS_VOXELS` voxels."""
+    return max(wide_gate(context, prediction), WIDE_PASS_VOXELS * context.scale.voxel)
 
 
 def check_frame(

@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.fine_stage import FineStage
-from spacepose.core.frame_check import CheckContext, health_bounds, wide_gate
+from spacepose.core.frame_check import CheckContext, first_pass_gate, health_bounds, wide_gate
 from spacepose.core.frame_preparation import FramePreparer, checked_model
 from spacepose.core.frame_registration import FrameRegistrar
 from spacepose.core.health import Status, pose_disagreement
@@ -222,7 +222,8 @@ class Tracker:
                 prepared = self._support.remove(
                     prepared, self._fine.reference(), T, timestamp, reach
                 )
-            checked = self._fine.register(prepared, T, reach, prediction)
+            first_pass = first_pass_gate(self._context(), prediction)
+            checked = self._fine.register(prepared, T, first_pass, prediction)
             prepared, checked = self._fine.split_off_support(prepared, checked, timestamp, reach)
             checked = self._fine.close_on_first(prepared, checked, prediction)
             times["fine"] += elapsed_ms(tic)
