@@ -434,34 +434,30 @@ def test_a_folder_in_millimetres_warns_three_times_then_counts(frames, tmp_path,
     )
 
 
-def test_a_depth_map_read_with_the_wrong_depth_scale_is_warned_about(tmp_path):
-    # A 16-bit map in millimetres (a wall 2 m away) with depth_scale 1: 2 km, as metres.
+@pytest.mark.parametrize(
+    ("name", "wall", "wrong", "right", "message"),
+    [
+        # A 16-bit map in millimetres (a wall 2 m away) with depth_scale 1: 2 km, as metres.
+        ("000000.png", np.uint16(2000), 1.0, 0.001, "look like millimetres"),
+        # A float TIFF in metres read with depth_scale 0.001: 2 mm away; it was lost as "4
+        # points after preprocessing" with no word of the scale.
+        ("000000.tiff", np.float32(2.0), 0.001, 1.0, "nearer than any depth camera"),
+    ],
+)
+def test_a_depth_map_read_with_the_wrong_depth_scale_is_warned_about(
+    tmp_path, name, wall, wrong, right, message
+):
     yy, xx = np.mgrid[:48, :64]
-    path = tmp_path / "000000.png"
-    Image.fromarray((2000 + 3 * xx + 2 * yy).astype(np.uint16)).save(path)
-    camera = DepthCamera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, depth_scale=1.0)
-    with pytest.warns(SpaceposeWarning, match="look like millimetres") as caught:
+    path = tmp_path / name
+    Image.fromarray((wall + (0.0015 * wall) * (xx + yy)).astype(type(wall))).save(path)
+    camera = DepthCamera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, depth_scale=wrong)
+    with pytest.warns(SpaceposeWarning, match=message) as caught:
         read_depth_cloud(path, camera)
     assert str(path) in str(caught[0].message) and "depth_scale" in str(caught[0].message)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        read_depth_cloud(path, camera.model_copy(update={"depth_scale": 0.001}))
-
-
-def test_a_float_map_in_metres_read_as_millimetres_is_warned_about(tmp_path):
-    # A float TIFF in metres (a wall 2 m away) read with depth_scale 0.001: 2 mm away; it was
-    # lost as "4 points after preprocessing" with no word of the scale.
-    yy, xx = np.mgrid[:48, :64]
-    path = tmp_path / "000000.tiff"
-    Image.fromarray((2.0 + 0.003 * xx + 0.002 * yy).astype(np.float32)).save(path)
-    camera = DepthCamera(fx=60.0, fy=60.0, cx=31.5, cy=23.5, depth_scale=0.001)
-    with pytest.warns(SpaceposeWarning, match="nearer than any depth camera") as caught:
-        cloud = read_depth_cloud(path, camera)
-    assert np.median(cloud.points[:, 2]) < 0.003
-    assert str(path) in str(caught[0].message) and "depth_scale" in str(caught[0].message)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        read_depth_cloud(path, camera.model_copy(update={"depth_scale": 1.0}))
+        cloud = read_depth_cloud(path, camera.model_copy(update={"depth_scale": right}))
+    assert 1.9 < np.median(cloud.points[:, 2]) < 2.5
 
 
 def test_a_voxel_refused_for_points_far_out_says_how_far(tmp_path, capsys):

@@ -38,7 +38,9 @@ def test_a_marked_chain_closes_onto_the_first_keyframe(orbit):
     """Orbit run at 25 m, seed 1: frame 43 leaves a direction nearly unconstrained (condition
     above its bound) and the keyframes after it carry the mark; frame 48, 127° from the first
     view, registers onto the first keyframe, agrees with the chain within its σ and becomes a
-    keyframe, and the frames after it are ``ok`` again, within 3σ of the truth on every axis."""
+    keyframe, and the frames after it are within 3σ of the truth on every axis and ``ok`` again,
+    but for the first, which the motion model predicts from the step onto the closed pose and
+    may find off its prediction (frame 49: 198 mm off it, 0.12 σ from the truth)."""
     results, truth = _track(orbit)
     assert any(reason.startswith(CONDITION) for reason in results[43].reasons)
     assert results[44].keyframe and results[44].reference_index == 40
@@ -46,9 +48,13 @@ def test_a_marked_chain_closes_onto_the_first_keyframe(orbit):
     assert closed.reference_index == 0 and closed.keyframe
     assert closed.reasons[0].startswith(FAR_KEYFRAME)
     for r, T_true in zip(results[49:], truth[49:], strict=True):
-        assert r.status == "ok"
         e, sigma, _ = tracker_errors(r.T_sensor_target, r.covariance, T_true)
         assert np.all(np.abs(e) < 3.0 * sigma)
+        assert UNOBSERVED_CHAIN not in r.reasons
+    assert all(
+        r.reasons == () or r.reasons[0].startswith("off the prediction") for r in results[49:50]
+    )
+    assert all(r.status == "ok" for r in results[50:])
 
 
 def test_without_the_closure_the_chain_stays_marked(orbit, monkeypatch):

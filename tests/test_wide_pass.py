@@ -15,17 +15,33 @@ from spacepose.tools.experiments.robustness import run_cell
 from spacepose.tools.experiments.robustness_cells import Cell
 
 
-class _NoError:
+class _Motion:
+    def __init__(self, error):
+        self.error = error
+
     def model_error(self):
-        return None
+        return self.error
 
 
-def test_the_first_pass_reaches_two_voxels_before_the_model_error_is_known() -> None:
-    scale = DataScale(spacing=0.08, points=800, voxel=0.08, radius=2.2, noise=0.01)
-    context = CheckContext(TrackerConfig(), scale, _NoError())
-    known = Prediction.given(np.eye(4), np.eye(6))
-    assert known.velocity_known
-    assert first_pass_gate(context, known) == pytest.approx(WIDE_PASS_VOXELS * 0.08)
+@pytest.mark.parametrize(
+    ("voxel", "error", "gate"),
+    [
+        # A voxel that is the sensor's own spacing, the model's error measured and small.
+        (0.08, (0.001, 0.0001), WIDE_PASS_VOXELS * 0.08),
+        # Not yet measured: the frame carries the first look for a support; no first pass.
+        (0.08, None, 0.0),
+        # A thinned frame (2.5 samples a voxel edge): the model error's reach, as before.
+        (0.2, (0.001, 0.0001), 3.0 * (0.001 + 2.2 * 0.0001)),
+    ],
+)
+def test_the_first_pass_reaches_two_voxels_on_frames_the_grid_hardly_thins(
+    voxel, error, gate
+) -> None:
+    scale = DataScale(spacing=0.08, points=800, voxel=voxel, radius=2.2, noise=0.01)
+    context = CheckContext(TrackerConfig(), scale, _Motion(error))
+    predicted = Prediction.given(np.eye(4), np.eye(6))
+    assert predicted.velocity_known
+    assert first_pass_gate(context, predicted) == pytest.approx(gate)
 
 
 @pytest.fixture(scope="module")

@@ -56,14 +56,18 @@ def health_bounds(context: CheckContext, model_based: bool) -> HealthBounds:
     )
 
 
-# Least reach of the first pass, in voxels. The fine gate is under a voxel (0.83 v, or three
-# residual σ when wider): a silhouette sample that moved by a sample or more finds no surface
-# within it and pulls nothing, so a registration slides along face-on surfaces no further than
-# the prediction took it. Under an
-# accelerating slide the constant-velocity prediction falls short, the registration with it,
-# and the motion model's error, measured against those poses, stays small (generated
-# spacecraft at 25 m, methods.md §5.5: 70-210 mm short, 5-10 σ, on frames 3-5).
+# Least reach of the first pass on a frame the voxel grid hardly thins, in voxels. The fine
+# gate is under a voxel (0.83 v, or three residual σ when wider). A voxel centroid of many
+# samples moves with the surface by fractions of a sample, but on a frame whose voxel holds
+# fewer than two samples (a flash LiDAR at 25 m: 82 mm voxels, the sensor's own spacing) a
+# silhouette sample that moved by a sample or more finds no surface within the gate and pulls
+# nothing: along face-on surfaces the registration goes no further than the prediction took
+# it. Under an accelerating slide the constant-velocity prediction falls short, the
+# registration with it, and the motion model's error, measured against those same poses, stays
+# small (generated spacecraft at 25 m, methods.md §5.5: 70-210 mm short, 5-10 σ, frames 3-5).
 WIDE_PASS_VOXELS = 2.0
+# A voxel holds fewer than two samples when its edge is under this many point spacings.
+THIN_VOXEL_SPACINGS = 2.0**0.5
 
 
 def wide_gate(context: CheckContext, prediction: Prediction) -> float:
@@ -80,8 +84,19 @@ def wide_gate(context: CheckContext, prediction: Prediction) -> float:
 
 def first_pass_gate(context: CheckContext, prediction: Prediction) -> float:
     """Gate (m) of the fine registration's first pass: the prediction's reach
-    (:func:`wide_gate`), at least :data:`WIDE_PASS_VOXELS` voxels."""
-    return max(wide_gate(context, prediction), WIDE_PASS_VOXELS * context.scale.voxel)
+    (:func:`wide_gate`); at least :data:`WIDE_PASS_VOXELS` voxels on frames whose voxel holds
+    fewer than two samples (:data:`THIN_VOXEL_SPACINGS`), once the motion model's error has
+    been measured.
+
+    Not before: the frame after a (re)start carries the first look for a support (methods.md
+    §5.8), whose split starts from this registration; a wider pass there pulled the support
+    into it (lab mock-up at 25 m before a wall and table, ×3, tumbling 5° a frame: the split
+    kept the wrong body, and frames 5-11 followed it ``ok``, 11-23° off)."""
+    reach, scale = wide_gate(context, prediction), context.scale
+    thinned = scale.voxel >= THIN_VOXEL_SPACINGS * scale.spacing
+    if thinned or (prediction.velocity_known and context.motion.model_error() is None):
+        return reach
+    return max(reach, WIDE_PASS_VOXELS * scale.voxel)
 
 
 def check_frame(
