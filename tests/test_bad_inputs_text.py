@@ -151,7 +151,8 @@ def test_a_folder_named_as_a_depth_frame_is_lost_in_its_place(tmp_path):
     for k in (0, 2):
         np.save(tmp_path / f"{k:06d}.npy", 1.0 + 0.01 * xx + 0.02 * yy + 0.1 * (xx % 3))
     (tmp_path / "000001.npy").mkdir()
-    (tmp_path / "intrinsics.yaml").write_text("fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\ndepth_scale: 1\n")
+    intrinsics = "fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\ndepth_scale: 1\n"  # metres, as saved
+    (tmp_path / "intrinsics.yaml").write_text(intrinsics)
     summary = track_folder(tmp_path, tmp_path / "o" / "e.tum")
     assert summary["frames"] == 3
     status, reason = _statuses(tmp_path / "o" / "e.health.csv")[1]
