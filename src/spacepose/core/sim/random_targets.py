@@ -6,10 +6,11 @@ satellites carry, every size and place drawn:
 * the bus, 1.0-2.5 m along each axis;
 * none, one or two solar wings (probabilities 0.2, 0.4, 0.4) on booms from the ±y faces, each
   1.5-3.5 times the bus's longest side and 0.5-1.0 times its height, 3-5 cm thick, canted about
-  its boom by up to 45° and mounted off the face's centre;
-* a dish on a mast from one of the four other faces, off-centre (probability 0.6);
+  its boom by up to 45°, its boom rooted anywhere in the middle half of the face;
+* a dish on a mast rooted anywhere in the middle half of one of the four other faces
+  (probability 0.6);
 * one to three instruments: a box of 0.1-0.35 m at the end of a 0.2-0.8 m boom that leaves a
-  face away from its centre, tilted up to 40° off the face's normal.
+  face at a random point (within 80 % of its half sides), tilted up to 40° off its normal.
 
 The draws make almost every spacecraft asymmetric, as a mesh of a real one is; a spacecraft
 without wings, dish or instrument offsets would not be, and the draws give it no weight. The
@@ -19,11 +20,13 @@ rectangle catalogue lists the bus's six faces and both faces of each wing.
 from __future__ import annotations
 
 import numpy as np
+import trimesh
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
 from spacepose.core.sim.targets import (
+    Rectangle,
     Target,
     assemble,
     box_part,
@@ -76,7 +79,12 @@ def random_spacecraft(seed: int) -> Target:
 
 
 def _add_wing(
-    rng: np.random.Generator, bus: NDArray[np.float64], side: float, name: str, parts, rects
+    rng: np.random.Generator,
+    bus: NDArray[np.float64],
+    side: float,
+    name: str,
+    parts: list[trimesh.Trimesh],
+    rects: list[Rectangle],
 ) -> None:
     """A wing on a boom from the bus's ``side`` y face (+1 or −1), its long side along y."""
     length = rng.uniform(1.5, 3.5) * bus.max()
@@ -102,8 +110,10 @@ def _face_point(
     return point
 
 
-def _add_dish(rng: np.random.Generator, bus: NDArray[np.float64], parts) -> None:
-    """A shallow cone (reflector) on a mast from one of the ±x, ±z faces, off-centre."""
+def _add_dish(
+    rng: np.random.Generator, bus: NDArray[np.float64], parts: list[trimesh.Trimesh]
+) -> None:
+    """A shallow cone (reflector) on a mast from the middle half of one of the ±x, ±z faces."""
     axis = int(rng.choice((0, 2)))
     sign = float(rng.choice((-1.0, 1.0)))
     normal = sign * np.eye(3)[axis]
@@ -114,8 +124,10 @@ def _add_dish(rng: np.random.Generator, bus: NDArray[np.float64], parts) -> None
     parts.append(cone_part(radius, 0.3 * radius, top, normal))
 
 
-def _add_instrument(rng: np.random.Generator, bus: NDArray[np.float64], parts) -> None:
-    """A box on a boom leaving a random face away from its centre, tilted off its normal."""
+def _add_instrument(
+    rng: np.random.Generator, bus: NDArray[np.float64], parts: list[trimesh.Trimesh]
+) -> None:
+    """A box on a boom from a random point of a random face, tilted off the face's normal."""
     axis = int(rng.integers(3))
     sign = float(rng.choice((-1.0, 1.0)))
     normal = sign * np.eye(3)[axis]
