@@ -18,9 +18,10 @@ from spacepose.cli import main
 from spacepose.core import se3
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError
+from spacepose.tools import plots
 from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.report import build_report
-from spacepose.tools.trajectory_io import write_tum
+from spacepose.tools.trajectory_io import read_tum, write_tum
 
 NAV_STATE = (
     "rho_x rho_y rho_z v_x v_y v_z qx qy qz qw w_x w_y w_z k_x k_y k_z com_x com_y com_z".split()
@@ -284,3 +285,27 @@ def test_tracks_of_a_run_without_ground_truth_are_named_not_dropped(tmp_path: Pa
         "gicp.tum, icp.tum cannot be scored"
     ), err
     assert "gicp.tum, icp.tum cannot be scored" in (tmp_path / "r.html").read_text()
+
+
+def test_an_estimate_with_repeated_times_is_noted_and_not_paired_by_line(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """`evaluate` notes estimates that share a ground-truth pose; the report scored them without
+    a word, and drew its error curves by line number whenever the counts matched."""
+    root = tmp_path / "demo"
+    _make_run(root)
+    gt = read_tum(root / "lab" / "groundtruth.tum")
+    # Ten poses as the truth has, the fifth time repeated: by line, the last five would meet
+    # the truth of the frame after theirs.
+    t = np.r_[gt.timestamps[:5], gt.timestamps[4:9]]
+    poses = np.r_[gt.poses[:5], gt.poses[4:9]]
+    write_tum(root / "lab" / "tracks" / "gicp.tum", Trajectory(t, poses))
+    drawn: list[str] = []
+    curves = plots.pose_error_curves
+    monkeypatch.setattr(
+        plots, "pose_error_curves", lambda t, c, title: drawn.extend(c) or curves(t, c, title)
+    )
+    page = build_report(root, tmp_path / "r.html").read_text()
+    note = "gicp: 1 estimate(s) share a ground-truth pose with another (repeated timestamps)"
+    assert note in page
+    assert drawn == ["icp"]  # icp's times are the truth's; gicp's are not, so no curve

@@ -133,11 +133,9 @@ def compare_trajectory_files(
             f"{len(est)} poses against {len(gt)} in {gt_path.name}: only the {len(est)} "
             "estimated ones are scored"
         )
-    shared = len(i_gt) - len(np.unique(i_gt))
-    if shared:
-        notes.append(
-            f"{shared} estimate(s) share a ground-truth pose with another (repeated timestamps)"
-        )
+    shared = shared_pairings(i_gt)
+    if shared is not None:
+        notes.append(shared)
     if (
         not rebase_first
         and starts_at_identity(est.poses[0])
@@ -153,6 +151,15 @@ def compare_trajectory_files(
     for note in notes:
         warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
     return TrajectoryComparison(table, len(est), len(gt), rebase_first, tuple(notes))
+
+
+def shared_pairings(i_gt: np.ndarray) -> str | None:
+    """The note for estimates paired with a ground-truth pose another estimate is paired with
+    too (repeated timestamps), ``i_gt`` (N,) their ground-truth indices; None when none is."""
+    shared = len(i_gt) - len(np.unique(i_gt))
+    if not shared:
+        return None
+    return f"{shared} estimate(s) share a ground-truth pose with another (repeated timestamps)"
 
 
 def _check_one_truth_per_time(timestamps: np.ndarray, tolerance: float, path: Path) -> None:

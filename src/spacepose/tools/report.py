@@ -27,12 +27,18 @@ import numpy as np
 
 from spacepose import __version__
 from spacepose.core.config import load_structured, not_text, parse_problem
-from spacepose.core.metrics import ErrorTable, evaluate, navigation_errors, pose_errors
+from spacepose.core.metrics import (
+    ErrorTable,
+    associate,
+    evaluate,
+    navigation_errors,
+    pose_errors,
+)
 from spacepose.core.mls import MLSConfig, mpp_mls
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools import plots
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.evaluation import starts_at_identity, without_lost_frames
+from spacepose.tools.evaluation import shared_pairings, starts_at_identity, without_lost_frames
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.trajectory_io import read_tum
 
@@ -194,8 +200,10 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
         scored, lost, note = without_lost_frames(path, est)
         table: ErrorTable = evaluate(scored, gt, rebase_first=rebase)
         d = table.to_dict()
-        if note is not None:
-            notes.append(html.escape(f"{shown(path.stem)}: {note}"))
+        _, i_gt = associate(est.timestamps, gt.timestamps)
+        shared = shared_pairings(i_gt)
+        for text in filter(None, (note, shared)):
+            notes.append(html.escape(f"{shown(path.stem)}: {text}"))
         rows.append(
             (
                 path.stem,
@@ -205,7 +213,8 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
             )
         )
         gt_eval = gt.rebased_first() if rebase else gt
-        if len(est) == len(gt_eval):
+        # Curves pair the k-th estimate with the k-th truth: only when their times do.
+        if len(est) == len(gt_eval) and np.array_equal(i_gt, np.arange(len(gt))):
             dt, de = pose_errors(est.poses, gt_eval.poses)
             # Columns: x, y, z (mm), then pitch, yaw, roll (deg) as in Li's Table 2.
             curve = np.c_[1e3 * dt, np.degrees(de[:, [1, 0, 2]])]
