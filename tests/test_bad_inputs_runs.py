@@ -103,20 +103,28 @@ def test_good_cells_still_pass_the_check() -> None:
     assert len(select_cells(None, quick=False, frames=None)[0]) == 1500
 
 
-@pytest.mark.parametrize(("option", "value"), [("--cells", "foo=1"), ("--tracker", "bad.yaml")])
+@pytest.mark.parametrize(
+    ("option", "value", "user"),
+    [
+        ("--cells", "foo=1", "robustness"),
+        ("--tracker", "bad.yaml", "robustness"),
+        ("--targets", "random:3", "fusion"),
+    ],
+)
 def test_options_an_experiment_ignores_are_refused(
     tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
     monkeypatch: pytest.MonkeyPatch,
     option: str,
     value: str,
+    user: str,
 ) -> None:
     experiments.available()
     monkeypatch.setitem(experiments._REGISTRY, "li-l1", _not_called)
     args = ["experiment", "li-l1", "--quick", option, value, "--out", str(tmp_path)]
     assert main(args) == 1
     err = _cli_error(capsys)
-    assert f"{option}: experiment 'li-l1' does not use it (only robustness does)" in err
+    assert f"{option}: experiment 'li-l1' does not use it (only {user} does)" in err
     # Not even the experiment's folder is made.
     assert not (tmp_path / "li-l1").exists()
 

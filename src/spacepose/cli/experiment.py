@@ -34,6 +34,9 @@ def experiment(
     tracker: Path = typer.Option(
         None, help="robustness: a tracker config file (YAML/JSON) instead of the defaults."
     ),
+    targets: str = typer.Option(
+        None, help="fusion: targets, e.g. 'default,random:3' (random:K: a generated spacecraft)."
+    ),
 ) -> None:
     """Run one experiment; tables (JSON) and figures (PNG) go to OUT/NAME/, listed at the end."""
     from spacepose.tools.experiments import ExperimentOptions, run_experiment
@@ -48,6 +51,7 @@ def experiment(
         frames_csv=frames_csv,
         jobs=jobs,
         tracker=None if tracker is None else str(tracker),
+        targets=targets,
     )
     start = time.time()
     with working(f"experiment {name}"):

@@ -42,6 +42,8 @@ class ExperimentOptions:
         Threads for neighbour searches (-1: all cores).
     seeds
         li-l1 and li-l3: number of seeds, from ``seed`` on (None: the experiment's default).
+    targets
+        ``fusion`` only: comma-separated targets (None: the experiment's own).
     cells, frames, frames_csv, jobs, tracker
         ``robustness`` only (the others ignore the middle three and refuse ``cells`` and
         ``tracker``, :func:`check_options`): the grid cells to run (selection string or config
@@ -59,12 +61,13 @@ class ExperimentOptions:
     frames_csv: bool = False
     jobs: int = 1
     tracker: str | None = None
+    targets: str | None = None
 
 
 Experiment = Callable[[Path, ExperimentOptions], dict[str, Any]]
 _REGISTRY: dict[str, Experiment] = {}
 # Options that only some experiments read; set for another one, they are an error, not ignored.
-OWN_OPTIONS: tuple[str, ...] = ("cells", "tracker")
+OWN_OPTIONS: tuple[str, ...] = ("cells", "tracker", "targets")
 _USES: dict[str, tuple[str, ...]] = {}
 
 

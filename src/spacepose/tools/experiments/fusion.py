@@ -10,7 +10,9 @@ two-sided 95 % χ² bounds. No truth reaches the navigator: the rectangle start 
 the registration start is the tracker's coarse registration on the model.
 
 Targets: the default (rectangles) target and each mesh of ``data/models``, scaled to fit the
-sensor's 30° field at 25 m. The meshes have no rectangle catalogue: registration only. The
+sensor's 30° field at 25 m, or those named (``--targets``), generated spacecraft ``random:K``
+among them (:mod:`spacepose.core.sim.random_targets`, nothing tuned on them). The meshes and
+the generated targets have no rectangle catalogue: registration and model-free only. The
 ``model-free`` kind navigates the default target from the model-free tracker's poses (a batch
 of ``model_free_frames`` gives the body frame) and is scored in the body frame it estimated,
 up to the half turns about principal axes no motion tells apart (:func:`relabelled_truth`). Besides
@@ -34,7 +36,9 @@ from spacepose.core import se3
 from spacepose.core.fused_navigation import GATE_REASON, FusedNavigator, FusionConfig
 from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.nav_start import scenario_geometry
+from spacepose.core.sim.random_targets import generated_seed
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
+from spacepose.errors import ConfigError
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register
 from spacepose.tools.experiments.yu_nav import (
@@ -66,13 +70,61 @@ SUMMARY_KEYS = (
 )
 
 
+# Measurement kinds of a generated spacecraft (no rectangle catalogue).
+GENERATED_KINDS = ("registration", "model-free")
+# The kinds a quick run navigates.
+_QUICK_KINDS = ("registration", "both")
+
+
+def target_kinds(target: str) -> tuple[str, ...]:
+    """The measurement kinds of ``target``: a key of :data:`TARGETS` or ``random:K``.
+
+    Raises
+    ------
+    ConfigError
+        Any other name (the message lists the choices).
+    """
+    if target in TARGETS:
+        return TARGETS[target][2]
+    if generated_seed(target) is not None:
+        return GENERATED_KINDS
+    raise ConfigError(
+        f"fusion target {target!r}: choose {', '.join(TARGETS)} or random:K (a generated "
+        "spacecraft, K a whole number)"
+    )
+
+
 def orbit_config(target: str, frames: int, seed: int) -> OrbitConfig:
-    """The orbit run with ``target`` (a key of :data:`TARGETS`)."""
-    mesh, scale, _ = TARGETS[target]
+    """The orbit run with ``target`` (a key of :data:`TARGETS`, or ``random:K``)."""
     fields: dict[str, Any] = {"frames": frames, "seed": seed}
+    if target not in TARGETS:
+        return OrbitConfig(**fields, model=target)
+    mesh, scale, _ = TARGETS[target]
     if mesh is not None:
         fields |= {"model": str(_MODELS / mesh), "model_scale": scale}
     return OrbitConfig(**fields)
+
+
+def fusion_plan(targets: str | None, quick: bool) -> dict[str, tuple[str, ...]]:
+    """Target -> measurement kinds to navigate: every target of :data:`TARGETS`, or those of
+    ``targets`` (comma-separated names); a quick run keeps registration and both only, and
+    without ``targets`` the default target alone.
+
+    Raises
+    ------
+    ConfigError
+        An unknown target, or ``targets`` naming none.
+    """
+    if targets is None:
+        names = ["default"] if quick else list(TARGETS)
+    else:
+        names = list(dict.fromkeys(n.strip() for n in targets.split(",") if n.strip()))
+        if not names:
+            raise ConfigError(f"--targets {targets!r} names no target")
+    plan = {name: target_kinds(name) for name in names}
+    if quick:
+        plan = {name: tuple(k for k in kinds if k in _QUICK_KINDS) for name, kinds in plan.items()}
+    return plan
 
 
 def tracker_errors(
@@ -243,19 +295,16 @@ def markdown_table(runs: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-@register("fusion")
+@register("fusion", uses=("targets",))
 def fusion(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
-    """Every target of :data:`TARGETS` with each of its measurement kinds: ``fusion.json``,
-    ``fusion.md``. Full: 3 seeds of 600 frames (``--seeds``, ``--frames`` override); quick: the
-    default target, registration and both, 1 seed of 30 frames."""
+    """Every target of :data:`TARGETS` (or of ``--targets``) with each of its measurement
+    kinds (:func:`fusion_plan`): ``fusion.json``, ``fusion.md``. Full: 3 seeds of 600 frames
+    (``--seeds``, ``--frames`` override); quick: the default target, registration and both, 1
+    seed of 30 frames."""
+    plan = fusion_plan(options.targets, options.quick)
     n_seeds, frames = (1, 30) if options.quick else (options.seeds or 3, options.frames or 600)
     seeds = list(range(options.seed, options.seed + n_seeds))
     base = FusionConfig(navigation=NavigationConfig())
-    plan = (
-        {"default": ("registration", "both")}
-        if options.quick
-        else {name: kinds for name, (_, _, kinds) in TARGETS.items()}
-    )
     runs = {
         f"{target} / {kind}": over_seeds(target, kind, seeds, frames, base)
         for target, kinds in plan.items()
