@@ -24,13 +24,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import load_structured, not_text
+from spacepose.core.config import load_structured
 from spacepose.core.motion import order_problem
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS, Simulation
 from spacepose.core.sim.targets import Rectangle
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.cloud_io import read_cloud, write_cloud
+from spacepose.tools.text_io import read_text
 from spacepose.tools.trajectory_io import read_tum, write_tum
 
 FRAMES_DIR = "frames"
@@ -190,10 +191,10 @@ def read_run(path: str | Path) -> Run:
     for name in (SCENARIO, GROUNDTRUTH, MODEL_CLOUD, MODEL_MESH, FRAMES_DIR):
         if not (root / name).exists():
             raise InputError(f"run folder is missing {name}", root)
+    # read_text names the file whatever fails: a bare OSError ("Input/output error") did not.
+    text = read_text(root / SCENARIO, "the run's scenario")
     try:
-        scenario = load_structured((root / SCENARIO).read_text(), "json")
-    except UnicodeDecodeError as exc:
-        raise FileFormatError(not_text(exc), root / SCENARIO) from None
+        scenario = load_structured(text, "json")
     except json.JSONDecodeError as exc:
         raise FileFormatError(f"not valid JSON: {exc}", root / SCENARIO) from None
     if not isinstance(scenario, dict):
@@ -255,10 +256,7 @@ def _numbered_frames(root: Path) -> tuple[Path, ...]:
 
 
 def _read_truth(path: Path, n_frames: int) -> NDArray[np.float64]:
-    try:
-        lines = path.read_text().splitlines()
-    except UnicodeDecodeError as exc:
-        raise FileFormatError(not_text(exc), path) from None
+    lines = read_text(path, "the orbit's truth").splitlines()
     if not lines or lines[0].strip().split(",") != TRUTH_COLUMNS:
         raise FileFormatError(f"header must be {','.join(TRUTH_COLUMNS)}", path)
     # np.loadtxt only warns on a body without data (blank or '#' comment lines alone).
