@@ -55,3 +55,17 @@ def test_a_run_file_the_system_refuses_is_named(tmp_path, capsys, name):
     assert main(["navigate", str(run), "--out", str(tmp_path / "nav.csv")]) == 1
     err = _cli_error(capsys)
     assert str(run / name) in err and "cannot read" in err
+
+
+# -- trajectories -----------------------------------------------------------------------------
+
+
+def test_two_truth_poses_at_one_time_name_the_time_as_a_number(tmp_path, capsys):
+    """The time was printed as numpy's repr: 't = np.float64(2.0)'."""
+    est, gt = tmp_path / "est.tum", tmp_path / "gt.tum"
+    est.write_text("".join(f"{k} 0 0 1 0 0 0 1\n" for k in range(4)))
+    gt.write_text(est.read_text() + "2 0.5 0 1 0 0 0 1\n")
+    assert main(["evaluate", str(est), str(gt)]) == 1
+    err = _cli_error(capsys)
+    assert str(gt) in err and "two ground-truth poses at t = 2.0:" in err
+    assert "np." not in err

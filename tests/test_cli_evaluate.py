@@ -245,7 +245,7 @@ def test_a_ground_truth_with_two_poses_at_one_time_is_refused(
     assert main(["evaluate", str(est), str(gt)]) == 1
     err = capsys.readouterr().err.strip()
     assert err == (
-        f"error: {gt}: two ground-truth poses at t = {t[3]!r}: which one is the truth? "
+        f"error: {gt}: two ground-truth poses at t = {float(t[3])!r}: which one is the truth? "
         "(one pose a time)"
     ), err
 

@@ -176,8 +176,9 @@ def _check_one_truth_per_time(timestamps: np.ndarray, path: Path) -> None:
     t = np.sort(np.asarray(timestamps, dtype=np.float64))
     close = np.flatnonzero(np.diff(t) <= TIMESTAMP_TOLERANCE)
     if close.size:
+        # As a float: numpy's repr put "np.float64(...)" in the message.
         raise InputError(
-            f"two ground-truth poses at t = {t[close[0]]!r}: which one is the truth? "
+            f"two ground-truth poses at t = {float(t[close[0]])!r}: which one is the truth? "
             "(one pose a time)",
             path,
         )
