@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from spacepose.cli import main
@@ -69,3 +70,27 @@ def test_two_truth_poses_at_one_time_name_the_time_as_a_number(tmp_path, capsys)
     err = _cli_error(capsys)
     assert str(gt) in err and "two ground-truth poses at t = 2.0:" in err
     assert "np." not in err
+
+
+def test_a_quaternion_too_long_to_square_is_read_as_its_rotation(tmp_path, capsys):
+    """A quaternion of 1e200 components overflowed its length: numpy's bare RuntimeWarning,
+    then the pose refused as 'not a rigid transform' though it is a rotation (as one of any
+    other length, read with a warning naming the line)."""
+    q = [0.1, -0.2, 0.3, 0.9] / np.linalg.norm([0.1, -0.2, 0.3, 0.9])
+
+    def tum(scale: float) -> str:
+        long = " ".join(f"{v * scale:.17g}" for v in q)  # the second pose's quaternion
+        unit = " ".join(f"{v:.17g}" for v in q)
+        return f"0 0.1 0 1 {unit}\n1 0.2 0 1 {long}\n2 0.3 0 1 {unit}\n"
+
+    gt, est = tmp_path / "gt.tum", tmp_path / "est.tum"
+    gt.write_text(tum(1e200))
+    est.write_text(tum(1.0))
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    captured = capsys.readouterr()
+    warnings = captured.err.strip().splitlines()
+    assert warnings == [
+        f"warning: {gt}: 1 quaternions are not of unit length (line 2: 1e+200); read as "
+        "their rotations"
+    ], warnings
+    assert json.loads(captured.out)["ate_rotation_rmse_deg"] == pytest.approx(0.0, abs=1e-6)

@@ -99,7 +99,13 @@ def read_tum(path: str | Path) -> Trajectory:
     path = Path(path)
     rows, lines = _read_rows(path, _TUM_COLUMNS, "TUM")
     quat = rows[:, 4:8]
-    norms = np.linalg.norm(quat, axis=1)
+    # Lengths of rows scaled by their largest component: the square of a component of 1e200
+    # overflowed (numpy's bare warning, an inf length and a pose refused as "not a rigid
+    # transform"), though its direction is a rotation as any other length's.
+    largest = np.max(np.abs(quat), axis=1)
+    quat = quat / np.where(largest > 0, largest, 1.0)[:, None]
+    with np.errstate(over="ignore"):
+        norms = largest * np.linalg.norm(quat, axis=1)
     bad = norms < 1e-12
     if bad.any():
         raise FileFormatError(f"line {lines[np.argmax(bad)]}: zero quaternion", path)
