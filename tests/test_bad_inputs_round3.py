@@ -10,8 +10,12 @@ import numpy as np
 import pytest
 
 from spacepose.cli import main
-from spacepose.errors import FileFormatError
+from spacepose.errors import FileFormatError, InputError
+from spacepose.tools.cloud_io import write_cloud
+from spacepose.tools.depth_io import read_tum_depth_list
+from spacepose.tools.frames import read_timestamps
 from spacepose.tools.runs import read_run
+from spacepose.tools.text_io import timing_problem
 
 # /proc/self/mem is a regular file whose first page no read can reach (EIO), even for root, as
 # a file without read permission is for anyone else.
@@ -94,3 +98,46 @@ def test_a_quaternion_too_long_to_square_is_read_as_its_rotation(tmp_path, capsy
         "their rotations"
     ], warnings
     assert json.loads(captured.out)["ate_rotation_rmse_deg"] == pytest.approx(0.0, abs=1e-6)
+
+
+# -- frame times in another unit ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("stamps", "words"),
+    [
+        # nanoseconds from the start at 30 Hz: navigate integrated the orbit a year a frame
+        ([round(k * 1e9 / 30) for k in range(4)], "3.333e+07 s apart (median), more than an hour"),
+        ([1_700_000_000_000 + 33 * k for k in range(4)], "a time of 1.7e+12 s is past"),  # ms
+        ([1.7e18 + 3.3e7 * k for k in range(4)], "a time of 1.7e+18 s is past"),  # epoch ns
+    ],
+)
+def test_frame_times_in_another_unit_than_seconds_are_refused(tmp_path, capsys, stamps, words):
+    """timestamps.txt and depth.txt in nanoseconds were read as seconds without a word:
+    tracked a year a frame, and navigate, integrating the orbit over each such step, never
+    ended (the ten-second run was stopped after five minutes)."""
+    rng = np.random.default_rng(0)
+    cloud = rng.normal(size=(300, 3)) * 0.1 + [0.0, 0.0, 1.0]
+    for k in range(4):
+        write_cloud(tmp_path / f"{k:06d}.ply", cloud)
+    stamps_file = tmp_path / "timestamps.txt"
+    stamps_file.write_text("".join(f"{t}\n" for t in stamps))
+    with pytest.raises(InputError) as exc:
+        read_timestamps(stamps_file, 4)
+    assert str(stamps_file) in str(exc.value) and words in str(exc.value)
+    assert "times are seconds" in str(exc.value)
+    assert main(["track", str(tmp_path), "--out", str(tmp_path / "o" / "e.tum")]) == 1
+    err = _cli_error(capsys)
+    assert str(stamps_file) in err and words in err
+    depth_list = tmp_path / "depth.txt"
+    depth_list.write_text("".join(f"{t} {k:06d}.png\n" for k, t in enumerate(stamps)))
+    with pytest.raises(InputError) as exc:
+        read_tum_depth_list(depth_list)
+    assert str(depth_list) in str(exc.value) and words in str(exc.value)
+
+
+def test_seconds_since_the_epoch_and_slow_frames_still_read():
+    """The unit check leaves real seconds alone: epoch times, and a frame a minute."""
+    assert timing_problem(1.7e9 + np.arange(5) / 30) is None
+    assert timing_problem(60.0 * np.arange(5)) is None
+    assert timing_problem([5.0]) is None

@@ -24,11 +24,10 @@ from PIL import Image, UnidentifiedImageError
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
-from spacepose.core.motion import order_problem
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.npy_io import load_npy, npy_shape
-from spacepose.tools.text_io import not_a_file, read_text
+from spacepose.tools.text_io import not_a_file, read_text, timing_problem
 
 DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
 # A depth folder's frames may also be NumPy arrays; elsewhere a ``.npy`` is a point cloud.
@@ -375,7 +374,8 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     ------
     InputError
         Unreadable list, a line that is not ``number path``, a non-finite or decreasing time,
-        or no line at all.
+        times that are not seconds (:func:`~spacepose.tools.text_io.timing_problem`), or no
+        line at all.
     """
     path = Path(path)
     text = read_text(path, "the depth list")
@@ -397,7 +397,7 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     if not paths:
         raise InputError("lists no depth image", path)
     timestamps = np.asarray(stamps, dtype=np.float64)
-    problem = order_problem(timestamps)
+    problem = timing_problem(timestamps)
     if problem is not None:
         raise InputError(problem, path)
     return tuple(paths), timestamps

@@ -29,11 +29,10 @@ from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera
-from spacepose.core.motion import order_problem
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.text_io import read_text
+from spacepose.tools.text_io import read_text, timing_problem
 
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
 TIMESTAMPS_FILE = "timestamps.txt"
@@ -268,7 +267,8 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
     ------
     InputError
         A line is not a single finite number, the count differs from ``n_frames``, or the
-        timestamps do not increase.
+        timestamps do not increase or are not seconds
+        (:func:`~spacepose.tools.text_io.timing_problem`).
     """
     path = Path(path)
     values: list[float] = []
@@ -286,7 +286,7 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
     if len(values) != n_frames:
         raise InputError(f"{len(values)} timestamps for {n_frames} frame files", path)
     stamps = np.asarray(values, dtype=np.float64)
-    problem = order_problem(stamps)
+    problem = timing_problem(stamps)
     if problem is not None:
         raise InputError(problem, path)
     return stamps
