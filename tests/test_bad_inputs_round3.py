@@ -4,16 +4,17 @@ problem (or a warning naming it), never a traceback, a hang or a silently wrong 
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from spacepose.cli import main
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.depth_io import read_tum_depth_list
-from spacepose.tools.frames import read_timestamps
+from spacepose.tools.frames import open_frames, read_frame_cloud, read_timestamps
 from spacepose.tools.runs import read_run
 from spacepose.tools.text_io import timing_problem
 
@@ -141,3 +142,28 @@ def test_seconds_since_the_epoch_and_slow_frames_still_read():
     assert timing_problem(1.7e9 + np.arange(5) / 30) is None
     assert timing_problem(60.0 * np.arange(5)) is None
     assert timing_problem([5.0]) is None
+
+
+# -- cloud frames in another unit than metres ---------------------------------------------------
+
+
+def test_cloud_frames_in_kilometres_are_warned_about(tmp_path):
+    """A folder of clouds in kilometres (a target 1.2 m away written as 0.0012) was tracked
+    as a scene a thousandth of its size without a word; a depth map in such a unit was
+    warned about, a cloud file was not."""
+    rng = np.random.default_rng(0)
+    box = rng.uniform(-0.2, 0.2, size=(400, 3)) + np.array([0.0, 0.0, 1.2])
+    for k in range(2):
+        write_cloud(tmp_path / f"{k:06d}.ply", box * 1e-3, dtype="float64")
+    frames = open_frames(tmp_path)
+    with pytest.warns(SpaceposeWarning, match="nearer than any sensor ranges") as caught:
+        clouds = [frame.cloud for frame in frames]
+    assert all(cloud is not None for cloud in clouds)  # read, as a millimetre file is
+    messages = [str(w.message) for w in caught if isinstance(w.message, SpaceposeWarning)]
+    assert len(messages) == 2 and str(tmp_path / "000000.ply") in messages[0]
+    assert "mm from the sensor (median)" in messages[0] and "kilometres" in messages[0]
+    # The same cloud in metres reads without a word.
+    write_cloud(tmp_path / "000001.ply", box)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_frame_cloud(tmp_path / "000001.ply")

@@ -14,7 +14,6 @@ folder).
 from __future__ import annotations
 
 import re
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +23,8 @@ from PIL import Image, UnidentifiedImageError
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
-from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
-from spacepose.tools.cloud_io import warn_if_not_metres
+from spacepose.errors import ConfigError, FileFormatError, InputError
+from spacepose.tools.cloud_io import warn_if_not_metres, warn_if_too_near
 from spacepose.tools.npy_io import load_npy, npy_shape
 from spacepose.tools.text_io import not_a_file, read_text, timing_problem
 
@@ -36,11 +35,6 @@ INTRINSICS_FILES: tuple[str, ...] = ("intrinsics.yaml", "intrinsics.yml", "intri
 TUM_DEPTH_LIST = "depth.txt"
 # Pillow modes of one-channel depth maps: 16-bit unsigned (three byte orders), 32-bit int, float.
 _DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
-
-# No depth camera ranges nearer (m): returns closer than this in the median are a unit error.
-NEAREST_RANGE_M = 0.02
-# Returns whose median range is compared with it: about this many, evenly strided.
-_RANGE_SAMPLE = 4096
 
 
 def read_depth_image(path: str | Path) -> NDArray:
@@ -153,24 +147,16 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
     -----
     SpaceposeWarning
         The points look like millimetres (a wrong ``depth_scale``), or lie nearer than
-        :data:`NEAREST_RANGE_M` (metres read as millimetres), naming the file.
+        :data:`~spacepose.tools.cloud_io.NEAREST_RANGE_M` (metres read as millimetres), naming
+        the file.
     """
     cloud = depth_to_cloud(read_depth_image(path), camera, stride, source=str(path))
     # A millimetre map read with depth_scale 1 is a scene 1000 times too large, tracked as such.
     remedy = f"check depth_scale in the intrinsics ({camera.depth_scale:g} m per stored unit)"
     warn_if_not_metres(cloud, path, remedy)
     # A map in metres read as millimetres (a float TIFF with depth_scale 0.001) is a scene 1000
-    # times too small, which preprocessing then loses as a few points.
-    # A strided sample says as much as the whole frame: the median range of 900k points cost
-    # 32 ms, of this sample 0.1 ms.
-    sample = cloud.points[:: max(1, len(cloud) // _RANGE_SAMPLE)]
-    nearest = float(np.median(np.linalg.norm(sample, axis=1)))
-    if nearest < NEAREST_RANGE_M:
-        problem = (
-            f"the returns lie {1e3 * nearest:.3g} mm from the sensor (median), nearer than any "
-            f"depth camera ranges: metres read as smaller units? {remedy}"
-        )
-        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
+    # times too small.
+    warn_if_too_near(cloud, path, f"depth camera ranges: metres read as smaller units? {remedy}")
     return cloud
 
 

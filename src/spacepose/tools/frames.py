@@ -31,7 +31,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools import depth_io
-from spacepose.tools.cloud_io import read_cloud
+from spacepose.tools.cloud_io import read_cloud, warn_if_too_near
 from spacepose.tools.text_io import read_text, timing_problem
 
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
@@ -66,6 +66,16 @@ class FrameInput:
     error: str | None = None
 
 
+def read_frame_cloud(path: Path) -> PointCloud:
+    """One frame's point cloud file (:func:`read_cloud`), sensor frame, warned about when its
+    points lie nearer the sensor than any sensor ranges
+    (:func:`~spacepose.tools.cloud_io.warn_if_too_near`): a file in kilometres, an orbit
+    simulator's unit, was tracked as a scene a thousandth of its size without a word."""
+    cloud = read_cloud(path)
+    warn_if_too_near(cloud, path, "sensor ranges: coordinates in kilometres? they are metres")
+    return cloud
+
+
 class Frames(Protocol):
     """What :func:`open_frames` returns: a sized, re-iterable sequence of frames."""
 
@@ -89,14 +99,14 @@ class FrameSequence:
     model_path
         The reference model cloud of a run folder (``model.ply``), else ``None``.
     loader
-        Reads one file into a PointCloud, sensor frame (default: :func:`read_cloud`); any
+        Reads one file into a PointCloud, sensor frame (default: :func:`read_frame_cloud`); any
         :class:`~spacepose.errors.InputError` it raises makes the frame lost, with the reason.
     """
 
     paths: tuple[Path, ...]
     timestamps: NDArray[np.float64]
     model_path: Path | None = None
-    loader: Callable[[Path], PointCloud] = read_cloud
+    loader: Callable[[Path], PointCloud] = read_frame_cloud
 
     def __len__(self) -> int:
         return len(self.paths)
