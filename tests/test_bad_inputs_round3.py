@@ -167,3 +167,23 @@ def test_cloud_frames_in_kilometres_are_warned_about(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         read_frame_cloud(tmp_path / "000001.ply")
+
+
+def test_one_pose_scored_rebased_says_its_zero_errors_measure_nothing(tmp_path, capsys):
+    """A one-pose estimate rebased on its first pose scored 0 mm and 0 deg, exit 0, without a
+    word, however far off it was."""
+    est, gt = tmp_path / "est.tum", tmp_path / "gt.tum"
+    est.write_text("0 0 0 0 0 0 0 1\n")
+    gt.write_text("0 3 -2 7 0.6 0 0 0.8\n")
+    assert main(["evaluate", str(est), str(gt), "--rebase-first", "--json"]) == 0
+    captured = capsys.readouterr()
+    scores = json.loads(captured.out)
+    assert scores["ate_translation_rmse_mm"] == pytest.approx(0.0, abs=1e-9)
+    assert any("every error is zero" in note for note in scores["warnings"])
+    assert f"warning: {est}: one pose scored: rebased on itself" in captured.err
+    # report scores a track as evaluate does, and says so too.
+    (tmp_path / "scenario.json").write_text("{}")
+    est.rename(tmp_path / "est_track.tum")
+    gt.rename(tmp_path / "groundtruth.tum")
+    assert main(["report", str(tmp_path), "--out", str(tmp_path / "r.html")]) == 0
+    assert "every error is zero whatever the estimate" in (tmp_path / "r.html").read_text()

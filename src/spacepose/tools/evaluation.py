@@ -114,7 +114,8 @@ def compare_trajectory_files(
     -----
     SpaceposeWarning
         Lost frames left out (``EST.health.csv`` beside the estimate), different lengths,
-        repeated pairings, a model-free estimate compared as it is, or
+        repeated pairings, one pose scored rebased (zero by construction), a model-free
+        estimate compared as it is, or
         poses whose distances (from the origin, or rebased from the first) differ by a unit's
         factor (mm against m).
     """
@@ -136,6 +137,9 @@ def compare_trajectory_files(
     shared = shared_pairings(i_gt)
     if shared is not None:
         notes.append(shared)
+    alone = lone_rebased_pose(len(est), rebase_first)
+    if alone is not None:
+        notes.append(alone)
     if (
         not rebase_first
         and starts_at_identity(est.poses[0])
@@ -160,6 +164,17 @@ def shared_pairings(i_gt: np.ndarray) -> str | None:
     if not shared:
         return None
     return f"{shared} estimate(s) share a ground-truth pose with another (repeated timestamps)"
+
+
+def lone_rebased_pose(count: int, rebase_first: bool) -> str | None:
+    """The note for ``count`` scored poses rebased on the first when there is one: rebased
+    on itself it is the identity on both sides, a perfect score of any estimate; else None."""
+    if not (rebase_first and count == 1):
+        return None
+    return (
+        "one pose scored: rebased on itself it is the identity in both files, so every error "
+        "is zero whatever the estimate; nothing is measured"
+    )
 
 
 def _check_one_truth_per_time(timestamps: np.ndarray, path: Path) -> None:

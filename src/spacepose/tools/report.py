@@ -38,7 +38,12 @@ from spacepose.core.mls import MLSConfig, mpp_mls
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools import plots
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.evaluation import shared_pairings, starts_at_identity, without_lost_frames
+from spacepose.tools.evaluation import (
+    lone_rebased_pose,
+    shared_pairings,
+    starts_at_identity,
+    without_lost_frames,
+)
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.trajectory_io import read_tum
 
@@ -202,7 +207,8 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
         d = table.to_dict()
         _, i_gt = associate(est.timestamps, gt.timestamps)
         shared = shared_pairings(i_gt)
-        for text in filter(None, (note, shared)):
+        alone = lone_rebased_pose(len(scored), rebase)
+        for text in filter(None, (note, shared, alone)):
             notes.append(html.escape(f"{shown(path.stem)}: {text}"))
         rows.append(
             (
