@@ -187,3 +187,23 @@ def test_one_pose_scored_rebased_says_its_zero_errors_measure_nothing(tmp_path, 
     gt.rename(tmp_path / "groundtruth.tum")
     assert main(["report", str(tmp_path), "--out", str(tmp_path / "r.html")]) == 0
     assert "every error is zero whatever the estimate" in (tmp_path / "r.html").read_text()
+
+
+# -- file names that look like rich markup --------------------------------------------------------
+
+
+def test_file_names_with_brackets_are_printed_as_they_are(tmp_path, capsys):
+    """The CLI printed its results through rich markup: '[red]' vanished from the names it
+    printed ('e .tum vs gt.tum') and '[/]' ended a finished command in a MarkupError
+    traceback (the report written, exit code 1)."""
+    (tmp_path / "run").mkdir()
+    est, gt = tmp_path / "run" / "e [red].tum", tmp_path / "run" / "groundtruth.tum"
+    est.write_text("0 0 0 1 0 0 0 1\n1 0.1 0 1 0 0 0 1\n")
+    gt.write_text(est.read_text())
+    assert main(["evaluate", str(est), str(gt)]) == 0
+    assert "e [red].tum vs groundtruth.tum" in capsys.readouterr().out
+    (tmp_path / "run" / "scenario.json").write_text("{}")
+    out = tmp_path / "[/]" / "report.html"
+    assert main(["report", str(tmp_path / "run"), "--out", str(out)]) == 0
+    assert f"report written: {out}" in capsys.readouterr().out.replace("\n", "")
+    assert out.is_file()

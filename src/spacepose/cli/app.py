@@ -27,7 +27,10 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-console = Console()
+# Plain text, no markup: what the commands print holds file names, and a name with brackets
+# ("run [2]", "[/]") lost them on the way ("-> run .tum") or ended a finished run in rich's
+# MarkupError traceback.
+console = Console(markup=False)
 err_console = Console(stderr=True)
 
 
