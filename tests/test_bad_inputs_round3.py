@@ -207,3 +207,23 @@ def test_file_names_with_brackets_are_printed_as_they_are(tmp_path, capsys):
     assert main(["report", str(tmp_path / "run"), "--out", str(out)]) == 0
     assert f"report written: {out}" in capsys.readouterr().out.replace("\n", "")
     assert out.is_file()
+
+
+# -- depth maps -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.int8])
+def test_an_8_bit_depth_array_is_lost_as_an_8_bit_png_is(tmp_path, dtype):
+    """An 8-bit PNG is refused as no depth map, but the same 256 levels saved as a .npy were
+    back-projected as depths of 0-255 mm without a word."""
+    yy, xx = np.mgrid[:24, :32]
+    depth = 1000 + 10 * xx + 5 * yy  # millimetres
+    for k in (0, 2):
+        np.save(tmp_path / f"{k:06d}.npy", depth.astype(np.uint16))
+    np.save(tmp_path / "000001.npy", (depth // 8).astype(dtype))
+    (tmp_path / "intrinsics.yaml").write_text("fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\n")
+    frames = list(open_frames(tmp_path))
+    assert frames[0].cloud is not None and frames[2].cloud is not None
+    assert frames[1].cloud is None
+    assert str(tmp_path / "000001.npy") in frames[1].error
+    assert "8-bit integers" in frames[1].error

@@ -1,14 +1,13 @@
 """Depth image files: 16-bit PNG / TIFF depth maps, their intrinsics file, TUM RGB-D's list.
 
 A depth folder holds one image per frame (``.png``, ``.tif``, ``.tiff``; 16-bit integers or
-32-bit floats, one channel, decoded by Pillow; or ``.npy``, an (H, W) integer or float array as
-renderers and simulators save them, NaN or inf for no return) and an intrinsics file
-(``intrinsics.yaml``, ``.yml`` or ``.json``: the fields of
+32-bit floats, one channel, decoded by Pillow; or ``.npy``, an (H, W) integer (16-bit or
+wider) or float array as renderers and simulators save them, NaN or inf for no return) and an
+intrinsics file (``intrinsics.yaml``, ``.yml`` or ``.json``: the fields of
 :class:`spacepose.core.depth.DepthCamera`, or ROS's ``camera_info`` YAML, or Open3D's pinhole
-JSON; :func:`read_intrinsics`), or one given explicitly. Frames are the images
-sorted by name, with ``timestamps.txt`` when present, or, in TUM RGB-D's layout, the
-``timestamp path`` lines of ``depth.txt`` (``#`` comments ignored; the paths relative to the
-folder).
+JSON; :func:`read_intrinsics`), or one given explicitly. Frames are the images sorted by
+name, with ``timestamps.txt`` when present, or, in TUM RGB-D's layout, the ``timestamp path``
+lines of ``depth.txt`` (``#`` comments ignored; the paths relative to the folder).
 """
 
 from __future__ import annotations
@@ -46,7 +45,7 @@ def read_depth_image(path: str | Path) -> NDArray:
     FileFormatError
         Missing, unreadable, corrupt or truncated file, or an image that is not one channel of
         16-bit integers or 32-bit floats (an 8-bit or colour image is not a depth map), or a
-        ``.npy`` that is not a 2-D numeric array.
+        ``.npy`` that is not a 2-D numeric array of more than 8 bits.
     """
     path = Path(path)
     if path.exists() and not path.is_file():  # a folder, or a pipe Pillow would wait on
@@ -57,6 +56,13 @@ def read_depth_image(path: str | Path) -> NDArray:
             raise FileFormatError(
                 f"a depth map must be a 2-D integer or float array, got {values.dtype} "
                 f"{values.shape}",
+                path,
+            )
+        if values.dtype.kind in "iu" and values.dtype.itemsize == 1:
+            # As an 8-bit PNG: 256 levels are a picture of depth, not depths (0-255 mm).
+            raise FileFormatError(
+                f"a depth map of 8-bit integers ({values.dtype}) is an image of depth, not "
+                "depths: save the 16-bit or float values",
                 path,
             )
         return values
