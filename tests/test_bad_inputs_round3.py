@@ -12,6 +12,7 @@ import pytest
 
 from spacepose.cli import main
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
+from spacepose.tools.catalogue import load_catalogue
 from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.depth_io import read_tum_depth_list
 from spacepose.tools.frames import open_frames, read_frame_cloud, read_timestamps
@@ -227,3 +228,24 @@ def test_an_8_bit_depth_array_is_lost_as_an_8_bit_png_is(tmp_path, dtype):
     assert frames[1].cloud is None
     assert str(tmp_path / "000001.npy") in frames[1].error
     assert "8-bit integers" in frames[1].error
+
+
+# -- a rectangle catalogue in millimetres -------------------------------------------------------
+
+
+def test_a_catalogue_in_millimetres_is_warned_about(tmp_path):
+    """Sides of 1400 x 1800 (mm) were taken as metres: no face ever matched, and planes and
+    navigate went on without a word of the unit."""
+    eye = np.eye(3).tolist()
+    entry = {"name": "front", "center": [0, 0, 700], "R_model_plane": eye, "a": 1400, "b": 1800}
+    path = tmp_path / "catalogue.yaml"
+    path.write_text(json.dumps([entry]))
+    with pytest.warns(SpaceposeWarning) as caught:
+        load_catalogue(path)
+    message = str(caught[0].message)
+    assert str(path) in message and "'front' is 1400 x 1800 m" in message
+    assert "millimetres" in message
+    path.write_text(json.dumps([entry | {"center": [0, 0, 0.7], "a": 1.4, "b": 1.8}]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_catalogue(path)

@@ -15,6 +15,7 @@ tolerances of their long sides, so that no pose could ever tell them apart.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -28,7 +29,11 @@ from scipy.sparse.csgraph import connected_components
 from spacepose.core.cloud import MAX_ABS_COORDINATE
 from spacepose.core.config import parse_structured, read_config_text
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, side_tolerance
-from spacepose.errors import ConfigError
+from spacepose.errors import ConfigError, SpaceposeWarning
+
+# Longest side (m) of a catalogued face read without a warning: the ISS's truss, 109 m, is
+# the largest structure in orbit.
+_LONGEST_SIDE_M = 200.0
 
 __all__ = [
     "CatalogueEntry",
@@ -66,6 +71,11 @@ def parse_catalogue(
         Naming ``source`` and the entry: a malformed entry (missing field, ``a > b``, a rotation
         that is not orthonormal with det +1, a non-finite centre or side), duplicate names, an
         empty catalogue, or two entries that are the same face (:func:`check_distinguishable`).
+
+    Warns
+    -----
+    SpaceposeWarning
+        A side longer than any spacecraft's face (200 m): millimetres, not metres.
     """
     source = str(source)
     raw = _entries_of(data, source)
@@ -107,7 +117,21 @@ def parse_catalogue(
     if duplicates:
         raise ConfigError(f"{source}: duplicate rectangle names: {', '.join(duplicates)}")
     check_distinguishable(entries, config, source)
+    _warn_if_not_metres(entries, source)
     return entries
+
+
+def _warn_if_not_metres(entries: Sequence[CatalogueEntry], source: str) -> None:
+    """Warn (naming ``source``) when a rectangle's long side is longer than any spacecraft's
+    face (:data:`_LONGEST_SIDE_M`): sides in millimetres, which no measured face then matches,
+    and every frame is navigated as one without a rectangle, without a word why."""
+    longest = max(entries, key=lambda e: e.b)
+    if longest.b > _LONGEST_SIDE_M:
+        problem = (
+            f"rectangle {longest.name!r} is {longest.a:g} x {longest.b:g} m, larger than any "
+            "spacecraft's face: sides in millimetres? the catalogue is in metres"
+        )
+        warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
 
 
 def _same_size(
