@@ -249,3 +249,27 @@ def test_a_catalogue_in_millimetres_is_warned_about(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         load_catalogue(path)
+
+
+# -- a navigation scenario's model key ----------------------------------------------------------
+
+
+@pytest.mark.parametrize(("model", "shown"), [(5, "5"), ("", "''"), ([], "[]")])
+def test_a_scenario_model_that_is_no_file_name_names_the_scenario(tmp_path, capsys, model, shown):
+    """A scenario's model of 5 was read as a file named '5' ('5: unknown point cloud
+    extension'), an empty one as the scenario's folder ('.: a folder'): neither named the
+    scenario or its key."""
+    rng = np.random.default_rng(2)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(2):
+        write_cloud(frames / f"{k:06d}.ply", rng.normal(size=(300, 3)) * 0.3 + [0, 0, 20])
+    entry = {"name": "front", "center": [0, 0, 0], "R_model_plane": np.eye(3).tolist()}
+    scenario = tmp_path / "scenario.yaml"
+    description = {"mean_motion": 0.0011, "R_O_C": np.eye(3).tolist(), "model": model}
+    scenario.write_text(json.dumps(description | {"rectangles": [entry | {"a": 1, "b": 2}]}))
+    out = tmp_path / "nav.csv"
+    assert main(["navigate", str(frames), "--scenario", str(scenario), "--out", str(out)]) == 1
+    err = _cli_error(capsys)
+    problem = f"model must name a cloud file (relative to the scenario), got {shown}"
+    assert err == f"error: {scenario}: {problem}"

@@ -338,9 +338,23 @@ def _warn_unknown_keys(description: dict, source: str) -> None:
 def _model(
     input_dir: str | Path, scenario: str | Path | None, description: dict
 ) -> PointCloud | None:
-    """The target's surface samples: the scenario's ``model`` file, else a run's model.ply."""
-    if scenario is not None and "model" in description:
-        return read_cloud(Path(scenario).parent / str(description["model"]))
+    """The target's surface samples: the scenario's ``model`` file (``null``: none given), else
+    a run's model.ply.
+
+    Raises
+    ------
+    InputError
+        The scenario's ``model`` is not a file name (a number, a list, empty text): read as
+        one it named a file "5" or "None", or the scenario's folder, not the scenario's key.
+    """
+    name = description.get("model") if scenario is not None else None
+    if name is not None:
+        if not isinstance(name, str) or not name.strip():
+            raise InputError(
+                f"model must name a cloud file (relative to the scenario), got {name!r}",
+                scenario,
+            )
+        return read_cloud(Path(scenario).parent / name)
     if (Path(input_dir) / SCENARIO).is_file() and (Path(input_dir) / "model.ply").is_file():
         return read_run(input_dir).model
     return None
