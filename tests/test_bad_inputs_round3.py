@@ -273,3 +273,23 @@ def test_a_scenario_model_that_is_no_file_name_names_the_scenario(tmp_path, caps
     err = _cli_error(capsys)
     problem = f"model must name a cloud file (relative to the scenario), got {shown}"
     assert err == f"error: {scenario}: {problem}"
+
+
+# -- the config file given is an input too ------------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["track", "navigate"])
+def test_the_config_given_is_not_overwritten_by_the_effective_config(tmp_path, capsys, command):
+    """track --out e.tum --config e.config.json (navigate: nav.csv, nav.config.json) wrote the
+    effective config over the config it read: every default frozen into the user's file."""
+    rng = np.random.default_rng(3)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    write_cloud(frames / "000000.ply", rng.normal(size=(300, 3)) * 0.1 + [0, 0, 1])
+    out = tmp_path / ("e.tum" if command == "track" else "nav.csv")
+    config = out.with_suffix(".config.json")
+    config.write_text("{}")
+    assert main([command, str(frames), "--out", str(out), "--config", str(config)]) == 1
+    err = _cli_error(capsys)
+    assert err == f"error: {config}: would overwrite the input {config}: write it elsewhere"
+    assert config.read_text() == "{}" and not out.exists()

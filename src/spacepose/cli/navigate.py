@@ -53,7 +53,8 @@ def navigate(
     """Estimate ρ, ρ̇, attitude, rate, inertia ratios and CoM offset for every frame of RUN."""
     from spacepose.core.config import load_config
     from spacepose.core.navigation import NavigationConfig
-    from spacepose.tools.navigation_io import navigate_run
+    from spacepose.tools.navigation_io import navigate_run, output_paths
+    from spacepose.tools.outputs import check_spares_inputs
 
     if measurements not in ("rectangles", "registration", "both"):
         from spacepose.errors import ConfigError
@@ -62,6 +63,9 @@ def navigate(
             f"--measurements must be rectangles, registration or both, got {measurements!r}"
         )
     cfg = None if config is None else load_config(NavigationConfig, config)
+    if config is not None:
+        # The effective config goes to NAV.config.json: given as --config it was replaced.
+        check_spares_inputs(output_paths(out, measurements), [config])
     with working("navigating"):
         summary = navigate_run(
             run,

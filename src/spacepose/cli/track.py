@@ -50,13 +50,17 @@ def track(
 
     Without --model the first frame defines the target frame (its pose is the identity).
     """
-    from spacepose.tools.tracking_io import track_folder, tracker_config
+    from spacepose.tools.outputs import check_spares_inputs
+    from spacepose.tools.tracking_io import output_paths, track_folder, tracker_config
 
     if method in _DEPRECATED:
         new = _DEPRECATED[method]
         warnings.warn(SpaceposeWarning(f"--method {method} is deprecated: use {new}"), stacklevel=1)
         method = new
     cfg = tracker_config(config, method=method, mls=mls, background=background)
+    if config is not None:
+        # The effective config goes to EST.config.json: given as --config it was replaced.
+        check_spares_inputs(output_paths(out), [config])
     with Progress(
         TextColumn("tracking"),
         BarColumn(),

@@ -157,9 +157,7 @@ def navigate_run(
     """
     cfg = config or NavigationConfig()
     out = Path(out)
-    companions = [".config.json", ".candidates.csv"]
-    companions += [".health.csv"] if measurements != "rectangles" else []
-    outputs = (out, *(out.with_suffix(c) for c in companions))
+    outputs = output_paths(out, measurements)
     check_writable(*outputs)
     frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
     given = [p for p in (scenario, model, intrinsics) if p is not None]
@@ -238,6 +236,15 @@ def navigate_run(
         candidates_csv,
         health_csv,
     )
+
+
+def output_paths(out: str | Path, measurements: Measurements = "rectangles") -> tuple[Path, ...]:
+    """What :func:`navigate_run` may write for ``out`` (NAV.csv): ``out`` and its
+    ``.config.json`` and ``.candidates.csv``, and with registration poses its ``.health.csv``."""
+    out = Path(out)
+    companions = [".config.json", ".candidates.csv"]
+    companions += [".health.csv"] if measurements != "rectangles" else []
+    return (out, *(out.with_suffix(c) for c in companions))
 
 
 def prior_quaternion(values: ArrayLike, name: str) -> tuple[float, float, float, float]:
