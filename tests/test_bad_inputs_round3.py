@@ -13,7 +13,7 @@ import pytest
 from spacepose.cli import main
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import load_catalogue
-from spacepose.tools.cloud_io import write_cloud
+from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import read_tum_depth_list
 from spacepose.tools.frames import open_frames, read_frame_cloud, read_timestamps
 from spacepose.tools.runs import read_run
@@ -293,3 +293,33 @@ def test_the_config_given_is_not_overwritten_by_the_effective_config(tmp_path, c
     err = _cli_error(capsys)
     assert err == f"error: {config}: would overwrite the input {config}: write it elsewhere"
     assert config.read_text() == "{}" and not out.exists()
+
+
+# -- x y z r g b read as x y z nx ny nz ---------------------------------------------------------
+
+
+@pytest.mark.parametrize("scale", [255, 1])
+def test_colour_columns_are_not_read_as_normals(tmp_path, scale):
+    """A headerless x y z r g b file (CloudCompare's and PCL's common layout) had its colours
+    read as normals "not of unit length" and used as the surface's directions."""
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(400, 3)) * 0.1 + [0.0, 0.0, 1.0]
+    colours = rng.integers(0, 256, size=(400, 3)) / 255 * scale
+    path = tmp_path / "rgb.xyz"
+    np.savetxt(path, np.c_[points, colours], fmt="%.6f")
+    with pytest.raises(FileFormatError) as exc:
+        read_cloud(path)
+    assert str(path) in str(exc.value) and "columns 4-6 look like colours" in str(exc.value)
+    # Named in a header, the colours are read past.
+    named = tmp_path / "named.xyz"
+    named.write_text("x y z r g b\n" + path.read_text())
+    cloud = read_cloud(named)
+    assert not cloud.has_normals and len(cloud) == 400
+    # True normals, and one plate's long normals, stay normals.
+    normals = rng.normal(size=(400, 3))
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    np.savetxt(path, np.c_[points, normals], fmt="%.9f")
+    assert read_cloud(path).has_normals
+    np.savetxt(path, np.c_[points, np.tile([0.0, 0.0, 5.0], (400, 1))], fmt="%.6f")
+    with pytest.warns(SpaceposeWarning, match="normals are not of unit length"):
+        assert read_cloud(path).has_normals

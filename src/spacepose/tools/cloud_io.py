@@ -402,7 +402,35 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
         raise FileFormatError(
             f"expected 3 (x y z) or 6 (x y z nx ny nz) columns, got {table.shape[1]}", path
         )
+    if table.shape[1] == 6 and _colours(table[:, 3:]):
+        # x y z r g b is as common a layout as x y z nx ny nz: its colours were read as
+        # normals "not of unit length" and used as the surface's directions.
+        raise FileFormatError(
+            "columns 4-6 look like colours (none negative or above 255, not unit vectors, "
+            "pointing every way), not normals nx ny nz: name the columns in a header line "
+            "(x y z r g b, or x y z nx ny nz), or write x y z alone",
+            path,
+        )
     return table[:, :3], (table[:, 3:] if table.shape[1] == 6 else None)
+
+
+def _colours(values: NDArray[np.float64]) -> bool:
+    """Whether three columns (N, 3) read as normals are colours: no component negative and
+    none above 255, most rows not of unit length, and pointing many ways. A curved surface's
+    normals point into every octant somewhere; a plane's (long normals of one plate) all one
+    way, and those are read as their directions."""
+    if not (np.all(values >= 0.0) and np.all(values <= 255.0)):
+        return False
+    lengths = np.linalg.norm(values, axis=1)
+    if np.mean(np.abs(lengths - 1.0) > 1e-3) <= 0.5:
+        return False
+    some = lengths > 0  # black is a colour, and no direction
+    directions = values[some] / lengths[some, None]
+    mean = directions.mean(axis=0)
+    if not np.any(mean):
+        return False
+    apart = directions @ (mean / np.linalg.norm(mean)) < np.cos(np.radians(10.0))
+    return bool(np.mean(apart) > 0.1)
 
 
 def _named_columns(
