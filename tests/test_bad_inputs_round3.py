@@ -323,3 +323,19 @@ def test_colour_columns_are_not_read_as_normals(tmp_path, scale):
     np.savetxt(path, np.c_[points, np.tile([0.0, 0.0, 5.0], (400, 1))], fmt="%.6f")
     with pytest.warns(SpaceposeWarning, match="normals are not of unit length"):
         assert read_cloud(path).has_normals
+
+
+# -- simulate --out onto a file ---------------------------------------------------------------
+
+
+@pytest.mark.parametrize("under", [False, True])
+def test_a_run_out_onto_a_file_says_so(tmp_path, capsys, under):
+    """simulate --out FILE (or FILE/run) ended in mkdir's 'FILE/frames: Not a directory'."""
+    file = tmp_path / "notes.txt"
+    file.write_text("keep me\n")
+    out = file / "run" if under else file
+    assert main(["simulate", "lab", "--out", str(out), "--frames", "1"]) == 1
+    err = _cli_error(capsys)
+    where = f"lies under {file}, a file" if under else "is a file"
+    assert err == f"error: {out}: {where}: a run is written to a folder"
+    assert file.read_text() == "keep me\n"

@@ -104,9 +104,17 @@ def check_run_out(out_dir: str | Path) -> None:
     Raises
     ------
     InputError
-        One line naming the folder.
+        One line naming the folder: it holds something else, or is (or lies under) a file.
     """
     out = Path(out_dir)
+    # The nearest existing path decides whether the folder can be made: under a file it ended
+    # in mkdir's "frames: Not a directory", naming neither the file nor the problem.
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        where = "is a file" if existing == out else f"lies under {existing}, a file"
+        raise InputError(f"{where}: a run is written to a folder", out)
     # Empty folders alone hold nothing to lose (a run that failed on its first frame leaves
     # its frames folder): the first file found decides.
     holds = out.is_dir() and any(p.is_file() for p in out.rglob("*"))
