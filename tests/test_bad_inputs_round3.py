@@ -339,3 +339,25 @@ def test_a_run_out_onto_a_file_says_so(tmp_path, capsys, under):
     where = f"lies under {file}, a file" if under else "is a file"
     assert err == f"error: {out}: {where}: a run is written to a folder"
     assert file.read_text() == "keep me\n"
+
+
+# -- model-free navigation on a run shorter than its batch --------------------------------------
+
+
+def test_model_free_navigation_short_of_its_batch_says_so(tmp_path):
+    """Model-free, the filter starts on a batch of 200 ok poses: a 6-frame run, every pose
+    ok, ended in "the tracker gave no ok pose" beside a health table of ok rows."""
+    from types import SimpleNamespace
+
+    from spacepose.core.fused_navigation import FusionConfig
+    from spacepose.tools.navigation_io import _why_no_registration
+
+    tracks = [SimpleNamespace(status=s) for s in ("ok",) * 5 + ("degraded",)]
+    health = tmp_path / "nav.health.csv"
+    why = _why_no_registration(tracks, FusionConfig(), False, health)
+    assert "a batch of 200 ok poses" in why and "the tracker gave 5 in 6 frames" in why
+    assert "no ok pose" not in why
+    lost = [SimpleNamespace(status="lost")] * 3
+    assert "the tracker gave no ok pose" in _why_no_registration(
+        lost, FusionConfig(), False, health
+    )

@@ -218,7 +218,7 @@ def navigate_run(
     if navigated == 0:
         why = _why_nothing(rows, candidates_csv, model is not None)
         if measurements == "registration":
-            why = f"no frame navigated: the tracker gave no ok pose (see {health_csv})"
+            why = _why_no_registration(tracks, fusion, model is not None, health_csv)
         if unreadable:
             k = min(unreadable)
             why = (
@@ -311,6 +311,30 @@ def _no_plane(cloud: PointCloud) -> str | None:
     if is_collinear(distribution(cloud.points)[1]):
         return no_plane(cloud.points).reason
     return None
+
+
+def _why_no_registration(
+    tracks: Sequence[Any], fusion: FusionConfig, has_model: bool, health_csv: Path | None
+) -> str:
+    """One line: why registration poses navigated no frame. Model-free, the filter waits for
+    a batch of ok poses: a run shorter than it was said to have given "no ok pose", though
+    the tracker gave one on every frame."""
+    ok = sum(track.status == "ok" for track in tracks)
+    if ok == 0:
+        return f"no frame navigated: the tracker gave no ok pose (see {health_csv})"
+    if not has_model and ok >= fusion.model_free_frames:
+        return (
+            f"no frame navigated: without a model the filter starts once its batch of ok poses "
+            f"shows a rigid body's moments, and the tracker's {ok} did not (too little of the "
+            "tumble seen?): a longer run, or a model (--model)"
+        )
+    if not has_model:
+        return (
+            f"no frame navigated: without a model the filter starts on a batch of "
+            f"{fusion.model_free_frames} ok poses (the body's axes and centre of mass), and "
+            f"the tracker gave {ok} in {len(tracks)} frames: a longer run, or a model (--model)"
+        )
+    return f"no frame navigated from the tracker's {ok} ok poses (see {health_csv})"
 
 
 def _why_nothing(rows: Sequence[NavRow], candidates_csv: Path | None, has_model: bool) -> str:
