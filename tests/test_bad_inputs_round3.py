@@ -361,3 +361,30 @@ def test_model_free_navigation_short_of_its_batch_says_so(tmp_path):
     assert "the tracker gave no ok pose" in _why_no_registration(
         lost, FusionConfig(), False, health
     )
+
+
+# -- a folder of clouds read as depth images ----------------------------------------------------
+
+
+@pytest.mark.parametrize("given", [False, True])
+def test_intrinsics_beside_cloud_frames_name_what_made_it_a_depth_folder(tmp_path, capsys, given):
+    """A folder of .ply frames with a stray intrinsics.yaml (or --intrinsics) ended in "no
+    depth images (.png, .tif, .tiff, .npy) in the folder", beside the clouds in it."""
+    rng = np.random.default_rng(5)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(3):
+        write_cloud(frames / f"{k:06d}.ply", rng.normal(size=(200, 3)) * 0.1 + [0, 0, 1])
+    intrinsics = (tmp_path if given else frames) / "intrinsics.yaml"
+    intrinsics.write_text("fx: 500\nfy: 500\ncx: 319.5\ncy: 239.5\n")
+    extra = ["--intrinsics", str(intrinsics)] if given else []
+    assert main(["track", str(frames), "--out", str(tmp_path / "e.tum"), *extra]) == 1
+    err = _cli_error(capsys)
+    why = (
+        "intrinsics apply to depth images"
+        if given
+        else "its intrinsics.yaml makes it a folder of depth images"
+    )
+    remedy = "leave out --intrinsics" if given else "move intrinsics.yaml out"
+    clouds = "000000.ply, 000001.ply, ..."
+    assert err == f"error: {frames}: {why}, and its frames are point clouds ({clouds}): {remedy}"

@@ -178,6 +178,7 @@ def open_frames(
             root,
         )
     if camera is not None or depth_io.is_depth_folder(root):
+        _check_holds_depth_images(root, given=camera is not None)
         return _open_depth_folder(root, camera)
     paths = tuple(
         p
@@ -190,6 +191,36 @@ def open_frames(
     if not paths:
         raise InputError(f"no frame files ({', '.join(CLOUD_SUFFIXES)}) in the folder", root)
     return FrameSequence(paths, _folder_timestamps(root, len(paths)))
+
+
+def _check_holds_depth_images(root: Path, given: bool) -> None:
+    """Refuse a folder read as depth images (intrinsics ``given``, or its own intrinsics file)
+    whose frames are point clouds: "no depth images in the folder" did not say what made it a
+    depth folder, beside the clouds the user sees.
+
+    Raises
+    ------
+    InputError
+        The folder holds no depth image and some point cloud files.
+    """
+    # TUM RGB-D's depth.txt lists images in a subfolder: the list decides, not the files here.
+    if (root / depth_io.TUM_DEPTH_LIST).is_file() or depth_io.frame_entries(
+        root, depth_io.FOLDER_DEPTH_SUFFIXES
+    ):
+        return
+    # Text files beside depth images are lists (TUM's rgb.txt), not clouds.
+    clouds = depth_io.frame_entries(root, (".ply", ".pcd", ".npz", ".xyz", ".csv"))
+    if not clouds:
+        return
+    names = ", ".join(p.name for p in clouds[:2]) + (", ..." if len(clouds) > 2 else "")
+    if given:
+        why, remedy = "intrinsics apply to depth images", "leave out --intrinsics"
+    else:
+        found = depth_io.find_intrinsics(root)
+        name = found.name if found is not None else depth_io.INTRINSICS_FILES[0]
+        why = f"its {name} makes it a folder of depth images"
+        remedy = f"move {name} out"
+    raise InputError(f"{why}, and its frames are point clouds ({names}): {remedy}", root)
 
 
 def input_files(path: str | Path, frames: Frames) -> list[Path]:
