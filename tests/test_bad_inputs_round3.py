@@ -16,6 +16,7 @@ from spacepose.tools.catalogue import load_catalogue
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import read_tum_depth_list
 from spacepose.tools.frames import open_frames, read_frame_cloud, read_timestamps
+from spacepose.tools.register import read_transform
 from spacepose.tools.runs import read_run
 from spacepose.tools.text_io import timing_problem
 
@@ -388,3 +389,27 @@ def test_intrinsics_beside_cloud_frames_name_what_made_it_a_depth_folder(tmp_pat
     remedy = "leave out --intrinsics" if given else "move intrinsics.yaml out"
     clouds = "000000.ply, 000001.ply, ..."
     assert err == f"error: {frames}: {why}, and its frames are point clouds ({clouds}): {remedy}"
+
+
+# -- register --init files -----------------------------------------------------------------------
+
+
+def test_an_init_json_holding_the_matrix_itself_is_read(tmp_path):
+    """A .json holding the 4x4 matrix (as numpy's tolist writes it) was refused as "expected
+    16 numbers (a 4x4 matrix)", an earlier --out saved as RESULT.JSON read as text, and a
+    JSON syntax error not located."""
+    T = np.eye(4)
+    T[:3, 3] = [0.1, -0.2, 0.3]
+    rows = tmp_path / "rows.json"
+    rows.write_text(json.dumps(T.tolist()))
+    flat = tmp_path / "flat.json"
+    flat.write_text(json.dumps(T.ravel().tolist()))
+    upper = tmp_path / "RESULT.JSON"
+    upper.write_text(json.dumps({"T_target_source": T.tolist(), "fitness": 1.0}))
+    for path in (rows, flat, upper):
+        np.testing.assert_array_equal(read_transform(path), T)
+    broken = tmp_path / "broken.json"
+    broken.write_text('{"T_target_source": [1, 2,}')
+    with pytest.raises(FileFormatError) as exc:
+        read_transform(broken)
+    assert str(broken) in str(exc.value) and "not valid JSON: line 1:27" in str(exc.value)

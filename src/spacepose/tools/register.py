@@ -38,7 +38,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.config import StageConfig, holds_boolean, load_structured
+from spacepose.core.config import StageConfig, holds_boolean, load_structured, parse_problem
 from spacepose.core.degeneracy import Degeneracy, surface_degeneracy
 from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.gicp_covariances import compute_covariances
@@ -381,23 +381,27 @@ def _stage(gate: float, last: bool, config: RegisterConfig) -> dict:
 
 
 def read_transform(path: str | Path) -> NDArray[np.float64]:
-    """A 4×4 transform from a text file (16 numbers) or a JSON file with ``T_target_source``
-    (e.g. an earlier ``--out``)."""
+    """A 4×4 transform from a text file (16 numbers), or a JSON file (``.json``, any case)
+    holding the matrix (4 rows, or 16 numbers) or a mapping with ``T_target_source`` (e.g. an
+    earlier ``--out``)."""
     path = Path(path)
     text = read_text(path, "the transform")
+    expected = "expected 16 numbers (a 4x4 matrix) or JSON with T_target_source"
     try:
-        values = (
-            load_structured(text, "json")["T_target_source"]
-            if path.suffix == ".json"
-            else text.split()
-        )
+        if path.suffix.lower() == ".json":
+            data = load_structured(text, "json")
+            # A bare matrix is the transform as the key's is: refused, it was "expected" the
+            # 4x4 matrix it held.
+            values = data["T_target_source"] if isinstance(data, dict) else data
+        else:
+            values = text.split()
         if holds_boolean(values):  # numpy would read true as 1
             raise ValueError("a yes/no where a number goes")
         T = np.asarray(values, dtype=np.float64).reshape(4, 4)
+    except json.JSONDecodeError as exc:  # where the JSON breaks, not only what was expected
+        raise FileFormatError(f"{expected}: not valid JSON: {parse_problem(exc)}", path) from None
     except (ValueError, KeyError, TypeError):
-        raise FileFormatError(
-            "expected 16 numbers (a 4x4 matrix) or JSON with T_target_source", path
-        ) from None
+        raise FileFormatError(expected, path) from None
     try:
         return se3.as_transform(T, "init transform")
     except InputError as exc:
