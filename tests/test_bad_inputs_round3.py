@@ -413,3 +413,23 @@ def test_an_init_json_holding_the_matrix_itself_is_read(tmp_path):
     with pytest.raises(FileFormatError) as exc:
         read_transform(broken)
     assert str(broken) in str(exc.value) and "not valid JSON: line 1:27" in str(exc.value)
+
+
+# -- a European locale's text export ------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("row", "problem"),
+    [
+        ("0,0126 -0,0132 1,0640", "line 1: commas and blanks both in '0,0126 -0,0132 1,0640'"),
+        ("0.0126;-0.0132;1.0640", "line 1: fields separated by ';' ('0.0126;-0.0132;1.0640')"),
+    ],
+)
+def test_decimal_commas_and_semicolons_are_named_as_such(tmp_path, row, problem):
+    """Decimal commas ended in "cannot parse text point file", naming no line; ';'-separated
+    rows were taken for a header, and the error pointed at line 2."""
+    path = tmp_path / "frame.xyz"
+    path.write_text(f"{row}\n{row}\n")
+    with pytest.raises(FileFormatError) as exc:
+        read_cloud(path)
+    assert str(exc.value).startswith(f"{path}: {problem}")

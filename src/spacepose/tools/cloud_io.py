@@ -10,6 +10,7 @@ always naming the file.
 from __future__ import annotations
 
 import io
+import re
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -380,7 +381,8 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
     if first is None:
         raise FileFormatError("no point rows in text file", path)
     delimiter = "," if "," in lines[first] else None
-    head = lines[first].replace(",", " ").split()
+    # ';' too: a row of "0.1;0.2;0.3" is a row with the wrong separator, not a header.
+    head = lines[first].replace(",", " ").replace(";", " ").split()
     # A header line names its columns ("x,y,z", CloudCompare's "//X,Y,Z"); a row with a number
     # in it is a row, however malformed its first field ("0x1 2 3" was taken for a header).
     header = not any(_is_number(token) for token in head)
@@ -467,6 +469,18 @@ def _first_bad_line(lines: list[str], offset: int, delimiter: str | None) -> str
     width = None
     for i, line in enumerate(lines, start=offset + 1):
         data = line.split("#", 1)[0]
+        # A European locale's export: decimal commas, fields apart by ';' or blanks. Read by
+        # the comma, "0,5 1,2" is 0 | 5 1 | 2, which said only "cannot parse".
+        if ";" in data:
+            return (
+                f"line {i}: fields separated by ';' ({data.strip()[:40]!r}): separate them by "
+                "blanks or commas, with decimal points"
+            )
+        if delimiter is not None and len(data.split()) > 1 and re.search(r"\d,\d", data):
+            return (
+                f"line {i}: commas and blanks both in {data.strip()[:40]!r}: decimal commas? "
+                "write decimal points"
+            )
         if delimiter is not None and data.strip() and "" in [f.strip() for f in data.split(",")]:
             return f"line {i}: an empty field between commas (a trailing or doubled ',')"
         row = data.replace(",", " ").split()
