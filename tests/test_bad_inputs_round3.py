@@ -433,3 +433,31 @@ def test_decimal_commas_and_semicolons_are_named_as_such(tmp_path, row, problem)
     with pytest.raises(FileFormatError) as exc:
         read_cloud(path)
     assert str(exc.value).startswith(f"{path}: {problem}")
+
+
+# -- part of the normals ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "given"),
+    [
+        ("part.xyz", "x y z nx ny\n1 2 3 0 1\n1 2 4 0 1\n1 3 3 0 1\n", "nx, ny without nz"),
+        (
+            "part.ply",
+            "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+            "property float z\nproperty float nx\nproperty float nz\nend_header\n"
+            "1 2 3 0 1\n1 2 4 0 1\n1 3 3 0 1\n",
+            "nx, nz without ny",
+        ),
+    ],
+)
+def test_part_of_the_normals_is_warned_about(tmp_path, name, text, given):
+    """Two of the three normal components named (a header or PLY properties): the normals
+    were dropped without a word."""
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.warns(SpaceposeWarning) as caught:
+        cloud = read_cloud(path)
+    assert not cloud.has_normals and len(cloud) == 3
+    message = str(caught[0].message)
+    assert message == f"{path}: normals read as absent: {given} (a normal needs all three)"

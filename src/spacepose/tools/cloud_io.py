@@ -12,7 +12,7 @@ from __future__ import annotations
 import io
 import re
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import BinaryIO
 
@@ -461,7 +461,22 @@ def _named_columns(
     for normal_names in (_PLY_NORMALS, _PCD_NORMALS):
         if set(normal_names) <= set(names):
             return xyz, table[:, [names.index(c) for c in normal_names]]
+    for normal_names in (_PLY_NORMALS, _PCD_NORMALS):
+        _warn_part_of_normals(names, normal_names, path)
     return xyz, None
+
+
+def _warn_part_of_normals(names: Sequence[str], normal_names: tuple[str, ...], path: Path) -> None:
+    """Warn, naming ``path``, of a file naming some of the three normal components but not
+    all: the normals it meant to give were dropped without a word (the points read alone)."""
+    given = [n for n in normal_names if n in names]
+    if given and len(given) < len(normal_names):
+        missing = [n for n in normal_names if n not in names]
+        problem = (
+            f"normals read as absent: {', '.join(given)} without {', '.join(missing)} (a "
+            "normal needs all three)"
+        )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=5)
 
 
 def _first_bad_line(lines: list[str], offset: int, delimiter: str | None) -> str:
@@ -541,6 +556,8 @@ def _columns(
     normals = None
     if all(n in names for n in normal_names):
         normals = np.column_stack([_scalar_column(data, n, path, what) for n in normal_names])
+    else:
+        _warn_part_of_normals(names, normal_names, path)
     return points, normals
 
 
