@@ -21,6 +21,13 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from spacepose.core import se3, window_registration
+from spacepose.core.basin_probe import (
+    BETTER_BY,
+    PROBE_ROUNDS,
+    PROBE_VOXELS,
+    probe_starts,
+    truncated_cost,
+)
 from spacepose.core.cloud import PointCloud
 from spacepose.core.degeneracy import CoarseSurface, surface_degeneracy
 from spacepose.core.frame_check import (
@@ -28,6 +35,7 @@ from spacepose.core.frame_check import (
     UNOBSERVED_CHAIN,
     CheckContext,
     check_frame,
+    hardly_thinned,
     health_bounds,
 )
 from spacepose.core.frame_preparation import FramePreparer
@@ -115,6 +123,8 @@ class FineStage:
                 ref = self.frames.visible_model(self.sensor_model, T_init)
             T_init = self.registrar.approach(prepared, ref, T_init, wide_gate)
             estimate = self._fine(prepared, ref, T_init, tracking_model)
+            if self._probed(prediction):
+                estimate = self._deepest_basin(prepared, ref, estimate)
             shifted = self.frames.shifted_source(prepared)
             if shifted is not None:
                 estimate = window_registration.with_grid_spread(
@@ -143,6 +153,57 @@ class FineStage:
             return window_registration.li_step(self.registrar, prepared, references, T_init)
         equal = cfg.keyframe_graph.weighting == "equal"
         return window_registration.joint(self.registrar, prepared, references, T_init, equal)
+
+    def _probed(self, prediction: Prediction | None) -> bool:
+        """Whether the frame's basin is probed (:meth:`_deepest_basin`): model-free, on frames
+        the voxel grid hardly thins (:func:`~spacepose.core.frame_check.hardly_thinned`), when
+        no prediction can confirm the pose (none, no velocity, or the motion model's error not
+        yet measured: :data:`~spacepose.core.frame_check.UNTESTED_MODEL`). A denser frame's
+        voxels average many samples each, and its cost along a face is smooth."""
+        confirmed = prediction is not None and prediction.velocity_known and self.motion.tested
+        return not (self.model_based or confirmed) and hardly_thinned(self.frames.scale)
+
+    def _deepest_basin(
+        self, prepared: PreparedCloud, ref: Keyframe, estimate: FineEstimate
+    ) -> FineEstimate:
+        """Model-free, on a frame no motion model confirms: the estimate, or the registration
+        from a probe start (:func:`~spacepose.core.basin_probe.probe_starts`,
+        :data:`~spacepose.core.basin_probe.PROBE_VOXELS` voxels away) that ends lower on the
+        truncated cost by more than :data:`~spacepose.core.basin_probe.BETTER_BY` (a slide
+        along a face into a neighbouring minimum; methods.md §5.5). The probes' own residual
+        measurements are dropped."""
+        noise, workers = self.registrar.noise, self.registrar.workers
+        sigma = noise.sigma if noise.sigma is not None else noise.gate / 3.0
+        # Judged against the window's oldest keyframe: the latest may carry the slide itself.
+        judge = self.window.references()[0]
+        target = self.registrar.as_target(judge.registration_target)
+        points = prepared.cloud.points
+
+        def cost(T_sensor_target: NDArray[np.float64]) -> float:
+            T_ref_frame = judge.T_ref_target @ se3.invert(T_sensor_target)
+            return truncated_cost(target, points, T_ref_frame, noise.gate, sigma, workers)
+
+        best, best_cost = estimate, cost(estimate.T_sensor_target)
+        measured = self.registrar.set_aside()
+        step, centroid = PROBE_VOXELS * self.frames.scale.voxel, prepared.centroid
+        try:
+            for _ in range(PROBE_ROUNDS):
+                around, bar = best, best_cost - BETTER_BY
+                starts = probe_starts(around.T_sensor_target, around.covariance, centroid, step)
+                for start in starts:
+                    try:
+                        probe = self._fine(prepared, ref, start)
+                    except SpaceposeError:
+                        continue
+                    probe_cost = cost(probe.T_sensor_target)
+                    if probe_cost < min(bar, best_cost):
+                        best, best_cost = probe, probe_cost
+                if best is around:
+                    break
+        finally:
+            # The frame's residual noise stays that of its first registration.
+            self.registrar.put_back(measured)
+        return best
 
     def _free_directions(self, estimate: FineEstimate, prepared: PreparedCloud) -> FineEstimate:
         """The estimate with its covariance widened along the directions the surfaces leave

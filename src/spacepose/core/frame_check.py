@@ -93,10 +93,19 @@ def first_pass_gate(context: CheckContext, prediction: Prediction) -> float:
     into it (lab mock-up at 25 m before a wall and table, ×3, tumbling 5° a frame: the split
     kept the wrong body, and frames 5-11 followed it ``ok``, 11-23° off)."""
     reach, scale = wide_gate(context, prediction), context.scale
-    thinned = scale.voxel >= THIN_VOXEL_SPACINGS * scale.spacing
-    if thinned or (prediction.velocity_known and context.motion.model_error() is None):
+    if not hardly_thinned(scale) or (
+        prediction.velocity_known and context.motion.model_error() is None
+    ):
         return reach
     return max(reach, WIDE_PASS_VOXELS * scale.voxel)
+
+
+def hardly_thinned(scale: DataScale) -> bool:
+    """Whether the voxel grid hardly thins the frames: a voxel holds fewer than two samples
+    (its edge under :data:`THIN_VOXEL_SPACINGS` point spacings; the flash LiDAR at 16-25 m,
+    whose voxel is its own spacing). There a registration's cost along a face is a row of
+    minima a sample apart (methods.md §5.5)."""
+    return scale.voxel < THIN_VOXEL_SPACINGS * scale.spacing
 
 
 def check_frame(
