@@ -461,3 +461,22 @@ def test_part_of_the_normals_is_warned_about(tmp_path, name, text, given):
     assert not cloud.has_normals and len(cloud) == 3
     message = str(caught[0].message)
     assert message == f"{path}: normals read as absent: {given} (a normal needs all three)"
+
+
+def test_a_far_plane_before_every_return_says_so(tmp_path):
+    """max_depth: 0.5 (meant as 5 m, or in other units) left every pixel beyond it: the frame
+    was lost as "no return (every pixel zero or invalid)", the far plane not named."""
+    yy, xx = np.mgrid[:24, :32]
+    np.save(tmp_path / "000000.npy", (1000 + 10 * xx + 5 * yy).astype(np.uint16))
+    intrinsics = "fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\nmax_depth: 0.5\n"
+    (tmp_path / "intrinsics.yaml").write_text(intrinsics)
+    frame = next(iter(open_frames(tmp_path)))
+    assert frame.cloud is None
+    assert frame.error == (
+        f"{tmp_path / '000000.npy'}: every return lies at or beyond max_depth 0.5 m (the "
+        "nearest at 1 m): a far plane in other units than metres?"
+    )
+    # Only no-return codes (0 and 65535) beyond it: no return, as before.
+    np.save(tmp_path / "000000.npy", np.where(xx % 2, 0, 65535).astype(np.uint16))
+    frame = next(iter(open_frames(tmp_path)))
+    assert frame.error.endswith("depth image has no return (every pixel zero or invalid)")

@@ -156,7 +156,11 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
         :data:`~spacepose.tools.cloud_io.NEAREST_RANGE_M` (metres read as millimetres), naming
         the file.
     """
-    cloud = depth_to_cloud(read_depth_image(path), camera, stride, source=str(path))
+    values = read_depth_image(path)
+    try:
+        cloud = depth_to_cloud(values, camera, stride, source=str(path))
+    except InputError as exc:
+        raise _beyond_max_depth(values, camera, path) or exc from None
     # A millimetre map read with depth_scale 1 is a scene 1000 times too large, tracked as such.
     remedy = f"check depth_scale in the intrinsics ({camera.depth_scale:g} m per stored unit)"
     warn_if_not_metres(cloud, path, remedy)
@@ -164,6 +168,27 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
     # times too small.
     warn_if_too_near(cloud, path, f"depth camera ranges: metres read as smaller units? {remedy}")
     return cloud
+
+
+def _beyond_max_depth(values: NDArray, camera: DepthCamera, path: Path) -> InputError | None:
+    """The error of a map whose every return lies at or beyond ``camera.max_depth`` (None when
+    some does not, or no far plane is set): "no return (every pixel zero or invalid)" blamed
+    the pixels for the intrinsics' far plane."""
+    if camera.max_depth is None:
+        return None
+    with np.errstate(invalid="ignore", over="ignore"):
+        z = values.astype(np.float64) * camera.depth_scale
+        kept = np.isfinite(z) & (z > 0)
+        if np.issubdtype(values.dtype, np.integer):  # the type's largest value: no return
+            kept &= values != np.iinfo(values.dtype).max
+        returns = z[kept]
+    if len(returns) == 0 or np.min(returns) < camera.max_depth:
+        return None
+    return InputError(
+        f"every return lies at or beyond max_depth {camera.max_depth:g} m (the nearest at "
+        f"{np.min(returns):.4g} m): a far plane in other units than metres?",
+        path,
+    )
 
 
 def read_intrinsics(path: str | Path) -> DepthCamera:
