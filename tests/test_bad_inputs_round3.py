@@ -480,3 +480,47 @@ def test_a_far_plane_before_every_return_says_so(tmp_path):
     np.save(tmp_path / "000000.npy", np.where(xx % 2, 0, 65535).astype(np.uint16))
     frame = next(iter(open_frames(tmp_path)))
     assert frame.error.endswith("depth image has no return (every pixel zero or invalid)")
+
+
+# -- report: navigation tables it cannot score --------------------------------------------------
+
+
+def _nav_run(root: Path, nav_rows: list[list[str]]) -> Path:
+    """A run folder with a 4-row truth.csv and a nav.csv of ``nav_rows`` (NAV_COLUMNS)."""
+    from spacepose.core.nav_result import NAV_COLUMNS
+    from spacepose.core.sim.scenarios import TRUTH_COLUMNS
+
+    root.mkdir()
+    (root / "scenario.json").write_text('{"scenario": "orbit"}')
+    truth = [[str(float(k)), "25", "0", "0", *["0"] * 3, "0", "0", "0", "1", *["0"] * 9]
+             for k in range(4)]  # fmt: skip
+    (root / "truth.csv").write_text(
+        ",".join(TRUTH_COLUMNS) + "\n" + "".join(",".join(r) + "\n" for r in truth)
+    )
+    (root / "nav.csv").write_text(
+        ",".join(NAV_COLUMNS) + "\n" + "".join(",".join(r) + "\n" for r in nav_rows)
+    )
+    return root
+
+
+def _nav_row(t: float, state: bool) -> list[str]:
+    values = ["25", "0", "0", *["0"] * 3, "0", "0", "0", "1", *["0"] * 9]
+    return [str(t), *(values if state else ["nan"] * 19), *["0.1"] * 18, "2", "update"]
+
+
+@pytest.mark.parametrize(
+    ("rows", "reason"),
+    [
+        # Every row waiting: numpy's bare "Mean of empty slice" and matplotlib's "Axis limits
+        # cannot be NaN or Inf" as the reason.
+        ([_nav_row(k, False) for k in range(4)], "no frame navigated (no row holds a state)"),
+        # Another run's times: scored line by line against other frames, without a word.
+        ([_nav_row(k + 5, True) for k in range(4)], "row 1 is at t = 5 s, truth.csv's at 0 s"),
+    ],
+)
+def test_report_leaves_out_a_navigation_it_cannot_score_saying_why(tmp_path, capsys, rows, reason):
+    run = _nav_run(tmp_path / "run", rows)
+    assert main(["report", str(run), "--out", str(tmp_path / "r.html")]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"warning: {run / 'nav.csv'}: left out"), err
+    assert reason in err[0]

@@ -28,6 +28,7 @@ import numpy as np
 from spacepose import __version__
 from spacepose.core.config import load_structured, not_text, parse_problem
 from spacepose.core.metrics import (
+    TIMESTAMP_TOLERANCE,
     ErrorTable,
     associate,
     evaluate,
@@ -279,6 +280,20 @@ def _nav_file(nav_path: Path, truth: dict[str, np.ndarray]) -> str:
     """The RMS table and error figures of one navigation output against truth."""
     parts = []
     nav = {k: np.asarray(v, dtype=float) for k, v in _read_csv(nav_path).items() if k != "status"}
+    if "t" in nav and "t" in truth:
+        # Rows pair line by line: a table of other times would score other frames' states.
+        n = min(len(nav["t"]), len(truth["t"]))
+        apart = np.flatnonzero(np.abs(nav["t"][:n] - truth["t"][:n]) > TIMESTAMP_TOLERANCE)
+        if len(apart):
+            k = apart[0]
+            raise InputError(
+                f"row {k + 1} is at t = {nav['t'][k]:.9g} s, truth.csv's at {truth['t'][k]:.9g} s: "
+                "a navigation of other frames, which scored line by line would pair other states"
+            )
+    if "qw" in nav and not np.any(np.isfinite(nav["qw"])):
+        # Its error curves were all NaN: numpy's bare warnings and matplotlib's "Axis limits
+        # cannot be NaN or Inf" as the reason.
+        raise InputError("no frame navigated (no row holds a state): nothing to score")
     errors = navigation_errors(nav, truth)
     rms = errors.rms(0.5)
     rows = [(f"{name} ({unit})", *rms[name]) for name, (unit, *_) in errors.groups.items()]
