@@ -73,3 +73,20 @@ def test_quick_fusion_on_a_generated_spacecraft(tmp_path):
     assert max(s["attitude_rms_deg"]["mean"]) < 0.1
     assert max(s["position_rms_mm"]["mean"]) < 100.0
     assert min(s["tracker_in_3sigma"]["mean"]) >= 0.9
+
+
+def test_seed_figures_leave_out_the_seeds_that_never_started():
+    """A seed whose filter never started has NaN errors: the mean and std over seeds are those
+    of the others (numpy's nanmean / nanstd, ddof 1), not NaN for every seed."""
+    from spacepose.tools.experiments.fusion import _mean_std
+
+    rng = np.random.default_rng(3)
+    values = rng.normal(size=(5, 3))
+    values[1] = np.nan  # a seed that never started
+    values[3, 2] = np.nan
+    got = _mean_std(values)
+    np.testing.assert_allclose(got["mean"], np.nanmean(values, axis=0))
+    np.testing.assert_allclose(got["std"], np.nanstd(values, axis=0, ddof=1))
+    one = _mean_std(np.array([[0.5], [np.nan]]))
+    assert one == {"mean": [0.5], "std": [0.0]}
+    assert np.isnan(_mean_std(np.array([np.nan, np.nan]))["mean"])

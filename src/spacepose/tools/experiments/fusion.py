@@ -264,7 +264,8 @@ def over_seeds(
     target: str, kind: str, seeds: list[int], frames: int, base: FusionConfig
 ) -> dict[str, Any]:
     """Mean and std (ddof 1 from 2 seeds on) over seeds of :data:`SUMMARY_KEYS`, and the
-    per-seed tables."""
+    per-seed tables. A seed whose filter never started (its errors NaN) is left out of each
+    figure it has no value for, and ``seeds_navigated`` counts the seeds that started."""
     model_free = kind == "model-free"
     update: dict[str, Any] = {"measurements": "registration" if model_free else kind}
     fusion = base.model_copy(update=update)
@@ -273,12 +274,24 @@ def over_seeds(
         config = orbit_config(target, frames, seed)
         result = navigate_fused_with_truth(config, fusion, model_free)
         tables.append(fused_score(result) | {"seed": seed})
-    summary = {}
+    summary: dict[str, Any] = {}
     for key in SUMMARY_KEYS:
         values = np.array([t[key] for t in tables], dtype=np.float64)
-        std = np.std(values, axis=0, ddof=1) if len(values) > 1 else np.zeros_like(values[0])
-        summary[key] = {"mean": np.mean(values, axis=0).tolist(), "std": std.tolist()}
-    return {"summary": summary, "per_seed": tables}
+        summary[key] = _mean_std(values)
+    started = sum(t["frames_navigated"] > 0 for t in tables)
+    return {"summary": summary, "per_seed": tables, "seeds_navigated": started}
+
+
+def _mean_std(values: NDArray[np.float64]) -> dict[str, list[float] | float]:
+    """Mean and std over axis 0 of the finite values (ddof 1 from two on; NaN with none)."""
+    finite = np.isfinite(values)
+    count = finite.sum(axis=0)
+    total = np.where(finite, values, 0.0).sum(axis=0)
+    mean = np.divide(total, count, out=np.full(np.shape(total), np.nan), where=count > 0)
+    dev2 = np.where(finite, (values - mean) ** 2, 0.0).sum(axis=0)
+    std = np.divide(dev2, count - 1, out=np.zeros(np.shape(dev2)), where=count > 1) ** 0.5
+    std = np.where(count > 0, std, np.nan)
+    return {"mean": mean.tolist(), "std": std.tolist()}
 
 
 def markdown_table(runs: dict[str, dict[str, Any]]) -> str:
