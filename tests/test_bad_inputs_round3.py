@@ -524,3 +524,23 @@ def test_report_leaves_out_a_navigation_it_cannot_score_saying_why(tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"warning: {run / 'nav.csv'}: left out"), err
     assert reason in err[0]
+
+
+# -- timestamps.txt spelt in another case -------------------------------------------------------
+
+
+def test_timestamps_named_in_another_case_time_the_frames(tmp_path, capsys):
+    """Timestamps.txt (as a case-blind file system keeps it) was tracked as a sixth frame,
+    lost, and the five frames timed 0, 1, 2, ... without a word."""
+    rng = np.random.default_rng(6)
+    for k in range(3):
+        write_cloud(tmp_path / f"{k:06d}.ply", rng.normal(size=(200, 3)) * 0.1 + [0, 0, 1])
+    (tmp_path / "Timestamps.txt").write_text("10\n10.5\n11\n")
+    frames = open_frames(tmp_path)
+    assert len(frames) == 3
+    assert [frame.timestamp for frame in frames] == [10.0, 10.5, 11.0]
+    # Two spellings: which times are the frames'? Refused, naming both.
+    (tmp_path / "timestamps.txt").write_text("0\n1\n2\n")
+    with pytest.raises(InputError) as exc:
+        open_frames(tmp_path)
+    assert str(exc.value) == f"{tmp_path}: holds Timestamps.txt and timestamps.txt: keep one"

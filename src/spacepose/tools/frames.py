@@ -180,10 +180,11 @@ def open_frames(
     if camera is not None or depth_io.is_depth_folder(root):
         _check_holds_depth_images(root, given=camera is not None)
         return _open_depth_folder(root, camera)
+    stamps = _timestamps_path(root)
     paths = tuple(
         p
         for p in depth_io.frame_entries(root, CLOUD_SUFFIXES)
-        if p.name != TIMESTAMPS_FILE and not p.name.endswith(_OWN_TABLES)
+        if p != stamps and not p.name.endswith(_OWN_TABLES)
     )
     if not paths and depth_io.frame_entries(root, depth_io.DEPTH_SUFFIXES):
         # Images without intrinsics: say what is missing, not that there is nothing.
@@ -235,8 +236,9 @@ def input_files(path: str | Path, frames: Frames) -> list[Path]:
     if not root.is_dir():
         return [root]
     files = [*getattr(frames, "paths", ()), *([frames.model_path] if frames.model_path else [])]
-    names = (SCENARIO, GROUNDTRUTH, TRUTH, MODEL_CLOUD, "model.obj", TIMESTAMPS_FILE)
+    names = (SCENARIO, GROUNDTRUTH, TRUTH, MODEL_CLOUD, "model.obj")
     files += [root / name for name in (*names, depth_io.TUM_DEPTH_LIST, *depth_io.INTRINSICS_FILES)]
+    files.append(_timestamps_path(root))
     if not hasattr(frames, "paths"):  # a bag folder: its metadata and storage files
         files += [p for p in root.iterdir() if p.is_file()]
     return files
@@ -244,12 +246,28 @@ def input_files(path: str | Path, frames: Frames) -> list[Path]:
 
 def _folder_timestamps(root: Path, n_frames: int) -> NDArray[np.float64]:
     """``timestamps.txt`` of a folder when present, else the frame indices."""
-    stamps_path = root / TIMESTAMPS_FILE
+    stamps_path = _timestamps_path(root)
     # Not only a regular file: a folder or a broken link by that name is an error, not frame
     # indices taken without a word.
     if stamps_path.exists() or stamps_path.is_symlink():
         return read_timestamps(stamps_path, n_frames)
     return np.arange(n_frames, dtype=np.float64)
+
+
+def _timestamps_path(root: Path) -> Path:
+    """A folder's ``timestamps.txt``, its name in any case (``Timestamps.txt``, as a
+    case-blind file system keeps it): spelt otherwise it was tracked as a frame, and the times
+    replaced by frame numbers without a word. ``root / timestamps.txt`` when there is none.
+
+    Raises
+    ------
+    InputError
+        The folder holds two, in different cases.
+    """
+    found = sorted(p for p in root.iterdir() if p.name.lower() == TIMESTAMPS_FILE)
+    if len(found) > 1:
+        raise InputError(f"holds {' and '.join(p.name for p in found)}: keep one", root)
+    return found[0] if found else root / TIMESTAMPS_FILE
 
 
 def _open_depth_folder(root: Path, camera: DepthCamera | None) -> FrameSequence:
