@@ -10,6 +10,7 @@ from spacepose.core import fine_stage
 from spacepose.core.basin_probe import probe_starts, truncated_cost
 from spacepose.core.cloud import PointCloud
 from spacepose.core.keyframes import PreparedCloud
+from spacepose.errors import InputError
 from spacepose.tools.experiments.robustness import run_cell
 from spacepose.tools.experiments.robustness_cells import Cell
 
@@ -37,6 +38,12 @@ def test_truncated_cost_caps_each_point_at_the_gate() -> None:
     T = np.eye(4)
     T[2, 3] = 0.01
     assert truncated_cost(ref, points[:2], T, gate, sigma, 1) == pytest.approx(9.0 + 4.0)
+
+
+@pytest.mark.parametrize(("gate", "sigma"), [(0.05, 0.0), (0.0, 0.01), (np.nan, 0.01)])
+def test_truncated_cost_refuses_a_scale_that_is_not_a_length(gate, sigma) -> None:
+    with pytest.raises(InputError, match="positive length"):
+        truncated_cost(_plane(), np.zeros((3, 3)), np.eye(4), gate, sigma, 1)
 
 
 def test_probes_start_along_the_least_constrained_directions_first() -> None:

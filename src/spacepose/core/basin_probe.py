@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from spacepose.core import se3
 from spacepose.core.bodies import plane_residuals
 from spacepose.core.keyframes import PreparedCloud
+from spacepose.errors import InputError
 
 # Probes start this many voxels from the estimate, on each side of each principal direction.
 PROBE_VOXELS = 2.0
@@ -62,7 +63,15 @@ def truncated_cost(
         Point-to-plane residual σ (m).
     workers
         Threads of the search.
+
+    Raises
+    ------
+    InputError
+        A gate or σ that is not a positive length.
     """
+    for name, value in (("gate", gate), ("sigma", sigma)):
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(f"truncated cost: {name} must be a positive length, got {value}")
     r = plane_residuals(ref, points, T_ref_frame, gate, workers)
     return float(np.sum(np.minimum(r, gate) ** 2) / sigma**2)
 

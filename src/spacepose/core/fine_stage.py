@@ -173,7 +173,8 @@ class FineStage:
         along a face into a neighbouring minimum; methods.md §5.5). The probes' own residual
         measurements are dropped."""
         noise, workers = self.registrar.noise, self.registrar.workers
-        sigma = noise.sigma if noise.sigma is not None else noise.gate / 3.0
+        # Noise-free frames measure σ = 0: the gate's third is the scale then.
+        sigma = noise.sigma if noise.sigma else noise.gate / 3.0
         # Judged against the window's oldest keyframe: the latest may carry the slide itself.
         judge = self.window.references()[0]
         target = self.registrar.as_target(judge.registration_target)

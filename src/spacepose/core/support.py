@@ -216,7 +216,7 @@ class SupportSeparation:
             # next look, and a support is harder to find once the target has turned far.
             self._tried = timestamp - ref.timestamp
         noise = self.registrar.noise
-        sigma = noise.sigma if noise.sigma is not None else noise.gate / 3.0
+        sigma = noise.sigma if noise.sigma else noise.gate / 3.0
         found = split_motion(
             prepared.cloud.points,
             self.registrar.as_target(ref.prepared),
