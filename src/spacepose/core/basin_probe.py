@@ -15,8 +15,8 @@ directions along itself), and :func:`truncated_cost` scores where each ends on o
 the sum over the frame's points of their squared point-to-plane residuals in units of the
 residual σ, capped at the fine gate (a point without a surface within it pays the cap). A start
 that ends lower by more than :data:`BETTER_BY` (χ²₆'s 0.999 quantile: what six fitted parameters
-gain on noise alone) holds the deeper basin. On the box bus the probe 2 voxels back along the
-face ended 5 mm from the truth, 1,822 lower.
+gain on noise alone) holds the deeper basin. On the box bus the second frame then ends 1.3 mm
+from the truth, and no later frame is off by more than 1.2σ.
 """
 
 from __future__ import annotations
