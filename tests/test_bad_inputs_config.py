@@ -9,7 +9,6 @@ import math
 import pkgutil
 import types
 import typing
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -53,18 +52,6 @@ def _entry(**change: object) -> dict:
     return {"name": "front", "center": [0, 0, 0], "R_model_plane": EYE, "a": 0.4, "b": 0.6} | change
 
 
-def _orbit_run(root: Path, truth: bytes) -> Path:
-    """The smallest orbit run folder that :func:`read_run` reads up to its truth.csv."""
-    (root / "frames").mkdir(parents=True)
-    (root / "frames" / "000000.ply").write_bytes(b"")
-    (root / "scenario.json").write_text(json.dumps({"scenario": "orbit"}))
-    (root / "groundtruth.tum").write_text("0 0 0 0 0 0 0 1\n")
-    (root / "model.ply").write_bytes(b"")
-    (root / "model.obj").write_bytes(b"")
-    (root / "truth.csv").write_bytes(truth)
-    return root
-
-
 # -- 1. files that are not UTF-8 text ---------------------------------------------------------
 
 
@@ -97,19 +84,19 @@ def test_binary_scenario_file_is_one_line_from_navigate(tmp_path, capsys):
     assert str(scenario) in err and "not UTF-8 text" in err
 
 
-def test_binary_truth_csv_is_a_file_format_error_naming_it(tmp_path):
-    run = _orbit_run(tmp_path / "run", b"t," + BINARY)
+def test_binary_truth_csv_is_a_file_format_error_naming_it(tmp_path, bare_orbit_run):
+    run = bare_orbit_run(tmp_path / "run", b"t," + BINARY)
     with pytest.raises(FileFormatError) as exc:
         read_run(run)
     _one_line(exc, run / "truth.csv", "not UTF-8 text")
 
 
 @pytest.mark.filterwarnings("error")
-def test_truth_csv_with_its_header_alone_is_one_clean_error(tmp_path):
+def test_truth_csv_with_its_header_alone_is_one_clean_error(tmp_path, bare_orbit_run):
     header = (
         "t,rho_x,rho_y,rho_z,v_x,v_y,v_z,qx,qy,qz,qw,w_x,w_y,w_z,k_x,k_y,k_z,com_x,com_y,com_z\n"
     )
-    run = _orbit_run(tmp_path / "run", header.encode())
+    run = bare_orbit_run(tmp_path / "run", header.encode())
     # numpy's "input contained no data" warning is an error here: none may leak.
     with pytest.raises(FileFormatError) as exc:
         read_run(run)
@@ -424,8 +411,8 @@ def test_an_integer_too_long_to_read_is_one_line(tmp_path, name):
     _one_line(info, path)
 
 
-def test_a_run_whose_scenario_json_is_nested_too_deeply(tmp_path, capsys):
-    run = _orbit_run(tmp_path / "run", b"")
+def test_a_run_whose_scenario_json_is_nested_too_deeply(tmp_path, capsys, bare_orbit_run):
+    run = bare_orbit_run(tmp_path / "run", b"")
     (run / "scenario.json").write_text(DEEP)
     with pytest.raises(FileFormatError, match=r"scenario\.json: not valid JSON: nested too deeply"):
         read_run(run)

@@ -34,27 +34,15 @@ def _cli_error(capsys) -> str:
     return err
 
 
-def _orbit_run(root: Path) -> Path:
-    """The smallest orbit run folder that :func:`read_run` reads up to its truth.csv."""
-    (root / "frames").mkdir(parents=True)
-    (root / "frames" / "000000.ply").write_bytes(b"")
-    (root / "scenario.json").write_text(json.dumps({"scenario": "orbit"}))
-    (root / "groundtruth.tum").write_text("0 0 0 0 0 0 0 1\n")
-    (root / "model.ply").write_bytes(b"")
-    (root / "model.obj").write_bytes(b"")
-    (root / "truth.csv").write_text("")
-    return root
-
-
 # -- a run's own files that the system refuses to read ----------------------------------------
 
 
 @needs_proc
 @pytest.mark.parametrize("name", ["scenario.json", "truth.csv"])
-def test_a_run_file_the_system_refuses_is_named(tmp_path, capsys, name):
+def test_a_run_file_the_system_refuses_is_named(tmp_path, capsys, name, bare_orbit_run):
     """read_run read scenario.json and truth.csv with Path.read_text: an OSError of the read
     ended as 'error: Input/output error', naming no file."""
-    run = _orbit_run(tmp_path / "run")
+    run = bare_orbit_run(tmp_path / "run")
     (run / name).unlink()
     (run / name).symlink_to(_UNREADABLE)
     with pytest.raises(FileFormatError) as exc:
