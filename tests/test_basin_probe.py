@@ -46,6 +46,38 @@ def test_truncated_cost_refuses_a_scale_that_is_not_a_length(gate, sigma) -> Non
         truncated_cost(_plane(), np.zeros((3, 3)), np.eye(4), gate, sigma, 1)
 
 
+def test_truncated_cost_takes_a_cloud_and_refuses_bad_arrays() -> None:
+    plane = _plane()
+    points = np.array([[0.0, 0.0, 0.02], [0.1, 0.2, -0.03]])
+    # A cloud with normals scores as its prepared form does.
+    cost = truncated_cost(plane.cloud, PointCloud(points), np.eye(4), 0.05, 0.01, 1)
+    assert cost == pytest.approx(13.0)
+    bad = [
+        (plane, np.zeros((3, 2)), np.eye(4)),  # not (N, 3)
+        (plane, np.full((2, 3), np.nan), np.eye(4)),  # no finite row
+        (plane, points, np.eye(3)),  # not 4x4
+        (PointCloud(plane.cloud.points), points, np.eye(4)),  # no normals
+    ]
+    for ref, pts, T in bad:
+        with pytest.raises(InputError):
+            truncated_cost(ref, pts, T, 0.05, 0.01, 1)
+
+
+@pytest.mark.parametrize(
+    ("cov", "centroid", "step", "directions"),
+    [
+        (np.eye(5), np.zeros(3), 0.05, 2),
+        (np.full((6, 6), np.nan), np.zeros(3), 0.05, 2),
+        (np.eye(6), np.zeros(2), 0.05, 2),
+        (np.eye(6), np.zeros(3), -0.05, 2),
+        (np.eye(6), np.zeros(3), 0.05, 4),
+    ],
+)
+def test_probe_starts_refuse_bad_arrays(cov, centroid, step, directions) -> None:
+    with pytest.raises(InputError):
+        probe_starts(np.eye(4), cov, centroid, step, directions)
+
+
 def test_probes_start_along_the_least_constrained_directions_first() -> None:
     T = np.eye(4)
     T[:3, 3] = [0.3, -0.2, 10.0]

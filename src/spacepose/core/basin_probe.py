@@ -22,10 +22,11 @@ from the truth, and no later frame is off by more than 1.2σ.
 from __future__ import annotations
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
 from spacepose.core.bodies import plane_residuals
+from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.errors import InputError
 
@@ -40,9 +41,9 @@ BETTER_BY = 22.457744484825323
 
 
 def truncated_cost(
-    ref: PreparedCloud,
-    points: NDArray[np.float64],
-    T_ref_frame: NDArray[np.float64],
+    ref: PreparedCloud | PointCloud,
+    points: PointCloud | ArrayLike,
+    T_ref_frame: ArrayLike,
     gate: float,
     sigma: float,
     workers: int = -1,
@@ -52,9 +53,9 @@ def truncated_cost(
     Parameters
     ----------
     ref
-        The reference, with normals (its sensor frame).
+        The reference, with normals (its sensor frame): prepared, or a cloud.
     points
-        (N, 3) the frame's points (its sensor frame, m).
+        (N, 3) the frame's points (its sensor frame, m): array or cloud.
     T_ref_frame
         (4, 4) the frame's sensor frame into the reference's.
     gate
@@ -67,19 +68,26 @@ def truncated_cost(
     Raises
     ------
     InputError
-        A gate or σ that is not a positive length.
+        A gate or σ that is not a positive length, points that are not finite (N, 3), a
+        reference without normals, or a transform that is not rigid.
     """
     for name, value in (("gate", gate), ("sigma", sigma)):
         if not (np.isfinite(value) and value > 0):
             raise InputError(f"truncated cost: {name} must be a positive length, got {value}")
+    points = as_points(points, "frame points")
+    if isinstance(ref, PointCloud):
+        ref = PreparedCloud(ref)
+    if not ref.cloud.has_normals:
+        raise InputError("the reference of a truncated cost needs normals", ref.cloud.source)
+    T_ref_frame = se3.as_transform(T_ref_frame, "T_ref_frame")
     r = plane_residuals(ref, points, T_ref_frame, gate, workers)
     return float(np.sum(np.minimum(r, gate) ** 2) / sigma**2)
 
 
 def probe_starts(
-    T_sensor_target: NDArray[np.float64],
-    covariance: NDArray[np.float64],
-    centroid: NDArray[np.float64],
+    T_sensor_target: ArrayLike,
+    covariance: ArrayLike,
+    centroid: ArrayLike,
     step: float,
     directions: int = PROBE_DIRECTIONS,
 ) -> list[NDArray[np.float64]]:
@@ -100,7 +108,24 @@ def probe_starts(
         Distance of each start from the estimate (m).
     directions
         How many principal directions (1 to 3).
+
+    Raises
+    ------
+    InputError
+        A covariance that is not a finite (6, 6) array, a centroid that is not a finite (3,),
+        a step that is not a positive length, or ``directions`` outside 1-3.
     """
+    T_sensor_target = se3.as_transform(T_sensor_target, "T_sensor_target")
+    covariance = np.asarray(covariance, dtype=np.float64)
+    centroid = np.asarray(centroid, dtype=np.float64)
+    if covariance.shape != (6, 6) or not np.isfinite(covariance).all():
+        raise InputError(f"probe covariance must be a finite (6, 6) array, got {covariance.shape}")
+    if centroid.shape != (3,) or not np.isfinite(centroid).all():
+        raise InputError(f"probe centroid must be a finite (3,) point, got {centroid.shape}")
+    if not (np.isfinite(step) and step > 0):
+        raise InputError(f"probe step must be a positive length, got {step}")
+    if directions not in (1, 2, 3):
+        raise InputError(f"probe directions must be 1, 2 or 3, got {directions!r}")
     # A point c moves by δc = ω × c + v = [−[c]×, I] (ω, v).
     J = np.hstack([-se3.skew(centroid), np.eye(3)])
     _, vectors = np.linalg.eigh(J @ covariance @ J.T)

@@ -283,14 +283,14 @@ def over_seeds(
 
 
 def _mean_std(values: NDArray[np.float64]) -> dict[str, list[float] | float]:
-    """Mean and std over axis 0 of the finite values (ddof 1 from two on; NaN with none)."""
-    finite = np.isfinite(values)
-    count = finite.sum(axis=0)
-    total = np.where(finite, values, 0.0).sum(axis=0)
-    mean = np.divide(total, count, out=np.full(np.shape(total), np.nan), where=count > 0)
-    dev2 = np.where(finite, (values - mean) ** 2, 0.0).sum(axis=0)
-    std = np.divide(dev2, count - 1, out=np.zeros(np.shape(dev2)), where=count > 1) ** 0.5
-    std = np.where(count > 0, std, np.nan)
+    """Mean and std over axis 0 of the finite values (ddof 1 from two on, 0 with one; NaN with
+    none)."""
+    with warnings.catch_warnings():
+        # A figure no seed has is NaN, as wanted, without numpy's "empty slice" warnings.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        mean = np.nanmean(values, axis=0)
+        std = np.nanstd(values, axis=0, ddof=1)
+    std = np.where(np.isfinite(values).sum(axis=0) == 1, 0.0, std)
     return {"mean": mean.tolist(), "std": std.tolist()}
 
 
