@@ -25,8 +25,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
-from spacepose.core.bodies import plane_residuals
-from spacepose.core.cloud import PointCloud, as_points
+from spacepose.core.bodies import checked_registration_inputs, plane_residuals
+from spacepose.core.cloud import PointCloud
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.errors import InputError
 
@@ -71,15 +71,9 @@ def truncated_cost(
         A gate or σ that is not a positive length, points that are not finite (N, 3), a
         reference without normals, or a transform that is not rigid.
     """
-    for name, value in (("gate", gate), ("sigma", sigma)):
-        if not (np.isfinite(value) and value > 0):
-            raise InputError(f"truncated cost: {name} must be a positive length, got {value}")
-    points = as_points(points, "frame points")
-    if isinstance(ref, PointCloud):
-        ref = PreparedCloud(ref)
-    if not ref.cloud.has_normals:
-        raise InputError("the reference of a truncated cost needs normals", ref.cloud.source)
-    T_ref_frame = se3.as_transform(T_ref_frame, "T_ref_frame")
+    points, ref, T_ref_frame = checked_registration_inputs(
+        points, ref, T_ref_frame, "a truncated cost", {"gate": gate, "sigma": sigma}
+    )
     r = plane_residuals(ref, points, T_ref_frame, gate, workers)
     return float(np.sum(np.minimum(r, gate) ** 2) / sigma**2)
 

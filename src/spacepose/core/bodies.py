@@ -99,6 +99,33 @@ class MotionSplit:
     shares: tuple[float, float]
 
 
+def checked_registration_inputs(
+    points: PointCloud | ArrayLike,
+    ref: PreparedCloud | PointCloud,
+    T_ref_frame: ArrayLike,
+    what: str,
+    lengths: dict[str, float],
+) -> tuple[NDArray[np.float64], PreparedCloud, NDArray[np.float64]]:
+    """A frame's points (N, 3), its reference (prepared, with normals) and ``T_ref_frame``
+    (4, 4), checked for ``what`` uses them, with its ``lengths`` (m) positive.
+
+    Raises
+    ------
+    InputError
+        Points that are not finite (N, 3), a reference without normals, a transform that is not
+        rigid, or a length that is not positive.
+    """
+    for name, value in lengths.items():
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(f"{what}: {name} must be a positive length in metres, got {value}")
+    points = as_points(points, "frame points")
+    if isinstance(ref, PointCloud):
+        ref = PreparedCloud(ref)
+    if not ref.cloud.has_normals:
+        raise InputError(f"the reference of {what} needs normals", ref.cloud.source)
+    return points, ref, se3.as_transform(T_ref_frame, "T_ref_frame")
+
+
 def plane_residuals(
     ref: PreparedCloud,
     points: NDArray[np.float64],
@@ -175,15 +202,9 @@ def split_motion(
     InputError
         A reference without normals, non-finite points, or a length that is not positive.
     """
-    points = as_points(points, "frame points")
-    if isinstance(ref, PointCloud):
-        ref = PreparedCloud(ref)
-    if not ref.cloud.has_normals:
-        raise InputError("the reference of a motion split needs normals", ref.cloud.source)
-    T_ref_frame = se3.as_transform(T_ref_frame, "T_ref_frame")
-    for name, value in (("sigma", sigma), ("reach", reach), ("near", near)):
-        if not (np.isfinite(value) and value > 0):
-            raise InputError(f"{name} must be a positive length in metres, got {value}")
+    points, ref, T_ref_frame = checked_registration_inputs(
+        points, ref, T_ref_frame, "a motion split", {"sigma": sigma, "reach": reach, "near": near}
+    )
     cap = EXPLAINED_SIGMAS * sigma
     # The kernel's scale is the sensor's σ, not the residuals' spread: a compromise between two
     # motions has a wide spread, and an adaptive scale would keep it.
