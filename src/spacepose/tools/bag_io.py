@@ -31,7 +31,8 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
 from spacepose.errors import FileFormatError, InputError, SpaceposeError
 from spacepose.tools.cloud_io import warn_if_not_metres
-from spacepose.tools.frames import FrameInput
+from spacepose.tools.depth_io import check_lens, lens_problem, warn_if_depth_units
+from spacepose.tools.frames import FrameInput, warn_if_kilometres
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
@@ -225,6 +226,9 @@ class BagFrames:
                     cloud = self._cloud(msg, source)
                     if index == 0 and self.msgtype == POINTCLOUD2:
                         warn_if_not_metres(cloud, source)  # a driver in millimetres
+                    if self.msgtype == POINTCLOUD2:
+                        # As a folder's cloud files: a driver in kilometres is warned about.
+                        warn_if_kilometres(cloud, source)
                 except InputError as exc:
                     error = exc.reason
                 except (
@@ -247,7 +251,14 @@ class BagFrames:
         assert camera is not None  # open_bag gives every Image topic a camera
         if camera.depth_scale != scale:
             camera = camera.model_copy(update={"depth_scale": scale})
-        return depth_to_cloud(values, camera, source=source)
+        # An intrinsics file without the image size is checked at the size of each image.
+        problem, _ = lens_problem(camera, *values.shape)
+        if problem is not None:
+            raise InputError(problem, source)
+        cloud = depth_to_cloud(values, camera, source=source)
+        # As a depth folder's images: metres read as millimetres, or the other way, warned.
+        warn_if_depth_units(cloud, source, f"the {msg.encoding} encoding is {scale:g} m per unit")
+        return cloud
 
 
 def open_bag(
@@ -329,7 +340,9 @@ def _bag_camera(reader: Any, image_topic: str, path: Path) -> DepthCamera:
         )
     for conn, _, raw in reader.messages(chosen):
         try:
-            return camera_from_info(reader.deserialize(raw, conn.msgtype), depth_scale=1.0)
+            camera = camera_from_info(reader.deserialize(raw, conn.msgtype), depth_scale=1.0)
         except SpaceposeError as exc:  # say which bag and topic hold the bad CameraInfo
             raise InputError(f"CameraInfo on {conn.topic}: {exc}", path) from None
+        check_lens(camera, f"{path}: CameraInfo on {conn.topic}")
+        return camera
     raise InputError(f"CameraInfo topic {chosen[0].topic} has no message", path)

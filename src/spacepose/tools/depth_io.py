@@ -12,7 +12,9 @@ lines of ``depth.txt`` (``#`` comments ignored; the paths relative to the folder
 
 from __future__ import annotations
 
+import functools
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -21,17 +23,25 @@ from PIL import Image, UnidentifiedImageError
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
-from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
-from spacepose.errors import ConfigError, FileFormatError, InputError
+from spacepose.core.depth import DepthCamera, depth_to_cloud, distort, matrix_fields, pixel_rays
+from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import warn_if_not_metres, warn_if_too_near
 from spacepose.tools.npy_io import load_npy, npy_shape
-from spacepose.tools.text_io import not_a_file, read_text, timing_problem
+from spacepose.tools.text_io import check_timing, not_a_file, read_text
 
 DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
 # A depth folder's frames may also be NumPy arrays; elsewhere a ``.npy`` is a point cloud.
 FOLDER_DEPTH_SUFFIXES: tuple[str, ...] = (*DEPTH_SUFFIXES, ".npy")
 INTRINSICS_FILES: tuple[str, ...] = ("intrinsics.yaml", "intrinsics.yml", "intrinsics.json")
 TUM_DEPTH_LIST = "depth.txt"
+# Samples along each ray from the principal point to an edge pixel at which the distortion's
+# Jacobian must stay positive (a fold between them maps two directions to one pixel), and the
+# step (normalised image units) of its central differences.
+_FOLD_SAMPLES = 64
+_JACOBIAN_STEP = 1e-6
+# A pincushion that draws the image's edge to less than half its pinhole radius is no lens's:
+# a ToF lens bends its corners by a few per cent, a fisheye's barrel the other way.
+_FARTHEST_PINCUSHION = 2.0
 # Pillow modes of one-channel depth maps: 16-bit unsigned (three byte orders), 32-bit int, float.
 _DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
 
@@ -161,13 +171,20 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
         cloud = depth_to_cloud(values, camera, stride, source=str(path))
     except InputError as exc:
         raise _beyond_max_depth(values, camera, path) or exc from None
-    # A millimetre map read with depth_scale 1 is a scene 1000 times too large, tracked as such.
     remedy = f"check depth_scale in the intrinsics ({camera.depth_scale:g} m per stored unit)"
-    warn_if_not_metres(cloud, path, remedy)
+    warn_if_depth_units(cloud, path, remedy)
+    return cloud
+
+
+def warn_if_depth_units(cloud: PointCloud, source: str | Path, remedy: str) -> None:
+    """Warn (naming ``source``) when a depth map's points look like millimetres or lie nearer
+    than any depth camera ranges: the map's unit is not the one it was read in; ``remedy``
+    says which setting gave it."""
+    # A millimetre map read with depth_scale 1 is a scene 1000 times too large, tracked as such.
+    warn_if_not_metres(cloud, source, remedy)
     # A map in metres read as millimetres (a float TIFF with depth_scale 0.001) is a scene 1000
     # times too small.
-    warn_if_too_near(cloud, path, f"depth camera ranges: metres read as smaller units? {remedy}")
-    return cloud
+    warn_if_too_near(cloud, source, f"depth camera ranges: metres read as smaller units? {remedy}")
 
 
 def _beyond_max_depth(values: NDArray, camera: DepthCamera, path: Path) -> InputError | None:
@@ -282,6 +299,105 @@ def _matrix_data(entry: object, name: str) -> list:
     return entry
 
 
+def check_lens(camera: DepthCamera, source: str | Path) -> None:
+    """Refuse a camera whose distortion does not map its image one-to-one onto directions,
+    and warn of one that narrows its view beyond any lens (:func:`lens_problem`).
+
+    Parameters
+    ----------
+    camera
+        The camera; nothing is checked without its image size or without distortion.
+    source
+        Its intrinsics file (or bag topic), named in the message.
+
+    Raises
+    ------
+    ConfigError
+        ``source: problem``: the distortion folds within the image.
+
+    Warns
+    -----
+    SpaceposeWarning
+        The distortion pulls some pixel's direction to less than half its pinhole radius.
+    """
+    if camera.width is None or camera.height is None or not camera.distorted:
+        return
+    problem, caution = lens_problem(camera, camera.height, camera.width)
+    if problem is not None:
+        raise ConfigError(f"{source}: {problem}")
+    if caution is not None:
+        warnings.warn(SpaceposeWarning(caution, source), stacklevel=3)
+
+
+@functools.lru_cache(maxsize=8)
+def lens_problem(camera: DepthCamera, height: int, width: int) -> tuple[str | None, str | None]:
+    """Why ``camera``'s distortion cannot be undone over its ``width`` x ``height`` image (or
+    None), and what looks wrong with it though it can (or None).
+
+    The model must be one-to-one over the image: every pixel undistorted, and no fold
+    between the principal point and any pixel (the map's Jacobian positive along the rays to
+    the edge pixels and at every pixel). Past a fold a pixel was given the direction of the
+    far side (k1 = -0.5 on a 640-pixel, fx 500 image put the corners' rays through the
+    opposite corner), or none: the frame lost its edges, or its shape, without a word.
+    """
+    coefficients = (
+        f"k1..k6 {camera.k1:g} {camera.k2:g} {camera.k3:g} {camera.k4:g} {camera.k5:g} "
+        f"{camera.k6:g}, p1 p2 {camera.p1:g} {camera.p2:g}"
+    )
+    try:
+        rays = pixel_rays(camera, height, width)
+    except InputError as exc:  # most of the image folded away
+        return exc.reason, None
+    edge = np.concatenate([rays[0], rays[-1], rays[:, 0], rays[:, -1]])
+    along = np.linspace(0.0, 1.0, _FOLD_SAMPLES + 1)[1:, None, None] * edge[None]
+    xd, yd = distort(camera, along[..., 0], along[..., 1])
+    # Where each sample and each pixel is seen, in pixels from the principal point.
+    reach = np.hypot(camera.fx * xd, camera.fy * yd)
+    v, u = np.mgrid[:height, :width]
+    pixel_reach = np.hypot(u - camera.cx, v - camera.cy)
+    folded = _jacobian_det(camera, along) <= 0  # samples of a NaN ray are its pixel's
+    folded_pixels = ~(_jacobian_det(camera, rays) > 0)  # NaN rays included
+    if np.any(folded) or np.any(folded_pixels):
+        # Where each ray is last seen before its first fold (past it, it may come back inward).
+        rays_folded = np.any(folded, axis=0)
+        before = np.maximum(np.argmax(folded, axis=0) - 1, 0)
+        first = reach[before, np.arange(folded.shape[1])][rays_folded]
+        fold = min(
+            np.min(first, initial=np.inf), np.min(pixel_reach[folded_pixels], initial=np.inf)
+        )
+        lost = int(np.sum(~np.isfinite(rays[..., 0])))
+        return (
+            f"the lens distortion ({coefficients}) is not one-to-one over the {width}x{height} "
+            f"image: it folds back about {fold:.0f} pixels from the principal point, and "
+            f"pixels beyond see another direction or none ({lost} cannot be undistorted); "
+            "coefficients of another convention or camera?",
+            None,
+        )
+    pinhole = np.hypot((u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy)
+    with np.errstate(divide="ignore", invalid="ignore"):  # the principal point's pixel: 0 / 0
+        narrowing = pinhole / np.hypot(rays[..., 0], rays[..., 1])
+    worst = float(np.nanmax(narrowing, initial=1.0))
+    if worst <= _FARTHEST_PINCUSHION:
+        return None, None
+    return None, (
+        f"the lens distortion ({coefficients}) draws pixels to {1 / worst:.2g} of their pinhole "
+        f"distance from the principal point, narrowing the {width}x{height} image's view "
+        "beyond any lens: coefficients of another convention or camera?"
+    )
+
+
+def _jacobian_det(camera: DepthCamera, points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The determinant of :func:`distort`'s Jacobian at (..., 2) normalised points (central
+    differences; NaN where a point is NaN)."""
+    x, y, h = points[..., 0], points[..., 1], _JACOBIAN_STEP
+    with np.errstate(all="ignore"):
+        x1, y1 = distort(camera, x + h, y)
+        x0, y0 = distort(camera, x - h, y)
+        x3, y3 = distort(camera, x, y + h)
+        x2, y2 = distort(camera, x, y - h)
+        return ((x1 - x0) * (y3 - y2) - (x3 - x2) * (y1 - y0)) / (4 * h * h)
+
+
 def find_intrinsics(root: str | Path) -> Path | None:
     """The intrinsics file in a folder (see :data:`INTRINSICS_FILES`), or None.
 
@@ -391,7 +507,7 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     ------
     InputError
         Unreadable list, a line that is not ``number path``, a non-finite or decreasing time,
-        times that are not seconds (:func:`~spacepose.tools.text_io.timing_problem`), or no
+        times that are not seconds (:func:`~spacepose.tools.text_io.check_timing`), or no
         line at all.
     """
     path = Path(path)
@@ -414,7 +530,5 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     if not paths:
         raise InputError("lists no depth image", path)
     timestamps = np.asarray(stamps, dtype=np.float64)
-    problem = timing_problem(timestamps)
-    if problem is not None:
-        raise InputError(problem, path)
+    check_timing(timestamps, path)
     return tuple(paths), timestamps

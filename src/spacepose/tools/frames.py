@@ -32,7 +32,7 @@ from spacepose.core.depth import DepthCamera
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud, warn_if_too_near
-from spacepose.tools.text_io import read_text, timing_problem
+from spacepose.tools.text_io import check_timing, read_text
 
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
 TIMESTAMPS_FILE = "timestamps.txt"
@@ -72,8 +72,15 @@ def read_frame_cloud(path: Path) -> PointCloud:
     (:func:`~spacepose.tools.cloud_io.warn_if_too_near`): a file in kilometres, an orbit
     simulator's unit, was tracked as a scene a thousandth of its size without a word."""
     cloud = read_cloud(path)
-    warn_if_too_near(cloud, path, "sensor ranges: coordinates in kilometres? they are metres")
+    warn_if_kilometres(cloud, path)
     return cloud
+
+
+def warn_if_kilometres(cloud: PointCloud, source: str | Path) -> None:
+    """Warn (naming ``source``) when a sensor-frame cloud's points lie nearer the sensor than
+    any sensor ranges (:func:`~spacepose.tools.cloud_io.warn_if_too_near`): coordinates in
+    kilometres, read as metres."""
+    warn_if_too_near(cloud, source, "sensor ranges: coordinates in kilometres? they are metres")
 
 
 class Frames(Protocol):
@@ -143,9 +150,11 @@ def open_frames(
     InputError
         The path does not exist, is not a folder or bag, holds no frame, is a run folder without
         its scenario.json or given intrinsics, a bag topic cannot be chosen, a depth folder has
-        no intrinsics, or ``timestamps.txt`` does not hold one finite number per frame.
+        no intrinsics or intrinsics given that differ from its own file, or ``timestamps.txt``
+        does not hold one finite number per frame.
     ConfigError
-        The intrinsics file is invalid.
+        The intrinsics file is invalid, or its lens distortion folds the image
+        (:func:`~spacepose.tools.depth_io.check_lens`).
     """
     from spacepose.tools.bag_io import is_bag, open_bag  # bag_io builds on this module
 
@@ -154,6 +163,8 @@ def open_frames(
         raise InputError("does not exist", root)
     camera = None if intrinsics is None else depth_io.read_intrinsics(intrinsics)
     if is_bag(root):
+        if camera is not None:  # sized by the file; else checked at each image's size
+            depth_io.check_lens(camera, intrinsics)
         return open_bag(root, topic, camera)
     if topic is not None:
         raise InputError(f"--topic {topic} applies to a ROS bag, and this is not one", root)
@@ -179,7 +190,7 @@ def open_frames(
         )
     if camera is not None or depth_io.is_depth_folder(root):
         _check_holds_depth_images(root, given=camera is not None)
-        return _open_depth_folder(root, camera)
+        return _open_depth_folder(root, *_folder_camera(root, intrinsics, camera))
     stamps = _timestamps_path(root)
     paths = tuple(
         p
@@ -270,18 +281,55 @@ def _timestamps_path(root: Path) -> Path:
     return found[0] if found else root / TIMESTAMPS_FILE
 
 
-def _open_depth_folder(root: Path, camera: DepthCamera | None) -> FrameSequence:
-    """Depth images (sorted, or listed by ``depth.txt``) back-projected with ``camera`` or the
-    folder's intrinsics file."""
+def _folder_camera(
+    root: Path, intrinsics: str | Path | None, camera: DepthCamera | None
+) -> tuple[DepthCamera | None, Path | None]:
+    """The camera of a depth folder and its file: ``camera`` read from the ``intrinsics``
+    given, else the folder's own intrinsics file (None, None without either).
+
+    Raises
+    ------
+    InputError
+        Both are there and differ: the given file won without a word, the folder's own
+        calibration (the one recorded with its images) ignored. As for two intrinsics files
+        in one folder, the user keeps one.
+    ConfigError
+        An intrinsics file is invalid.
+    """
+    given = None if intrinsics is None else Path(intrinsics)
+    found = depth_io.find_intrinsics(root)
+    if found is None:
+        return camera, given
+    own = depth_io.read_intrinsics(found)
     if camera is None:
-        found = depth_io.find_intrinsics(root)
-        if found is None:
-            raise InputError(
-                f"depth images need intrinsics: put {depth_io.INTRINSICS_FILES[0]} (fx, fy, cx, "
-                "cy, depth_scale) in the folder or give --intrinsics",
-                root,
-            )
-        camera = depth_io.read_intrinsics(found)
+        return own, found
+    differ = [
+        f"{name} {getattr(camera, name)} vs {getattr(own, name)}"
+        for name in type(own).model_fields
+        if getattr(camera, name) != getattr(own, name)
+    ]
+    if differ:
+        raise InputError(
+            f"--intrinsics {intrinsics} and the folder's {found.name} differ "
+            f"({', '.join(differ[:3])}{', ...' if len(differ) > 3 else ''}): keep one "
+            f"(move {found.name} out, or leave out --intrinsics)",
+            root,
+        )
+    return camera, given
+
+
+def _open_depth_folder(
+    root: Path, camera: DepthCamera | None, source: Path | None = None
+) -> FrameSequence:
+    """Depth images (sorted, or listed by ``depth.txt``) back-projected with ``camera``, read
+    from ``source`` (see :func:`_folder_camera`), its lens checked over their size
+    (:func:`~spacepose.tools.depth_io.check_lens`)."""
+    if camera is None:
+        raise InputError(
+            f"depth images need intrinsics: put {depth_io.INTRINSICS_FILES[0]} (fx, fy, cx, "
+            "cy, depth_scale) in the folder or give --intrinsics",
+            root,
+        )
     if (root / depth_io.TUM_DEPTH_LIST).is_file():
         paths, timestamps = depth_io.read_tum_depth_list(root / depth_io.TUM_DEPTH_LIST)
     else:
@@ -300,7 +348,9 @@ def _open_depth_folder(root: Path, camera: DepthCamera | None) -> FrameSequence:
             ),
             stacklevel=3,
         )
-    loader = partial(depth_io.read_depth_cloud, camera=_sized(camera, paths))
+    camera = _sized(camera, paths)
+    depth_io.check_lens(camera, source)
+    loader = partial(depth_io.read_depth_cloud, camera=camera)
     return FrameSequence(paths, timestamps, loader=loader)
 
 
@@ -327,7 +377,8 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
     InputError
         A line is not a single finite number, the count differs from ``n_frames``, or the
         timestamps do not increase or are not seconds
-        (:func:`~spacepose.tools.text_io.timing_problem`).
+        (:func:`~spacepose.tools.text_io.check_timing`, which warns of frames slower than
+        any ToF camera or flash LiDAR).
     """
     path = Path(path)
     values: list[float] = []
@@ -345,9 +396,7 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
     if len(values) != n_frames:
         raise InputError(f"{len(values)} timestamps for {n_frames} frame files", path)
     stamps = np.asarray(values, dtype=np.float64)
-    problem = timing_problem(stamps)
-    if problem is not None:
-        raise InputError(problem, path)
+    check_timing(stamps, path)
     return stamps
 
 

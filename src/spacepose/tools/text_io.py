@@ -4,11 +4,12 @@ One reader so that every such file fails the same way: one :class:`FileFormatErr
 file for a missing path, a folder, a pipe or device (reading one would wait for a writer for
 ever), a read the system refuses, or bytes that are not UTF-8; a byte-order mark is dropped
 (it would otherwise hide the first number). Frame times read from such files are checked to
-rise and to be seconds (:func:`timing_problem`).
+rise and to be seconds (:func:`timing_problem`, :func:`check_timing`).
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +17,9 @@ from numpy.typing import ArrayLike
 
 from spacepose.core.config import not_a_file, not_text
 from spacepose.core.motion import order_problem
-from spacepose.errors import FileFormatError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 
-__all__ = ["not_a_file", "read_text", "timing_problem"]
+__all__ = ["check_timing", "not_a_file", "read_text", "timing_problem"]
 
 # Latest time read as seconds since the Unix epoch: 1e11 s is the year 5138, so a larger time
 # counts milliseconds, microseconds or nanoseconds (1.7e12, 1.7e15, 1.7e18 in 2024).
@@ -26,6 +27,12 @@ _LATEST_S = 1e11
 # Widest median gap (s) between a sequence's frames: no sensor tracks or navigates a target at
 # one frame an hour; nanoseconds (3.3e7 at 30 Hz) or microseconds (33,333) are read so.
 _WIDEST_STEP_S = 3600.0
+# ToF cameras and flash LiDARs frame at 1-100 Hz: a median step of 10 s or more is slower than
+# any of them (a frame a minute is a decimated or simulated run), and 10-1000 is the step of
+# such a camera's millisecond clock.
+_SLOWEST_STEP_S = 10.0
+_MS_CLOCK_STEPS = (10.0, 1000.0)
+_UNIT = "(times are seconds; milliseconds, microseconds or nanoseconds given?)"
 
 
 def read_text(path: str | Path, what: str) -> str:
@@ -62,18 +69,74 @@ def timing_problem(timestamps: ArrayLike) -> str | None:
     They must increase (:func:`~spacepose.core.motion.order_problem`), and be seconds: a time
     beyond :data:`_LATEST_S` or a median step beyond :data:`_WIDEST_STEP_S` is another unit.
     Read as seconds, nanoseconds were tracked a year a frame, and navigation integrated the
-    orbit over each of those years (hours a frame, a run that never ended).
+    orbit over each of those years (hours a frame, a run that never ended). So is a
+    millisecond clock (:func:`_millisecond_clock`): a 30 Hz camera's 0, 33, 67, 100 were
+    tracked as a frame every 33 s, its rates read a thousand times too slow, without a word.
     """
     stamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
     problem = order_problem(stamps)
     if problem is not None or len(stamps) == 0:
         return problem
-    unit = "(times are seconds; milliseconds, microseconds or nanoseconds given?)"
     latest = float(np.max(np.abs(stamps)))
     if latest > _LATEST_S:
-        return f"a time of {latest:.4g} s is past the year 5000 {unit}"
+        return f"a time of {latest:.4g} s is past the year 5000 {_UNIT}"
     if len(stamps) > 1:
         step = float(np.median(np.diff(stamps)))
         if step > _WIDEST_STEP_S:
-            return f"the frames are {step:.4g} s apart (median), more than an hour {unit}"
-    return None
+            return f"the frames are {step:.4g} s apart (median), more than an hour {_UNIT}"
+    return _millisecond_clock(stamps)
+
+
+def _millisecond_clock(stamps: np.ndarray) -> str | None:
+    """Why ``stamps`` (increasing) count a camera's milliseconds, or None.
+
+    Whole numbers a median of 10-1000 apart whose steps differ (33, 34, 33: a period that is
+    no whole number of units, rounded by the clock) are a 1-100 Hz camera's milliseconds; as
+    seconds they would be a frame every half minute, slower than any ToF camera or flash
+    LiDAR frames, with a clock that ticks in whole seconds. Steps all equal (a simulated run
+    at a frame a minute: 0, 60, 120) tell nothing and are left to :func:`check_timing`.
+    """
+    steps = np.diff(stamps)
+    if len(steps) < 2 or not np.all(stamps == np.round(stamps)):
+        return None
+    step = float(np.median(steps))
+    low, high = _MS_CLOCK_STEPS
+    if not (low <= step <= high) or np.ptp(steps) == 0:
+        return None
+    return (
+        f"whole-number times {step:g} apart (median) whose steps vary "
+        f"({np.min(steps):g} to {np.max(steps):g}): a {1e3 / np.mean(steps):.3g} Hz camera's "
+        f"milliseconds, read as seconds a frame every {step:g} s {_UNIT}"
+    )
+
+
+def check_timing(timestamps: ArrayLike, path: str | Path) -> None:
+    """Refuse a file's frame times that cannot be seconds (:func:`timing_problem`), and warn
+    when they are slower than any ToF camera or flash LiDAR frames (a median step of 10 s or
+    more): milliseconds with fractions (0, 33.3, 66.7) cannot be told from such a run, and
+    were tracked a thousand times too slow without a word.
+
+    Raises
+    ------
+    InputError
+        ``path: problem``.
+
+    Warns
+    -----
+    SpaceposeWarning
+        The frames are 10 s or more apart (median), naming ``path``.
+    """
+    stamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    problem = timing_problem(stamps)
+    if problem is not None:
+        raise InputError(problem, path)
+    step = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.0
+    if step >= _SLOWEST_STEP_S:
+        warnings.warn(
+            SpaceposeWarning(
+                f"the frames are {step:.4g} s apart (median), slower than a ToF camera or "
+                f"flash LiDAR frames (1-100 Hz) {_UNIT}",
+                path,
+            ),
+            stacklevel=3,
+        )

@@ -1,0 +1,206 @@
+"""Bad inputs found by a fourth hostile round: each ends in one line naming the file and the
+problem (or a warning naming it), never a traceback, a hang or a silently wrong result."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spacepose.cli import main
+from spacepose.core.depth import DepthCamera
+from spacepose.errors import ConfigError, InputError, SpaceposeWarning
+from spacepose.tools.cloud_io import write_cloud
+from spacepose.tools.depth_io import read_tum_depth_list, write_depth_image
+from spacepose.tools.frames import open_frames, read_timestamps
+from test_bag_io import IMAGE, INFO, PC2, ROS2, _camera_info, _image, _pointcloud2, _write
+
+INTRINSICS = "fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\n"
+
+
+def _cli_error(capsys) -> str:
+    """The CLI's stderr, checked to be one ``error:`` line without a traceback."""
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err, err
+    assert err.startswith("error:"), err
+    return err
+
+
+def _cloud_folder(root: Path, frames: int = 4, seed: int = 0) -> Path:
+    """``frames`` small clouds 1 m in front of the sensor, one .ply each."""
+    rng = np.random.default_rng(seed)
+    root.mkdir(parents=True, exist_ok=True)
+    for k in range(frames):
+        write_cloud(root / f"{k:06d}.ply", rng.normal(size=(300, 3)) * 0.1 + [0.0, 0.0, 1.0])
+    return root
+
+
+def _depth_folder(root: Path, frames: int = 2, intrinsics: str | None = INTRINSICS) -> Path:
+    """``frames`` 32 x 24 depth maps (a tilted plane about 1.2 m away), and an intrinsics file."""
+    root.mkdir(parents=True, exist_ok=True)
+    yy, xx = np.mgrid[:24, :32]
+    for k in range(frames):
+        write_depth_image(root / f"{k:06d}.png", 1.2 + 0.01 * xx + 0.005 * yy + 0.01 * k)
+    if intrinsics is not None:
+        (root / "intrinsics.yaml").write_text(intrinsics)
+    return root
+
+
+# -- frame times counted in milliseconds --------------------------------------------------------
+
+
+def test_a_millisecond_clock_from_the_start_is_refused(tmp_path, capsys):
+    """A 30 Hz camera's times from the start in milliseconds (0, 33, 67, 100, ...) were read as
+    a frame every 33 s without a word: the target's rates came out a thousand times too
+    slow, and navigate integrated the orbit half a minute a frame."""
+    frames = _cloud_folder(tmp_path / "frames")
+    stamps = frames / "timestamps.txt"
+    stamps.write_text("".join(f"{round(k * 1000 / 30)}\n" for k in range(4)))
+    with pytest.raises(InputError) as exc:
+        read_timestamps(stamps, 4)
+    message = str(exc.value)
+    assert message.startswith(f"{stamps}: whole-number times 33 apart (median)")
+    assert "a 30 Hz camera's milliseconds" in message and "times are seconds" in message
+    assert main(["track", str(frames), "--out", str(tmp_path / "e.tum")]) == 1
+    err = _cli_error(capsys)
+    assert str(stamps) in err and "milliseconds" in err
+    depth_list = tmp_path / "depth.txt"
+    depth_list.write_text("".join(f"{round(k * 1000 / 15)} d/{k}.png\n" for k in range(5)))
+    with pytest.raises(InputError, match="a 15 Hz camera's milliseconds"):
+        read_tum_depth_list(depth_list)
+
+
+def test_frames_slower_than_any_camera_are_warned_about(tmp_path):
+    """Milliseconds with their fractions (0, 33.333, 66.667) cannot be told from a frame every
+    33 s: read so without a word. Such times are now warned about, naming the file; real
+    camera rates read without a word, and a frame a minute still reads (with the warning)."""
+    stamps = tmp_path / "timestamps.txt"
+    stamps.write_text("".join(f"{k * 1000 / 30:.3f}\n" for k in range(4)))
+    with pytest.warns(SpaceposeWarning) as caught:
+        read_timestamps(stamps, 4)
+    assert str(caught[0].message) == (
+        f"{stamps}: the frames are 33.33 s apart (median), slower than a ToF camera or flash "
+        "LiDAR frames (1-100 Hz) (times are seconds; milliseconds, microseconds or "
+        "nanoseconds given?)"
+    )
+    stamps.write_text("".join(f"{60 * k}\n" for k in range(4)))  # a simulated slow run
+    with pytest.warns(SpaceposeWarning, match="60 s apart"):
+        np.testing.assert_array_equal(read_timestamps(stamps, 4), [0, 60, 120, 180])
+    for text in ("".join(f"{1.7e9 + k / 30:.6f}\n" for k in range(4)), "0\n1\n2\n3.5\n"):
+        stamps.write_text(text)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            read_timestamps(stamps, 4)
+
+
+# -- --intrinsics beside a folder's own intrinsics file -------------------------------------------
+
+
+def test_intrinsics_given_that_differ_from_the_folders_own_are_refused(tmp_path, capsys):
+    """--intrinsics won over the folder's own intrinsics.yaml without a word, the calibration
+    recorded with the images ignored."""
+    folder = _depth_folder(tmp_path / "depth")
+    given = tmp_path / "other.yaml"
+    given.write_text(INTRINSICS.replace("fx: 30", "fx: 45"))
+    with pytest.raises(InputError) as exc:
+        open_frames(folder, intrinsics=given)
+    assert str(exc.value) == (
+        f"{folder}: --intrinsics {given} and the folder's intrinsics.yaml differ (fx 45.0 vs "
+        "30.0): keep one (move intrinsics.yaml out, or leave out --intrinsics)"
+    )
+    out = tmp_path / "e.tum"
+    assert main(["track", str(folder), "--out", str(out), "--intrinsics", str(given)]) == 1
+    assert "differ (fx 45.0 vs 30.0)" in _cli_error(capsys) and not out.exists()
+    # The same camera given again (or the folder's file itself) reads.
+    given.write_text(INTRINSICS)
+    for intrinsics in (given, folder / "intrinsics.yaml"):
+        assert all(f.cloud is not None for f in open_frames(folder, intrinsics=intrinsics))
+
+
+# -- lens distortion that folds the image ---------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("k1", "fold"),
+    [
+        (-50.0, "folds back about 2 pixels"),  # a sign or unit slip
+        (-0.5, "folds back about 16 pixels"),  # folds only the corners
+    ],
+)
+def test_a_distortion_that_folds_within_the_image_is_refused(tmp_path, capsys, k1, fold):
+    """k1 = -2 on a 32 x 24 image of fx 30 folds its corners: their pixels were given the
+    direction of the opposite side, or lost, without a word (the camera is refused only when
+    more than half of the image folds)."""
+    folder = _depth_folder(tmp_path / "depth", intrinsics=INTRINSICS + f"k1: {k1}\n")
+    with pytest.raises(ConfigError) as exc:
+        open_frames(folder)
+    message = str(exc.value)
+    assert message.startswith(f"{folder / 'intrinsics.yaml'}: the lens distortion (k1..k6 {k1:g}")
+    assert "is not one-to-one over the 32x24 image" in message and fold in message
+    assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) == 1
+    assert "not one-to-one" in _cli_error(capsys)
+    # A real lens's barrel (a few pixels at the corners) reads without a word.
+    (folder / "intrinsics.yaml").write_text(INTRINSICS + "k1: -0.2\nk2: 0.05\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert all(f.cloud is not None for f in open_frames(folder))
+
+
+def test_a_pincushion_beyond_any_lens_is_warned_about(tmp_path):
+    """k1 = 50 is one-to-one, but draws the corners to a fifth of their pinhole directions:
+    read without a word."""
+    folder = _depth_folder(tmp_path / "depth", intrinsics=INTRINSICS + "k1: 50\n")
+    with pytest.warns(SpaceposeWarning) as caught:
+        open_frames(folder)
+    message = str(caught[0].message)
+    assert message.startswith(f"{folder / 'intrinsics.yaml'}: the lens distortion (k1..k6 50")
+    assert "narrowing the 32x24 image's view beyond any lens" in message
+
+
+# -- ROS bags: the same checks as files -----------------------------------------------------------
+
+
+def test_bag_clouds_in_kilometres_are_warned_about(tmp_path):
+    """A folder's cloud files nearer than any sensor ranges were warned about; a bag's
+    PointCloud2 frames were not."""
+    rng = np.random.default_rng(1)
+    grid = (rng.normal(size=(8, 10, 3)) * 0.1 + [0.0, 0.0, 1.2]) * 1e-3  # km
+    bag = _write(tmp_path / "km", [("/pc", PC2, _pointcloud2(ROS2, k, grid)) for k in range(2)])
+    with pytest.warns(SpaceposeWarning) as caught:
+        frames = list(open_frames(bag))
+    assert all(f.cloud is not None for f in frames)
+    messages = [str(w.message) for w in caught]
+    assert any(
+        m.startswith(f"{bag}:/pc#1: the returns lie") and "kilometres" in m for m in messages
+    ), messages
+
+
+def test_bag_depth_images_in_other_units_and_folded_lenses_say_so(tmp_path):
+    """A bag's depth Image frames had no unit check (a float image in millimetres, metres
+    read as smaller units), and a CameraInfo whose distortion folds the image was used."""
+    camera = DepthCamera(fx=30, fy=30, cx=15.5, cy=11.5, width=32, height=24)
+    yy, xx = np.mgrid[:24, :32]
+    near = 5 + (xx + yy) // 10  # 5-10 mm: a driver writing centimetres as millimetres?
+    messages = [("/cam/camera_info", INFO, _camera_info(ROS2, camera, ros1=False))]
+    messages += [("/cam/depth", IMAGE, _image(ROS2, k, near)) for k in range(2)]
+    bag = _write(tmp_path / "near", messages)
+    with pytest.warns(SpaceposeWarning) as caught:
+        frames = list(open_frames(bag))
+    assert all(f.cloud is not None for f in frames)
+    assert any(
+        str(w.message).startswith(f"{bag}:/cam/depth#0: the returns lie")
+        and "16UC1 encoding is 0.001 m per unit" in str(w.message)
+        for w in caught
+    ), [str(w.message) for w in caught]
+    # An intrinsics file whose lens folds the image, for the bag's Image topic.
+    folded = tmp_path / "folded.yaml"
+    folded.write_text("fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\nk1: -2\nwidth: 32\nheight: 24\n")
+    with pytest.raises(ConfigError) as exc:
+        open_frames(bag, intrinsics=folded)
+    assert str(exc.value).startswith(f"{folded}: the lens distortion (k1..k6 -2")
+    # Without its size, each image is checked at its own: the frames are lost, saying why.
+    folded.write_text("fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\nk1: -2\n")
+    frames = list(open_frames(bag, intrinsics=folded))
+    assert all(f.cloud is None and "not one-to-one" in f.error for f in frames)
