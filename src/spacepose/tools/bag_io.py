@@ -28,10 +28,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.depth import DepthCamera, depth_to_cloud, matrix_fields
+from spacepose.core.depth import DepthCamera, matrix_fields
 from spacepose.errors import FileFormatError, InputError, SpaceposeError
 from spacepose.tools.cloud_io import warn_if_not_metres
-from spacepose.tools.depth_io import check_lens, lens_problem, warn_if_depth_units
+from spacepose.tools.depth_io import check_lens, depth_cloud
 from spacepose.tools.frames import FrameInput, warn_if_kilometres
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -251,14 +251,10 @@ class BagFrames:
         assert camera is not None  # open_bag gives every Image topic a camera
         if camera.depth_scale != scale:
             camera = camera.model_copy(update={"depth_scale": scale})
-        # An intrinsics file without the image size is checked at the size of each image.
-        problem, _ = lens_problem(camera, *values.shape)
-        if problem is not None:
-            raise InputError(problem, source)
-        cloud = depth_to_cloud(values, camera, source=source)
-        # As a depth folder's images: metres read as millimetres, or the other way, warned.
-        warn_if_depth_units(cloud, source, f"the {msg.encoding} encoding is {scale:g} m per unit")
-        return cloud
+        # Checked as a depth folder's images are: the lens at the image's size, the units.
+        return depth_cloud(
+            values, camera, source, f"the {msg.encoding} encoding is {scale:g} m per unit"
+        )
 
 
 def open_bag(

@@ -150,14 +150,16 @@ def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float =
 
 
 def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> PointCloud:
-    """One call: a depth image file to the PointCloud of its returns, sensor frame.
+    """One call: a depth image file to the PointCloud of its returns, sensor frame
+    (:func:`depth_cloud`).
 
     Raises
     ------
     FileFormatError
         The image cannot be decoded (see :func:`read_depth_image`).
     InputError
-        No pixel has a return, or the size differs from the intrinsics'.
+        No pixel has a return, the size differs from the intrinsics', or the lens distortion
+        folds the image.
 
     Warns
     -----
@@ -167,12 +169,52 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
         the file.
     """
     values = read_depth_image(path)
-    try:
-        cloud = depth_to_cloud(values, camera, stride, source=str(path))
-    except InputError as exc:
-        raise _beyond_max_depth(values, camera, path) or exc from None
     remedy = f"check depth_scale in the intrinsics ({camera.depth_scale:g} m per stored unit)"
-    warn_if_depth_units(cloud, path, remedy)
+    return depth_cloud(values, camera, path, remedy, stride)
+
+
+def depth_cloud(
+    values: NDArray, camera: DepthCamera, source: str | Path, remedy: str, stride: int = 1
+) -> PointCloud:
+    """The PointCloud of a depth map's returns (:func:`~spacepose.core.depth.depth_to_cloud`),
+    checked as every depth frame is, whatever its container (a file, a bag message).
+
+    Parameters
+    ----------
+    values
+        (H, W) stored depth values.
+    camera
+        Its intrinsics.
+    source
+        The file or message, named in errors and warnings.
+    remedy
+        Which setting gave the values' unit, for the warnings.
+    stride
+        Keep every ``stride``-th pixel along rows and columns.
+
+    Raises
+    ------
+    InputError
+        The lens distortion folds the image (:func:`lens_problem`, checked at the map's size:
+        intrinsics without one were not checked, and frames came out with their corners'
+        rays through the opposite side), the size differs from the intrinsics', no pixel has
+        a return, or every return lies beyond ``max_depth``.
+
+    Warns
+    -----
+    SpaceposeWarning
+        The points are in another unit (:func:`warn_if_depth_units`).
+    """
+    height, width = np.shape(values)[:2]
+    if (camera.width or width, camera.height or height) == (width, height):
+        problem, _ = lens_problem(camera, height, width)  # another size is refused below
+        if problem is not None:
+            raise InputError(problem, source)
+    try:
+        cloud = depth_to_cloud(values, camera, stride, source=str(source))
+    except InputError as exc:
+        raise _beyond_max_depth(values, camera, source) or exc from None
+    warn_if_depth_units(cloud, source, remedy)
     return cloud
 
 
@@ -187,7 +229,7 @@ def warn_if_depth_units(cloud: PointCloud, source: str | Path, remedy: str) -> N
     warn_if_too_near(cloud, source, f"depth camera ranges: metres read as smaller units? {remedy}")
 
 
-def _beyond_max_depth(values: NDArray, camera: DepthCamera, path: Path) -> InputError | None:
+def _beyond_max_depth(values: NDArray, camera: DepthCamera, path: str | Path) -> InputError | None:
     """The error of a map whose every return lies at or beyond ``camera.max_depth`` (None when
     some does not, or no far plane is set): "no return (every pixel zero or invalid)" blamed
     the pixels for the intrinsics' far plane."""
@@ -340,6 +382,8 @@ def lens_problem(camera: DepthCamera, height: int, width: int) -> tuple[str | No
     far side (k1 = -0.5 on a 640-pixel, fx 500 image put the corners' rays through the
     opposite corner), or none: the frame lost its edges, or its shape, without a word.
     """
+    if not camera.distorted:
+        return None, None
     coefficients = (
         f"k1..k6 {camera.k1:g} {camera.k2:g} {camera.k3:g} {camera.k4:g} {camera.k5:g} "
         f"{camera.k6:g}, p1 p2 {camera.p1:g} {camera.p2:g}"
