@@ -31,6 +31,10 @@ _WIDEST_STEP_S = 3600.0
 # any of them (a frame a minute is a decimated or simulated run), and 10-1000 is the step of
 # such a camera's millisecond clock.
 _SLOWEST_STEP_S = 10.0
+# Narrowest median step (s): a ToF frame integrates its modulated light over several phases
+# and a flash LiDAR's pulse needs its energy, neither much faster than a kHz; 0.1 ms a frame
+# is times in hours (9.3e-6 at 30 Hz) or days, or seconds converted twice.
+_NARROWEST_STEP_S = 1e-4
 _MS_CLOCK_STEPS = (10.0, 1000.0)
 _UNIT = "(times are seconds; milliseconds, microseconds or nanoseconds given?)"
 
@@ -67,7 +71,8 @@ def timing_problem(timestamps: ArrayLike) -> str | None:
     """Why a sequence's times cannot be its frames' times in seconds, or None.
 
     They must increase (:func:`~spacepose.core.motion.order_problem`), and be seconds: a time
-    beyond :data:`_LATEST_S` or a median step beyond :data:`_WIDEST_STEP_S` is another unit.
+    beyond :data:`_LATEST_S` or a median step beyond :data:`_WIDEST_STEP_S` or below
+    :data:`_NARROWEST_STEP_S` is another unit.
     Read as seconds, nanoseconds were tracked a year a frame, and navigation integrated the
     orbit over each of those years (hours a frame, a run that never ended). So is a
     millisecond clock (:func:`_millisecond_clock`): a 30 Hz camera's 0, 33, 67, 100 were
@@ -84,6 +89,12 @@ def timing_problem(timestamps: ArrayLike) -> str | None:
         step = float(np.median(np.diff(stamps)))
         if step > _WIDEST_STEP_S:
             return f"the frames are {step:.4g} s apart (median), more than an hour {_UNIT}"
+        if step < _NARROWEST_STEP_S:
+            return (
+                f"the frames are {step:.4g} s apart (median), faster than any ToF camera or "
+                "flash LiDAR frames (10 kHz) (times are seconds; hours or days given, or "
+                "seconds converted twice?)"
+            )
     return _millisecond_clock(stamps)
 
 
