@@ -25,13 +25,12 @@ from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import load_structured
-from spacepose.core.motion import order_problem
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS, Simulation
 from spacepose.core.sim.targets import Rectangle
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.cloud_io import read_cloud, write_cloud
-from spacepose.tools.text_io import read_text
+from spacepose.tools.text_io import check_timing, read_text
 from spacepose.tools.trajectory_io import read_tum, write_tum
 
 FRAMES_DIR = "frames"
@@ -188,8 +187,9 @@ def read_run(path: str | Path) -> Run:
     Raises
     ------
     InputError
-        The folder does not exist, or a file of the layout is missing, or the number of frames
-        differs from the number of ground-truth poses.
+        The folder does not exist, or a file of the layout is missing, the number of frames
+        differs from the number of ground-truth poses, or their times do not rise or are not
+        seconds (:func:`~spacepose.tools.text_io.check_timing`).
     FileFormatError
         ``scenario.json`` or ``truth.csv`` cannot be parsed (other files: see their readers).
     """
@@ -208,9 +208,9 @@ def read_run(path: str | Path) -> Run:
     if not isinstance(scenario, dict):
         raise FileFormatError("must hold a JSON object", root / SCENARIO)
     groundtruth = read_tum(root / GROUNDTRUTH)
-    problem = order_problem(groundtruth.timestamps)
-    if problem is not None:  # the run's frames are timed by it
-        raise InputError(problem, root / GROUNDTRUTH)
+    # The run's frames are timed by it: they must rise and be seconds (an edited file in
+    # milliseconds was navigated a thousand times too slow without a word).
+    check_timing(groundtruth.timestamps, root / GROUNDTRUTH)
     frame_paths = _numbered_frames(root)
     if len(frame_paths) != len(groundtruth):
         raise InputError(
@@ -222,7 +222,7 @@ def read_run(path: str | Path) -> Run:
     if scenario.get("scenario") == "orbit":
         if not (root / TRUTH).is_file():
             raise InputError(f"orbit run folder is missing {TRUTH}", root)
-        truth = _read_truth(root / TRUTH, len(groundtruth))
+        truth = _read_truth(root / TRUTH, groundtruth.timestamps)
     return Run(root, scenario, groundtruth, read_cloud(root / MODEL_CLOUD), frame_paths, truth)
 
 
@@ -263,7 +263,19 @@ def _numbered_frames(root: Path) -> tuple[Path, ...]:
     return tuple(path for _, path in numbered)
 
 
-def _read_truth(path: Path, n_frames: int) -> NDArray[np.float64]:
+def _read_truth(path: Path, timestamps: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``truth.csv``: one finite row of :data:`TRUTH_COLUMNS` per frame, at the frame times
+    ``timestamps`` (``groundtruth.tum``'s).
+
+    Raises
+    ------
+    FileFormatError
+        Another header, a row that does not parse, another number of rows, a value that is
+        not finite, or a row at another time than its frame's: the truth is paired with the
+        frames row by row, and another run's (or an edited) truth was scored against them
+        without a word.
+    """
+    n_frames = len(timestamps)
     lines = read_text(path, "the orbit's truth").splitlines()
     if not lines or lines[0].strip().split(",") != TRUTH_COLUMNS:
         raise FileFormatError(f"header must be {','.join(TRUTH_COLUMNS)}", path)
@@ -286,6 +298,15 @@ def _read_truth(path: Path, n_frames: int) -> NDArray[np.float64]:
         raise FileFormatError(
             f"row {row + 1}: {TRUTH_COLUMNS[column]} is {table[row, column]}; the truth must be "
             "finite",
+            path,
+        )
+    # Times as written by write_run (17 digits): equal to groundtruth.tum's but for rounding.
+    off = np.flatnonzero(~np.isclose(table[:, 0], timestamps, rtol=1e-12, atol=1e-6))
+    if len(off):
+        k = off[0]
+        raise FileFormatError(
+            f"row {k + 1} is at t = {table[k, 0]:.10g} s, frame {k} at {timestamps[k]:.10g} s "
+            f"({GROUNDTRUTH}): the truth and the frames must share their times",
             path,
         )
     return table
