@@ -248,7 +248,10 @@ def track_folder(
             statuses.append(result.status)
             times.append(result.time_ms["total"])
             if result.status == "lost" and first_lost is None:
-                first_lost = f"frame {len(statuses) - 1}: {'; '.join(result.reasons)}"
+                # The tracker's reasons ("unusable frame: 1 point(s)") name no file; a read
+                # error does.
+                where = "" if frame.error is not None else f", {frame.source}"
+                first_lost = f"frame {len(statuses) - 1}{where}: {'; '.join(result.reasons)}"
             if progress is not None:
                 progress(len(statuses), len(frames), result.status)
     return {
