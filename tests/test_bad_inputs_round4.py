@@ -11,10 +11,11 @@ import pytest
 
 from spacepose.cli import main
 from spacepose.core.depth import DepthCamera
-from spacepose.errors import ConfigError, InputError, SpaceposeWarning
+from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.depth_io import read_tum_depth_list, write_depth_image
 from spacepose.tools.frames import open_frames, read_timestamps
+from spacepose.tools.runs import read_run
 from test_bag_io import IMAGE, INFO, PC2, ROS2, _camera_info, _image, _pointcloud2, _write
 
 INTRINSICS = "fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\n"
@@ -204,3 +205,105 @@ def test_bag_depth_images_in_other_units_and_folded_lenses_say_so(tmp_path):
     folded.write_text("fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\nk1: -2\n")
     frames = list(open_frames(bag, intrinsics=folded))
     assert all(f.cloud is None and "not one-to-one" in f.error for f in frames)
+
+
+def test_frames_faster_than_any_camera_are_refused(tmp_path):
+    """Times a nanosecond apart (seconds converted twice, or hours: 9.3e-6 at 30 Hz) were
+    read as a billion frames a second without a word."""
+    stamps = tmp_path / "timestamps.txt"
+    stamps.write_text("".join(f"{k * 1e-9:.3g}\n" for k in range(4)))
+    with pytest.raises(InputError) as exc:
+        read_timestamps(stamps, 4)
+    assert str(exc.value).startswith(f"{stamps}: the frames are 1e-09 s apart (median), faster")
+    assert "hours or days given" in str(exc.value)
+    stamps.write_text("".join(f"{k / 1000}\n" for k in range(4)))  # a 1 kHz sensor reads
+    np.testing.assert_allclose(read_timestamps(stamps, 4), [0, 0.001, 0.002, 0.003])
+
+
+# -- a run folder's own times -------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def orbit_run(tmp_path_factory) -> Path:
+    """A three-frame orbit run, written by simulate."""
+    run = tmp_path_factory.mktemp("orbit") / "run"
+    assert main(["simulate", "orbit", "--frames", "3", "--seed", "0", "--out", str(run)]) == 0
+    return run
+
+
+def _copy_run(run: Path, to: Path) -> Path:
+    import shutil
+
+    return Path(shutil.copytree(run, to))
+
+
+def test_a_run_timed_in_milliseconds_is_warned_about(tmp_path, orbit_run):
+    """groundtruth.tum times the run's frames; rewritten in milliseconds (0, 1000, 2000) it was
+    navigated a thousand times too slow without a word."""
+    run = _copy_run(orbit_run, tmp_path / "run")
+    gt = run / "groundtruth.tum"
+    rows = [line.split(maxsplit=1) for line in gt.read_text().splitlines()]
+    gt.write_text("".join(f"{float(t) * 1000:g} {rest}\n" for t, rest in rows))
+    truth = run / "truth.csv"
+    head, *body = truth.read_text().splitlines()
+    rows = [line.split(",", 1) for line in body]
+    truth.write_text(head + "\n" + "".join(f"{float(t) * 1000:g},{r}\n" for t, r in rows))
+    with pytest.warns(SpaceposeWarning) as caught:
+        read_run(run)
+    assert str(caught[0].message).startswith(f"{gt}: the frames are 1000 s apart (median)")
+
+
+def test_a_truth_at_other_times_than_the_frames_is_refused(tmp_path, capsys, orbit_run):
+    """truth.csv is paired with the frames row by row: a row at another time (an edited
+    file, another run's truth) was navigated and scored against the wrong frame."""
+    run = _copy_run(orbit_run, tmp_path / "run")
+    truth = run / "truth.csv"
+    lines = truth.read_text().splitlines()
+    lines[2] = "7" + lines[2][lines[2].index(",") :]
+    truth.write_text("\n".join(lines) + "\n")
+    with pytest.raises(FileFormatError) as exc:
+        read_run(run)
+    assert str(exc.value) == (
+        f"{truth}: row 2 is at t = 7 s, frame 1 at 1 s (groundtruth.tum): the truth and the "
+        "frames must share their times"
+    )
+    assert main(["navigate", str(run), "--out", str(tmp_path / "nav.csv")]) == 1
+    assert _cli_error(capsys) == f"error: {exc.value}"
+
+
+# -- the first lost frame names its file ----------------------------------------------------------
+
+
+def test_every_frame_lost_by_the_tracker_names_the_file(tmp_path, capsys):
+    """A frame the tracker could not use (one point left) ended the run as "every frame was
+    lost (frame 0: unusable frame: 1 point(s): ...)", naming no file."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    np.save(folder / "000000.npy", np.array([[0.0, 0.0, 1.0]]))
+    assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) == 1
+    err = _cli_error(capsys)
+    assert err.startswith(
+        f"error: {folder}: every frame was lost (frame 0, {folder / '000000.npy'}:"
+    )
+    assert "1 point(s)" in err
+
+
+# -- a depth image registered with a folded lens --------------------------------------------------
+
+
+def test_a_depth_image_registered_with_a_folded_lens_is_refused(tmp_path, capsys):
+    """register reads a depth image with its intrinsics: a lens folding the image was used
+    without a word (the image's size is only known once it is read)."""
+    folder = _depth_folder(tmp_path / "depth", intrinsics=INTRINSICS + "k1: -0.5\n")
+    source, target = folder / "000000.png", folder / "000001.png"
+    assert main(["register", str(source), str(target)]) == 1
+    err = _cli_error(capsys)
+    assert err.startswith(f"error: {source}: the lens distortion (k1..k6 -0.5")
+    assert "not one-to-one over the 32x24 image" in err
+
+
+def test_report_of_a_missing_folder_says_it_does_not_exist(tmp_path, capsys):
+    """It said "not a folder", sending the user to look at what the path is."""
+    missing = tmp_path / "rnu"
+    assert main(["report", str(missing)]) == 1
+    assert _cli_error(capsys) == f"error: {missing}: does not exist"

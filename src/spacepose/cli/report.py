@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from spacepose.cli.app import app, console
+from spacepose.errors import InputError
 
 
 @app.command()
@@ -17,4 +18,7 @@ def report(
     """Write an HTML report (figures embedded) of the runs, tracks, navigation and experiments."""
     from spacepose.tools.report import build_report
 
+    if not run_dir.exists() and not run_dir.is_symlink():
+        # "not a folder" sent the user looking at what the path is, not at its spelling.
+        raise InputError("does not exist", run_dir)
     console.print(f"report written: {build_report(run_dir, out)}")
