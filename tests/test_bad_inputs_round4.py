@@ -307,3 +307,50 @@ def test_report_of_a_missing_folder_says_it_does_not_exist(tmp_path, capsys):
     missing = tmp_path / "rnu"
     assert main(["report", str(missing)]) == 1
     assert _cli_error(capsys) == f"error: {missing}: does not exist"
+
+
+# -- two lists timing one depth folder ------------------------------------------------------------
+
+
+def test_a_depth_list_beside_timestamps_is_refused(tmp_path):
+    """A depth folder with TUM's depth.txt and a timestamps.txt was timed by the list, the
+    other file left without a word."""
+    folder = _depth_folder(tmp_path / "depth")
+    (folder / "depth.txt").write_text("0 000000.png\n1 000001.png\n")
+    (folder / "Timestamps.txt").write_text("5\n6\n")
+    with pytest.raises(InputError) as exc:
+        open_frames(folder)
+    assert str(exc.value) == (
+        f"{folder}: holds depth.txt and Timestamps.txt, and each times the frames: keep one"
+    )
+
+
+def test_a_depth_list_naming_one_image_twice_is_refused(tmp_path):
+    """depth.txt naming one image on two lines tracked it as two frames, without a word."""
+    folder = _depth_folder(tmp_path / "depth")
+    listing = folder / "depth.txt"
+    listing.write_text("# TUM depth list\n0 000000.png\n0.1 000001.png\n0.2 ./000000.png\n")
+    with pytest.raises(InputError) as exc:
+        read_tum_depth_list(listing)
+    assert str(exc.value) == (
+        f"{listing}: line 4: ./000000.png is listed again (line 2): one image is one frame"
+    )
+
+
+def test_every_bag_cloud_is_checked_for_its_unit(tmp_path):
+    """Only a bag's first PointCloud2 was checked for millimetres: a later message of
+    coordinates in the 1e9 m (a corrupt driver's) was tracked without a word."""
+    rng = np.random.default_rng(3)
+    grid = rng.normal(size=(8, 10, 3)) * 0.1 + [0.0, 0.0, 1.2]
+    clouds = [grid, grid * 1e9, grid]
+    bag = _write(
+        tmp_path / "bag", [("/pc", PC2, _pointcloud2(ROS2, k, g)) for k, g in enumerate(clouds)]
+    )
+    with pytest.warns(SpaceposeWarning) as caught:
+        frames = list(open_frames(bag))
+    assert len(frames) == 3
+    messages = [str(w.message) for w in caught]
+    assert messages == [
+        f"{bag}:/pc#1: coordinates span 9.14e+08 m, beyond any sensor's reach even read as "
+        "millimetres: corrupt values, or another unit?"
+    ], messages

@@ -224,10 +224,10 @@ class BagFrames:
                     msg = reader.deserialize(raw, conn.msgtype)
                     timestamp = stamp_seconds(msg, time_ns)
                     cloud = self._cloud(msg, source)
-                    if index == 0 and self.msgtype == POINTCLOUD2:
-                        warn_if_not_metres(cloud, source)  # a driver in millimetres
                     if self.msgtype == POINTCLOUD2:
-                        # As a folder's cloud files: a driver in kilometres is warned about.
+                        # As a folder's cloud files, each frame: a driver in millimetres or
+                        # kilometres, or a corrupt message's 1e9 m (the first alone was checked).
+                        warn_if_not_metres(cloud, source)
                         warn_if_kilometres(cloud, source)
                 except InputError as exc:
                     error = exc.reason

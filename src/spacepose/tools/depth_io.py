@@ -550,7 +550,8 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     Raises
     ------
     InputError
-        Unreadable list, a line that is not ``number path``, a non-finite or decreasing time,
+        Unreadable list, a line that is not ``number path``, an image listed twice, a
+        non-finite or decreasing time,
         times that are not seconds (:func:`~spacepose.tools.text_io.check_timing`), or no
         line at all.
     """
@@ -558,6 +559,7 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     text = read_text(path, "the depth list")
     paths: list[Path] = []
     stamps: list[float] = []
+    listed: dict[Path, int] = {}  # each image's line
     for lineno, line in enumerate(text.splitlines(), start=1):
         body = line.split("#", 1)[0].strip()
         if not body:
@@ -569,8 +571,17 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
             stamp = float("nan")
         if len(parts) != 2 or not np.isfinite(stamp):
             raise InputError(f"line {lineno}: expected 'timestamp path', got {body!r}", path)
+        image = path.parent / parts[1]
+        if image in listed:
+            # One image tracked as two frames: a line pasted twice, or the wrong file named.
+            raise InputError(
+                f"line {lineno}: {parts[1]} is listed again (line {listed[image]}): one image is "
+                "one frame",
+                path,
+            )
+        listed[image] = lineno
         stamps.append(stamp)
-        paths.append(path.parent / parts[1])
+        paths.append(image)
     if not paths:
         raise InputError("lists no depth image", path)
     timestamps = np.asarray(stamps, dtype=np.float64)

@@ -150,8 +150,9 @@ def open_frames(
     InputError
         The path does not exist, is not a folder or bag, holds no frame, is a run folder without
         its scenario.json or given intrinsics, a bag topic cannot be chosen, a depth folder has
-        no intrinsics or intrinsics given that differ from its own file, or ``timestamps.txt``
-        does not hold one finite number per frame.
+        no intrinsics or intrinsics given that differ from its own file, or both a
+        ``depth.txt`` and a ``timestamps.txt``, or ``timestamps.txt`` does not hold one finite
+        number per frame.
     ConfigError
         The intrinsics file is invalid, or its lens distortion folds the image
         (:func:`~spacepose.tools.depth_io.check_lens`).
@@ -331,6 +332,14 @@ def _open_depth_folder(
             root,
         )
     if (root / depth_io.TUM_DEPTH_LIST).is_file():
+        stamps = _timestamps_path(root)
+        if stamps.exists():
+            # Each times the frames: the list won and timestamps.txt was left without a word.
+            raise InputError(
+                f"holds {depth_io.TUM_DEPTH_LIST} and {stamps.name}, and each times the frames: "
+                "keep one",
+                root,
+            )
         paths, timestamps = depth_io.read_tum_depth_list(root / depth_io.TUM_DEPTH_LIST)
     else:
         paths = depth_io.depth_files(root)
