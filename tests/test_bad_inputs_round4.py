@@ -354,3 +354,17 @@ def test_every_bag_cloud_is_checked_for_its_unit(tmp_path):
         f"{bag}:/pc#1: coordinates span 9.14e+08 m, beyond any sensor's reach even read as "
         "millimetres: corrupt values, or another unit?"
     ], messages
+
+
+def test_a_depth_map_of_negative_depths_says_so(tmp_path):
+    """A renderer looking down -z (OpenGL's camera) writes negative depths: the frame was lost
+    as "no return (every pixel zero or invalid)", the sign not named."""
+    yy, xx = np.mgrid[:24, :32]
+    np.save(tmp_path / "000000.npy", -(1.2 + 0.01 * xx + 0.005 * yy))
+    (tmp_path / "intrinsics.yaml").write_text(INTRINSICS + "depth_scale: 1\n")
+    frame = next(iter(open_frames(tmp_path)))
+    assert frame.cloud is None
+    assert frame.error == (
+        f"{tmp_path / '000000.npy'}: every depth is negative (median -1.413 m): depths along -z, "
+        "as an OpenGL camera's? they are distances in front of the sensor, positive"
+    )

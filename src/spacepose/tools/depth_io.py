@@ -198,7 +198,7 @@ def depth_cloud(
         The lens distortion folds the image (:func:`lens_problem`, checked at the map's size:
         intrinsics without one were not checked, and frames came out with their corners'
         rays through the opposite side), the size differs from the intrinsics', no pixel has
-        a return, or every return lies beyond ``max_depth``.
+        a return (named: every depth negative, or beyond ``max_depth``).
 
     Warns
     -----
@@ -213,7 +213,7 @@ def depth_cloud(
     try:
         cloud = depth_to_cloud(values, camera, stride, source=str(source))
     except InputError as exc:
-        raise _beyond_max_depth(values, camera, source) or exc from None
+        raise _why_no_return(values, camera, source) or exc from None
     warn_if_depth_units(cloud, source, remedy)
     return cloud
 
@@ -229,19 +229,24 @@ def warn_if_depth_units(cloud: PointCloud, source: str | Path, remedy: str) -> N
     warn_if_too_near(cloud, source, f"depth camera ranges: metres read as smaller units? {remedy}")
 
 
-def _beyond_max_depth(values: NDArray, camera: DepthCamera, path: str | Path) -> InputError | None:
-    """The error of a map whose every return lies at or beyond ``camera.max_depth`` (None when
-    some does not, or no far plane is set): "no return (every pixel zero or invalid)" blamed
-    the pixels for the intrinsics' far plane."""
-    if camera.max_depth is None:
-        return None
+def _why_no_return(values: NDArray, camera: DepthCamera, path: str | Path) -> InputError | None:
+    """The error of a map without a return that says why, when its values do (None when they
+    do not): "no return (every pixel zero or invalid)" blamed the pixels for a map of negative
+    depths (a renderer's camera looking down -z, as OpenGL's) or for the intrinsics' far
+    plane."""
     with np.errstate(invalid="ignore", over="ignore"):
         z = values.astype(np.float64) * camera.depth_scale
-        kept = np.isfinite(z) & (z > 0)
+        finite = np.isfinite(z) & (z != 0)
         if np.issubdtype(values.dtype, np.integer):  # the type's largest value: no return
-            kept &= values != np.iinfo(values.dtype).max
-        returns = z[kept]
-    if len(returns) == 0 or np.min(returns) < camera.max_depth:
+            finite &= values != np.iinfo(values.dtype).max
+    if np.any(finite) and np.all(z[finite] < 0):
+        return InputError(
+            f"every depth is negative (median {np.median(z[finite]):.4g} m): depths along -z, "
+            "as an OpenGL camera's? they are distances in front of the sensor, positive",
+            path,
+        )
+    returns = z[finite & (z > 0)]
+    if camera.max_depth is None or len(returns) == 0 or np.min(returns) < camera.max_depth:
         return None
     return InputError(
         f"every return lies at or beyond max_depth {camera.max_depth:g} m (the nearest at "
