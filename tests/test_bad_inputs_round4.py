@@ -368,3 +368,26 @@ def test_a_depth_map_of_negative_depths_says_so(tmp_path):
         f"{tmp_path / '000000.npy'}: every depth is negative (median -1.413 m): depths along -z, "
         "as an OpenGL camera's? they are distances in front of the sensor, positive"
     )
+
+
+# -- a .npy whose header does not parse -----------------------------------------------------------
+
+
+def test_a_npy_header_that_does_not_parse_names_the_file(tmp_path, capsys):
+    """An unclosed bracket in a .npy's header dict ended in tokenize's TokenError traceback
+    (register), and in a depth folder the same from the image size read."""
+    header = b"{'descr': '<f4', 'fortran_order': False, 'shape': (100, 3"
+    bad = tmp_path / "bad.npy"
+    bad.write_bytes(
+        b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header + b"\x00" * 40
+    )
+    assert main(["register", str(bad), str(bad)]) == 1
+    assert _cli_error(capsys) == f"error: {bad}: bad .npy header: its description does not parse"
+    folder = tmp_path / "depth"
+    folder.mkdir()
+    bad.rename(folder / "000000.npy")
+    (folder / "intrinsics.yaml").write_text(INTRINSICS)
+    frame = next(iter(open_frames(folder)))
+    assert frame.cloud is None and frame.error.endswith(
+        "bad .npy header: its description does not parse"
+    )

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import zipfile
 from pathlib import Path
+from tokenize import TokenError
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +21,9 @@ from spacepose.errors import FileFormatError
 
 NPY_MAGIC = b"\x93NUMPY"
 ZIP_MAGIC = b"PK"
+# What numpy's parsing of a corrupt header raises besides ValueError: tokenize's TokenError (an
+# unclosed bracket in the header's dict) escaped as a traceback.
+_BAD_HEADER = (SyntaxError, TokenError)
 
 
 def _check_magic(path: Path, magic: bytes, problem: str) -> None:
@@ -82,6 +86,8 @@ def load_npy(path: Path) -> NDArray:
         raise
     except ValueError as exc:
         raise FileFormatError(_numpy_problem(exc, ".npy"), path) from None
+    except _BAD_HEADER:
+        raise FileFormatError("bad .npy header: its description does not parse", path) from None
     except (OSError, EOFError) as exc:
         raise FileFormatError(f"bad or truncated .npy: {exc}", path) from None
 
@@ -93,7 +99,7 @@ def npy_shape(path: Path) -> tuple[int, ...] | None:
     try:
         _check_magic(path, NPY_MAGIC, "")
         return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
-    except (OSError, ValueError, EOFError, FileFormatError):
+    except (OSError, ValueError, EOFError, FileFormatError, *_BAD_HEADER):
         return None
 
 
