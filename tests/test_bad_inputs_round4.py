@@ -13,7 +13,7 @@ from spacepose.cli import main
 from spacepose.core.depth import DepthCamera
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import write_cloud
-from spacepose.tools.depth_io import read_tum_depth_list, write_depth_image
+from spacepose.tools.depth_io import read_depth_image, read_tum_depth_list, write_depth_image
 from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.runs import read_run
 from test_bag_io import IMAGE, INFO, PC2, ROS2, _camera_info, _image, _pointcloud2, _write
@@ -391,3 +391,40 @@ def test_a_npy_header_that_does_not_parse_names_the_file(tmp_path, capsys):
     assert frame.cloud is None and frame.error.endswith(
         "bad .npy header: its description does not parse"
     )
+
+
+# -- damaged TIFF depth maps ----------------------------------------------------------------------
+
+
+def _damaged_tiff(path: Path, at: int, new: bytes, replace: int = 0) -> Path:
+    """A 32 x 24 depth TIFF with ``new`` written at byte ``at`` over ``replace`` bytes."""
+    yy, xx = np.mgrid[:24, :32]
+    write_depth_image(path, 1.2 + 0.01 * xx + 0.005 * yy)
+    data = path.read_bytes()
+    path.write_bytes(data[:at] + new + data[at + replace :])
+    return path
+
+
+def test_a_tiff_that_lost_its_size_is_one_error_naming_the_file(tmp_path, capsys):
+    """A byte slipped into a TIFF's tags ended in Pillow's TypeError traceback ("Missing
+    dimensions"), after a dozen bare 'UserWarning: Tag data larger than file' lines."""
+    folder = _depth_folder(tmp_path / "depth")
+    bad = _damaged_tiff(folder / "000000.tif", 118, b"*")
+    (folder / "000000.png").unlink()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no Pillow warning escapes
+        frames = list(open_frames(folder))
+    assert frames[0].cloud is None and frames[1].cloud is not None
+    assert frames[0].error == f"{bad}: cannot decode the image: Missing dimensions"
+    assert main(["register", str(bad), str(folder / "000001.png")]) == 1
+    assert _cli_error(capsys) == f"error: {frames[0].error}"
+
+
+def test_a_tiff_decoded_despite_damage_says_so_once(tmp_path):
+    """A TIFF Pillow decodes while skipping a damaged tag printed Pillow's bare warning, naming
+    no file."""
+    path = _damaged_tiff(tmp_path / "frame.tif", 50, b"\x00\x07", replace=2)
+    with pytest.warns(SpaceposeWarning) as caught:
+        read_depth_image(path)
+    assert [type(w.message) for w in caught] == [SpaceposeWarning]
+    assert str(caught[0].message).startswith(f"{path}: decoded despite Pillow's warnings: ")

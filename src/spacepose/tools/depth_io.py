@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import re
+import struct
 import warnings
 from pathlib import Path
 
@@ -42,6 +43,11 @@ _JACOBIAN_STEP = 1e-6
 # A pincushion that draws the image's edge to less than half its pinhole radius is no lens's:
 # a ToF lens bends its corners by a few per cent, a fisheye's barrel the other way.
 _FARTHEST_PINCUSHION = 2.0
+# What Pillow raises on a corrupt file besides OSError: a TIFF that lost its size tags ends in
+# TypeError ("Missing dimensions"), others in struct, index or key errors of their parsers.
+_DECODE_ERRORS = (
+    OSError, SyntaxError, ValueError, TypeError, IndexError, KeyError, EOFError, struct.error
+)  # fmt: skip
 # Pillow modes of one-channel depth maps: 16-bit unsigned (three byte orders), 32-bit int, float.
 _DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
 
@@ -76,20 +82,11 @@ def read_depth_image(path: str | Path) -> NDArray:
                 path,
             )
         return values
-    try:
-        with Image.open(path) as image:
-            pages = getattr(image, "n_frames", 1)
-            image.load()
-            mode = image.mode
-            values = np.array(image)
-    except FileNotFoundError:
-        raise FileFormatError("file not found", path) from None
-    except UnidentifiedImageError:
-        raise FileFormatError("not an image Pillow can decode", path) from None
-    except Image.DecompressionBombError as exc:  # a header claiming more pixels than any camera
-        raise FileFormatError(f"refused: {exc}", path) from None
-    except (OSError, SyntaxError, ValueError) as exc:
-        raise FileFormatError(f"cannot decode the image: {exc}", path) from None
+    # Pillow warns of what it skips in a damaged file (a line each, naming no file): kept
+    # back, they are said once, naming the image, when it decodes; its error says the rest.
+    with warnings.catch_warnings(record=True) as skipped:
+        warnings.simplefilter("always")
+        values, mode, pages = _decode(path)
     if pages != 1:  # a stack would be read as its first page, the rest dropped
         raise FileFormatError(f"holds {pages} images; a depth map is one (one file a frame)", path)
     if mode not in _DEPTH_MODES or values.ndim != 2:
@@ -98,7 +95,35 @@ def read_depth_image(path: str | Path) -> NDArray:
             f"got Pillow mode {mode!r}",
             path,
         )
+    said = list(dict.fromkeys(" ".join(str(w.message).split()) for w in skipped))
+    if said:
+        more = f" (and {len(said) - 2} more)" if len(said) > 2 else ""
+        problem = f"decoded despite Pillow's warnings: {'; '.join(said[:2])}{more}"
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
     return values
+
+
+def _decode(path: Path) -> tuple[NDArray, str, int]:
+    """An image file's values, Pillow mode and page count.
+
+    Raises
+    ------
+    FileFormatError
+        Missing, not an image, too large, or corrupt.
+    """
+    try:
+        with Image.open(path) as image:
+            pages = getattr(image, "n_frames", 1)
+            image.load()
+            return np.array(image), image.mode, pages
+    except FileNotFoundError:
+        raise FileFormatError("file not found", path) from None
+    except UnidentifiedImageError:
+        raise FileFormatError("not an image Pillow can decode", path) from None
+    except Image.DecompressionBombError as exc:  # a header claiming more pixels than any camera
+        raise FileFormatError(f"refused: {exc}", path) from None
+    except _DECODE_ERRORS as exc:
+        raise FileFormatError(f"cannot decode the image: {exc}", path) from None
 
 
 def image_size(path: str | Path) -> tuple[int, int] | None:
@@ -109,9 +134,11 @@ def image_size(path: str | Path) -> tuple[int, int] | None:
         shape = npy_shape(Path(path))
         return None if shape is None or len(shape) != 2 else (shape[1], shape[0])
     try:
-        with Image.open(path) as image:
-            return image.size
-    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError):
+        with warnings.catch_warnings():  # the frame's own read says what is wrong with it
+            warnings.simplefilter("ignore")
+            with Image.open(path) as image:
+                return image.size
+    except (*_DECODE_ERRORS, Image.DecompressionBombError):
         return None
 
 
