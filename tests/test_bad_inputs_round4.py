@@ -12,7 +12,7 @@ import pytest
 from spacepose.cli import main
 from spacepose.core.depth import DepthCamera
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
-from spacepose.tools.cloud_io import write_cloud
+from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import read_depth_image, read_tum_depth_list, write_depth_image
 from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.runs import read_run
@@ -428,3 +428,29 @@ def test_a_tiff_decoded_despite_damage_says_so_once(tmp_path):
         read_depth_image(path)
     assert [type(w.message) for w in caught] == [SpaceposeWarning]
     assert str(caught[0].message).startswith(f"{path}: decoded despite Pillow's warnings: ")
+
+
+# -- signalling NaNs ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["cloud.npy", "cloud.pcd"])
+def test_signalling_nans_are_dropped_without_numpys_warning(tmp_path, name):
+    """A float32 signalling NaN (a corrupt or foreign writer's bits) in a .npy or binary PCD
+    printed numpy's bare "RuntimeWarning: invalid value encountered in cast", naming no file;
+    a PLY's was already dropped quietly as any NaN row."""
+    rng = np.random.default_rng(8)
+    points = (rng.normal(size=(200, 3)) * 0.1 + [0.0, 0.0, 1.0]).astype(np.float32)
+    points[5] = np.array([0x7FA00000] * 3, dtype=np.uint32).view(np.float32)
+    path = tmp_path / name
+    if name.endswith(".npy"):
+        np.save(path, points)
+    else:
+        header = (
+            "VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 200\n"
+            "HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 200\nDATA binary\n"
+        )
+        path.write_bytes(header.encode() + points.astype("<f4").tobytes())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        cloud = read_cloud(path)
+    assert len(cloud) == 199

@@ -33,6 +33,7 @@ from spacepose.errors import FileFormatError, InputError, SpaceposeError
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.depth_io import check_lens, depth_cloud
 from spacepose.tools.frames import FrameInput, warn_if_kilometres
+from spacepose.tools.npy_io import as_float64
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
@@ -124,7 +125,7 @@ def pointcloud2_points(msg: Any) -> NDArray[np.float64]:
         )
     table = data[: rows * row_step].reshape(rows, row_step)[:, : width * msg.point_step]
     records = np.ascontiguousarray(table).view(point).reshape(-1)
-    return np.column_stack([records[n].astype(np.float64) for n in names])
+    return np.column_stack([as_float64(records[n]) for n in names])
 
 
 def image_depth(msg: Any) -> tuple[NDArray, float]:

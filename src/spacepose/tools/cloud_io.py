@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, check_scale
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
-from spacepose.tools.npy_io import read_npy, read_npz, write_npy, write_npz
+from spacepose.tools.npy_io import as_float64, read_npy, read_npz, write_npy, write_npz
 from spacepose.tools.pcd_io import read_pcd_table, write_pcd
 from spacepose.tools.text_io import not_a_file
 
@@ -566,10 +566,9 @@ def _scalar_column(
 ) -> NDArray[np.float64]:
     """One property as an (N,) float64 column; a list property (one array per point) is refused."""
     try:
-        # Signalling-NaN bit patterns (a file of the other byte order) warn on the cast; the
-        # NaN rows are dropped and counted with the cloud, and its span is warned about.
-        with np.errstate(invalid="ignore"):
-            column = np.asarray(data[name], dtype=np.float64)
+        # Signalling-NaN bit patterns (a file of the other byte order) are NaN rows, dropped and
+        # counted with the cloud, and its span is warned about.
+        column = as_float64(data[name])
     except (TypeError, ValueError):
         column = None
     if column is None or column.ndim != 1:

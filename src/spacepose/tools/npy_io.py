@@ -26,6 +26,14 @@ ZIP_MAGIC = b"PK"
 _BAD_HEADER = (SyntaxError, TokenError)
 
 
+def as_float64(values: NDArray) -> NDArray[np.float64]:
+    """``values`` as float64. A float32 signalling NaN (a corrupt or foreign writer's bits)
+    stays NaN, a point dropped as any NaN row is, without numpy's bare "invalid value
+    encountered in cast" warning, which named no file."""
+    with np.errstate(invalid="ignore"):
+        return np.asarray(values).astype(np.float64)
+
+
 def _check_magic(path: Path, magic: bytes, problem: str) -> None:
     """Refuse a file that does not start with ``magic``: numpy reads anything else as a pickle
     and answers with advice to load it unsafely."""
@@ -110,7 +118,7 @@ def read_npy(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | Non
         raise FileFormatError(
             f".npy must hold a numeric (N, 3) or (N, 6) array, got {arr.dtype} {arr.shape}", path
         )
-    arr = arr.astype(np.float64)
+    arr = as_float64(arr)
     return arr[:, :3], (arr[:, 3:] if arr.shape[1] == 6 else None)
 
 
@@ -132,7 +140,7 @@ def read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | Non
     for name, arr in (("points", points), ("normals", normals)):
         if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or arr.dtype.kind not in "fiu"):
             raise FileFormatError(f".npz '{name}' must be numeric (N, 3), got {arr.shape}", path)
-    return points.astype(np.float64), None if normals is None else normals.astype(np.float64)
+    return as_float64(points), None if normals is None else as_float64(normals)
 
 
 def write_npy(

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.errors import FileFormatError
+from spacepose.tools.npy_io import as_float64
 
 # Largest point record numpy can describe (its dtype sizes are C ints).
 _MAX_RECORD = 2**31 - 1
@@ -63,7 +64,7 @@ def read_pcd_table(path: Path) -> dict[str, NDArray[np.float64]]:
         # Field names may repeat (e.g. the "_" padding field), so read into positional names.
         dt = np.dtype([(f"f{i}", "<" + code, (count,)) for i, (code, count) in enumerate(formats)])
         data = np.frombuffer(body, dtype=dt, count=n_points)
-        table = np.column_stack([data[f"f{i}"].astype(np.float64) for i in range(len(fields))])
+        table = np.column_stack([as_float64(data[f"f{i}"]) for i in range(len(fields))])
     elif mode == "ascii":
         width = sum(counts)
         try:
