@@ -454,3 +454,23 @@ def test_signalling_nans_are_dropped_without_numpys_warning(tmp_path, name):
         warnings.simplefilter("error")
         cloud = read_cloud(path)
     assert len(cloud) == 199
+
+
+@pytest.mark.parametrize(
+    ("key", "shown"),
+    [
+        ("1", "1 is not a field name: YAML reads it as a number"),
+        ("yes", "True is not a field name: YAML reads it as a yes/no"),
+        ("~", "None is not a field name: YAML reads it as null"),
+    ],
+)
+def test_an_intrinsics_key_that_is_no_name_is_refused(tmp_path, capsys, key, shown):
+    """YAML reads "1: 0.1" (k1 that lost its letter) as a number key: pydantic's TypeError
+    "keywords must be strings" escaped as a traceback."""
+    folder = _depth_folder(tmp_path / "depth", intrinsics=INTRINSICS + f"{key}: 0.1\n")
+    with pytest.raises(ConfigError) as exc:
+        open_frames(folder)
+    intrinsics = folder / "intrinsics.yaml"
+    assert str(exc.value) == f"{intrinsics}: key {shown}"
+    assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) == 1
+    assert _cli_error(capsys) == f"error: {exc.value}"

@@ -299,11 +299,18 @@ def read_intrinsics(path: str | Path) -> DepthCamera:
     Raises
     ------
     ConfigError
-        Unreadable file, unknown key, a value out of range, or a matrix that is not a pinhole
-        camera's.
+        Unreadable file, unknown key or one that is no name, a value out of range, or a matrix
+        that is not a pinhole camera's.
     """
     data = read_mapping(path) or {}
     try:
+        named = [k for k in data if not isinstance(k, str)]
+        if named:
+            # YAML reads "1: 0.1" (a key that lost its letters) as a number: pydantic's
+            # TypeError "keywords must be strings" escaped as a traceback.
+            kinds = {"int": "a number", "float": "a number", "bool": "a yes/no", "NoneType": "null"}
+            kind = kinds.get(type(named[0]).__name__, f"a {type(named[0]).__name__}")
+            raise InputError(f"key {named[0]!r} is not a field name: YAML reads it as {kind}")
         if "camera_matrix" in data and "intrinsic_matrix" in data:
             # One would be used and the other ignored without a word.
             raise InputError(
