@@ -474,3 +474,20 @@ def test_an_intrinsics_key_that_is_no_name_is_refused(tmp_path, capsys, key, sho
     assert str(exc.value) == f"{intrinsics}: key {shown}"
     assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) == 1
     assert _cli_error(capsys) == f"error: {exc.value}"
+
+
+def test_a_bag_stamp_of_a_second_or_more_of_nanoseconds_is_refused(tmp_path):
+    """A header stamp whose nanosec holds a second or more (no ROS time: a driver writing the
+    time in nanoseconds there) moved the frame up to 4 s on without a word."""
+    rng = np.random.default_rng(9)
+    grid = rng.normal(size=(8, 10, 3)) * 0.1 + [0.0, 0.0, 1.2]
+    messages = [_pointcloud2(ROS2, k, grid) for k in range(3)]
+    messages[1].header.stamp.nanosec = 1_500_000_000
+    bag = _write(tmp_path / "bag", [("/pc", PC2, m) for m in messages])
+    frames = list(open_frames(bag))
+    assert [f.cloud is None for f in frames] == [False, True, False]
+    assert frames[1].source == f"{bag}:/pc#1"
+    assert frames[1].error == (
+        "header stamp nanosec 1500000000 is a second or more: not a ROS time (nanosec counts "
+        "within the second)"
+    )

@@ -77,10 +77,22 @@ def _open_reader(path: Path) -> Iterator[Any]:
 
 
 def stamp_seconds(msg: Any, record_time_ns: int) -> float:
-    """The header stamp of ``msg`` in seconds; the record time when the stamp is zero."""
+    """The header stamp of ``msg`` in seconds; the record time when the stamp is zero.
+
+    Raises
+    ------
+    InputError
+        A ``nanosec`` of a second or more: no valid ROS time (a driver writing the whole
+        time in nanoseconds there), which moved the frame up to 4 s on without a word.
+    """
     stamp = msg.header.stamp
     if stamp.sec == 0 and stamp.nanosec == 0:
         return record_time_ns * 1e-9
+    if stamp.nanosec >= 1_000_000_000:
+        raise InputError(
+            f"header stamp nanosec {stamp.nanosec} is a second or more: not a ROS time "
+            "(nanosec counts within the second)"
+        )
     return stamp.sec + stamp.nanosec * 1e-9
 
 
