@@ -491,3 +491,18 @@ def test_a_bag_stamp_of_a_second_or_more_of_nanoseconds_is_refused(tmp_path):
         "header stamp nanosec 1500000000 is a second or more: not a ROS time (nanosec counts "
         "within the second)"
     )
+
+
+def test_intrinsics_of_another_resolution_name_the_intrinsics_file(tmp_path, capsys):
+    """A principal point outside the images (intrinsics of the full-resolution stream) lost
+    every frame, each naming its image, never the intrinsics file at fault."""
+    folder = _depth_folder(tmp_path / "depth", intrinsics="fx: 60\nfy: 60\ncx: 63.5\ncy: 47.5\n")
+    intrinsics = folder / "intrinsics.yaml"
+    with pytest.raises(ConfigError) as exc:
+        open_frames(folder)
+    assert str(exc.value) == (
+        f"{intrinsics}: the principal point (63.5, 47.5) lies outside the 32x24 image: "
+        "intrinsics of another resolution?"
+    )
+    assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) == 1
+    assert _cli_error(capsys) == f"error: {exc.value}"

@@ -31,7 +31,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera, matrix_fields
 from spacepose.errors import FileFormatError, InputError, SpaceposeError
 from spacepose.tools.cloud_io import warn_if_not_metres
-from spacepose.tools.depth_io import check_lens, depth_cloud
+from spacepose.tools.depth_io import check_camera, depth_cloud
 from spacepose.tools.frames import FrameInput, warn_if_kilometres
 from spacepose.tools.npy_io import as_float64
 
@@ -352,6 +352,6 @@ def _bag_camera(reader: Any, image_topic: str, path: Path) -> DepthCamera:
             camera = camera_from_info(reader.deserialize(raw, conn.msgtype), depth_scale=1.0)
         except SpaceposeError as exc:  # say which bag and topic hold the bad CameraInfo
             raise InputError(f"CameraInfo on {conn.topic}: {exc}", path) from None
-        check_lens(camera, f"{path}: CameraInfo on {conn.topic}")
+        check_camera(camera, f"{path}: CameraInfo on {conn.topic}")
         return camera
     raise InputError(f"CameraInfo topic {chosen[0].topic} has no message", path)

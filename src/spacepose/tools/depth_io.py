@@ -380,30 +380,39 @@ def _matrix_data(entry: object, name: str) -> list:
     return entry
 
 
-def check_lens(camera: DepthCamera, source: str | Path) -> None:
-    """Refuse a camera whose distortion does not map its image one-to-one onto directions,
-    and warn of one that narrows its view beyond any lens (:func:`lens_problem`).
+def check_camera(camera: DepthCamera, source: str | Path) -> None:
+    """Refuse a camera that cannot make its images' points: its principal point outside the
+    image, or a distortion that does not map the image one-to-one onto directions
+    (:func:`lens_problem`); warn of one that narrows its view beyond any lens. Each was found
+    frame by frame (every frame lost, or back-projected wrong without a word), naming the
+    image rather than the intrinsics at fault.
 
     Parameters
     ----------
     camera
-        The camera; nothing is checked without its image size or without distortion.
+        The camera; nothing is checked without its image size.
     source
         Its intrinsics file (or bag topic), named in the message.
 
     Raises
     ------
     ConfigError
-        ``source: problem``: the distortion folds within the image.
+        ``source: problem``.
 
     Warns
     -----
     SpaceposeWarning
         The distortion pulls some pixel's direction to less than half its pinhole radius.
     """
-    if camera.width is None or camera.height is None or not camera.distorted:
+    width, height = camera.width, camera.height
+    if width is None or height is None:
         return
-    problem, caution = lens_problem(camera, camera.height, camera.width)
+    if not (-0.5 <= camera.cx <= width - 0.5 and -0.5 <= camera.cy <= height - 0.5):
+        raise ConfigError(
+            f"{source}: the principal point ({camera.cx:g}, {camera.cy:g}) lies outside the "
+            f"{width}x{height} image: intrinsics of another resolution?"
+        )
+    problem, caution = lens_problem(camera, height, width)
     if problem is not None:
         raise ConfigError(f"{source}: {problem}")
     if caution is not None:

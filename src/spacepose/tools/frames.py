@@ -154,8 +154,8 @@ def open_frames(
         ``depth.txt`` and a ``timestamps.txt``, or ``timestamps.txt`` does not hold one finite
         number per frame.
     ConfigError
-        The intrinsics file is invalid, or its lens distortion folds the image
-        (:func:`~spacepose.tools.depth_io.check_lens`).
+        The intrinsics file is invalid, or its principal point lies outside the images or its
+        lens distortion folds them (:func:`~spacepose.tools.depth_io.check_camera`).
     """
     from spacepose.tools.bag_io import is_bag, open_bag  # bag_io builds on this module
 
@@ -165,7 +165,7 @@ def open_frames(
     camera = None if intrinsics is None else depth_io.read_intrinsics(intrinsics)
     if is_bag(root):
         if camera is not None:  # sized by the file; else checked at each image's size
-            depth_io.check_lens(camera, intrinsics)
+            depth_io.check_camera(camera, intrinsics)
         return open_bag(root, topic, camera)
     if topic is not None:
         raise InputError(f"--topic {topic} applies to a ROS bag, and this is not one", root)
@@ -323,8 +323,8 @@ def _open_depth_folder(
     root: Path, camera: DepthCamera | None, source: Path | None = None
 ) -> FrameSequence:
     """Depth images (sorted, or listed by ``depth.txt``) back-projected with ``camera``, read
-    from ``source`` (see :func:`_folder_camera`), its lens checked over their size
-    (:func:`~spacepose.tools.depth_io.check_lens`)."""
+    from ``source`` (see :func:`_folder_camera`), checked at their size
+    (:func:`~spacepose.tools.depth_io.check_camera`)."""
     if camera is None:
         raise InputError(
             f"depth images need intrinsics: put {depth_io.INTRINSICS_FILES[0]} (fx, fy, cx, "
@@ -358,7 +358,7 @@ def _open_depth_folder(
             stacklevel=3,
         )
     camera = _sized(camera, paths)
-    depth_io.check_lens(camera, source)
+    depth_io.check_camera(camera, source)
     loader = partial(depth_io.read_depth_cloud, camera=camera)
     return FrameSequence(paths, timestamps, loader=loader)
 
