@@ -506,3 +506,12 @@ def test_intrinsics_of_another_resolution_name_the_intrinsics_file(tmp_path, cap
     )
     assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) == 1
     assert _cli_error(capsys) == f"error: {exc.value}"
+
+
+def test_slow_whole_second_runs_with_a_missed_frame_still_read(tmp_path):
+    """A frame every 10 s with a frame missed (0, 10, 20, 40, 50) varies its steps too, but by
+    a whole frame, not the unit or two of a clock's rounding: read, with the slow warning."""
+    stamps = tmp_path / "timestamps.txt"
+    stamps.write_text("0\n10\n20\n40\n50\n")
+    with pytest.warns(SpaceposeWarning, match="10 s apart"):
+        np.testing.assert_array_equal(read_timestamps(stamps, 5), [0, 10, 20, 40, 50])

@@ -101,22 +101,24 @@ def timing_problem(timestamps: ArrayLike) -> str | None:
 def _millisecond_clock(stamps: np.ndarray) -> str | None:
     """Why ``stamps`` (increasing) count a camera's milliseconds, or None.
 
-    Whole numbers a median of 10-1000 apart whose steps differ (33, 34, 33: a period that is
-    no whole number of units, rounded by the clock) are a 1-100 Hz camera's milliseconds; as
-    seconds they would be a frame every half minute, slower than any ToF camera or flash
-    LiDAR frames, with a clock that ticks in whole seconds. Steps all equal (a simulated run
-    at a frame a minute: 0, 60, 120) tell nothing and are left to :func:`check_timing`.
+    Whole numbers a median of 10-1000 apart whose steps jitter by a unit or two about it
+    (33, 34, 33: a period that is no whole number of units, rounded by the clock) are a
+    1-100 Hz camera's milliseconds; as seconds they would be a frame every half minute,
+    slower than any ToF camera or flash LiDAR frames, on a clock that ticks in whole seconds.
+    Steps all equal but for whole missed frames (a simulated run at a frame every 10 s: 0, 10,
+    20, 40) tell nothing and are left to :func:`check_timing`.
     """
     steps = np.diff(stamps)
     if len(steps) < 2 or not np.all(stamps == np.round(stamps)):
         return None
     step = float(np.median(steps))
     low, high = _MS_CLOCK_STEPS
-    if not (low <= step <= high) or np.ptp(steps) == 0:
+    jitter = steps[np.abs(steps - step) <= 2]
+    if not (low <= step <= high) or np.all(jitter == step):
         return None
     return (
         f"whole-number times {step:g} apart (median) whose steps vary "
-        f"({np.min(steps):g} to {np.max(steps):g}): a {1e3 / np.mean(steps):.3g} Hz camera's "
+        f"({np.min(jitter):g} to {np.max(jitter):g}): a {1e3 / np.mean(steps):.3g} Hz camera's "
         f"milliseconds, read as seconds a frame every {step:g} s {_UNIT}"
     )
 
