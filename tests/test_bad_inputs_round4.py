@@ -29,6 +29,16 @@ def _cli_error(capsys) -> str:
     return err
 
 
+def _refused(capsys, error: type, message: str, read, argv: list[str]) -> None:
+    """``read()`` raises ``error`` with ``message``, and the CLI run ``argv`` ends in that one
+    line."""
+    with pytest.raises(error) as exc:
+        read()
+    assert str(exc.value) == message
+    assert main(argv) == 1
+    assert _cli_error(capsys) == f"error: {message}"
+
+
 def _cloud_folder(root: Path, frames: int = 4, seed: int = 0) -> Path:
     """``frames`` small clouds 1 m in front of the sensor, one .ply each."""
     rng = np.random.default_rng(seed)
@@ -261,14 +271,12 @@ def test_a_truth_at_other_times_than_the_frames_is_refused(tmp_path, capsys, orb
     lines = truth.read_text().splitlines()
     lines[2] = "7" + lines[2][lines[2].index(",") :]
     truth.write_text("\n".join(lines) + "\n")
-    with pytest.raises(FileFormatError) as exc:
-        read_run(run)
-    assert str(exc.value) == (
+    message = (
         f"{truth}: row 2 is at t = 7 s, frame 1 at 1 s (groundtruth.tum): the truth and the "
         "frames must share their times"
     )
-    assert main(["navigate", str(run), "--out", str(tmp_path / "nav.csv")]) == 1
-    assert _cli_error(capsys) == f"error: {exc.value}"
+    argv = ["navigate", str(run), "--out", str(tmp_path / "nav.csv")]
+    _refused(capsys, FileFormatError, message, lambda: read_run(run), argv)
 
 
 # -- the first lost frame names its file ----------------------------------------------------------
@@ -468,12 +476,9 @@ def test_an_intrinsics_key_that_is_no_name_is_refused(tmp_path, capsys, key, sho
     """YAML reads "1: 0.1" (k1 that lost its letter) as a number key: pydantic's TypeError
     "keywords must be strings" escaped as a traceback."""
     folder = _depth_folder(tmp_path / "depth", intrinsics=INTRINSICS + f"{key}: 0.1\n")
-    with pytest.raises(ConfigError) as exc:
-        open_frames(folder)
-    intrinsics = folder / "intrinsics.yaml"
-    assert str(exc.value) == f"{intrinsics}: key {shown}"
-    assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) == 1
-    assert _cli_error(capsys) == f"error: {exc.value}"
+    message = f"{folder / 'intrinsics.yaml'}: key {shown}"
+    argv = ["track", str(folder), "--out", str(tmp_path / "e.tum")]
+    _refused(capsys, ConfigError, message, lambda: open_frames(folder), argv)
 
 
 def test_a_bag_stamp_of_a_second_or_more_of_nanoseconds_is_refused(tmp_path):
@@ -497,15 +502,12 @@ def test_intrinsics_of_another_resolution_name_the_intrinsics_file(tmp_path, cap
     """A principal point outside the images (intrinsics of the full-resolution stream) lost
     every frame, each naming its image, never the intrinsics file at fault."""
     folder = _depth_folder(tmp_path / "depth", intrinsics="fx: 60\nfy: 60\ncx: 63.5\ncy: 47.5\n")
-    intrinsics = folder / "intrinsics.yaml"
-    with pytest.raises(ConfigError) as exc:
-        open_frames(folder)
-    assert str(exc.value) == (
-        f"{intrinsics}: the principal point (63.5, 47.5) lies outside the 32x24 image: "
-        "intrinsics of another resolution?"
+    message = (
+        f"{folder / 'intrinsics.yaml'}: the principal point (63.5, 47.5) lies outside the "
+        "32x24 image: intrinsics of another resolution?"
     )
-    assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) == 1
-    assert _cli_error(capsys) == f"error: {exc.value}"
+    argv = ["track", str(folder), "--out", str(tmp_path / "e.tum")]
+    _refused(capsys, ConfigError, message, lambda: open_frames(folder), argv)
 
 
 def test_slow_whole_second_runs_with_a_missed_frame_still_read(tmp_path):
