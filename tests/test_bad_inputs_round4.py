@@ -517,3 +517,19 @@ def test_slow_whole_second_runs_with_a_missed_frame_still_read(tmp_path):
     stamps.write_text("0\n10\n20\n40\n50\n")
     with pytest.warns(SpaceposeWarning, match="10 s apart"):
         np.testing.assert_array_equal(read_timestamps(stamps, 5), [0, 10, 20, 40, 50])
+
+
+def test_intrinsics_given_beside_an_unreadable_own_file_say_why_they_are_refused(tmp_path):
+    """--intrinsics beside a folder's broken intrinsics.yaml ended in the broken file's error
+    alone, as if the intrinsics given had not been read."""
+    folder = _depth_folder(tmp_path / "depth", intrinsics="fx: [\n")
+    given = tmp_path / "given.yaml"
+    given.write_text(INTRINSICS)
+    with pytest.raises(InputError) as exc:
+        open_frames(folder, intrinsics=given)
+    message = str(exc.value)
+    assert message.startswith(
+        f"{folder}: --intrinsics {given} is given beside the folder's intrinsics.yaml, which "
+        f"cannot be read ({folder / 'intrinsics.yaml'}: not valid YAML"
+    )
+    assert message.endswith("): keep one")

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera
-from spacepose.errors import InputError, SpaceposeWarning
+from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud, warn_if_too_near
 from spacepose.tools.text_io import check_timing, read_text
@@ -301,7 +301,17 @@ def _folder_camera(
     found = depth_io.find_intrinsics(root)
     if found is None:
         return camera, given
-    own = depth_io.read_intrinsics(found)
+    try:
+        own = depth_io.read_intrinsics(found)
+    except ConfigError as exc:
+        if camera is None:
+            raise
+        # The user gave intrinsics, perhaps for this very reason: say why theirs are refused.
+        raise InputError(
+            f"--intrinsics {intrinsics} is given beside the folder's {found.name}, which "
+            f"cannot be read ({exc}): keep one",
+            root,
+        ) from None
     if camera is None:
         return own, found
     differ = [
