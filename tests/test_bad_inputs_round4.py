@@ -314,7 +314,7 @@ def test_report_of_a_missing_folder_says_it_does_not_exist(tmp_path, capsys):
     """It said "not a folder", sending the user to look at what the path is."""
     missing = tmp_path / "rnu"
     assert main(["report", str(missing)]) == 1
-    assert _cli_error(capsys) == f"error: {missing}: does not exist"
+    assert _cli_error(capsys) == f"error: {missing}: not a folder: it does not exist"
 
 
 # -- two lists timing one depth folder ------------------------------------------------------------

@@ -20,5 +20,5 @@ def report(
 
     if not run_dir.exists() and not run_dir.is_symlink():
         # "not a folder" sent the user looking at what the path is, not at its spelling.
-        raise InputError("does not exist", run_dir)
+        raise InputError("not a folder: it does not exist", run_dir)
     console.print(f"report written: {build_report(run_dir, out)}")
