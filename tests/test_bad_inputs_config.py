@@ -479,3 +479,19 @@ def test_a_boolean_for_a_number_is_refused_in_an_init_transform_and_a_scenario(t
         scenario_geometry(
             {"mean_motion": 0.001, "R_O_C": [[True, 0, 0], [0, 1, 0], [0, 0, 1]]}, "s.json"
         )
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "under"),
+    [("yes: 3\n", "True", None), ("health:\n  1: 2\n", "1", "health"), ("null: 0\n", "None", None)],
+)
+def test_a_config_key_yaml_reads_as_no_name_is_refused(tmp_path, text, key, under) -> None:
+    # YAML reads yes / 1 / null as a boolean, a number or None: pydantic's TypeError
+    # ("keywords must be strings") escaped as a traceback, for the tracker's and the filter's.
+    path = tmp_path / "config.yaml"
+    path.write_text(text)
+    for model in (TrackerConfig, NavigationConfig):
+        with pytest.raises(ConfigError) as exc:
+            load_config(model, path)
+        message = _one_line(exc, path, model.__name__, f"the key {key}")
+        assert (f"under {under}" in message) == (under is not None)

@@ -158,12 +158,37 @@ def config_error(
 
 def validate_config(model: type[C], data: dict | None, source: str | Path | None = None) -> C:
     """Build ``model`` from a mapping; a validation failure becomes one readable ConfigError."""
+    key = _non_string_key(data)
+    if key is not None:
+        # YAML reads "yes:", "1:" or "null:" as a boolean, number or None: pydantic's
+        # "keywords must be strings" TypeError escaped as a traceback.
+        where, bad = key
+        problem = f"invalid {model.__name__}: the key {bad!r}{where} is not a name"
+        raise ConfigError(f"{source}: {problem}" if source else problem)
     try:
         return model.model_validate(data or {})
     except ValidationError as exc:
         raise config_error(model, exc, source) from None
     except ConfigError as exc:  # a StageConfig's own error, without the file
         raise ConfigError(f"{source}: {exc}" if source else str(exc)) from None
+
+
+def _non_string_key(data: Any, path: str = "") -> tuple[str, Any] | None:
+    """``(" under a.b", key)`` of the first key of a nested mapping that is not a string, or
+    None."""
+    if isinstance(data, dict):
+        for key, value in data.items():
+            if not isinstance(key, str):
+                return (f" under {path}" if path else ""), key
+            found = _non_string_key(value, f"{path}.{key}" if path else key)
+            if found is not None:
+                return found
+    elif isinstance(data, list):
+        for i, value in enumerate(data):
+            found = _non_string_key(value, f"{path}[{i}]")
+            if found is not None:
+                return found
+    return None
 
 
 def parse_problem(exc: Exception) -> str:
