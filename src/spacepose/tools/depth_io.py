@@ -508,6 +508,55 @@ def find_intrinsics(root: str | Path) -> Path | None:
     return found[0] if found else None
 
 
+def folder_camera(
+    root: Path, intrinsics: str | Path | None, camera: DepthCamera | None
+) -> tuple[DepthCamera | None, Path | None]:
+    """The camera of a depth folder (or of a depth image's folder) and its file: ``camera``
+    read from the ``intrinsics`` given, else the folder's own intrinsics file (None, None
+    without either). Every reader of depth images takes its camera here, so a given file and
+    the folder's own are weighed alike (a depth folder's frames, ``register``'s images).
+
+    Raises
+    ------
+    InputError
+        Both are there and differ: the given file won without a word, the folder's own
+        calibration (the one recorded with its images) ignored. As for two intrinsics files
+        in one folder, the user keeps one.
+    ConfigError
+        An intrinsics file is invalid.
+    """
+    given = None if intrinsics is None else Path(intrinsics)
+    found = find_intrinsics(root)
+    if found is None:
+        return camera, given
+    try:
+        own = read_intrinsics(found)
+    except ConfigError as exc:
+        if camera is None:
+            raise
+        # The user gave intrinsics, perhaps for this very reason: say why theirs are refused.
+        raise InputError(
+            f"--intrinsics {intrinsics} is given beside the folder's {found.name}, which "
+            f"cannot be read ({exc}): keep one",
+            root,
+        ) from None
+    if camera is None:
+        return own, found
+    differ = [
+        f"{name} {getattr(camera, name)} vs {getattr(own, name)}"
+        for name in type(own).model_fields
+        if getattr(camera, name) != getattr(own, name)
+    ]
+    if differ:
+        raise InputError(
+            f"--intrinsics {intrinsics} and the folder's {found.name} differ "
+            f"({', '.join(differ[:3])}{', ...' if len(differ) > 3 else ''}): keep one "
+            f"(move {found.name} out, or leave out --intrinsics)",
+            root,
+        )
+    return camera, given
+
+
 def is_depth_folder(root: str | Path) -> bool:
     """Whether a folder is read as depth images: it holds ``depth.txt`` or an intrinsics file."""
     return (Path(root) / TUM_DEPTH_LIST).is_file() or find_intrinsics(root) is not None

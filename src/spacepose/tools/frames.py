@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera
-from spacepose.errors import ConfigError, InputError, SpaceposeWarning
+from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools import depth_io
 from spacepose.tools.cloud_io import read_cloud, warn_if_too_near
 from spacepose.tools.text_io import check_timing, read_text
@@ -191,7 +191,7 @@ def open_frames(
         )
     if camera is not None or depth_io.is_depth_folder(root):
         _check_holds_depth_images(root, given=camera is not None)
-        return _open_depth_folder(root, *_folder_camera(root, intrinsics, camera))
+        return _open_depth_folder(root, *depth_io.folder_camera(root, intrinsics, camera))
     stamps = _timestamps_path(root)
     paths = tuple(
         p
@@ -282,58 +282,11 @@ def _timestamps_path(root: Path) -> Path:
     return found[0] if found else root / TIMESTAMPS_FILE
 
 
-def _folder_camera(
-    root: Path, intrinsics: str | Path | None, camera: DepthCamera | None
-) -> tuple[DepthCamera | None, Path | None]:
-    """The camera of a depth folder and its file: ``camera`` read from the ``intrinsics``
-    given, else the folder's own intrinsics file (None, None without either).
-
-    Raises
-    ------
-    InputError
-        Both are there and differ: the given file won without a word, the folder's own
-        calibration (the one recorded with its images) ignored. As for two intrinsics files
-        in one folder, the user keeps one.
-    ConfigError
-        An intrinsics file is invalid.
-    """
-    given = None if intrinsics is None else Path(intrinsics)
-    found = depth_io.find_intrinsics(root)
-    if found is None:
-        return camera, given
-    try:
-        own = depth_io.read_intrinsics(found)
-    except ConfigError as exc:
-        if camera is None:
-            raise
-        # The user gave intrinsics, perhaps for this very reason: say why theirs are refused.
-        raise InputError(
-            f"--intrinsics {intrinsics} is given beside the folder's {found.name}, which "
-            f"cannot be read ({exc}): keep one",
-            root,
-        ) from None
-    if camera is None:
-        return own, found
-    differ = [
-        f"{name} {getattr(camera, name)} vs {getattr(own, name)}"
-        for name in type(own).model_fields
-        if getattr(camera, name) != getattr(own, name)
-    ]
-    if differ:
-        raise InputError(
-            f"--intrinsics {intrinsics} and the folder's {found.name} differ "
-            f"({', '.join(differ[:3])}{', ...' if len(differ) > 3 else ''}): keep one "
-            f"(move {found.name} out, or leave out --intrinsics)",
-            root,
-        )
-    return camera, given
-
-
 def _open_depth_folder(
     root: Path, camera: DepthCamera | None, source: Path | None = None
 ) -> FrameSequence:
     """Depth images (sorted, or listed by ``depth.txt``) back-projected with ``camera``, read
-    from ``source`` (see :func:`_folder_camera`), checked at their size
+    from ``source`` (see :func:`~spacepose.tools.depth_io.folder_camera`), checked at their size
     (:func:`~spacepose.tools.depth_io.check_camera`)."""
     if camera is None:
         raise InputError(

@@ -53,7 +53,7 @@ from spacepose.errors import FileFormatError, InputError, RegistrationError, Spa
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.depth_io import (
     DEPTH_SUFFIXES,
-    find_intrinsics,
+    folder_camera,
     read_depth_cloud,
     read_intrinsics,
 )
@@ -421,7 +421,8 @@ def register_files(
 
     A depth image (16-bit PNG or TIFF) is read through ``intrinsics`` (or the
     ``intrinsics.yaml`` / ``.json`` beside it) into the camera's sensor frame; ``intrinsics``
-    given for two point clouds is refused (InputError), not ignored.
+    given for two point clouds, or beside an image's own intrinsics file that differs, is
+    refused (InputError), not ignored.
     """
     depth_inputs = [
         p for p in (source_path, target_path) if Path(p).suffix.lower() in DEPTH_SUFFIXES
@@ -461,11 +462,21 @@ def register_files(
 
 
 def _read_input(path: str | Path, intrinsics: str | Path | None) -> PointCloud:
-    """A cloud file, or a depth image with its camera's intrinsics."""
+    """A cloud file, or a depth image with its camera's intrinsics.
+
+    Raises
+    ------
+    InputError
+        A depth image without intrinsics, or ``intrinsics`` given that differ from the
+        intrinsics file beside it (:func:`~spacepose.tools.depth_io.folder_camera`).
+    """
     path = Path(path)
     if path.suffix.lower() not in DEPTH_SUFFIXES:
         return read_cloud(path)
-    found = intrinsics if intrinsics is not None else find_intrinsics(path.parent)
-    if found is None:
+    given = None if intrinsics is None else read_intrinsics(intrinsics)
+    # As for a depth folder: intrinsics given beside the image's own file that differ are
+    # refused (the given file won without a word, the image's own calibration ignored).
+    camera, _ = folder_camera(path.parent, intrinsics, given)
+    if camera is None:
         raise InputError("a depth image needs --intrinsics (or intrinsics.yaml beside it)", path)
-    return read_depth_cloud(path, read_intrinsics(found))
+    return read_depth_cloud(path, camera)
