@@ -3,7 +3,6 @@ problem (or a warning naming it), never a traceback, a hang or a silently wrong 
 
 from __future__ import annotations
 
-import gc
 import warnings
 from pathlib import Path
 
@@ -11,10 +10,12 @@ import numpy as np
 import pytest
 
 from spacepose.cli import main
-from spacepose.errors import FileFormatError, InputError
-from spacepose.tools.cloud_io import read_cloud
+from spacepose.core.sim.scenarios import TRUTH_COLUMNS
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.depth_io import write_depth_image
 from spacepose.tools.register import register_files
+from spacepose.tools.report import build_report
+from spacepose.tools.runs import read_run
 
 INTRINSICS = "fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\n"
 
@@ -84,3 +85,70 @@ def test_register_intrinsics_equal_to_the_images_own_are_accepted(tmp_path):
     given.write_text('{"fx": 30, "fy": 30, "cx": 15.5, "cy": 11.5}')
     outcome = register_files(source, target, intrinsics=given)
     assert outcome.n_source > 3
+
+
+# -- report: the run's truth checked as navigate checks it ---------------------------------------
+
+
+def _nav_like(truth: Path, nav: Path) -> None:
+    """A navigation output equal to ``truth`` (sigmas of 1 mm): scored without an error."""
+    head, *rows = truth.read_text().splitlines()
+    sigmas = [f"sig_{c}" for c in head.split(",")[1:] if not c.startswith("q")]
+    sigmas += ["sig_att_x", "sig_att_y", "sig_att_z"]
+    body = "".join(f"{row},{','.join(['0.001'] * len(sigmas))},2,ok\n" for row in rows)
+    nav.write_text(f"{head},{','.join(sigmas)},n_rect,status\n{body}")
+
+
+# A truth row's state after its time: rho, v, q (w last), omega, k, com.
+_STATE = "25,0,0,0,0,0,0,0,0,1,0,0,0.01,-0.2,0.4,-0.25,0.02,-0.03,0.05"
+_HEAD = ",".join(TRUTH_COLUMNS)
+
+
+@pytest.mark.parametrize(
+    ("body", "problem"),
+    [
+        # Frame 0 is at t = 0 s (groundtruth.tum): a truth row at 7 s is another frame's state.
+        (
+            f"7,{_STATE}",
+            "row 1 is at t = 7 s, frame 0 at 0 s (groundtruth.tum): the truth "
+            "and the frames must share their times",
+        ),
+        (f"0,nan,{_STATE[3:]}", "row 1: rho_x is nan; the truth must be finite"),
+    ],
+)
+def test_report_checks_the_truth_as_navigate_does(tmp_path, bare_orbit_run, body, problem):
+    """The report read truth.csv without read_run's checks: a truth at other times than the
+    frames (or with a hole) scored the navigation against the wrong states without a word;
+    its section is now left out naming truth.csv and the row, as navigate refuses it."""
+    run = bare_orbit_run(tmp_path / "run", truth=f"{_HEAD}\n{body}\n".encode())
+    truth = run / "truth.csv"
+    _nav_like(truth, run / "nav.csv")
+    with pytest.raises(FileFormatError) as exc:
+        read_run(run)
+    assert str(exc.value) == f"{truth}: {problem}"
+    with pytest.warns(SpaceposeWarning) as caught:
+        page = build_report(run).read_text()
+    messages = [str(w.message) for w in caught]
+    assert f"{truth}: left out of the report: {problem}" in messages
+    assert "Relative navigation" not in page
+
+
+def test_report_checks_the_truth_without_ground_truth_too(tmp_path, bare_orbit_run):
+    """Without groundtruth.tum there are no frame times to check, but the table still is."""
+    run = bare_orbit_run(tmp_path / "run", truth=f"{_HEAD}\n0,inf,{_STATE[3:]}\n".encode())
+    (run / "groundtruth.tum").unlink()
+    _nav_like(run / "truth.csv", run / "nav.csv")
+    with pytest.warns(SpaceposeWarning) as caught:
+        build_report(run)
+    problem = "left out of the report: row 1: rho_x is inf; the truth must be finite"
+    message = f"{run / 'truth.csv'}: {problem}"
+    assert message in [str(w.message) for w in caught]
+
+
+def test_report_scores_a_sound_truth(tmp_path, bare_orbit_run):
+    """The check passes a truth at the frames' times: its navigation is scored."""
+    run = bare_orbit_run(tmp_path / "run", truth=f"{_HEAD}\n0,{_STATE}\n".encode())
+    _nav_like(run / "truth.csv", run / "nav.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        assert "Relative navigation" in build_report(run).read_text()

@@ -36,6 +36,7 @@ from spacepose.core.metrics import (
     pose_errors,
 )
 from spacepose.core.mls import MLSConfig, mpp_mls
+from spacepose.core.sim.scenarios import TRUTH_COLUMNS
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools import plots
 from spacepose.tools.cloud_io import read_cloud
@@ -46,6 +47,7 @@ from spacepose.tools.evaluation import (
     without_lost_frames,
 )
 from spacepose.tools.outputs import check_spares_inputs, check_writable
+from spacepose.tools.runs import GROUNDTRUTH, TRUTH, read_truth
 from spacepose.tools.trajectory_io import read_tum
 
 # The lab experiments' setting (6 mm voxels and smoothing scale, about the ToF noise at 1.2 m).
@@ -263,7 +265,7 @@ def _table_cells(d: dict) -> list[tuple[float, float]]:
 
 
 def _navigation_section(run: Path, skipped: _Skipped) -> str:
-    truth_path = run / "truth.csv"
+    truth_path = run / TRUTH
     # NAV.csv itself, not its companions (NAV.candidates.csv, NAV.health.csv).
     # Any case: the README writes NAV.csv, the demo nav.csv.
     navs = sorted(
@@ -271,7 +273,16 @@ def _navigation_section(run: Path, skipped: _Skipped) -> str:
     )
     if not truth_path.exists() or not navs:
         return ""
-    truth = {k: np.asarray(v, dtype=float) for k, v in _read_csv(truth_path).items()}
+    # Checked as navigate reads it (read_run): a truth row at another time than its frame
+    # scored every navigation against the wrong frame's state without a word.
+    gt_path = run / GROUNDTRUTH
+    times = None  # no frame times to check against: the table itself is checked
+    if gt_path.exists():
+        try:
+            times = read_tum(gt_path).timestamps
+        except InputError as exc:  # the section is left out under truth.csv: say whose fault
+            raise InputError(f"its frames' times cannot be read: {exc}", truth_path) from None
+    truth = dict(zip(TRUTH_COLUMNS, read_truth(truth_path, times).T, strict=True))
     parts = [skipped.guard(nav_path, lambda p=nav_path: _nav_file(p, truth)) for nav_path in navs]
     return "<h3>Relative navigation</h3>" + "".join(parts) if any(parts) else ""
 

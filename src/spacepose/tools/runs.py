@@ -222,7 +222,7 @@ def read_run(path: str | Path) -> Run:
     if scenario.get("scenario") == "orbit":
         if not (root / TRUTH).is_file():
             raise InputError(f"orbit run folder is missing {TRUTH}", root)
-        truth = _read_truth(root / TRUTH, groundtruth.timestamps)
+        truth = read_truth(root / TRUTH, groundtruth.timestamps)
     return Run(root, scenario, groundtruth, read_cloud(root / MODEL_CLOUD), frame_paths, truth)
 
 
@@ -263,9 +263,20 @@ def _numbered_frames(root: Path) -> tuple[Path, ...]:
     return tuple(path for _, path in numbered)
 
 
-def _read_truth(path: Path, timestamps: NDArray[np.float64]) -> NDArray[np.float64]:
+def read_truth(
+    path: str | Path, timestamps: NDArray[np.float64] | None = None
+) -> NDArray[np.float64]:
     """``truth.csv``: one finite row of :data:`TRUTH_COLUMNS` per frame, at the frame times
-    ``timestamps`` (``groundtruth.tum``'s).
+    ``timestamps`` (``groundtruth.tum``'s). Every reader of a run's truth (:func:`read_run`,
+    the report) takes it here, so the checks are the same.
+
+    Parameters
+    ----------
+    path
+        The truth file.
+    timestamps
+        The frames' times; None where a folder gives none (a report of a folder without
+        ``groundtruth.tum``): the number of rows and their times are then not checked.
 
     Raises
     ------
@@ -275,23 +286,22 @@ def _read_truth(path: Path, timestamps: NDArray[np.float64]) -> NDArray[np.float
         frames row by row, and another run's (or an edited) truth was scored against them
         without a word.
     """
-    n_frames = len(timestamps)
+    path = Path(path)
+    rows = "rows" if timestamps is None else f"{len(timestamps)} rows"
+    expected = f"expected {rows} of {len(TRUTH_COLUMNS)} values"
     lines = read_text(path, "the orbit's truth").splitlines()
     if not lines or lines[0].strip().split(",") != TRUTH_COLUMNS:
         raise FileFormatError(f"header must be {','.join(TRUTH_COLUMNS)}", path)
     # np.loadtxt only warns on a body without data (blank or '#' comment lines alone).
     if not any(line.split("#")[0].strip() for line in lines[1:]):
-        raise FileFormatError(
-            f"expected {n_frames} rows of {len(TRUTH_COLUMNS)} values, got none", path
-        )
+        raise FileFormatError(f"{expected}, got none", path)
     try:
         table = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
     except ValueError as exc:
         raise FileFormatError(f"bad row: {exc}", path) from None
-    if table.shape != (n_frames, len(TRUTH_COLUMNS)):
-        raise FileFormatError(
-            f"expected {n_frames} rows of {len(TRUTH_COLUMNS)} values, got {table.shape}", path
-        )
+    n_rows = len(table) if timestamps is None else len(timestamps)
+    if table.shape != (n_rows, len(TRUTH_COLUMNS)):
+        raise FileFormatError(f"{expected}, got {table.shape}", path)
     bad = ~np.isfinite(table)
     if bad.any():  # a truth with a hole scores every estimate against NaN
         row, column = np.argwhere(bad)[0]
@@ -300,6 +310,8 @@ def _read_truth(path: Path, timestamps: NDArray[np.float64]) -> NDArray[np.float
             "finite",
             path,
         )
+    if timestamps is None:
+        return table
     # Times as written by write_run (17 digits): equal to groundtruth.tum's but for rounding.
     off = np.flatnonzero(~np.isclose(table[:, 0], timestamps, rtol=1e-12, atol=1e-6))
     if len(off):
