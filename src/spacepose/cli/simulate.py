@@ -57,6 +57,8 @@ def simulate(
     from spacepose.tools.runs import check_run_out, write_run
 
     check_run_out(out)  # before the scene is built
+    if model is not None:
+        _check_not_a_folder(model)
     if grid and scenario != "lab":
         raise ConfigError(f"--grid builds lab scenes only, not {scenario!r}")
     if model_scale is not None and (model is None or grid):
@@ -111,3 +113,26 @@ def simulate(
         task = bar.add_task(f"simulating {scenario}", total=len(sim))
         write_run(out, sim, progress=lambda _k: bar.advance(task))
     console.print(f"wrote {len(sim)} {scenario} frames to {out}")
+
+
+def _check_not_a_folder(model: Path) -> None:
+    """Refuse a folder given as ``--model``: it was called an unknown mesh extension ('') or,
+    named ``*.obj``, no such mesh file, though the user sees it there.
+
+    Raises
+    ------
+    FileFormatError
+        ``model`` is a folder; the message names its mesh files, if it holds any.
+    """
+    from spacepose.core.sim.targets import MESH_SUFFIXES
+    from spacepose.errors import FileFormatError
+
+    if not model.is_dir():
+        return
+    meshes = sorted(p.name for p in model.iterdir() if p.suffix.lower() in MESH_SUFFIXES)
+    if meshes:
+        shown = ", ".join(meshes[:3]) + (", ..." if len(meshes) > 3 else "")
+        hint = f"give one of its meshes ({shown})"
+    else:
+        hint = f"it holds no mesh ({', '.join(MESH_SUFFIXES)})"
+    raise FileFormatError(f"--model is a folder, not a mesh file: {hint}", model)
