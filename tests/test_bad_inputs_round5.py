@@ -3,6 +3,7 @@ problem (or a warning naming it), never a traceback, a hang or a silently wrong 
 
 from __future__ import annotations
 
+import gc
 import warnings
 from pathlib import Path
 
@@ -12,6 +13,7 @@ import pytest
 from spacepose.cli import main
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
+from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.depth_io import write_depth_image
 from spacepose.tools.register import register_files
 from spacepose.tools.report import build_report
@@ -152,3 +154,74 @@ def test_report_scores_a_sound_truth(tmp_path, bare_orbit_run):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SpaceposeWarning)
         assert "Relative navigation" in build_report(run).read_text()
+
+
+# -- simulate --model FOLDER ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "holds", "hint"),
+    [
+        ("mesh.obj", (), "it holds no mesh (.obj, .stl, .ply, .glb, .gltf, .off)"),
+        ("meshes", ("b.stl", "a.OBJ", "notes.txt"), "give one of its meshes (a.OBJ, b.stl)"),
+    ],
+)
+def test_simulate_model_that_is_a_folder_says_so(tmp_path, capsys, name, holds, hint):
+    """A folder given as --model was 'no such mesh file' (named *.obj) or an 'unknown mesh
+    extension' '' though the user sees it there."""
+    folder = tmp_path / name
+    folder.mkdir()
+    for file in holds:
+        (folder / file).write_bytes(b"")
+    argv = ["simulate", "orbit", "--frames", "2", "--model", str(folder)]
+    assert main([*argv, "--out", str(tmp_path / "run")]) == 1
+    assert _cli_error(capsys) == f"error: {folder}: --model is a folder, not a mesh file: {hint}"
+    assert not (tmp_path / "run").exists()
+
+
+# -- planes of a depth image ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("suffix", [".png", ".TIFF"])
+def test_planes_of_a_depth_image_says_what_to_do(tmp_path, capsys, suffix):
+    """A depth image given to planes was an 'unknown point cloud extension'; planes takes no
+    intrinsics, so the user is told to back-project it first."""
+    image = tmp_path / f"depth{suffix}"
+    image.write_bytes(b"")
+    assert main(["planes", str(image)]) == 1
+    err = _cli_error(capsys)
+    assert err.startswith(
+        f"error: {image}: a depth image, and planes reads point clouds only (it takes no "
+        "--intrinsics): back-project it"
+    )
+    assert "read_depth_cloud" in err
+
+
+# -- a corrupt .npz leaves no file open -----------------------------------------------------------
+
+
+def _refusal(path: Path) -> str:
+    """The FileFormatError message of reading ``path``; the error (and the frames its
+    traceback holds, with any handle left in them) gone on return."""
+    try:
+        read_cloud(path)
+    except FileFormatError as exc:
+        return str(exc)
+    raise AssertionError(f"{path} was read")
+
+
+@pytest.mark.parametrize("cut", [0.5, 0.9])
+def test_a_corrupt_npz_is_refused_and_closed(tmp_path, capsys, cut):
+    """np.load left its handle on a corrupt archive open: a ResourceWarning (hidden by
+    default) for each bad file, and an open file that a long run's folder piles up."""
+    rng = np.random.default_rng(7)
+    path = tmp_path / "cloud.npz"
+    np.savez(path, points=rng.normal(size=(200, 3)))
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * cut)])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        message = _refusal(path)
+        gc.collect()  # a handle left open is closed, and warned about, when collected
+    assert message.startswith(f"{path}: bad or truncated .npz:") and "\n" not in message
+    assert not [w for w in caught if issubclass(w.category, ResourceWarning)]

@@ -126,7 +126,9 @@ def read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | Non
     """(N, 3) ``points`` and (N, 3) ``normals`` or None of a ``.npz`` archive."""
     _check_magic(path, ZIP_MAGIC, "not a .npz archive (no zip header)")
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        # Opened here, not by np.load: numpy leaves its own handle open when the archive is
+        # corrupt (a ResourceWarning at exit, for every bad file a folder holds).
+        with path.open("rb") as fh, np.load(fh, allow_pickle=False) as npz:
             if "points" not in npz.files:
                 raise FileFormatError(f".npz has no 'points' array (keys: {npz.files})", path)
             points = npz["points"]
