@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import chi2
 
 from spacepose.core import se3
-from spacepose.core.motion import MotionModel
+from spacepose.core.motion import SETTLED_TESTS, MotionModel
 
 
 def test_model_error_is_the_rms_of_the_recent_errors_and_drops_old_ones():
@@ -59,3 +60,20 @@ def test_a_velocity_is_tested_once_it_has_predicted_a_frame_and_again_after_a_re
     assert not m.tested and m.model_error() is not None  # the old errors stay, as bounds
     m.accept(6.0, pose, cov, (0.003, 0.02), restart=False)
     assert m.tested
+
+
+def test_a_velocity_settles_after_six_measured_predictions_and_again_after_a_restart():
+    """Six errors bound their RMS within a factor of two at 95 % (χ²₆), five do not."""
+    assert np.sqrt(SETTLED_TESTS / chi2.ppf(0.05, SETTLED_TESTS)) <= 2.0
+    assert np.sqrt((SETTLED_TESTS - 1) / chi2.ppf(0.05, SETTLED_TESTS - 1)) > 2.0
+    m = MotionModel()
+    pose, cov = np.eye(4), np.zeros((6, 6))
+    m.accept(0.0, pose, cov, None, restart=True)
+    for k in range(1, SETTLED_TESTS + 1):
+        assert not m.settled
+        m.accept(float(k), pose, cov, (0.001, 0.01), restart=False)
+    assert m.settled and m.tests == SETTLED_TESTS
+    m.accept(10.0, pose, cov, None, restart=False)  # a frame without a prediction keeps it
+    assert m.settled
+    m.accept(11.0, pose, cov, None, restart=True)
+    assert not m.settled and not m.tested and m.tests == 0

@@ -4,10 +4,13 @@ A registration converges to the nearest minimum of its cost. On sparse frames of
 (a flash LiDAR at 16-25 m, one point every 50-80 mm) the cost along a face is a row of shallow
 minima a point spacing apart: sliding by one changes which samples pair, not how well the
 faces fit. A frame whose pose no motion model confirms (the second of a run, whose first pass
-reaches as far as the target may move) can stop in one of them. Its covariance, the cost's
-curvature where it stopped, does not see the row: a generated box-bus spacecraft at 16 m,
-turning 10° a frame, stopped 95 mm along a face with a σ of 9 mm there, and every later frame
-inherited the slide, ``ok`` at 9-38 σ.
+reaches as far as the target may move) can stop in one of them, and so can a frame whose
+prediction falls short along the row (a motion that speeds up): the registration stays in the
+minimum it starts in, and agreeing with the prediction confirms nothing. Its covariance, the
+cost's curvature where it stopped, does not see the row: a generated box-bus spacecraft at
+16 m, turning 10° a frame, stopped 95 mm along a face with a σ of 9 mm there, and every later
+frame inherited the slide, ``ok`` at 9-38 σ; another, speeding up, was ``ok`` 107 mm off at
+16 σ on its fifth frame.
 
 :func:`probe_starts` gives the registration fresh starts a few voxels away along the two least
 constrained principal directions of the estimate's own position uncertainty (a face leaves two

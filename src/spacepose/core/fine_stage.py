@@ -124,7 +124,7 @@ class FineStage:
             T_init = self.registrar.approach(prepared, ref, T_init, wide_gate)
             estimate = self._fine(prepared, ref, T_init, tracking_model)
             if self._probed(prediction):
-                estimate = self._deepest_basin(prepared, ref, estimate)
+                estimate = self._deepest_basin(prepared, ref, estimate, prediction)
             shifted = self.frames.shifted_source(prepared)
             if shifted is not None:
                 estimate = window_registration.with_grid_spread(
@@ -156,33 +156,55 @@ class FineStage:
 
     def _probed(self, prediction: Prediction | None) -> bool:
         """Whether the frame's basin is probed (:meth:`_deepest_basin`): model-free, on frames
-        the voxel grid hardly thins (:func:`~spacepose.core.frame_check.hardly_thinned`), when
-        no prediction can confirm the pose (none, no velocity, or the motion model's error not
-        yet measured: :data:`~spacepose.core.frame_check.UNTESTED_MODEL`). A denser frame's
-        voxels average many samples each, and its cost along a face is smooth."""
-        confirmed = prediction is not None and prediction.velocity_known and self.motion.tested
-        return not (self.model_based or confirmed) and hardly_thinned(self.frames.scale)
+        the voxel grid hardly thins (:func:`~spacepose.core.frame_check.hardly_thinned`), until
+        the motion model's error is known (:attr:`~spacepose.core.motion.MotionModel.settled`).
+        A denser frame's voxels average many samples each, and its cost along a face is
+        smooth. A prediction whose error has been measured on a frame or two confirms little: a
+        registration that stays with it keeps that error small (the constant-velocity
+        prediction of a motion that speeds up, followed one sample along a face a frame)."""
+        settled = prediction is not None and prediction.velocity_known and self.motion.settled
+        return not (self.model_based or settled) and hardly_thinned(self.frames.scale)
 
     def _deepest_basin(
-        self, prepared: PreparedCloud, ref: Keyframe, estimate: FineEstimate
+        self,
+        prepared: PreparedCloud,
+        ref: Keyframe,
+        estimate: FineEstimate,
+        prediction: Prediction | None,
     ) -> FineEstimate:
-        """Model-free, on a frame no motion model confirms: the estimate, or the registration
-        from a probe start (:func:`~spacepose.core.basin_probe.probe_starts`,
+        """Model-free, on a sparse frame no settled prediction confirms: the estimate, or the
+        registration from a probe start
+        (:func:`~spacepose.core.basin_probe.probe_starts`,
         :data:`~spacepose.core.basin_probe.PROBE_VOXELS` voxels away) that ends lower on the
         truncated cost by more than :data:`~spacepose.core.basin_probe.BETTER_BY` (a slide
         along a face into a neighbouring minimum; methods.md §5.5). The probes' own residual
-        measurements are dropped."""
+        measurements are dropped.
+
+        With no tested prediction (none, no velocity, or the motion model's error not yet
+        measured) the cost is judged against the window's oldest keyframe: the latest may carry
+        the slide itself. With one, a start must end lower against every keyframe of the
+        window: a frame turned far from one keyframe can lower its cost there alone by pairing
+        the points that keyframe lacks with other surfaces.
+        """
         noise, workers = self.registrar.noise, self.registrar.workers
         # Noise-free frames measure σ = 0: the gate's third is the scale then.
-        sigma = noise.sigma if noise.sigma else noise.gate / 3.0
-        # Judged against the window's oldest keyframe: the latest may carry the slide itself.
-        judge = self.window.references()[0]
-        target = self.registrar.as_target(judge.registration_target)
+        scales = (noise.gate, noise.sigma if noise.sigma else noise.gate / 3.0, workers)
+        confirmed = prediction is not None and prediction.velocity_known and self.motion.tested
+        references = self.window.references()
+        judges = [
+            (judge.T_ref_target, self.registrar.as_target(judge.registration_target))
+            for judge in (references if confirmed else references[:1])
+        ]
         points = prepared.cloud.points
 
-        def cost(T_sensor_target: NDArray[np.float64]) -> float:
-            T_ref_frame = judge.T_ref_target @ se3.invert(T_sensor_target)
-            return truncated_cost(target, points, T_ref_frame, noise.gate, sigma, workers)
+        def cost(T_sensor_target: NDArray[np.float64]) -> NDArray[np.float64]:
+            T_target_sensor = se3.invert(T_sensor_target)
+            return np.array(
+                [
+                    truncated_cost(target, points, T_ref_target @ T_target_sensor, *scales)
+                    for T_ref_target, target in judges
+                ]
+            )
 
         best, best_cost = estimate, cost(estimate.T_sensor_target)
         measured = self.registrar.set_aside()
@@ -197,7 +219,7 @@ class FineStage:
                     except SpaceposeError:
                         continue
                     probe_cost = cost(probe.T_sensor_target)
-                    if probe_cost < min(bar, best_cost):
+                    if np.all(probe_cost < np.minimum(bar, best_cost)):
                         best, best_cost = probe, probe_cost
                 if best is around:
                     break

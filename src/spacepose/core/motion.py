@@ -21,6 +21,10 @@ from spacepose.errors import InputError
 
 # Recent model errors kept: enough for a stable RMS, few enough to follow a change of motion.
 _ERROR_WINDOW = 20
+# Predictions of one velocity measured before its model error counts as known: from n errors
+# the RMS's 95 % upper bound is sqrt(n / chi2.ppf(0.05, n)) times the RMS, within a factor of
+# two from six on (2.09 at five).
+SETTLED_TESTS = 6
 
 
 def next_timestamp(timestamp: float, last: float) -> float:
@@ -157,17 +161,28 @@ class MotionModel:
         The last two accepted ``(timestamp, T_sensor_target, covariance)``.
     errors
         Recent model errors: (centroid displacement m, rotation rad) per accepted frame.
-    tested
-        Whether the present velocity's model has predicted a frame since the first pose or the
-        last restart: until then nothing has confirmed the step it extrapolates (the errors
-        kept from before a restart are of another velocity).
+    tests
+        Frames the present velocity's model has predicted and seen measured since the first
+        pose or the last restart (the errors kept from before a restart are of another
+        velocity).
     """
 
     history: list[tuple[float, NDArray[np.float64], NDArray[np.float64]]] = field(
         default_factory=list
     )
     errors: list[tuple[float, float]] = field(default_factory=list)
-    tested: bool = False
+    tests: int = 0
+
+    @property
+    def tested(self) -> bool:
+        """Whether the model has predicted a frame since the first pose or the last restart:
+        until then nothing has confirmed the step it extrapolates."""
+        return self.tests > 0
+
+    @property
+    def settled(self) -> bool:
+        """Whether its error is known within a factor of two (:data:`SETTLED_TESTS`)."""
+        return self.tests >= SETTLED_TESTS
 
     def predict(
         self, timestamp: float, frames_missed: int, fallback_error: tuple[float, float]
@@ -210,4 +225,4 @@ class MotionModel:
         self.history = [*kept, (timestamp, T_sensor_target, covariance)]
         if error is not None:
             self.errors = [*self.errors[-(_ERROR_WINDOW - 1) :], error]
-        self.tested = error is not None or (self.tested and not restart)
+        self.tests = (0 if restart else self.tests) + (error is not None)
