@@ -18,26 +18,7 @@ from spacepose.tools.depth_io import write_depth_image
 from spacepose.tools.register import register_files
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run
-
-INTRINSICS = "fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\n"
-
-
-def _cli_error(capsys) -> str:
-    """The CLI's stderr, checked to be one ``error:`` line without a traceback."""
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "Traceback" not in err, err
-    assert err.startswith("error:"), err
-    return err
-
-
-def _refused(capsys, error: type, message: str, read, argv: list[str]) -> None:
-    """``read()`` raises ``error`` with ``message``, and the CLI run ``argv`` ends in that one
-    line."""
-    with pytest.raises(error) as exc:
-        read()
-    assert str(exc.value) == message
-    assert main(argv) == 1
-    assert _cli_error(capsys) == f"error: {message}"
+from test_bad_inputs_round4 import INTRINSICS, _cli_error, _refused
 
 
 def _depth_pair(root: Path, intrinsics: str | None = INTRINSICS) -> tuple[Path, Path]:
