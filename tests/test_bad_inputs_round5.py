@@ -4,6 +4,7 @@ problem (or a warning naming it), never a traceback, a hang or a silently wrong 
 from __future__ import annotations
 
 import gc
+import json
 import warnings
 from pathlib import Path
 
@@ -206,3 +207,69 @@ def test_a_corrupt_npz_is_refused_and_closed(tmp_path, capsys, cut):
         gc.collect()  # a handle left open is closed, and warned about, when collected
     assert message.startswith(f"{path}: bad or truncated .npz:") and "\n" not in message
     assert not [w for w in caught if issubclass(w.category, ResourceWarning)]
+
+
+# -- campaign: a damaged part ---------------------------------------------------------------------
+
+
+def _campaign(tmp_path: Path, seeds: tuple[int, ...] = (0,)) -> tuple[Path, list[Path]]:
+    """A registration campaign config whose every case has a stored part (no case runs):
+    the config file and the parts, in case order."""
+    from spacepose.tools.campaign import PARTS_DIR, prepare_out_dir, write_part
+    from spacepose.tools.campaign_spec import expand_grid, load_campaign_config
+
+    config_path = tmp_path / "campaign.yaml"
+    grid = {"scenario": ["lab"], "noise_scale": [0.0], "method": ["gicp"], "seed": list(seeds)}
+    config_path.write_text(f"name: c\nout: {tmp_path / 'out'}\ngrid: {grid}\n")
+    out = prepare_out_dir(load_campaign_config(config_path))
+    parts = []
+    for case in expand_grid(load_campaign_config(config_path).grid):
+        metrics = {"converged": True, "fitness": 0.9, "iterations": 12}
+        record = {"case_id": case.case_id, "params": case.params, "metrics": metrics}
+        write_part(out, {**record, "error": None, "time_s": 0.5})
+        parts.append(out / PARTS_DIR / f"{case.case_id}.json")
+    return config_path, parts
+
+
+@pytest.mark.parametrize(
+    ("edit", "problem"),
+    [
+        (lambda r: r.pop("metrics"), "'metrics' must be a mapping of numbers, got NoneType"),
+        (lambda r: r["metrics"].update(fitness="high"), "metric 'fitness' is a str, not a scalar"),
+        (lambda r: r["metrics"].update(seed=3), "metric 'seed' clashes with a column name"),
+        (lambda r: r.update(time_s=-1), "'time_s' must be a number of seconds >= 0, got -1"),
+        (lambda r: r.pop("error"), "'error' must be text, or null for a case that succeeded"),
+    ],
+)
+def test_a_damaged_campaign_part_is_refused_naming_it(tmp_path, capsys, edit, problem):
+    """A part whose case_id matches but whose record was edited (no metrics, a metric that is
+    text, a time of -1 s) ended the campaign in a KeyError or ArrowInvalid traceback; a metric
+    named as an axis overwrote that axis' column without a word."""
+    config, (part,) = _campaign(tmp_path)
+    record = json.loads(part.read_text())
+    edit(record)
+    part.write_text(json.dumps(record))
+    assert main(["campaign", str(config)]) == 1
+    message = f"error: {part}: damaged campaign part: {problem}; delete it to run its case again"
+    assert _cli_error(capsys) == message
+
+
+def test_a_metric_true_false_in_one_part_and_a_number_in_another_is_refused(tmp_path, capsys):
+    """pyarrow cannot hold both in one column: its ArrowInvalid escaped as a traceback."""
+    config, parts = _campaign(tmp_path, seeds=(0, 1))
+    record = json.loads(parts[1].read_text())
+    record["metrics"]["converged"] = 0.5
+    parts[1].write_text(json.dumps(record))
+    assert main(["campaign", str(config)]) == 1
+    assert _cli_error(capsys) == (
+        f"error: {parts[0].parent}: metric 'converged' is true/false in part "
+        f"{parts[0].stem} and 0.5 in part {parts[1].stem}: delete the edited one to run its "
+        "case again"
+    )
+
+
+def test_sound_campaign_parts_consolidate(tmp_path):
+    """The checks pass what execute_case writes: the table is built without a case run."""
+    config, _ = _campaign(tmp_path, seeds=(0, 1))
+    assert main(["campaign", str(config)]) == 0
+    assert (tmp_path / "out" / "results.parquet").is_file()

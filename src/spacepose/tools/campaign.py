@@ -95,18 +95,44 @@ def _clean_metrics(raw: Any, params: Mapping[str, Scalar], who: str) -> Metrics:
         raise TypeError(f"case runner {who} returned {type(raw).__name__}, not a dict of metrics")
     out: Metrics = {}
     for name, value in raw.items():
-        if not isinstance(name, str) or not NAME_RE.match(name):
-            raise TypeError(f"case runner {who}: metric name {name!r} is not an identifier")
-        if name in params or name in RESERVED_COLUMNS:
-            raise TypeError(f"case runner {who}: metric {name!r} clashes with a column name")
         if isinstance(value, np.generic):
             value = value.item()
-        if not isinstance(value, numbers.Real):  # bool and int are Real too
-            raise TypeError(
-                f"case runner {who}: metric {name!r} is a {type(value).__name__}, not a scalar"
-            )
+        problem = _metric_problem(name, value, params)
+        if problem is not None:
+            raise TypeError(f"case runner {who}: {problem}")
         out[name] = value
     return out
+
+
+def _metric_problem(name: object, value: object, params: Mapping[str, Scalar]) -> str | None:
+    """Why ``name: value`` cannot be a metric column of the case ``params`` (None: it can).
+    A runner's metrics and a stored part's are held to the same rules."""
+    if not isinstance(name, str) or not NAME_RE.match(name):
+        return f"metric name {name!r} is not an identifier"
+    if name in params or name in RESERVED_COLUMNS:
+        return f"metric {name!r} clashes with a column name"
+    if not isinstance(value, numbers.Real):  # bool and int are Real too
+        return f"metric {name!r} is a {type(value).__name__}, not a scalar"
+    return None
+
+
+def _part_problem(record: Mapping[str, Any]) -> str | None:
+    """What a part record (hash already checked) lacks to be consolidated, or None. An
+    edited or damaged part (no metrics, a metric that is text, an axis name) ended the
+    campaign in a traceback from the table's build, or overwrote that axis' column."""
+    metrics = record.get("metrics")
+    if not isinstance(metrics, Mapping):
+        return f"'metrics' must be a mapping of numbers, got {type(metrics).__name__}"
+    for name, value in metrics.items():
+        problem = _metric_problem(name, value, record["params"])
+        if problem is not None:
+            return problem
+    if "error" not in record or not isinstance(record["error"], str | None):
+        return "'error' must be text, or null for a case that succeeded"
+    elapsed = record.get("time_s")
+    if isinstance(elapsed, bool) or not isinstance(elapsed, numbers.Real) or not elapsed >= 0:
+        return f"'time_s' must be a number of seconds >= 0, got {elapsed!r}"
+    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -188,7 +214,8 @@ def read_parts(out_dir: str | Path) -> dict[str, dict[str, Any]]:
     Raises
     ------
     FileFormatError
-        If a part cannot be parsed or its parameters do not hash to its name (edited by hand).
+        If a part cannot be parsed, its parameters do not hash to its name (edited by hand), or
+        its metrics, error or time are not what :func:`execute_case` writes.
     """
     parts: dict[str, dict[str, Any]] = {}
     for path in sorted((Path(out_dir) / PARTS_DIR).glob("*.json")):
@@ -199,6 +226,11 @@ def read_parts(out_dir: str | Path) -> dict[str, dict[str, Any]]:
             raise FileFormatError(f"unreadable campaign part: {exc}", path) from None
         if not ok:
             raise FileFormatError("part parameters do not match its case_id", path)
+        problem = _part_problem(record)
+        if problem is not None:
+            raise FileFormatError(
+                f"damaged campaign part: {problem}; delete it to run its case again", path
+            )
         parts[path.stem] = record
     return parts
 
@@ -210,6 +242,11 @@ def results_table(
 
     Columns: the grid axes (config order), the metrics (sorted union over cases; null where a
     case failed), ``error`` (null when it succeeded), ``time_s``, ``case_id``.
+
+    Raises
+    ------
+    FileFormatError
+        A metric is true/false in some parts and a number in others (one was edited).
     """
     import pyarrow as pa
 
@@ -221,6 +258,17 @@ def results_table(
     for name in metric_names:
         values = [r["metrics"].get(name) for r in records]
         kinds = {type(v) for v in values if v is not None}
+        if bool in kinds and len(kinds) > 1:
+            # A part edited by hand (a number where the others hold true/false): pyarrow's
+            # ArrowInvalid escaped as a traceback.
+            pairs = list(zip(records, values, strict=True))
+            flag = next(r for r, v in pairs if isinstance(v, bool))
+            other, number = next((r, v) for r, v in pairs if type(v) in kinds - {bool})
+            raise FileFormatError(
+                f"metric {name!r} is true/false in part {flag['case_id']} and {number!r} in "
+                f"part {other['case_id']}: delete the edited one to run its case again",
+                Path(config.out) / PARTS_DIR,
+            )
         # Mixed int/float (e.g. a metric that is sometimes nan) is stored as float.
         dtype = pa.float64() if (kinds <= {int, float} and float in kinds) or not kinds else None
         columns[name] = pa.array(values, type=dtype)
