@@ -273,3 +273,19 @@ def test_sound_campaign_parts_consolidate(tmp_path):
     config, _ = _campaign(tmp_path, seeds=(0, 1))
     assert main(["campaign", str(config)]) == 0
     assert (tmp_path / "out" / "results.parquet").is_file()
+
+
+def test_a_campaign_integer_beyond_64_bits_is_refused_before_any_case(tmp_path, capsys):
+    """The results table stores integers in 64 bits: a seed of 10**23 ran every case, then
+    ended in pyarrow's OverflowError traceback (and so did every resume)."""
+    config = tmp_path / "campaign.yaml"
+    grid = (
+        "{scenario: [lab], noise_scale: [0.0], method: [gicp], seed: [0, 100000000000000000000000]}"
+    )
+    config.write_text(f"out: {tmp_path / 'out'}\ngrid: {grid}\n")
+    assert main(["campaign", str(config)]) == 1
+    assert _cli_error(capsys) == (
+        f"error: {config}: invalid CampaignConfig: grid: Value error, axis 'seed' has an "
+        "integer beyond 64 bits: [0, 100000000000000000000000]"
+    )
+    assert not (tmp_path / "out").exists()

@@ -128,6 +128,10 @@ def _check_axis(axis: str, values: list[Scalar]) -> list[Scalar]:
         values = [float(v) for v in values]
     if any(isinstance(v, float) and not math.isfinite(v) for v in values):
         raise ValueError(f"axis {axis!r} has a non-finite value: {values}")
+    # The results table stores integers in 64 bits: a larger one ran every case, then ended
+    # the campaign in pyarrow's OverflowError traceback (and every resume after it).
+    if any(type(v) is int and not -(2**63) <= v < 2**63 for v in values):
+        raise ValueError(f"axis {axis!r} has an integer beyond 64 bits: {values}")
     if len(set(values)) != len(values):
         raise ValueError(f"axis {axis!r} has duplicate values: {values}")
     # The simulator and the perturbation draw from default_rng([seed, ...]): no negative seed.
