@@ -12,13 +12,17 @@ import numpy as np
 import pytest
 
 from spacepose.cli import main
+from spacepose.core import se3
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS
+from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.depth_io import write_depth_image
+from spacepose.tools.evaluation import compare_trajectory_files
 from spacepose.tools.register import register_files
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run
+from spacepose.tools.trajectory_io import write_tum
 from test_bad_inputs_round4 import INTRINSICS, _cli_error, _refused
 
 
@@ -289,3 +293,38 @@ def test_a_campaign_integer_beyond_64_bits_is_refused_before_any_case(tmp_path, 
         "integer beyond 64 bits: [0, 100000000000000000000000]"
     )
     assert not (tmp_path / "out").exists()
+
+
+# -- evaluate: a health table that cannot say which frames were lost -----------------------------
+
+
+@pytest.mark.parametrize(
+    ("header", "shift", "problem"),
+    [
+        # Semicolons: one column named 'frame;timestamp;status', every frame read as not lost.
+        ("frame;timestamp;status", 0, "has no status column"),
+        ("frame,timestamp,Status", 0, "has no status column"),
+        # Another run's table, of as many rows: its lost flags fell on other frames.
+        ("frame,timestamp,status", 10, "row 1 is at t = 10 s, pose 0 at 0 s"),
+    ],
+)
+def test_a_health_table_that_cannot_mark_the_lost_frames_says_so(tmp_path, header, shift, problem):
+    """evaluate leaves out the frames EST.health.csv marks lost; a table without a status
+    column, or at other times than the poses, left none out (or other frames) without a
+    word. Now the lost frames are scored, with a warning naming the table and why."""
+    rng = np.random.default_rng(11)
+    t = np.arange(10.0)
+    gt = np.stack([se3.make_transform(np.eye(3), [0.01 * k, 0.0, 1.2]) for k in t])
+    noisy = gt.copy()
+    noisy[:, :3, 3] += rng.normal(scale=1e-3, size=(10, 3))
+    est_path = write_tum(tmp_path / "est.tum", Trajectory(t, noisy))
+    gt_path = write_tum(tmp_path / "gt.tum", Trajectory(t, gt))
+    sep = ";" if ";" in header else ","
+    rows = [sep.join((str(k), repr(k + shift), "lost" if k == 3 else "ok")) for k in range(10)]
+    health = tmp_path / "est.health.csv"
+    health.write_text(header + "\n" + "\n".join(rows) + "\n")
+    with pytest.warns(SpaceposeWarning) as caught:
+        result = compare_trajectory_files(est_path, gt_path)
+    message = f"{est_path}: est.health.csv {problem}: lost frames, if any, are scored"
+    assert [str(w.message) for w in caught] == [message]
+    assert result.table.n == 10

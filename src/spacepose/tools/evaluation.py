@@ -205,16 +205,17 @@ def without_lost_frames(
     """The estimate read from ``est_path`` without the poses :func:`lost_frames` marks (all
     of them kept when every frame is lost: nothing else can be scored), the mask and its
     note."""
-    lost, note = lost_frames(est_path, len(est))
+    lost, note = lost_frames(est_path, est)
     if lost is None or lost.all():
         return est, lost, note
     return Trajectory(est.timestamps[~lost], est.poses[~lost]), lost, note
 
 
-def lost_frames(est_path: Path, count: int) -> tuple[np.ndarray | None, str | None]:
-    """Which of the ``count`` poses of ``est_path`` its tracker's health table
-    (``EST.health.csv`` beside it, one row a pose) marks ``lost`` ((count,) bool; None without
-    a usable table or a lost frame), and a note saying what is left out or why nothing is.
+def lost_frames(est_path: Path, est: Trajectory) -> tuple[np.ndarray | None, str | None]:
+    """Which of the poses ``est`` of ``est_path`` its tracker's health table
+    (``EST.health.csv`` beside it, one row a pose, at the pose's time) marks ``lost``
+    ((len(est),) bool; None without a usable table or a lost frame), and a note saying what
+    is left out or why nothing is.
 
     A lost frame's pose in ``EST.tum`` is the motion model's prediction, written so that no
     frame goes missing, not a measurement: scored, it counts the tracker's guess as its
@@ -226,15 +227,23 @@ def lost_frames(est_path: Path, count: int) -> tuple[np.ndarray | None, str | No
         return None, None
     try:
         with health.open(newline="") as fh:
-            status = [row.get("status") for row in csv.DictReader(fh)]
+            rows = list(csv.DictReader(fh))
     except (OSError, UnicodeDecodeError, csv.Error):
         return None, f"{health.name} is unreadable: lost frames, if any, are scored"
-    if len(status) != count:
-        return None, (
-            f"{health.name} has {len(status)} rows for {count} poses: lost frames, if any, "
-            "are scored"
+    unused = f"{health.name} {{}}: lost frames, if any, are scored"
+    if rows and "status" not in rows[0]:
+        # Another delimiter or a renamed column: every frame read as not lost, silently.
+        return None, unused.format("has no status column")
+    if len(rows) != len(est):
+        return None, unused.format(f"has {len(rows)} rows for {len(est)} poses")
+    off = _other_times(rows, est.timestamps)
+    if off is not None:
+        # Another run's table: its lost flags were laid on other frames without a word.
+        k, t = off
+        return None, unused.format(
+            f"row {k + 1} is at t = {t:.9g} s, pose {k} at {est.timestamps[k]:.9g} s"
         )
-    lost = np.array([s == "lost" for s in status])
+    lost = np.array([row["status"] == "lost" for row in rows])
     if not lost.any():
         return None, None
     if lost.all():
@@ -243,6 +252,17 @@ def lost_frames(est_path: Path, count: int) -> tuple[np.ndarray | None, str | No
         f"{int(lost.sum())} frame(s) lost in {health.name} left out (their poses are the "
         "motion model's predictions)"
     )
+
+
+def _other_times(rows: list[dict[str, str]], timestamps: np.ndarray) -> tuple[int, float] | None:
+    """The first health row (index, time) whose ``timestamp`` is not its pose's, or None
+    (a table without readable times is paired by row, as the tracker writes it)."""
+    try:
+        times = np.array([float(row["timestamp"]) for row in rows])
+    except (KeyError, TypeError, ValueError):
+        return None
+    off = np.flatnonzero(np.abs(times - timestamps) > TIMESTAMP_TOLERANCE)
+    return None if not len(off) else (int(off[0]), float(times[off[0]]))
 
 
 def _unit_mismatch(
