@@ -15,11 +15,11 @@ from spacepose.cli import main
 from spacepose.core import se3
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
-from spacepose.tools.cloud_io import read_cloud
+from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
+from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import write_depth_image
 from spacepose.tools.evaluation import compare_trajectory_files
-from spacepose.tools.register import register_files
+from spacepose.tools.register import RegisterConfig, register_files
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run
 from spacepose.tools.trajectory_io import write_tum
@@ -328,3 +328,26 @@ def test_a_health_table_that_cannot_mark_the_lost_frames_says_so(tmp_path, heade
     message = f"{est_path}: est.health.csv {problem}: lost frames, if any, are scored"
     assert [str(w.message) for w in caught] == [message]
     assert result.table.n == 10
+
+
+# -- register: --init with --global ---------------------------------------------------------------
+
+
+def test_register_init_with_global_is_refused(tmp_path, capsys):
+    """The global stage starts from no pose: a given --init was replaced without a word (a
+    0.5 m start gave the same answer as none)."""
+    rng = np.random.default_rng(13)
+    points = rng.normal(size=(500, 3)) * 0.2 + [0.0, 0.0, 1.5]
+    source = write_cloud(tmp_path / "s.ply", points)
+    target = write_cloud(tmp_path / "t.ply", points + np.array([0.01, 0.0, 0.0]))
+    init = tmp_path / "init.txt"
+    init.write_text("1 0 0 0.5\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    message = (
+        "an initial transform (--init) is given with global registration (--global), which "
+        "starts from no pose and would replace it: give one of them"
+    )
+    argv = ["register", str(source), str(target), "--global", "--init", str(init)]
+    config = RegisterConfig(global_registration=True)
+    _refused(
+        capsys, ConfigError, message, lambda: register_files(source, target, init, config), argv
+    )

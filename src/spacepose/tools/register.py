@@ -49,7 +49,13 @@ from spacepose.core.ransac import global_registration
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.robust import RobustKernelName
 from spacepose.core.voxel import voxel_cells
-from spacepose.errors import FileFormatError, InputError, RegistrationError, SpaceposeWarning
+from spacepose.errors import (
+    ConfigError,
+    FileFormatError,
+    InputError,
+    RegistrationError,
+    SpaceposeWarning,
+)
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.depth_io import (
     DEPTH_SUFFIXES,
@@ -244,7 +250,18 @@ def register(
     -------
     RegisterResult
         The final registration, its covariance, iterations, time and the scales used.
+
+    Raises
+    ------
+    ConfigError
+        An initial guess given with ``config.global_registration`` (which starts from none).
     """
+    if config.global_registration and init_T_target_source is not None:
+        # The global stage starts from no pose: the given one was replaced without a word.
+        raise ConfigError(
+            "an initial transform (--init) is given with global registration (--global), which "
+            "starts from no pose and would replace it: give one of them"
+        )
     tic = time.perf_counter()
     source, target = as_cloud(source, "source"), as_cloud(target, "target")
     T = se3.as_transform(
