@@ -22,7 +22,7 @@ from spacepose.tools.evaluation import compare_trajectory_files
 from spacepose.tools.register import RegisterConfig, register_files
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run
-from spacepose.tools.trajectory_io import write_tum
+from spacepose.tools.trajectory_io import write_kitti, write_tum
 from test_bad_inputs_round4 import INTRINSICS, _cli_error, _refused
 
 
@@ -351,3 +351,29 @@ def test_register_init_with_global_is_refused(tmp_path, capsys):
     _refused(
         capsys, ConfigError, message, lambda: register_files(source, target, init, config), argv
     )
+
+
+# -- evaluate: KITTI (no times) against a clock ---------------------------------------------------
+
+
+def test_kitti_against_times_that_are_not_frame_numbers_is_refused(tmp_path, capsys):
+    """KITTI poses are timed 0, 1, 2, ...: against a 2 Hz TUM truth (0, 0.5, 1, ...) pose k
+    met the truth of frame 2k and was scored against it, with only a length warning."""
+    rng = np.random.default_rng(17)
+    t = np.arange(20) * 0.5
+    gt = np.stack([se3.make_transform(np.eye(3), [0.01 * k, 0.0, 1.2]) for k in range(20)])
+    gt_path = write_tum(tmp_path / "gt.tum", Trajectory(t, gt))
+    noisy = gt[:10].copy()
+    noisy[:, :3, 3] += rng.normal(scale=1e-3, size=(10, 3))
+    est_path = write_kitti(tmp_path / "est.kitti", Trajectory(np.arange(10.0), noisy))
+    message = (
+        f"{gt_path}: its times are not frame numbers (t = 0.5 s), and est.kitti is KITTI, timed "
+        "by frame number (0, 1, 2, ...) as it holds no times: give both as KITTI, or both as "
+        "TUM with their times"
+    )
+    argv = ["evaluate", str(est_path), str(gt_path)]
+    _refused(capsys, InputError, message, lambda: compare_trajectory_files(est_path, gt_path), argv)
+    # Timed by frame number, the truth pairs as before.
+    write_tum(gt_path, Trajectory(np.arange(20.0), gt))
+    with pytest.warns(SpaceposeWarning, match="10 poses against 20"):
+        assert compare_trajectory_files(est_path, gt_path).table.n == 10

@@ -26,7 +26,7 @@ import numpy as np
 from spacepose.core.metrics import TIMESTAMP_TOLERANCE, ErrorTable, associate, evaluate
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeWarning
-from spacepose.tools.trajectory_io import read_trajectory
+from spacepose.tools.trajectory_io import read_trajectory, trajectory_format
 
 # A pose counts as the identity (a model-free track's first pose) within this much rotation
 # (rad) and translation (in the file's units): far below any real offset, far above rounding.
@@ -122,6 +122,7 @@ def compare_trajectory_files(
     est_path, gt_path = Path(est_path), Path(gt_path)
     est, gt = read_trajectory(est_path), read_trajectory(gt_path)
     _check_one_truth_per_time(gt.timestamps, gt_path)
+    _check_frame_numbers((est_path, est), (gt_path, gt))
     est, _, lost_note = without_lost_frames(est_path, est)
     try:
         _, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
@@ -195,6 +196,33 @@ def _check_one_truth_per_time(timestamps: np.ndarray, path: Path) -> None:
         raise InputError(
             f"two ground-truth poses at t = {float(t[close[0]])!r}: which one is the truth? "
             "(one pose a time)",
+            path,
+        )
+
+
+def _check_frame_numbers(*files: tuple[Path, Trajectory]) -> None:
+    """Refuse a KITTI file against a TUM file whose times are not frame numbers.
+
+    KITTI carries no times: its poses are timed 0, 1, 2, ... (frame numbers). Against a 2 Hz
+    TUM file (0, 0.5, 1, ...) its k-th pose met the truth at t = k s, frame 2k, and was
+    scored against it without a word.
+
+    Raises
+    ------
+    InputError
+        One file is KITTI and the other's times are not whole numbers, naming the other.
+    """
+    kitti = [path for path, _ in files if trajectory_format(path) == "kitti"]
+    if len(kitti) != 1:
+        return  # both timed alike (both frame numbers, or both clocks)
+    path, traj = next((p, t) for p, t in files if p != kitti[0])
+    t = traj.timestamps
+    off = np.flatnonzero(np.abs(t - np.round(t)) > TIMESTAMP_TOLERANCE)
+    if len(off):
+        raise InputError(
+            f"its times are not frame numbers (t = {t[off[0]]:.9g} s), and {kitti[0].name} is "
+            "KITTI, timed by frame number (0, 1, 2, ...) as it holds no times: give both as "
+            "KITTI, or both as TUM with their times",
             path,
         )
 

@@ -190,24 +190,29 @@ def write_kitti(path: str | Path, traj: Trajectory) -> Path:
 
 
 def read_trajectory(path: str | Path) -> Trajectory:
-    """Read a TUM or KITTI file, telling them apart by extension or column count.
+    """Read a TUM or KITTI file, telling them apart by :func:`trajectory_format`; a KITTI
+    file's poses are timed by their frame numbers ``0, 1, 2, ...``."""
+    return read_tum(path) if trajectory_format(path) == "tum" else read_kitti(path)
 
-    ``.kitti`` is KITTI and ``.tum`` is TUM; for any other extension the number of values on the
-    first data line decides (8: TUM, 12: KITTI).
+
+def trajectory_format(path: str | Path) -> str:
+    """``"tum"`` or ``"kitti"``: ``.kitti`` is KITTI and ``.tum`` is TUM; for any other
+    extension the number of values on the first data line decides (8: TUM, 12: KITTI).
+
+    Raises
+    ------
+    FileFormatError
+        Another number of values.
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix == ".tum":
-        return read_tum(path)
-    if suffix == ".kitti":
-        return read_kitti(path)
+    if suffix in (".tum", ".kitti"):
+        return suffix[1:]
     lines = read_text(path, "trajectory file").splitlines()
     rows = (line.split("#", 1)[0].replace(",", " ").split() for line in lines)
     first = next((row for row in rows if row), [])
-    if len(first) == _TUM_COLUMNS:
-        return read_tum(path)
-    if len(first) == _KITTI_COLUMNS:
-        return read_kitti(path)
+    if len(first) in (_TUM_COLUMNS, _KITTI_COLUMNS):
+        return "tum" if len(first) == _TUM_COLUMNS else "kitti"
     raise FileFormatError(
         f"not a trajectory file: first data line has {len(first)} values "
         f"(TUM has {_TUM_COLUMNS}, KITTI {_KITTI_COLUMNS})",
