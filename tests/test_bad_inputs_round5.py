@@ -165,22 +165,21 @@ def test_simulate_model_that_is_a_folder_says_so(tmp_path, capsys, name, holds, 
     assert not (tmp_path / "run").exists()
 
 
-# -- planes of a depth image ----------------------------------------------------------------------
+# -- a depth image where a point cloud goes --------------------------------------------------------
 
 
 @pytest.mark.parametrize("suffix", [".png", ".TIFF"])
-def test_planes_of_a_depth_image_says_what_to_do(tmp_path, capsys, suffix):
-    """A depth image given to planes was an 'unknown point cloud extension'; planes takes no
-    intrinsics, so the user is told to back-project it first."""
+def test_a_depth_image_where_a_cloud_goes_says_what_to_do(tmp_path, capsys, suffix):
+    """planes (or navigate --model) given a depth image said 'unknown point cloud extension';
+    neither takes intrinsics, so the user is told to back-project it first."""
     image = tmp_path / f"depth{suffix}"
     image.write_bytes(b"")
-    assert main(["planes", str(image)]) == 1
-    err = _cli_error(capsys)
-    assert err.startswith(
-        f"error: {image}: a depth image, and planes reads point clouds only (it takes no "
-        "--intrinsics): back-project it"
+    message = (
+        f"{image}: a depth image where a point cloud (.csv, .npy, .npz, .pcd, .ply, .txt, .xyz) "
+        "goes: back-project it with its camera's intrinsics first "
+        "(spacepose.tools.depth_io.read_depth_cloud, then write_cloud to a .ply)"
     )
-    assert "read_depth_cloud" in err
+    _refused(capsys, FileFormatError, message, lambda: read_cloud(image), ["planes", str(image)])
 
 
 # -- a corrupt .npz leaves no file open -----------------------------------------------------------

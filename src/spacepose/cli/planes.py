@@ -39,10 +39,8 @@ def planes(
     from spacepose.core.planes import PlaneConfig
     from spacepose.core.rectangle_search import find_rectangles
     from spacepose.core.rectangles import RectangleConfig, candidates
-    from spacepose.errors import FileFormatError
     from spacepose.tools.catalogue import load_catalogue
     from spacepose.tools.cloud_io import read_cloud
-    from spacepose.tools.depth_io import DEPTH_SUFFIXES
 
     plane_config = validate_config(
         PlaneConfig,
@@ -58,14 +56,6 @@ def planes(
     rect_config = validate_config(
         RectangleConfig, {"sigma": sigma, "focal_px": focal_px}, "command line"
     )
-    if file.suffix.lower() in DEPTH_SUFFIXES:
-        # read_cloud called it an unknown extension and left the user to guess what to do.
-        raise FileFormatError(
-            "a depth image, and planes reads point clouds only (it takes no --intrinsics): "
-            "back-project it with its camera's intrinsics first "
-            "(spacepose.tools.depth_io.read_depth_cloud, then cloud_io.write_cloud to a .ply)",
-            file,
-        )
     entries = [] if catalogue is None else load_catalogue(catalogue, rect_config)
     found = find_rectangles(read_cloud(file), entries, plane_config, rect_config)
     rows = [

@@ -44,6 +44,11 @@ _RANGE_SAMPLE = 4096
 # Public API
 
 
+# Depth images (16-bit or float, one channel): read by spacepose.tools.depth_io with a camera's
+# intrinsics, never as clouds; named here so that a cloud reader can say what one is.
+DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
+
+
 def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     """Read a point cloud file, choosing the format by extension.
 
@@ -82,6 +87,14 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     if path.is_dir():
         raise FileFormatError("a folder, not a point cloud file", path)
     reader = _READERS.get(path.suffix.lower())
+    if reader is None and path.suffix.lower() in DEPTH_SUFFIXES:
+        # "Unknown extension" left the user to guess what to do with a depth image.
+        raise FileFormatError(
+            f"a depth image where a point cloud ({', '.join(sorted(_READERS))}) goes: "
+            "back-project it with its camera's intrinsics first "
+            "(spacepose.tools.depth_io.read_depth_cloud, then write_cloud to a .ply)",
+            path,
+        )
     if reader is None:
         raise FileFormatError(
             f"unknown point cloud extension {path.suffix!r}; use one of "

@@ -26,11 +26,10 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, depth_to_cloud, distort, matrix_fields, pixel_rays
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
-from spacepose.tools.cloud_io import warn_if_not_metres, warn_if_too_near
+from spacepose.tools.cloud_io import DEPTH_SUFFIXES, warn_if_not_metres, warn_if_too_near
 from spacepose.tools.npy_io import load_npy, npy_shape
 from spacepose.tools.text_io import check_timing, not_a_file, read_text
 
-DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
 # A depth folder's frames may also be NumPy arrays; elsewhere a ``.npy`` is a point cloud.
 FOLDER_DEPTH_SUFFIXES: tuple[str, ...] = (*DEPTH_SUFFIXES, ".npy")
 INTRINSICS_FILES: tuple[str, ...] = ("intrinsics.yaml", "intrinsics.yml", "intrinsics.json")
