@@ -225,4 +225,4 @@ class MotionModel:
         self.history = [*kept, (timestamp, T_sensor_target, covariance)]
         if error is not None:
             self.errors = [*self.errors[-(_ERROR_WINDOW - 1) :], error]
-        self.tests = (0 if restart else self.tests) + (error is not None)
+        self.tests = (0 if restart else self.tests) + int(error is not None)
