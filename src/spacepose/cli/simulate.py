@@ -64,6 +64,12 @@ def simulate(
     if model_scale is not None and (model is None or grid):
         why = "the grid scales its target by --range" if grid else "no --model is given"
         raise ConfigError(f"--model-scale applies to a --model's coordinates, and {why}")
+    if not turntable and not background:
+        # The turntable is part of --background's scene: without it the option was ignored.
+        raise ConfigError(
+            "--no-turntable leaves the turntable out of --background's scene, and --background "
+            "is not given: add --background (a wall alone), or leave out --no-turntable"
+        )
     # Named, not truthy: --target-size 0 is given (0.0 == False would hide it).
     lab_only = {"--background": background or None, "--motion": motion}
     lab_only["--target-size"] = target_size
