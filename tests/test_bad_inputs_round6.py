@@ -6,7 +6,9 @@ from __future__ import annotations
 import pytest
 
 from spacepose.cli import main
-from test_bad_inputs_round4 import _cli_error
+from spacepose.errors import InputError
+from spacepose.tools.tracking_io import check_output
+from test_bad_inputs_round4 import _cli_error, _cloud_folder, _refused
 
 # -- simulate: --no-turntable without --background ------------------------------------------------
 
@@ -22,3 +24,21 @@ def test_no_turntable_without_background_is_refused(tmp_path, capsys, scenario):
         "--background is not given: add --background (a wall alone), or leave out --no-turntable"
     )
     assert not out.exists()
+
+
+# -- track: a trajectory named .kitti -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["est.kitti", "EST.KITTI"])
+def test_track_out_named_kitti_is_refused(tmp_path, capsys, name):
+    """track writes TUM: named .kitti, evaluate then read it as KITTI ('expected 12 values for
+    KITTI, got 8'), as evo does; the run's own output could not be scored."""
+    frames = _cloud_folder(tmp_path / "frames", frames=2)
+    out = tmp_path / name
+    message = (
+        f"{out}: track writes a TUM trajectory (timestamp tx ty tz qx qy qz qw), and a .kitti "
+        "file is read as KITTI (12 numbers a line, no times): name it .tum"
+    )
+    argv = ["track", str(frames), "--out", str(out)]
+    _refused(capsys, InputError, message, lambda: check_output(out), argv)
+    assert not list(tmp_path.glob("est.*"))

@@ -134,31 +134,52 @@ def check_output(out: str | Path) -> None:
     ------
     InputError
         An output is an existing folder, a parent is a regular file, or a file cannot be
-        written there.
+        written there; or the trajectory is named ``.kitti``.
     """
     if Path(out).name in ("", ".", ".."):
         raise InputError(f"--out needs a file name such as EST.tum, got {str(out)!r}")
+    if Path(out).suffix.lower() == ".kitti":
+        # The trajectory is TUM; named .kitti, evaluate (and evo) read it as KITTI and fail.
+        raise InputError(
+            "track writes a TUM trajectory (timestamp tx ty tz qx qy qz qw), and a .kitti file "
+            "is read as KITTI (12 numbers a line, no times): name it .tum",
+            out,
+        )
     check_writable(*output_paths(out))
 
 
-def _check_not_a_frame(tum: Path, frames: Frames) -> None:
-    """Refuse a trajectory written among the frames under a frame file's suffix: the next run
+def check_not_a_frame(
+    out: Path,
+    frames: Frames,
+    what: str = "a trajectory",
+    fix: str = "name it .tum or write it elsewhere",
+) -> None:
+    """Refuse an output written among the frames under a frame file's suffix: the next run
     over the folder would read it as a frame (one more frame, lost), and a folder of depth
     images would be read as a folder of point-cloud files.
+
+    Parameters
+    ----------
+    out
+        The output file (``track``'s trajectory, ``navigate``'s NAV.csv).
+    frames
+        The frames the command reads.
+    what, fix
+        The output, and what to do about it, as the message says them.
 
     Raises
     ------
     InputError
         One line naming the output and the suffix to use.
     """
-    if tum.suffix.lower() not in CLOUD_SUFFIXES:
+    if out.suffix.lower() not in CLOUD_SUFFIXES:
         return
     folders = {p.parent.resolve() for p in getattr(frames, "paths", ())}
-    if tum.parent.resolve() in folders:
+    if out.parent.resolve() in folders:
         raise InputError(
-            f"a trajectory named {tum.suffix} among the frames would be read as a frame by "
-            "the next run over the folder: name it .tum or write it elsewhere",
-            tum,
+            f"{what} named {out.suffix} among the frames would be read as a frame by "
+            f"the next run over the folder: {fix}",
+            out,
         )
 
 
@@ -209,7 +230,7 @@ def track_folder(
     frames = open_frames(input, intrinsics=intrinsics, topic=topic)
     given = [p for p in (model, intrinsics) if p is not None]
     check_spares_inputs(output_paths(out), [*input_files(input, frames), *given])
-    _check_not_a_frame(Path(out), frames)
+    check_not_a_frame(Path(out), frames)
     model_cloud = None if model is None else read_cloud(model)
     tum, health, config_path, scale_path = output_paths(out)
     tracker = Tracker(config, model_cloud, workers)
