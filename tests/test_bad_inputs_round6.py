@@ -4,9 +4,11 @@ problem, never a traceback, a hang, lost output or a silently wrong result."""
 from __future__ import annotations
 
 import pytest
+import yaml
 
 from spacepose.cli import main
-from spacepose.errors import InputError
+from spacepose.errors import ConfigError, InputError
+from spacepose.tools.campaign_spec import load_campaign_config
 from spacepose.tools.tracking_io import check_output
 from test_bad_inputs_round4 import _cli_error, _cloud_folder, _refused
 
@@ -42,3 +44,18 @@ def test_track_out_named_kitti_is_refused(tmp_path, capsys, name):
     argv = ["track", str(frames), "--out", str(out)]
     _refused(capsys, InputError, message, lambda: check_output(out), argv)
     assert not list(tmp_path.glob("est.*"))
+
+
+# -- campaign: a tracking case of one frame --------------------------------------------------------
+
+
+def test_a_tracking_campaign_of_one_frame_is_refused(tmp_path):
+    """A model-free run of one frame scores its start against itself: the campaign wrote
+    ATE 0 mm and every axis 0 for it, as if the tracker were perfect."""
+    config = tmp_path / "track.yaml"
+    grid = {"scenario": ["lab"], "noise_scale": [0.0], "method": ["gicp"], "seed": [0]}
+    config.write_text(yaml.safe_dump({"case_kind": "tracking", "grid": grid | {"frames": [1]}}))
+    with pytest.raises(ConfigError) as exc:
+        load_campaign_config(config)
+    assert str(exc.value).startswith(f"{config}: invalid CampaignConfig:")
+    assert "frames values must be integers >= 2, got [1]" in str(exc.value)

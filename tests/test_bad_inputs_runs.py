@@ -165,7 +165,7 @@ def test_tracking_campaign_frames_fail_at_load(tmp_path: Path) -> None:
     config = tmp_path / "track.yaml"
     grid = GRID | {"frames": [0, 3]}
     config.write_text(yaml.safe_dump({"case_kind": "tracking", "grid": grid}))
-    with pytest.raises(ConfigError, match=r"track\.yaml: .*frames values must be integers >= 1"):
+    with pytest.raises(ConfigError, match=r"track\.yaml: .*frames values must be integers >= 2"):
         load_campaign_config(config)
 
 
