@@ -9,6 +9,7 @@ import yaml
 from spacepose.cli import main
 from spacepose.errors import ConfigError, InputError
 from spacepose.tools.campaign_spec import load_campaign_config
+from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.tracking_io import check_output
 from test_bad_inputs_round4 import _cli_error, _cloud_folder, _refused
 
@@ -59,3 +60,46 @@ def test_a_tracking_campaign_of_one_frame_is_refused(tmp_path):
         load_campaign_config(config)
     assert str(exc.value).startswith(f"{config}: invalid CampaignConfig:")
     assert "frames values must be integers >= 2, got [1]" in str(exc.value)
+
+
+# -- navigate: NAV.csv among the frames, two priors ----------------------------------------------
+
+
+def test_navigate_out_among_the_frames_is_refused(tmp_path, capsys):
+    """NAV.csv written into the folder of frames it navigates: the next track or navigate over
+    the folder read it as one more frame (lost, or 'navigated as empty')."""
+    frames = _cloud_folder(tmp_path / "frames", frames=2)
+    scenario = tmp_path / "scenario.yaml"
+    scenario.write_text("mean_motion: 0.0011\nR_O_C: [[0, 0, 1], [1, 0, 0], [0, 1, 0]]\n")
+    out = frames / "nav.csv"
+    message = (
+        f"{out}: a navigation table named .csv among the frames would be read as a frame by the "
+        "next run over the folder: write it elsewhere"
+    )
+    argv = ["navigate", str(frames), "--scenario", str(scenario), "--out", str(out)]
+    _refused(
+        capsys, InputError, message, lambda: navigate_run(frames, out, scenario=scenario), argv
+    )
+    assert sorted(p.name for p in frames.iterdir()) == ["000000.ply", "000001.ply"]
+
+
+def test_navigate_prior_with_the_debug_prior_is_refused(tmp_path, capsys):
+    """--debug-prior-from-truth replaced a given --prior without a word."""
+    frames = _cloud_folder(tmp_path / "frames", frames=2)
+    scenario = tmp_path / "scenario.yaml"
+    scenario.write_text("mean_motion: 0.0011\nR_O_C: [[0, 0, 1], [1, 0, 0], [0, 1, 0]]\n")
+    out = tmp_path / "nav.csv"
+    message = (
+        "--prior and --debug-prior-from-truth both give the attitude prior (the second "
+        "replaces the first): give one"
+    )
+    argv = ["navigate", str(frames), "--scenario", str(scenario), "--out", str(out)]
+    argv += ["--prior", "0,0,0,1", "--debug-prior-from-truth"]
+
+    def navigate() -> object:
+        return navigate_run(
+            frames, out, scenario=scenario, prior_q_I_B=(0, 0, 0, 1), debug_prior_from_truth=True
+        )
+
+    _refused(capsys, ConfigError, message, navigate, argv)
+    assert not out.exists()

@@ -38,7 +38,7 @@ from spacepose.tools.frames import Frames, input_files, open_frames
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.runs import SCENARIO, read_run
 from spacepose.tools.text_io import read_text
-from spacepose.tools.tracking_io import open_table, write_health_csv
+from spacepose.tools.tracking_io import check_not_a_frame, open_table, write_health_csv
 
 # What navigation reads from a scenario file (the orbit, the chaser's attitude, the catalogue,
 # a model, the sensor's field of view, the debugging prior), and the rest of what a simulated
@@ -153,7 +153,8 @@ def navigate_run(
     InputError
         Besides bad input: no frame was navigated (after NAV.csv is written), saying why.
     ConfigError
-        The attitude prior is not a rotation (:func:`prior_quaternion`).
+        The attitude prior is not a rotation (:func:`prior_quaternion`), or is given with
+        ``debug_prior_from_truth``.
     """
     cfg = config or NavigationConfig()
     out = Path(out)
@@ -162,6 +163,14 @@ def navigate_run(
     frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
     given = [p for p in (scenario, model, intrinsics) if p is not None]
     check_spares_inputs(outputs, [*input_files(input_dir, frames), *given])
+    # NAV.csv's own suffix is a frame's: only another folder keeps it out of the frames.
+    check_not_a_frame(out, frames, "a navigation table", "write it elsewhere")
+    if debug_prior_from_truth and prior_q_I_B is not None:
+        # The scenario's true attitude replaced the given prior without a word.
+        raise ConfigError(
+            "--prior and --debug-prior-from-truth both give the attitude prior (the second "
+            "replaces the first): give one"
+        )
     if scenario is not None:
         source = str(scenario)
         description = _read_mapping(Path(scenario))
