@@ -3,12 +3,17 @@ problem, never a traceback, a hang, lost output or a silently wrong result."""
 
 from __future__ import annotations
 
+import warnings
+from pathlib import Path
+
+import numpy as np
 import pytest
 import yaml
 
 from spacepose.cli import main
-from spacepose.errors import ConfigError, InputError
+from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.campaign_spec import load_campaign_config
+from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.tracking_io import check_output
 from test_bad_inputs_round4 import _cli_error, _cloud_folder, _refused
@@ -103,3 +108,48 @@ def test_navigate_prior_with_the_debug_prior_is_refused(tmp_path, capsys):
 
     _refused(capsys, ConfigError, message, navigate, argv)
     assert not out.exists()
+
+
+# -- a PCD whose VIEWPOINT is not the origin ------------------------------------------------------
+
+
+def _pcd(path: Path, viewpoint: str) -> Path:
+    """A three-point ASCII PCD with the given VIEWPOINT line."""
+    path.write_text(
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 3\nHEIGHT 1\n"
+        f"VIEWPOINT {viewpoint}\nPOINTS 3\nDATA ascii\n0 0 1\n0 1 1\n1 0 1\n"
+    )
+    return path
+
+
+@pytest.mark.parametrize("viewpoint", ["0.5 0 0 1 0 0 0", "0 0 0 0 1 0 0"])
+def test_a_pcd_viewpoint_away_from_the_origin_is_warned_about(tmp_path, viewpoint):
+    """PCL's VIEWPOINT says where the sensor was in the points' frame; it was ignored, so a
+    cloud stored in another frame was tracked as the sensor's without a word."""
+    path = _pcd(tmp_path / "cloud.pcd", viewpoint)
+    with pytest.warns(SpaceposeWarning) as caught:
+        cloud = read_cloud(path)
+    assert [str(w.message) for w in caught] == [
+        f"{path}: PCD VIEWPOINT {viewpoint} puts the sensor away from the points' origin: the "
+        "points are read as stored, in that frame, not the sensor's (move them into the "
+        "sensor's frame first)"
+    ]
+    np.testing.assert_array_equal(cloud.points, [[0, 0, 1], [0, 1, 1], [1, 0, 1]])
+
+
+@pytest.mark.parametrize("viewpoint", ["0 0 0 1 0 0 0", "0 0 0 0 0 0 0", "0 0 0 -1 0 0 0"])
+def test_a_pcd_viewpoint_at_the_origin_reads_without_a_word(tmp_path, viewpoint):
+    """The identity (either sign of q, or no rotation written) is the sensor's own frame."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        assert len(read_cloud(_pcd(tmp_path / "cloud.pcd", viewpoint))) == 3
+
+
+@pytest.mark.parametrize("viewpoint", ["0 0 0 1 0 0", "a b c d e f g", "nan 0 0 1 0 0 0"])
+def test_a_pcd_viewpoint_that_is_not_seven_numbers_is_refused(tmp_path, capsys, viewpoint):
+    """A VIEWPOINT PCL cannot parse was read past without a word."""
+    path = _pcd(tmp_path / "cloud.pcd", viewpoint)
+    message = (
+        f"{path}: PCD header VIEWPOINT must be 7 numbers (tx ty tz qw qx qy qz), got {viewpoint!r}"
+    )
+    _refused(capsys, FileFormatError, message, lambda: read_cloud(path), ["planes", str(path)])

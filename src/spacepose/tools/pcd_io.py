@@ -10,12 +10,13 @@ naming the file. :func:`write_pcd` writes what Open3D and PCL read.
 from __future__ import annotations
 
 import io
+import warnings
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from spacepose.errors import FileFormatError
+from spacepose.errors import FileFormatError, SpaceposeWarning
 from spacepose.tools.npy_io import as_float64
 
 # Largest point record numpy can describe (its dtype sizes are C ints).
@@ -36,11 +37,13 @@ def read_pcd_table(path: Path) -> dict[str, NDArray[np.float64]]:
     FileFormatError
         Missing or empty header lines, lengths that differ, a negative or non-integer count,
         POINTS that disagrees with WIDTH × HEIGHT, a body with more or fewer values than the
-        header announces, or an unsupported DATA encoding.
+        header announces, an unsupported DATA encoding, or a VIEWPOINT that is not 7 finite
+        numbers (one that is not the origin is warned about).
     """
     raw = path.read_bytes()
     header, body = _split_header(raw, path)
     fields, sizes, counts, n_points = _check_header(header, path)
+    _check_viewpoint(header, path)
     formats = []
     for name, kind, size, count in zip(fields, header["TYPE"], sizes, counts, strict=True):
         code = _PCD_TYPES.get((kind.upper(), size))
@@ -149,6 +152,45 @@ def _check_header(
     if any(v < 1 for v in sizes + counts):
         raise FileFormatError("PCD header SIZE and COUNT must be positive", path)
     return fields, sizes, counts, width * height if points is None else points
+
+
+def _check_viewpoint(header: dict[str, list[str]], path: Path) -> None:
+    """Refuse a VIEWPOINT that is not 7 finite numbers; warn of one that is not the origin.
+
+    PCL's VIEWPOINT (``tx ty tz qw qx qy qz``) is where the sensor was in the points' frame.
+    The points are read as stored (as Open3D reads them), but spacepose takes them for the
+    sensor's frame: a sensor elsewhere is said, not left to turn every pose silently.
+
+    Raises
+    ------
+    FileFormatError
+        VIEWPOINT is not 7 finite numbers.
+    """
+    if "VIEWPOINT" not in header:
+        return
+    text = " ".join(header["VIEWPOINT"])
+    try:
+        values = np.array([float(v) for v in header["VIEWPOINT"]])
+    except ValueError:
+        values = np.array([])
+    if values.shape != (7,) or not np.isfinite(values).all():
+        raise FileFormatError(
+            f"PCD header VIEWPOINT must be 7 numbers (tx ty tz qw qx qy qz), got {text!r}", path
+        )
+    q = values[3:]
+    norm = float(np.linalg.norm(q))
+    # An all-zero quaternion (some writers' "none") turns nothing; q and -q are one rotation.
+    turned = norm > 0 and 1.0 - abs(q[0]) / norm > 1e-9
+    if np.any(values[:3] != 0) or turned:
+        warnings.warn(
+            SpaceposeWarning(
+                f"PCD VIEWPOINT {text} puts the sensor away from the points' origin: the "
+                "points are read as stored, in that frame, not the sensor's (move them into "
+                "the sensor's frame first)",
+                path,
+            ),
+            stacklevel=4,
+        )
 
 
 def _integers(header: dict[str, list[str]], key: str, path: Path) -> list[int]:
