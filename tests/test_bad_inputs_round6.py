@@ -9,12 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.campaign_spec import load_campaign_config
-from spacepose.tools.cloud_io import read_cloud
+from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.navigation_io import navigate_run
+from spacepose.tools.register import read_transform
 from spacepose.tools.tracking_io import check_output
 from test_bad_inputs_round4 import _cli_error, _cloud_folder, _refused
 
@@ -153,3 +155,43 @@ def test_a_pcd_viewpoint_that_is_not_seven_numbers_is_refused(tmp_path, capsys, 
         f"{path}: PCD header VIEWPOINT must be 7 numbers (tx ty tz qw qx qy qz), got {viewpoint!r}"
     )
     _refused(capsys, FileFormatError, message, lambda: read_cloud(path), ["planes", str(path)])
+
+
+# -- register --init: a rotation written to 4 decimals ---------------------------------------------
+
+
+def test_an_init_rotation_written_to_four_decimals_is_read_as_its_rotation(tmp_path):
+    """cos 30° written 0.8660 leaves RᵀR 4e-5 off the identity: the init was refused as 'not a
+    proper rotation', though KITTI files of as few digits are read."""
+    init = tmp_path / "init.txt"
+    init.write_text("0.8660 -0.5 0 0.01\n0.5 0.8660 0 0\n0 0 1 0\n0 0 0 1\n")
+    T = read_transform(init)
+    np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(
+        T[:3, :3], Rotation.from_euler("z", 30, degrees=True).as_matrix(), atol=1e-4
+    )
+    np.testing.assert_array_equal(T[:3, 3], [0.01, 0, 0])
+
+
+@pytest.mark.parametrize(
+    ("rows", "problem"),
+    [
+        ("0.87 -0.5 0 0\n0.5 0.87 0 0", "RᵀR off the identity by 0.0069, det 1.007"),
+        ("-1 0 0 0\n0 1 0 0", "RᵀR off the identity by 0, det -1"),
+    ],
+)
+def test_an_init_that_is_no_rotation_says_how_far_off_it_is(tmp_path, capsys, rows, problem):
+    """'not a proper rotation' said neither whether it was a reflection, a scale or digits
+    cut too short."""
+    rng = np.random.default_rng(19)
+    points = rng.normal(size=(300, 3)) * 0.1 + [0.0, 0.0, 1.0]
+    source = write_cloud(tmp_path / "s.ply", points)
+    target = write_cloud(tmp_path / "t.ply", points)
+    init = tmp_path / "init.txt"
+    init.write_text(f"{rows}\n0 0 1 0\n0 0 0 1\n")
+    message = (
+        f"{init}: init transform rotation block is not a proper rotation ({problem}; a rotation "
+        "has 0 and 1)"
+    )
+    argv = ["register", str(source), str(target), "--init", str(init)]
+    _refused(capsys, InputError, message, lambda: read_transform(init), argv)

@@ -48,8 +48,13 @@ def as_transform(T: ArrayLike, name: str = "transform") -> NDArray[np.float64]:
     if np.abs(T[3] - _LAST_ROW).max() > 1e-9:
         raise InputError(f"{name} last row must be (0, 0, 0, 1), got {T[3]}")
     R = T[:3, :3]
-    if np.abs(R.T @ R - _I3).max() > 1e-6 or np.linalg.det(R) < 0:
-        raise InputError(f"{name} rotation block is not a proper rotation")
+    off = np.abs(R.T @ R - _I3).max()
+    if off > 1e-6 or np.linalg.det(R) < 0:
+        # How far it is says which: a scale or shear, a reflection, or digits cut too short.
+        raise InputError(
+            f"{name} rotation block is not a proper rotation (RᵀR off the identity by "
+            f"{off:.2g}, det {np.linalg.det(R):.4g}; a rotation has 0 and 1)"
+        )
     return T
 
 

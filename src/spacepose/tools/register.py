@@ -65,6 +65,7 @@ from spacepose.tools.depth_io import (
 )
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.text_io import read_text
+from spacepose.tools.trajectory_io import nearest_rotations
 
 Method = Literal["point_to_plane", "point_to_point", "gicp"]
 # Points whose nearest-neighbour distance samples the spacing (seeded subsample).
@@ -419,6 +420,10 @@ def read_transform(path: str | Path) -> NDArray[np.float64]:
         raise FileFormatError(f"{expected}: not valid JSON: {parse_problem(exc)}", path) from None
     except (ValueError, KeyError, TypeError):
         raise FileFormatError(expected, path) from None
+    if np.isfinite(T).all():
+        # Written by hand to 4 decimals (0.8660 for cos 30°) a rotation is off orthonormal by
+        # ~1e-4, beyond as_transform's 1e-6: read as the rotation it rounds, as KITTI files are.
+        T[:3, :3] = nearest_rotations(T[None, :3, :3])[0]
     try:
         return se3.as_transform(T, "init transform")
     except InputError as exc:

@@ -161,17 +161,18 @@ def read_kitti(path: str | Path, timestamps: ArrayLike | None = None) -> Traject
     poses = np.zeros((len(rows), 4, 4))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
     poses[:, 3, 3] = 1.0
-    poses[:, :3, :3] = _nearest_rotations(poses[:, :3, :3])
+    poses[:, :3, :3] = nearest_rotations(poses[:, :3, :3])
     t = np.arange(len(rows), dtype=np.float64) if timestamps is None else timestamps
     return _trajectory(path, t, poses, lines)
 
 
-def _nearest_rotations(R: NDArray[np.float64]) -> NDArray[np.float64]:
+def nearest_rotations(R: NDArray[np.float64]) -> NDArray[np.float64]:
     """Project near-rotations (N, 3, 3) onto SO(3); leave the others for validation to reject.
 
-    KITTI files are often printed with 6-7 significant digits, which leaves ``RᵀR`` off the
-    identity by up to ~1e-6: re-orthonormalising (SVD, nearest in Frobenius norm) keeps such
-    files readable without accepting matrices that are not rotations at all.
+    KITTI files are often printed with 6-7 significant digits, and a hand-written transform
+    with 4 (``0.8660`` for cos 30°), which leaves ``RᵀR`` off the identity by up to ~1e-4:
+    re-orthonormalising (SVD, nearest in Frobenius norm) keeps such files readable without
+    accepting matrices that are not rotations at all.
     """
     U, _, Vt = np.linalg.svd(R)
     projected = U @ Vt
