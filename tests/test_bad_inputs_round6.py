@@ -15,10 +15,11 @@ from spacepose.cli import main
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.campaign_spec import load_campaign_config
 from spacepose.tools.cloud_io import read_cloud, write_cloud
+from spacepose.tools.depth_io import read_intrinsics
 from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.register import read_transform
 from spacepose.tools.tracking_io import check_output
-from test_bad_inputs_round4 import _cli_error, _cloud_folder, _refused
+from test_bad_inputs_round4 import _cli_error, _cloud_folder, _depth_folder, _refused
 
 # -- simulate: --no-turntable without --background ------------------------------------------------
 
@@ -195,3 +196,28 @@ def test_an_init_that_is_no_rotation_says_how_far_off_it_is(tmp_path, capsys, ro
     )
     argv = ["register", str(source), str(target), "--init", str(init)]
     _refused(capsys, InputError, message, lambda: read_transform(init), argv)
+
+
+# -- ROS camera_info: a matrix shorter than its rows x cols ----------------------------------------
+
+_CAMERA_INFO = (
+    "image_width: 32\nimage_height: 24\n"
+    "camera_matrix:\n  rows: 3\n  cols: 3\n  data: [30, 0, 15.5, 0, 30, 11.5, 0, 0, 1]\n"
+    "distortion_model: plumb_bob\n"
+    "distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: {data}\n"
+)
+
+
+def test_camera_info_data_shorter_than_its_size_is_refused(tmp_path, capsys):
+    """camera_calibration's YAML says rows x cols: 5 coefficients announced and 1 given (a
+    file cut short) were read as k1 alone, the lens's other terms zero, without a word."""
+    folder = _depth_folder(tmp_path / "depth", intrinsics=_CAMERA_INFO.format(data="[0.1]"))
+    intrinsics = folder / "intrinsics.yaml"
+    message = (
+        f"{intrinsics}: distortion_coefficients announces rows 1 x cols 5 = 5 numbers, its "
+        "data holds 1"
+    )
+    argv = ["track", str(folder), "--out", str(tmp_path / "est.tum")]
+    _refused(capsys, ConfigError, message, lambda: read_intrinsics(intrinsics), argv)
+    intrinsics.write_text(_CAMERA_INFO.format(data="[0.01, 0, 0, 0, 0]"))
+    assert read_intrinsics(intrinsics).k1 == 0.01

@@ -334,7 +334,9 @@ def _ros_fields(data: dict) -> dict:
     rest = {k: v for k, v in data.items() if k not in _ROS_UNUSED}
     K = _matrix_data(rest.pop("camera_matrix"), "camera_matrix")
     D = _matrix_data(
-        rest.pop("distortion_coefficients", None) or {"data": []}, "distortion_coefficients"
+        rest.pop("distortion_coefficients", None) or {"data": []},
+        "distortion_coefficients",
+        size_checked=True,
     )
     model = rest.pop("distortion_model", None)
     size = {"width": rest.pop("image_width", None), "height": rest.pop("image_height", None)}
@@ -367,12 +369,22 @@ def _open3d_fields(data: dict) -> dict:
     return matrix_fields(K) | _not_given_twice(rest, _OPEN3D_GIVES, "intrinsic_matrix")
 
 
-def _matrix_data(entry: object, name: str) -> list:
-    """A ROS YAML matrix's numbers: ``{rows, cols, data}`` or a bare list."""
+def _matrix_data(entry: object, name: str, size_checked: bool = False) -> list:
+    """A ROS YAML matrix's numbers: ``{rows, cols, data}`` or a bare list; with
+    ``size_checked``, refused when ``data`` does not hold ``rows x cols`` numbers."""
     if isinstance(entry, dict):
         if "data" not in entry:
             raise InputError(f"{name} has no data")
-        entry = entry["data"]
+        rows, cols, data = entry.get("rows"), entry.get("cols"), entry["data"]
+        # A list cut short (5 coefficients announced, 1 given) read as k1 alone without a word;
+        # the camera matrix's own count (9) is checked by matrix_fields.
+        sized = all(isinstance(v, int) and not isinstance(v, bool) for v in (rows, cols))
+        if sized and size_checked and isinstance(data, list) and rows * cols != len(data):
+            raise InputError(
+                f"{name} announces rows {rows} x cols {cols} = {rows * cols} numbers, "
+                f"its data holds {len(data)}"
+            )
+        entry = data
     if not isinstance(entry, list):
         # numpy would read a lone number as a list of one (distortion k1 = that number).
         raise InputError(f"{name} must be a list of numbers or {{rows, cols, data}}, got {entry!r}")
