@@ -3,6 +3,7 @@ problem, never a traceback, a hang, lost output or a silently wrong result."""
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 
@@ -221,3 +222,16 @@ def test_camera_info_data_shorter_than_its_size_is_refused(tmp_path, capsys):
     _refused(capsys, ConfigError, message, lambda: read_intrinsics(intrinsics), argv)
     intrinsics.write_text(_CAMERA_INFO.format(data="[0.01, 0, 0, 0, 0]"))
     assert read_intrinsics(intrinsics).k1 == 0.01
+
+
+def test_registers_own_out_named_txt_reads_back_as_init(tmp_path):
+    """register --out result.txt writes JSON; --init result.txt was then refused as 'expected
+    16 numbers (a 4x4 matrix) or JSON with T_target_source', though it held one."""
+    result = tmp_path / "result.txt"
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("x", 10, degrees=True).as_matrix()
+    T[:3, 3] = [0.1, 0.0, 0.02]
+    result.write_text(json.dumps({"fitness": 1.0, "T_target_source": T.tolist()}, indent=2))
+    np.testing.assert_allclose(read_transform(result), T)
+    result.write_text(json.dumps(T.tolist()))  # the bare matrix, as a .json holds it
+    np.testing.assert_allclose(read_transform(result), T)

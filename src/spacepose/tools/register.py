@@ -399,14 +399,16 @@ def _stage(gate: float, last: bool, config: RegisterConfig) -> dict:
 
 
 def read_transform(path: str | Path) -> NDArray[np.float64]:
-    """A 4×4 transform from a text file (16 numbers), or a JSON file (``.json``, any case)
-    holding the matrix (4 rows, or 16 numbers) or a mapping with ``T_target_source`` (e.g. an
-    earlier ``--out``)."""
+    """A 4×4 transform from a text file (16 numbers), or a JSON file (``.json``, any case, or
+    any name whose text opens with ``{`` or ``[``) holding the matrix (4 rows, or 16 numbers)
+    or a mapping with ``T_target_source`` (e.g. an earlier ``--out``)."""
     path = Path(path)
     text = read_text(path, "the transform")
     expected = "expected 16 numbers (a 4x4 matrix) or JSON with T_target_source"
     try:
-        if path.suffix.lower() == ".json":
+        # register's own --out is JSON whatever its name (result.txt): told by its first
+        # character, it was "expected ... JSON with T_target_source" though it held one.
+        if path.suffix.lower() == ".json" or text.lstrip()[:1] in ("{", "["):
             data = load_structured(text, "json")
             # A bare matrix is the transform as the key's is: refused, it was "expected" the
             # 4x4 matrix it held.
