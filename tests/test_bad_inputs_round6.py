@@ -13,11 +13,14 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
+from spacepose.core.config import dump_config
+from spacepose.core.fused_navigation import FusionConfig
+from spacepose.core.navigation import NavigationConfig
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.campaign_spec import load_campaign_config
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import read_intrinsics
-from spacepose.tools.navigation_io import navigate_run
+from spacepose.tools.navigation_io import load_navigation_config, navigate_run
 from spacepose.tools.register import read_transform
 from spacepose.tools.tracking_io import check_output
 from test_bad_inputs_round4 import _cli_error, _cloud_folder, _depth_folder, _refused
@@ -235,3 +238,27 @@ def test_registers_own_out_named_txt_reads_back_as_init(tmp_path):
     np.testing.assert_allclose(read_transform(result), T)
     result.write_text(json.dumps(T.tolist()))  # the bare matrix, as a .json holds it
     np.testing.assert_allclose(read_transform(result), T)
+
+
+# -- navigate --config: the NAV.config.json a fused run wrote ----------------------------------
+
+
+def test_a_fused_runs_own_config_is_taken_back(tmp_path, capsys):
+    """navigate --measurements registration|both writes its effective FusionConfig as
+    NAV.config.json; given back as --config it was refused with eleven 'Extra inputs are not
+    permitted' (NavigationConfig only)."""
+    written = FusionConfig(measurements="both", pose_sigma_scale=2.5)
+    config = dump_config(written, tmp_path / "nav.config.json")
+    navigation, fusion = load_navigation_config(config, "both")
+    assert fusion == written and navigation == written.navigation
+    # A navigation config is read as before.
+    plain = dump_config(NavigationConfig(), tmp_path / "plain.json")
+    assert load_navigation_config(plain, "both") == (NavigationConfig(), None)
+    # The fusion's measurements and the command line's must agree: one would be dropped.
+    frames = _cloud_folder(tmp_path / "frames", frames=2)
+    argv = ["navigate", str(frames), "--out", str(tmp_path / "nav.csv"), "--config", str(config)]
+    assert main(argv) == 1
+    assert _cli_error(capsys) == (
+        f"error: {config}: a fusion config for --measurements both, given with --measurements "
+        "rectangles: give --measurements both, or a navigation config"
+    )

@@ -51,9 +51,7 @@ def navigate(
     ),
 ) -> None:
     """Estimate ρ, ρ̇, attitude, rate, inertia ratios and CoM offset for every frame of RUN."""
-    from spacepose.core.config import load_config
-    from spacepose.core.navigation import NavigationConfig
-    from spacepose.tools.navigation_io import navigate_run, output_paths
+    from spacepose.tools.navigation_io import load_navigation_config, navigate_run, output_paths
     from spacepose.tools.outputs import check_spares_inputs
 
     if measurements not in ("rectangles", "registration", "both"):
@@ -62,7 +60,7 @@ def navigate(
         raise ConfigError(
             f"--measurements must be rectangles, registration or both, got {measurements!r}"
         )
-    cfg = None if config is None else load_config(NavigationConfig, config)
+    cfg, fusion = (None, None) if config is None else load_navigation_config(config, measurements)
     if config is not None:
         # The effective config goes to NAV.config.json: given as --config it was replaced.
         check_spares_inputs(output_paths(out, measurements), [config])
@@ -78,6 +76,7 @@ def navigate(
             topic=topic,
             measurements=measurements,
             model=model,
+            fusion=fusion,
         )
     if summary.ambiguous:
         err_console.print(
