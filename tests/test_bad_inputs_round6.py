@@ -262,3 +262,19 @@ def test_a_fused_runs_own_config_is_taken_back(tmp_path, capsys):
         f"error: {config}: a fusion config for --measurements both, given with --measurements "
         "rectangles: give --measurements both, or a navigation config"
     )
+
+
+def test_model_scale_with_target_size_is_refused(tmp_path, capsys):
+    """--target-size sizes the lab target whatever its scale: --model-scale 2 beside it was
+    dropped without a word (the same scene as without it)."""
+    mesh = tmp_path / "box.obj"
+    corners = "".join(f"v {x} {y} {z}\n" for x in (0, 1) for y in (0, 1) for z in (0, 1))
+    mesh.write_text(corners + "f 1 2 4\nf 1 4 3\nf 5 7 8\nf 5 8 6\n")
+    out = tmp_path / "run"
+    argv = ["simulate", "lab", "--frames", "1", "--model", str(mesh), "--model-scale", "2"]
+    assert main([*argv, "--target-size", "0.3", "--out", str(out)]) == 1
+    assert _cli_error(capsys) == (
+        "error: --model-scale applies to a --model's coordinates, and --target-size sets the "
+        "target's size whatever its scale: give one of them"
+    )
+    assert not out.exists()

@@ -61,8 +61,11 @@ def simulate(
         _check_not_a_folder(model)
     if grid and scenario != "lab":
         raise ConfigError(f"--grid builds lab scenes only, not {scenario!r}")
-    if model_scale is not None and (model is None or grid):
+    if model_scale is not None and (model is None or grid or target_size is not None):
         why = "the grid scales its target by --range" if grid else "no --model is given"
+        if model is not None and not grid:
+            # --target-size sizes the target whatever its scale: --model-scale was lost.
+            why = "--target-size sets the target's size whatever its scale: give one of them"
         raise ConfigError(f"--model-scale applies to a --model's coordinates, and {why}")
     if not turntable and not background:
         # The turntable is part of --background's scene: without it the option was ignored.
