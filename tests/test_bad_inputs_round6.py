@@ -278,3 +278,18 @@ def test_model_scale_with_target_size_is_refused(tmp_path, capsys):
         "target's size whatever its scale: give one of them"
     )
     assert not out.exists()
+
+
+def test_campaign_workers_with_a_scheduler_is_refused(tmp_path, capsys):
+    """--workers starts local worker processes; with --scheduler the running cluster's
+    workers ran the cases and --workers was dropped without a word."""
+    config = tmp_path / "campaign.yaml"
+    grid = {"scenario": ["lab"], "noise_scale": [0.0], "method": ["gicp"], "seed": [0]}
+    config.write_text(yaml.safe_dump({"out": str(tmp_path / "out"), "grid": grid}))
+    argv = ["campaign", str(config), "--scheduler", "tcp://127.0.0.1:1", "--workers", "4"]
+    assert main(argv) == 1
+    assert _cli_error(capsys) == (
+        "error: --workers sets the local cluster's worker processes, and --scheduler uses a "
+        "running cluster and its workers: give one of them"
+    )
+    assert not (tmp_path / "out").exists()

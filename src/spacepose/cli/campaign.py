@@ -19,9 +19,16 @@ def campaign(
     out: Path | None = typer.Option(None, help="Output folder (overrides config)."),
 ) -> None:
     """Run or resume a campaign: parts/, results.parquet, summary.json and plots go to OUT."""
+    from spacepose.errors import ConfigError
     from spacepose.tools.campaign import RESULTS_FILE, run_campaign
     from spacepose.tools.campaign_spec import load_campaign_config
 
+    if scheduler is not None and workers is not None:
+        # The running cluster has its own workers: --workers was dropped without a word.
+        raise ConfigError(
+            "--workers sets the local cluster's worker processes, and --scheduler uses a "
+            "running cluster and its workers: give one of them"
+        )
     cfg = load_campaign_config(config, workers=workers, out=out)
     result = run_campaign(cfg, scheduler=scheduler)
     console.print(
