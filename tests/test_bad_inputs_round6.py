@@ -17,6 +17,7 @@ from spacepose.core.config import dump_config
 from spacepose.core.fused_navigation import FusionConfig
 from spacepose.core.navigation import NavigationConfig
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
+from spacepose.tools import experiments
 from spacepose.tools.campaign_spec import load_campaign_config
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import read_intrinsics
@@ -293,3 +294,55 @@ def test_campaign_workers_with_a_scheduler_is_refused(tmp_path, capsys):
         "running cluster and its workers: give one of them"
     )
     assert not (tmp_path / "out").exists()
+
+
+# -- experiment: options an experiment would ignore ----------------------------------------------
+
+
+def _not_run(out_dir: Path, options: experiments.ExperimentOptions) -> dict:
+    raise AssertionError("the experiment ran")
+
+
+@pytest.mark.parametrize(
+    ("options", "refused"),
+    [
+        (["--frames", "5"], "--frames: experiment 'li-l2' does not use it (only fusion, "
+         "robustness, room do)"),
+        (["--seeds", "3"], "--seeds: experiment 'li-l2' does not use it (only fusion, li-l1, "
+         "li-l3, room do)"),
+        (["--jobs", "2"], "--jobs: experiment 'li-l2' does not use it (only robustness does)"),
+        (["--frames-csv"], "--frames-csv: experiment 'li-l2' does not use it (only robustness "
+         "does)"),
+    ],
+)  # fmt: skip
+def test_frames_seeds_and_jobs_an_experiment_ignores_are_refused(
+    tmp_path, capsys, monkeypatch, options, refused
+):
+    """li-l2 --frames 5 (or --seeds, --jobs, --frames-csv) ran the experiment's own sizes and
+    said nothing; --cells, --tracker and --targets were already refused so."""
+    experiments.available()
+    monkeypatch.setitem(experiments._REGISTRY, "li-l2", _not_run)
+    argv = ["experiment", "li-l2", "--quick", *options, "--out", str(tmp_path)]
+    assert main(argv) == 1
+    assert _cli_error(capsys) == f"error: {refused}"
+    assert not (tmp_path / "li-l2").exists()
+
+
+def test_a_quick_fusion_takes_the_seeds_and_frames_given(tmp_path, monkeypatch):
+    """fusion --quick --seeds 3 --frames 12 ran 1 seed of 30 frames without a word."""
+    from spacepose.tools.experiments import fusion
+
+    class Planned(Exception):
+        pass
+
+    def planned(target, kind, seeds, frames, base):
+        raise Planned(seeds, frames)
+
+    monkeypatch.setattr(fusion, "over_seeds", planned)
+    options = experiments.ExperimentOptions(quick=True, seeds=3, frames=12)
+    with pytest.raises(Planned) as exc:
+        fusion.fusion(tmp_path, options)
+    assert exc.value.args == ([0, 1, 2], 12)
+    with pytest.raises(Planned) as exc:
+        fusion.fusion(tmp_path, experiments.ExperimentOptions(quick=True))
+    assert exc.value.args == ([0], 30)

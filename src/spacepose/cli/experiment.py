@@ -28,7 +28,7 @@ def experiment(
     cells: str = typer.Option(
         None, help="robustness: cells, e.g. 'target=lab,range=1.2+25,seed=0', or a YAML/JSON file."
     ),
-    frames: int = typer.Option(None, min=2, help="robustness, room: frames per run."),
+    frames: int = typer.Option(None, min=2, help="robustness, room, fusion: frames per run."),
     frames_csv: bool = typer.Option(False, help="robustness: write every frame's scores."),
     jobs: int = typer.Option(1, min=1, help="robustness: processes running cells."),
     tracker: Path = typer.Option(

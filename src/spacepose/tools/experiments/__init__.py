@@ -41,15 +41,17 @@ class ExperimentOptions:
     workers
         Threads for neighbour searches (-1: all cores).
     seeds
-        li-l1 and li-l3: number of seeds, from ``seed`` on (None: the experiment's default).
+        li-l1, li-l3, fusion and room: number of seeds, from ``seed`` on (None: the
+        experiment's default).
     targets
         ``fusion`` only: comma-separated targets (None: the experiment's own).
     cells, frames, frames_csv, jobs, tracker
-        ``robustness`` only (the others ignore the middle three and refuse ``cells`` and
-        ``tracker``, :func:`check_options`): the grid cells to run (selection string or config
-        file, None: the whole grid), frames per run (None: the experiment's default), whether
-        to write every frame's scores, the processes running cells, and a tracker config file
-        (YAML or JSON; None: the defaults).
+        ``robustness`` (``frames`` also fusion and room): the grid cells to run (selection
+        string or config file, None: the whole grid), frames per run (None: the experiment's
+        default), whether to write every frame's scores, the processes running cells, and a
+        tracker config file (YAML or JSON; None: the defaults).
+
+    An experiment refuses any of :data:`OWN_OPTIONS` it does not read (:func:`check_options`).
     """
 
     seed: int = 0
@@ -66,8 +68,17 @@ class ExperimentOptions:
 
 Experiment = Callable[[Path, ExperimentOptions], dict[str, Any]]
 _REGISTRY: dict[str, Experiment] = {}
-# Options that only some experiments read; set for another one, they are an error, not ignored.
-OWN_OPTIONS: tuple[str, ...] = ("cells", "tracker", "targets")
+# Options that only some experiments read; set for another one, they are an error, not ignored
+# (li-l2 --frames 5 ran its own frames and said nothing).
+OWN_OPTIONS: tuple[str, ...] = (
+    "cells",
+    "tracker",
+    "targets",
+    "seeds",
+    "frames",
+    "frames_csv",
+    "jobs",
+)
 _USES: dict[str, tuple[str, ...]] = {}
 
 
@@ -91,11 +102,15 @@ def check_options(name: str, options: ExperimentOptions) -> None:
     ConfigError
         ``--cells: experiment 'li-l1' does not use it (only robustness does)``.
     """
+    defaults = ExperimentOptions()
     for option in OWN_OPTIONS:
-        if getattr(options, option) is not None and option not in _USES[name]:
+        given = getattr(options, option) != getattr(defaults, option)
+        if given and option not in _USES[name]:
             users = sorted(n for n, uses in _USES.items() if option in uses)
+            verb = "does" if len(users) == 1 else "do"
             raise ConfigError(
-                f"--{option}: experiment {name!r} does not use it (only {', '.join(users)} does)"
+                f"--{option.replace('_', '-')}: experiment {name!r} does not use it (only "
+                f"{', '.join(users)} {verb})"
             )
 
 

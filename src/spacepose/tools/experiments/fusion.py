@@ -308,14 +308,16 @@ def markdown_table(runs: dict[str, dict[str, Any]]) -> str:
     return "\n".join(lines) + "\n"
 
 
-@register("fusion", uses=("targets",))
+@register("fusion", uses=("targets", "seeds", "frames"))
 def fusion(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
     """Every target of :data:`TARGETS` (or of ``--targets``) with each of its measurement
     kinds (:func:`fusion_plan`): ``fusion.json``, ``fusion.md``. Full: 3 seeds of 600 frames
     (``--seeds``, ``--frames`` override); quick: the default target, registration and both, 1
-    seed of 30 frames."""
+    seed of 30 frames (``--seeds``, ``--frames`` override these too)."""
     plan = fusion_plan(options.targets, options.quick)
-    n_seeds, frames = (1, 30) if options.quick else (options.seeds or 3, options.frames or 600)
+    # Given, --seeds and --frames win in a quick run too: --quick --seeds 3 ran one seed.
+    n_seeds = options.seeds or (1 if options.quick else 3)
+    frames = options.frames or (30 if options.quick else 600)
     seeds = list(range(options.seed, options.seed + n_seeds))
     base = FusionConfig(navigation=NavigationConfig())
     runs = {

@@ -100,7 +100,7 @@ def _lab(
 # L1
 
 
-@register("li-l1")
+@register("li-l1", uses=("seeds",))
 def normal_consistency_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
     """Li Fig. 5: neighbour normal angles, raw ToF frame vs mpp-MLS output, both profiles."""
     seeds = range(options.seed, options.seed + (options.seeds or (1 if options.quick else 10)))

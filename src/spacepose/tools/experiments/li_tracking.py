@@ -146,7 +146,7 @@ def l3_variants(quick: bool) -> dict[str, tuple[str, bool]]:
     }
 
 
-@register("li-l3")
+@register("li-l3", uses=("seeds",))
 def lab_run_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
     """Li Table 2 and Figs. 11–12 on the simulated lab run, every method, over seeds."""
     n_seeds = options.seeds or (2 if options.quick else 10)

@@ -297,7 +297,7 @@ def write_outputs(
     return result
 
 
-@register("robustness", uses=("cells", "tracker"))
+@register("robustness", uses=("cells", "tracker", "frames", "frames_csv", "jobs"))
 def robustness_experiment(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
     """The default tracker over the robustness grid (module notes)."""
     runs, frames = select_cells(options.cells, options.quick, options.frames, options.seed)

@@ -156,7 +156,7 @@ def _markdown(rows: list[dict[str, Any]], means: dict[str, dict[str, list[float]
     return "\n".join(lines) + "\n"
 
 
-@register("room")
+@register("room", uses=("seeds", "frames"))
 def room_experiment(out: Path, options: ExperimentOptions) -> dict[str, Any]:
     """The experiment of the module docstring; ``seeds`` and ``frames`` as given."""
     seeds = options.seeds or (QUICK_SEEDS if options.quick else SEEDS)
