@@ -346,3 +346,18 @@ def test_a_quick_fusion_takes_the_seeds_and_frames_given(tmp_path, monkeypatch):
     with pytest.raises(Planned) as exc:
         fusion.fusion(tmp_path, experiments.ExperimentOptions(quick=True))
     assert exc.value.args == ([0], 30)
+
+
+@pytest.mark.parametrize("name", ["nav.tum", "NAV.KITTI"])
+def test_navigate_out_named_as_a_trajectory_is_refused(tmp_path, capsys, name):
+    """NAV.csv written as nav.tum: report took it for a track and left it out ('expected 8
+    values for TUM'), evaluate refused it."""
+    frames = _cloud_folder(tmp_path / "frames", frames=2)
+    out = tmp_path / name
+    message = (
+        f"{out}: navigate writes a CSV table (t, rho_x, ...), and a {out.suffix} file is read as "
+        "a trajectory (report, evaluate, evo): name it .csv"
+    )
+    argv = ["navigate", str(frames), "--out", str(out)]
+    _refused(capsys, InputError, message, lambda: navigate_run(frames, out), argv)
+    assert not list(tmp_path.glob("nav.*")) and not list(tmp_path.glob("NAV.*"))

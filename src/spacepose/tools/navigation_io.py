@@ -157,13 +157,22 @@ def navigate_run(
     Raises
     ------
     InputError
-        Besides bad input: no frame was navigated (after NAV.csv is written), saying why.
+        Besides bad input: ``out`` named as a trajectory (``.tum``, ``.kitti``), or no frame
+        was navigated (after NAV.csv is written), saying why.
     ConfigError
         The attitude prior is not a rotation (:func:`prior_quaternion`), or is given with
         ``debug_prior_from_truth``.
     """
     cfg = config or NavigationConfig()
     out = Path(out)
+    if out.suffix.lower() in (".tum", ".kitti"):
+        # A CSV table under a trajectory's name: report scored it as a track and left it out,
+        # evaluate refused it, as evo does.
+        raise InputError(
+            f"navigate writes a CSV table (t, rho_x, ...), and a {out.suffix} file is read as "
+            "a trajectory (report, evaluate, evo): name it .csv",
+            out,
+        )
     outputs = output_paths(out, measurements)
     check_writable(*outputs)
     frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
