@@ -13,17 +13,21 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
+from spacepose.core import se3
 from spacepose.core.config import dump_config
 from spacepose.core.fused_navigation import FusionConfig
 from spacepose.core.navigation import NavigationConfig
+from spacepose.core.trajectory import Trajectory
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools import experiments
 from spacepose.tools.campaign_spec import load_campaign_config
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import read_intrinsics
+from spacepose.tools.evaluation import compare_trajectory_files
 from spacepose.tools.navigation_io import load_navigation_config, navigate_run
 from spacepose.tools.register import read_transform
 from spacepose.tools.tracking_io import check_output
+from spacepose.tools.trajectory_io import write_tum
 from test_bad_inputs_round4 import _cli_error, _cloud_folder, _depth_folder, _refused
 
 # -- simulate: --no-turntable without --background ------------------------------------------------
@@ -361,3 +365,43 @@ def test_navigate_out_named_as_a_trajectory_is_refused(tmp_path, capsys, name):
     argv = ["navigate", str(frames), "--out", str(out)]
     _refused(capsys, InputError, message, lambda: navigate_run(frames, out), argv)
     assert not list(tmp_path.glob("nav.*")) and not list(tmp_path.glob("NAV.*"))
+
+
+# -- evaluate: a health table's statuses in other words --------------------------------------------
+
+
+def _scored(tmp_path: Path, status: str) -> tuple[Path, object]:
+    """Ten noisy poses against their truth, frame 3 of the health table beside the estimate
+    marked ``status``; the estimate's path and the comparison."""
+    rng = np.random.default_rng(23)
+    t = np.arange(10.0)
+    gt = np.stack([se3.make_transform(np.eye(3), [0.01 * k, 0.0, 1.2]) for k in t])
+    noisy = gt.copy()
+    noisy[:, :3, 3] += rng.normal(scale=1e-3, size=(10, 3))
+    est_path = write_tum(tmp_path / "est.tum", Trajectory(t, noisy))
+    gt_path = write_tum(tmp_path / "gt.tum", Trajectory(t, gt))
+    rows = [f"{k},{float(k)},{status if k == 3 else 'ok'}" for k in range(10)]
+    (tmp_path / "est.health.csv").write_text("frame,timestamp,status\n" + "\n".join(rows) + "\n")
+    return est_path, compare_trajectory_files(est_path, gt_path)
+
+
+def test_a_lost_status_in_capitals_is_left_out(tmp_path):
+    """'LOST' (a table re-saved by another tool) was not 'lost': the frame's predicted pose
+    was scored as a measurement without a word."""
+    with pytest.warns(SpaceposeWarning) as caught:
+        est_path, result = _scored(tmp_path, " LOST")
+    assert result.table.n == 9
+    left_out = "1 frame(s) lost in est.health.csv left out (their poses are the motion model's "
+    assert f"{est_path}: {left_out}predictions)" in [str(w.message) for w in caught]
+
+
+def test_a_status_in_other_words_says_the_lost_frames_are_scored(tmp_path):
+    """A status that is none of ok, degraded, lost (another tool's 'failed') was read as not
+    lost without a word."""
+    with pytest.warns(SpaceposeWarning) as caught:
+        est_path, result = _scored(tmp_path, "failed")
+    assert [str(w.message) for w in caught] == [
+        f"{est_path}: est.health.csv row 4 has status 'failed', not one of ok, degraded, lost: "
+        "lost frames, if any, are scored"
+    ]
+    assert result.table.n == 10

@@ -87,6 +87,10 @@ class TrajectoryComparison:
         }
 
 
+# The statuses EST.health.csv holds (spacepose.core.track_result).
+_STATUSES: tuple[str, ...] = ("ok", "degraded", "lost")
+
+
 def compare_trajectory_files(
     est_path: str | Path,
     gt_path: str | Path,
@@ -271,7 +275,16 @@ def lost_frames(est_path: Path, est: Trajectory) -> tuple[np.ndarray | None, str
         return None, unused.format(
             f"row {k + 1} is at t = {t:.9g} s, pose {k} at {est.timestamps[k]:.9g} s"
         )
-    lost = np.array([row["status"] == "lost" for row in rows])
+    # Read as the tracker writes them; another word (LOST, failed) left that frame scored
+    # without a word.
+    statuses = [(row["status"] or "").strip().lower() for row in rows]
+    other = next((k for k, v in enumerate(statuses) if v not in _STATUSES), None)
+    if other is not None:
+        word = rows[other]["status"]
+        return None, unused.format(
+            f"row {other + 1} has status {word!r}, not one of {', '.join(_STATUSES)}"
+        )
+    lost = np.array([v == "lost" for v in statuses])
     if not lost.any():
         return None, None
     if lost.all():
