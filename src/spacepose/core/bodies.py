@@ -47,7 +47,9 @@ from scipy.spatial import cKDTree
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.correspondences import find_correspondences
+from spacepose.core.health import normalised_condition
 from spacepose.core.icp import ICPConfig, icp
+from spacepose.core.icp_systems import point_to_plane_system
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.scale import rms_radius
 from spacepose.core.voxel import voxel_cells
@@ -164,6 +166,7 @@ def split_motion(
     near: float,
     workers: int = -1,
     second: ArrayLike | None = None,
+    max_condition: float = 1e3,
 ) -> MotionSplit | None:
     """Look for a second rigid motion among a frame's points (module docstring).
 
@@ -191,6 +194,10 @@ def split_motion(
         the first is refitted. None: fitted to the points the one-motion registration leaves
         unexplained (step 1). The identity is a support standing still before a sensor that
         stands still too.
+    max_condition
+        Largest normalised condition number of the target body's information under its own
+        motion (the tracker passes its health's ``ok_condition``): the target is tracked alone
+        after a split, and a part that cannot constrain its motion is no target.
 
     Returns
     -------
@@ -270,6 +277,14 @@ def split_motion(
     # frame's new views set apart does not.
     if rigid[1] < FIT_RATIO * shift[1] or shares[0] < 2.0 * MIN_BODY_SHARE:
         return None
+    # The target is tracked alone after the split, and its motion was refitted on its part
+    # alone: a part that does not constrain it (a flat end) lets the refit run off, and every
+    # other part then fits the support's motion better (a rigid spacecraft at 25 m split into
+    # a "still" 75 % and an end whose refit ran 0.7-1.2 m off, condition 1.6e4-1.8e4;
+    # methods.md §5.8, step 4).
+    moved = se3.transform_points(T_a, points[frame_target])
+    if _condition(ref, moved, cap, reach, workers) > max_condition:
+        return None
     return MotionSplit(
         T_a,
         T_b,
@@ -293,6 +308,23 @@ def _fit(
     except SpaceposeError:
         return T_init
     return result.T_target_source
+
+
+def _condition(
+    ref: PreparedCloud, moved: NDArray[np.float64], cap: float, reach: float, workers: int
+) -> float:
+    """Normalised condition number (:func:`~spacepose.core.health.normalised_condition`) of
+    the point-to-plane information of ``moved`` (N, 3, the reference's frame) over its pairs
+    within ``reach`` that the motion explains (residual below ``cap``); inf with fewer than
+    seven."""
+    s, t, _ = find_correspondences(ref.tree, moved, reach, workers)
+    q, n = ref.cloud.points[t], ref.cloud.normals[t]
+    explained = np.abs(np.einsum("ij,ij->i", moved[s] - q, n)) < cap
+    if explained.sum() < 7:
+        return float("inf")
+    p = moved[s][explained]
+    H, _, _ = point_to_plane_system(p, q[explained], n[explained])
+    return normalised_condition(H, p.mean(axis=0), rms_radius(p))
 
 
 def _shift_cost(

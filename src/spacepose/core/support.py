@@ -55,15 +55,24 @@ class SupportSeparation:
     stale_fitness
         Fitness onto a keyframe below which it is going stale (the keyframe policy's): a
         frame that fits the first keyframe less is not compared with it (:meth:`parted`).
+    max_condition
+        Largest condition number of the target body's own motion after a split (the health
+        check's ok bound, :func:`~spacepose.core.bodies.split_motion`).
     """
 
     def __init__(
-        self, registrar: FrameRegistrar, min_points: int, workers: int, stale_fitness: float
+        self,
+        registrar: FrameRegistrar,
+        min_points: int,
+        workers: int,
+        stale_fitness: float,
+        max_condition: float,
     ) -> None:
         self.registrar = registrar
         self.min_points = min_points
         self.workers = workers
         self.stale_fitness = stale_fitness
+        self.max_condition = max_condition
         # The support moving otherwise (found by a fitted second motion: the looks end), and a
         # support standing still (the looks go on: a turntable may stand on the still table).
         self.support: ClutterBody | None = None
@@ -226,6 +235,7 @@ class SupportSeparation:
             noise.window,
             self.workers,
             second,
+            self.max_condition,
         )
         if found is None:
             return None

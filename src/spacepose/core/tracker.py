@@ -305,8 +305,10 @@ class Tracker:
             self._model_cloud = self._frames.sensor_model(self._model_cloud)
         self._registrar = registrar
         if not self.model_based:
-            min_points, stale = cfg.health.min_points, cfg.keyframe.stale_fitness
-            self._support = SupportSeparation(registrar, min_points, workers, stale)
+            health, stale = cfg.health, cfg.keyframe.stale_fitness
+            self._support = SupportSeparation(
+                registrar, health.min_points, workers, stale, health.ok_condition
+            )
         model, window, motion = self._model, self._window, self._motion
         fine = FineStage(
             cfg, self._frames, registrar, window, motion, model, self._model_cloud, self._support
