@@ -172,7 +172,7 @@ def test_killed_campaign_resumes_without_loss_or_duplicates(tmp_path, capsys, ma
     assert all(first_run[cid] == 1 for cid in finished)
 
     # Started again (on the shared cluster, whose workers leave markers in the same folder).
-    assert main([*args, "--scheduler", scheduler]) == 0
+    assert main([*args[:-2], "--scheduler", scheduler]) == 0  # its workers, not --workers
     resumed = Counter(m.name.split(".")[0] for m in markers.iterdir() if m.name not in before)
     assert set(resumed) == all_ids - finished
     assert set(resumed.values()) == {1}
