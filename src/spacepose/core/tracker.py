@@ -100,9 +100,10 @@ class Tracker:
         self._window = KeyframeWindow(config)
         self._registrar: FrameRegistrar | None = None
         self._t_start = 0.0
-        self._model_cloud = (
+        self._model_input = (
             None if model is None else checked_model(model, config.health.min_points)
         )
+        self._model_cloud = self._model_input
         self._model: Keyframe | None = None
         self._relocaliser: Relocaliser | None = None
         self._frames = FramePreparer(config, self._model_cloud, workers)
@@ -205,8 +206,10 @@ class Tracker:
         try:
             prepared = self._preprocess(cloud, prediction)
         except SpaceposeError as exc:
-            times["preprocess"] = elapsed_ms(tic)
-            return self._lost(index, timestamp, prediction, (f"unusable frame: {exc}",), times)
+            prepared = self._whole_frame(cloud, prediction)
+            if prepared is None:
+                times["preprocess"] = elapsed_ms(tic)
+                return self._lost(index, timestamp, prediction, (f"unusable frame: {exc}",), times)
         times["preprocess"] = elapsed_ms(tic)
         if not self.model_based and not self._window:
             try:
@@ -292,6 +295,22 @@ class Tracker:
             self._build_stages()
         return prepared
 
+    def _whole_frame(
+        self, cloud: PointCloud | ArrayLike | None, prediction: Prediction | None
+    ) -> PreparedCloud | None:
+        """Against a model, a frame with nothing usable where the prediction puts the target,
+        prepared whole (its nearest object), or None: the model says which pose the object
+        has wherever it is (the coarse registration finds it), and a prediction gone wrong
+        (a first frame 1 km off, its pose accepted unconfirmed) otherwise cropped every later
+        frame to where the target is not. Model-free, the nearest object elsewhere may be
+        another one, and nothing tells it from the target."""
+        if not self.model_based or prediction is None or self._frames.scale is None:
+            return None
+        try:
+            return self._preprocess(cloud)
+        except SpaceposeError:
+            return None
+
     def _build_stages(self) -> None:
         """The registration stages, once the first usable frame has set every length."""
         cfg, workers = self.config, self.workers
@@ -376,8 +395,18 @@ class Tracker:
         self._lost_streak += 1
         if self._registrar is not None:
             self._registrar.noise.discard()
+        if not self._motion.history:
+            self._forget_lengths()
         close_times(times, self._t_start)
         return lost_result(index, timestamp, prediction, reasons, times, coarse)
+
+    def _forget_lengths(self) -> None:
+        """No pose accepted yet: the lengths a lost frame derived, and the stages built on
+        them, are dropped, so that the next frame derives its own (a first frame of noise set
+        a voxel at which the model kept 24 points, and every later frame was lost)."""
+        self._frames = FramePreparer(self.config, self._model_input, self.workers)
+        self._model_cloud = self._model_input
+        self._registrar = self._model = self._relocaliser = self._fine = self._support = None
 
     def _accept(
         self,
