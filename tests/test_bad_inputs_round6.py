@@ -405,3 +405,21 @@ def test_a_status_in_other_words_says_the_lost_frames_are_scored(tmp_path):
         "lost frames, if any, are scored"
     ]
     assert result.table.n == 10
+
+
+# -- campaign: a metric no axis can span ----------------------------------------------------------
+
+
+def test_campaign_plot_of_an_unplottable_noise_scale_warns_instead_of_crashing():
+    """A grid with noise_scale 1e308: every case failed (its points overflow) and was recorded,
+    then matplotlib could not place ticks up to 1e308 and the campaign ended in a traceback
+    after writing its table. The figure is now left out with one warning line."""
+    from spacepose.tools.campaign_summary import plot_metrics
+
+    summary = [
+        {"method": "keyframe", "noise_scale": 1e308, "metric": "time_s", "mean": 0.7, "std": 0.0},
+        {"method": "keyframe", "noise_scale": 1.0, "metric": "ate_mm", "mean": 0.4, "std": 0.1},
+    ]
+    with pytest.warns(SpaceposeWarning, match=r"^time_s\.png not written: "):
+        pngs = plot_metrics(summary, ["method", "noise_scale"])
+    assert set(pngs) == {"ate_mm"} and pngs["ate_mm"].startswith(b"\x89PNG")

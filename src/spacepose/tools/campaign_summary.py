@@ -8,10 +8,13 @@ cases. :func:`plot_metrics` draws each metric's mean against ``noise_scale``, on
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+
+from spacepose.errors import SpaceposeWarning
 
 # --------------------------------------------------------------------------------------------
 # Summary and plots
@@ -97,5 +100,11 @@ def plot_metrics(summary: Sequence[Mapping[str, Any]], group_by: Sequence[str]) 
         ax.grid(alpha=0.3)
         if lines:
             ax.legend(fontsize=7)
-        pngs[metric] = figure_png(fig)
+        try:
+            pngs[metric] = figure_png(fig)
+        except (ValueError, OverflowError) as exc:
+            # Values no axis can span (a noise_scale of 1e308): the table and summary are
+            # written, the figure is not.
+            plt.close(fig)
+            warnings.warn(SpaceposeWarning(f"{metric}.png not written: {exc}"), stacklevel=2)
     return pngs
