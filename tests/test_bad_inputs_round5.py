@@ -297,6 +297,18 @@ def test_a_campaign_integer_beyond_64_bits_is_refused_before_any_case(tmp_path, 
 # -- evaluate: a health table that cannot say which frames were lost -----------------------------
 
 
+def noisy_pair(tmp_path: Path, seed: int) -> tuple[Path, Path]:
+    """Ten poses 1 mm noisy about their truth (10 mm steps at 1.2 m), written as est.tum and
+    gt.tum; their paths."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(10.0)
+    gt = np.stack([se3.make_transform(np.eye(3), [0.01 * k, 0.0, 1.2]) for k in t])
+    noisy = gt.copy()
+    noisy[:, :3, 3] += rng.normal(scale=1e-3, size=(10, 3))
+    est_path = write_tum(tmp_path / "est.tum", Trajectory(t, noisy))
+    return est_path, write_tum(tmp_path / "gt.tum", Trajectory(t, gt))
+
+
 @pytest.mark.parametrize(
     ("header", "shift", "problem"),
     [
@@ -311,13 +323,7 @@ def test_a_health_table_that_cannot_mark_the_lost_frames_says_so(tmp_path, heade
     """evaluate leaves out the frames EST.health.csv marks lost; a table without a status
     column, or at other times than the poses, left none out (or other frames) without a
     word. Now the lost frames are scored, with a warning naming the table and why."""
-    rng = np.random.default_rng(11)
-    t = np.arange(10.0)
-    gt = np.stack([se3.make_transform(np.eye(3), [0.01 * k, 0.0, 1.2]) for k in t])
-    noisy = gt.copy()
-    noisy[:, :3, 3] += rng.normal(scale=1e-3, size=(10, 3))
-    est_path = write_tum(tmp_path / "est.tum", Trajectory(t, noisy))
-    gt_path = write_tum(tmp_path / "gt.tum", Trajectory(t, gt))
+    est_path, gt_path = noisy_pair(tmp_path, 11)
     sep = ";" if ";" in header else ","
     rows = [sep.join((str(k), repr(k + shift), "lost" if k == 3 else "ok")) for k in range(10)]
     health = tmp_path / "est.health.csv"

@@ -13,11 +13,9 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
-from spacepose.core import se3
 from spacepose.core.config import dump_config
 from spacepose.core.fused_navigation import FusionConfig
 from spacepose.core.navigation import NavigationConfig
-from spacepose.core.trajectory import Trajectory
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools import experiments
 from spacepose.tools.campaign_spec import load_campaign_config
@@ -27,8 +25,8 @@ from spacepose.tools.evaluation import compare_trajectory_files
 from spacepose.tools.navigation_io import load_navigation_config, navigate_run
 from spacepose.tools.register import read_transform
 from spacepose.tools.tracking_io import check_output
-from spacepose.tools.trajectory_io import write_tum
 from test_bad_inputs_round4 import _cli_error, _cloud_folder, _depth_folder, _refused
+from test_bad_inputs_round5 import noisy_pair
 
 # -- simulate: --no-turntable without --background ------------------------------------------------
 
@@ -373,13 +371,7 @@ def test_navigate_out_named_as_a_trajectory_is_refused(tmp_path, capsys, name):
 def _scored(tmp_path: Path, status: str) -> tuple[Path, object]:
     """Ten noisy poses against their truth, frame 3 of the health table beside the estimate
     marked ``status``; the estimate's path and the comparison."""
-    rng = np.random.default_rng(23)
-    t = np.arange(10.0)
-    gt = np.stack([se3.make_transform(np.eye(3), [0.01 * k, 0.0, 1.2]) for k in t])
-    noisy = gt.copy()
-    noisy[:, :3, 3] += rng.normal(scale=1e-3, size=(10, 3))
-    est_path = write_tum(tmp_path / "est.tum", Trajectory(t, noisy))
-    gt_path = write_tum(tmp_path / "gt.tum", Trajectory(t, gt))
+    est_path, gt_path = noisy_pair(tmp_path, 23)
     rows = [f"{k},{float(k)},{status if k == 3 else 'ok'}" for k in range(10)]
     (tmp_path / "est.health.csv").write_text("frame,timestamp,status\n" + "\n".join(rows) + "\n")
     return est_path, compare_trajectory_files(est_path, gt_path)
