@@ -36,25 +36,30 @@ def _track(sim):
 
 def test_a_marked_chain_closes_onto_the_first_keyframe(orbit):
     """Orbit run at 25 m, seed 1: frame 43 leaves a direction nearly unconstrained (condition
-    above its bound) and the keyframes after it carry the mark; frame 48, 127° from the first
-    view, registers onto the first keyframe, agrees with the chain within its σ and becomes a
-    keyframe, and the frames after it are within 3σ of the truth on every axis and ``ok`` again,
-    but for the first, which the motion model predicts from the step onto the closed pose and
-    may find off its prediction (frame 49: 198 mm off it, 0.12 σ from the truth)."""
+    above its bound) and the keyframes after it carry the mark; frame 48 or 49, about 127° from
+    the first view, registers onto the first keyframe, agrees with the chain within its σ and
+    becomes a keyframe (48 before the motion model's prediction held frame 43's weak
+    directions, methods.md §5.3; 49 since, 0.18σ from the truth), and the frames after it are
+    within 3σ of the truth on every axis and ``ok`` again, but for the first, which the motion
+    model predicts from the step onto the closed pose and may find off its prediction (frame
+    49 when the closure came on 48: 198 mm off it, 0.12σ from the truth)."""
     results, truth = _track(orbit)
     assert any(reason.startswith(CONDITION) for reason in results[43].reasons)
     assert results[44].keyframe and results[44].reference_index == 40
-    closed = results[48]
-    assert closed.reference_index == 0 and closed.keyframe
+    closed_at = next(k for k in range(44, FRAMES) if results[k].reference_index == 0)
+    closed = results[closed_at]
+    assert closed_at <= 49 and closed.keyframe
     assert closed.reasons[0].startswith(FAR_KEYFRAME)
-    for r, T_true in zip(results[49:], truth[49:], strict=True):
+    after = closed_at + 1
+    for r, T_true in zip(results[after:], truth[after:], strict=True):
         e, sigma, _ = tracker_errors(r.T_sensor_target, r.covariance, T_true)
         assert np.all(np.abs(e) < 3.0 * sigma)
         assert UNOBSERVED_CHAIN not in r.reasons
     assert all(
-        r.reasons == () or r.reasons[0].startswith("off the prediction") for r in results[49:50]
+        r.reasons == () or r.reasons[0].startswith("off the prediction")
+        for r in results[after : after + 1]
     )
-    assert all(r.status == "ok" for r in results[50:])
+    assert all(r.status == "ok" for r in results[after + 1 :])
 
 
 def test_without_the_closure_the_chain_stays_marked(orbit, monkeypatch):

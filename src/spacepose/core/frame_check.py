@@ -33,6 +33,8 @@ FAR_KEYFRAME = "keyframe"
 UNTESTED_MODEL = "the motion model's error not yet observed to confirm the pose"
 # Reason of a frame registered onto a keyframe whose chain left a direction unobserved.
 UNOBSERVED_CHAIN = "keyframe chain through a view that left a direction unobserved"
+# The reason of a frame whose ill-conditioned registration the prediction held (fine_stage).
+HELD = "its weakly observed directions held by the motion model's prediction"
 
 
 @dataclass(frozen=True)
@@ -123,20 +125,27 @@ def check_frame(
     disagreement = None
     if prediction is not None:
         disagreement = pose_disagreement(estimate.T_sensor_target, prediction.T_sensor_target, c)
+    bounds = health_bounds(context, model_based)
+    condition = normalised_condition(res.information, c_ref, prepared.radius)
+    if estimate.held:
+        # Its weak directions are the prediction's: degraded, not lost.
+        condition = min(condition, bounds.lost_condition)
     status, reasons = assess_health(
         res.fitness,
         res.inlier_rmse,
-        normalised_condition(res.information, c_ref, prepared.radius),
+        condition,
         estimate.own_covariance,
         c,
         disagreement,
-        health_bounds(context, model_based),
+        bounds,
         velocity_known=prediction is not None and prediction.velocity_known,
         surface_step=step_size(estimate.surface_step, c_ref),
         model_reference=model_based,
         structure=estimate.structure,
         influence=estimate.influence,
     )
+    if estimate.held and status != "lost":
+        reasons = (*reasons, HELD)
     free = estimate.degeneracy
     if free is not None and status != "lost":
         # The reason starts as the fine condition's does: the keyframe policy takes either

@@ -155,6 +155,9 @@ class FineEstimate:
     degeneracy
         The directions the surfaces leave free, when they leave some (``covariance`` and
         ``own_covariance`` are widened along them); None otherwise.
+    held
+        The registration was ill-conditioned and the motion model's prediction, weighed as a
+        prior, holds its weak directions (pose and covariances are the fused ones).
     """
 
     T_sensor_target: NDArray[np.float64]
@@ -170,6 +173,7 @@ class FineEstimate:
     structure: float | None = None
     influence: PartInfluence | None = None
     degeneracy: Degeneracy | None = None
+    held: bool = False
 
     def in_reference(self, point_k: NDArray[np.float64]) -> NDArray[np.float64]:
         """A frame-k point (3,) expressed in the reference frame (where the information is)."""
