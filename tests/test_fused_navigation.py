@@ -3,12 +3,15 @@ against the simulator's truth; the filter's predicted-pose covariance against Mo
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
 from spacepose.core.ekf import EKFConfig, RelativeNavEKF
+from spacepose.core.frame_check import HELD
 from spacepose.core.fused_navigation import GATE_REASON, FusedNavigator, FusionConfig
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.nav_state import NavState, k_from_params
@@ -111,6 +114,30 @@ def test_a_pose_the_gate_rejects_is_flagged_in_the_tracker_result(orbit):
     assert bad.track.status == "degraded"
     assert any(r.startswith(GATE_REASON) for r in bad.track.reasons)
     assert rows[21].pose_used
+
+
+@pytest.mark.parametrize("held", [False, True])
+def test_a_pose_the_prediction_held_never_enters_the_filter(orbit, monkeypatch, held):
+    """With ``use_degraded`` a degraded pose enters the filter, but not one whose weak
+    directions the motion model's prediction held (methods.md §5.3): its pose carries that
+    prediction, the filter's own when it seeded the registration, and would count twice.
+    Frame 12's result is made degraded, with or without the held reason."""
+    sim, n, R_O_C, _catalogue, frames = orbit
+    cfg = FusionConfig(measurements="registration", pose_sigma_scale=4.0, use_degraded=True)
+    nav = FusedNavigator([], n, R_O_C, cfg, sim.model_cloud())
+    rows = [nav.step(f.timestamp, f.cloud) for f in frames[:12]]
+    assert rows[-1].pose_used
+    track_frame = nav.tracker.track_frame
+
+    def degraded(*args):
+        result = track_frame(*args)
+        reasons = (HELD,) if held else ("off the prediction",)
+        return replace(result, status="degraded", reasons=reasons)
+
+    monkeypatch.setattr(nav.tracker, "track_frame", degraded)
+    row = nav.step(frames[12].timestamp, frames[12].cloud)
+    assert row.track.status == "degraded"
+    assert bool(row.pose_used) is (not held)
 
 
 def test_configuration_errors(orbit):

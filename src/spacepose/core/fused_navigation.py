@@ -50,6 +50,7 @@ from spacepose.core import dynamics
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig
 from spacepose.core.ekf import RelativeNavEKF
+from spacepose.core.frame_check import HELD
 from spacepose.core.innovation_scale import InnovationScale
 from spacepose.core.model_free_start import model_free_start
 from spacepose.core.nav_config import NavigationConfig
@@ -117,7 +118,8 @@ class FusionConfig(StageConfig):
     use_degraded: bool = Field(
         False,
         description="Let poses the tracker flags degraded (unconfirmed, off the prediction) "
-        "into the filter; by default only ok poses enter it.",
+        "into the filter, but for those the prediction held (their pose carries it); by "
+        "default only ok poses enter it.",
     )
     restart_after: int = Field(
         10,
@@ -258,7 +260,12 @@ class FusedNavigator:
         track = self.tracker.track_frame(cloud, t, prior)
         used, nis, started = None, float("nan"), False
         T_pred = None if ekf is None else ekf.predict_pose()
-        offered = track.status == "ok" or (track.status == "degraded" and c.use_degraded)
+        # A frame the motion model's prediction held carries that prediction, the filter's own
+        # when it seeded the registration: not a measurement.
+        held = HELD in track.reasons
+        offered = track.status == "ok" or (
+            track.status == "degraded" and c.use_degraded and not held
+        )
         if offered:
             if self.rectangles is None and self._rejected_ok >= c.restart_after:
                 ekf = self._ekf = None
