@@ -318,11 +318,11 @@ def _condition(
     within ``reach`` that the motion explains (residual below ``cap``); inf with fewer than
     seven."""
     s, t, _ = find_correspondences(ref.tree, moved, reach, workers)
-    q, n = ref.cloud.points[t], ref.cloud.normals[t]
-    explained = np.abs(np.einsum("ij,ij->i", moved[s] - q, n)) < cap
+    p, q, n = moved[s], ref.cloud.points[t], ref.cloud.normals[t]
+    explained = np.abs(np.einsum("ij,ij->i", p - q, n)) < cap
     if explained.sum() < 7:
         return float("inf")
-    p = moved[s][explained]
+    p = p[explained]
     H, _, _ = point_to_plane_system(p, q[explained], n[explained])
     return normalised_condition(H, p.mean(axis=0), rms_radius(p))
 

@@ -267,8 +267,8 @@ class FineStage:
         registration is ill-conditioned (condition above the health's ok bound): along the
         directions the surfaces hardly see, the registration's pose is where noise and edges
         slid it, and the prediction is the better guess; along the others the registration's
-        information dominates. Information form, left perturbations in the sensor frame, the
-        prediction's covariance taken ``model_error_sigmas`` wider (its error is measured on
+        information dominates. Left perturbations in the sensor frame, the prediction's
+        covariance taken ``model_error_sigmas`` wider (its error is measured on
         a few frames, and grows under acceleration: at 1σ the prior dragged accelerating runs
         at 25 m along the constant velocity, 195 -> 549 mm; methods.md §5.3)."""
         if prediction is None or not prediction.velocity_known:
@@ -280,12 +280,14 @@ class FineStage:
         ):
             return estimate
         own = estimate.own_covariance
-        own_info = np.linalg.pinv(own, hermitian=True)
-        prior_info = np.linalg.inv(health.model_error_sigmas**2 * prediction.covariance)
-        fused_cov = np.linalg.inv(own_info + prior_info)
+        # Covariance form (the Kalman gain): a prior given from outside may be singular (a
+        # position known, an attitude not), which the information form cannot invert.
+        spread = own + health.model_error_sigmas**2 * prediction.covariance
+        gain = own @ np.linalg.pinv(spread, hermitian=True)
+        fused_cov = own - gain @ own
         fused_cov = 0.5 * (fused_cov + fused_cov.T)
         towards = se3.log(prediction.T_sensor_target @ se3.invert(estimate.T_sensor_target))
-        T = se3.exp(fused_cov @ prior_info @ towards) @ estimate.T_sensor_target
+        T = se3.exp(gain @ towards) @ estimate.T_sensor_target
         return replace(
             estimate,
             T_sensor_target=T,
