@@ -67,6 +67,10 @@ class PointCloud:
             raise InputError(f"{len(normals)} normals for {n} points", self.source)
         if sigma is not None and len(sigma) != n:
             raise InputError(f"{len(sigma)} sigma values for {n} points", self.source)
+        if normals is not None:
+            _check_directions(normals, self.source)
+        if sigma is not None:
+            _check_sigma(sigma, self.source)
         values = [pts, normals, sigma]
         given = [self.points, self.normals, self.sigma]
         # NaN when a coordinate is NaN, inf when one is infinite: one pass checks both.
@@ -130,6 +134,33 @@ class PointCloud:
     def with_normals(self, normals: ArrayLike) -> PointCloud:
         """A copy carrying the given (N, 3) normals."""
         return PointCloud(self.points, normals, self.sigma, source=self.source)
+
+
+def _check_directions(normals: NDArray[np.float64], source: str | None) -> None:
+    """Refuse normals of zero length: they give no direction, and a point-to-plane residual
+    weighed by one is zero whatever the pose (a NaN row is dropped with its point instead)."""
+    zero = normals[:, 0] == 0.0
+    zero &= normals[:, 1] == 0.0
+    zero &= normals[:, 2] == 0.0
+    if zero.any():
+        rows = np.flatnonzero(zero)
+        raise InputError(
+            f"normals: {len(rows)} of {len(normals)} rows are (0, 0, 0) (first at row {rows[0]}): "
+            "a normal needs a direction; leave the normals out to have them estimated",
+            source,
+        )
+
+
+def _check_sigma(sigma: NDArray[np.float64], source: str | None) -> None:
+    """Refuse a negative noise σ: it is a standard deviation (a NaN row is dropped instead)."""
+    negative = sigma < 0.0
+    if negative.any():
+        rows = np.flatnonzero(negative)
+        raise InputError(
+            f"sigma: {len(rows)} of {len(sigma)} values are negative (first at row {rows[0]}: "
+            f"{sigma[rows[0]]:.6g}): a noise sigma is a standard deviation, >= 0",
+            source,
+        )
 
 
 def _as_rows(values: ArrayLike, width: int, name: str, source: str | None) -> NDArray[np.float64]:
