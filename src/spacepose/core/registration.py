@@ -79,7 +79,8 @@ def kabsch(
     Raises
     ------
     InputError
-        On mismatched shapes or fewer than 3 pairs.
+        On mismatched shapes, fewer than 3 pairs, non-finite points, or weights that are not
+        one finite value >= 0 per pair with a positive sum.
     DegenerateGeometryError
         When a (single, unbatched) set of pairs is collinear, so the rotation is undetermined.
     """
@@ -89,7 +90,10 @@ def kabsch(
         raise InputError(f"kabsch needs matching (..., M, 3) arrays, got {src.shape}, {dst.shape}")
     if src.shape[-2] < 3:
         raise InputError(f"kabsch needs at least 3 point pairs, got {src.shape[-2]}")
-    w = np.ones(src.shape[:-1]) if weights is None else np.broadcast_to(weights, src.shape[:-1])
+    for name, values in (("source", src), ("target", dst)):
+        if not np.isfinite(values).all():
+            raise InputError(f"kabsch: the {name} points have non-finite entries (NaN or inf)")
+    w = np.ones(src.shape[:-1]) if weights is None else _pair_weights(weights, src.shape[:-1])
     wsum = w.sum(axis=-1, keepdims=True)
     mu_s = np.einsum("...m,...mi->...i", w, src) / wsum
     mu_d = np.einsum("...m,...mi->...i", w, dst) / wsum
@@ -112,3 +116,26 @@ def kabsch(
     T[..., :3, 3] = mu_d - np.einsum("...ij,...j->...i", R, mu_s)
     T[..., 3, 3] = 1.0
     return T
+
+
+def _pair_weights(weights: ArrayLike, shape: tuple[int, ...]) -> NDArray[np.float64]:
+    """``weights`` as one finite value >= 0 per pair of ``shape``, each set summing above 0:
+    a NaN or a zero sum ended in numpy's "SVD did not converge", and a negative weight
+    turned the fit into a reflection's without a word."""
+    try:
+        w = np.asarray(weights, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"kabsch: the weights are not numeric: {exc}") from None
+    try:
+        w = np.broadcast_to(w, shape)
+    except ValueError:
+        raise InputError(
+            f"kabsch needs one weight per point pair {shape}, got {np.shape(weights)}"
+        ) from None
+    if not np.isfinite(w).all():
+        raise InputError("kabsch: the weights have non-finite entries (NaN or inf)")
+    if (w < 0).any():
+        raise InputError(f"kabsch: weights must be >= 0, got {float(w.min()):.6g}")
+    if (w.sum(axis=-1) <= 0).any():
+        raise InputError("kabsch: the weights of a set of pairs are all zero")
+    return w
