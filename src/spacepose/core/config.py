@@ -173,6 +173,27 @@ def validate_config(model: type[C], data: dict | None, source: str | Path | None
         raise ConfigError(f"{source}: {exc}" if source else str(exc)) from None
 
 
+def stage_config(config: Any, model: type[C], name: str = "config") -> C:
+    """``config`` as a ``model``: an instance as it is, a dict of its fields validated (as
+    :class:`~spacepose.core.tracker.Tracker` takes one), anything else refused.
+
+    The check at the top of every one-call function that takes a stage config: a dict or None
+    passed there ended in ``AttributeError: 'dict' object has no attribute ...`` deep inside.
+
+    Raises
+    ------
+    ConfigError
+        ``config`` is neither a ``model`` nor a dict, or the dict is not a valid ``model``.
+    """
+    if isinstance(config, model):
+        return config
+    if isinstance(config, dict):
+        return validate_config(model, config)
+    raise ConfigError(
+        f"{name} must be a {model.__name__} (or a dict of its fields), got {type(config).__name__}"
+    )
+
+
 def _non_string_key(data: Any, path: str = "") -> tuple[str, Any] | None:
     """``(" under a.b", key)`` of the first key of a nested mapping that is not a string, or
     None."""

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
 
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.grid_knn import cell_candidates
 from spacepose.core.threads import numba_threads
@@ -126,6 +126,7 @@ def compute_fpfh(
     Memory: the (N, 33) histograms, 12 bytes per (point, neighbour) pair and one block's
     (block, max_nn) pair buffers, whatever the cloud size.
     """
+    config = stage_config(config, FPFHConfig)
     cloud = as_cloud(cloud, "cloud")
     if not cloud.has_normals:
         raise InputError(

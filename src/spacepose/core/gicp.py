@@ -23,6 +23,7 @@ from pydantic import Field
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
+from spacepose.core.config import stage_config
 from spacepose.core.gicp_covariances import check_covariances, compute_covariances
 from spacepose.core.gicp_kernels import CHUNK, gicp_pass_kernel, gicp_sums_kernel
 from spacepose.core.grid import VoxelIndex
@@ -133,6 +134,7 @@ def gicp(
     DegenerateGeometryError
         A surface that leaves a degree of freedom free.
     """
+    config = stage_config(config, GICPConfig)
     src = as_registration_cloud(source, "source")
     tgt = as_registration_cloud(target, "target")
     T = se3.as_transform(init_T_target_source, "init_T_target_source").copy()

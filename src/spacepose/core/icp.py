@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
+from spacepose.core.config import stage_config
 from spacepose.core.correspondences import Correspondences, FusedPlaneMatcher, Matcher
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp_systems import point_to_point_information, solve_normal_equations
@@ -155,6 +156,7 @@ def icp_correspondences(
     DegenerateGeometryError
         Point-to-plane on a surface that leaves a degree of freedom free.
     """
+    config = stage_config(config, ICPConfig)
     src = as_registration_cloud(source, "source")
     tgt = as_registration_cloud(target, "target")
     T = se3.as_transform(init_T_target_source, "init_T_target_source").copy()

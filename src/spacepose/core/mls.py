@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat, model_validator
 
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.neighbors import as_tree, hybrid, weighted_moments
 from spacepose.core.normals import orient_towards
 from spacepose.errors import DegenerateGeometryError
@@ -308,6 +308,7 @@ def mpp_mls(
     DegenerateGeometryError
         When every index point is dropped (the cloud is too sparse for h, or a line).
     """
+    config = stage_config(config, MLSConfig)
     cloud = as_cloud(cloud, "cloud")
     anchors = cloud.points[voxel_index_points(cloud.points, config.voxel_size)]
     proj = mls_project(cloud.points, anchors, config, workers)

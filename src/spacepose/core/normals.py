@@ -16,7 +16,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, PositiveFloat
 
 from spacepose.core.cloud import PointCloud, as_cloud, as_points
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.moments import on_a_line
 from spacepose.core.neighbors import SearchIndex, hybrid, knn, row_moments
 from spacepose.core.threads import numba_threads
@@ -337,6 +337,7 @@ def estimate_normals(
     A point with fewer than 3 neighbours inside ``radius`` has no defined plane; it gets the
     unit line of sight towards ``viewpoint`` as its normal rather than an arbitrary axis.
     """
+    config = stage_config(config, NormalsConfig)
     cloud = as_cloud(cloud, "cloud")
     pts = cloud.points
     if len(pts) < 3:

@@ -25,7 +25,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud, as_points
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane
 from spacepose.core.ransac import sample_triples
 from spacepose.errors import DegenerateGeometryError, InputError
@@ -383,6 +383,7 @@ def extract_planes(
     DegenerateGeometryError
         All points collinear.
     """
+    config = stage_config(config, PlaneConfig)
     pts = as_points(cloud_or_points, min_points=3)
     if is_collinear(distribution(pts)[1]):
         raise no_plane(pts, getattr(cloud_or_points, "source", None))

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import as_registration_cloud
@@ -324,6 +324,7 @@ def feature_ransac(
     RegistrationError
         Fewer than 3 correspondences (after the mutual filter) or no consensus.
     """
+    config = stage_config(config, RansacConfig)
     src = as_registration_cloud(source, "source")
     tgt = as_registration_cloud(target, "target")
     for name, cloud, feats in (
@@ -366,11 +367,27 @@ def global_registration(
     workers
         Threads for the neighbour searches.
     """
-    if not np.isfinite(voxel_size) or voxel_size <= 0:
+    # Text or None ended in numpy's "ufunc 'isfinite' not supported" TypeError.
+    number = isinstance(voxel_size, (int, float, np.integer, np.floating))
+    if isinstance(voxel_size, bool) or not number or not np.isfinite(voxel_size) or voxel_size <= 0:
         raise InputError(f"voxel_size must be a positive number of metres, got {voxel_size}")
-    normals = normals or NormalsConfig(k=30, radius=2.0 * voxel_size)
-    fpfh = fpfh or FPFHConfig(radius=5.0 * voxel_size, max_nn=100)
-    ransac = ransac or RansacConfig(max_correspondence_distance=1.5 * voxel_size)
+    # None derives a config; an empty dict was taken for None, and any other dict ended in
+    # AttributeError.
+    normals = (
+        NormalsConfig(k=30, radius=2.0 * voxel_size)
+        if normals is None
+        else stage_config(normals, NormalsConfig, "normals")
+    )
+    fpfh = (
+        FPFHConfig(radius=5.0 * voxel_size, max_nn=100)
+        if fpfh is None
+        else stage_config(fpfh, FPFHConfig, "fpfh")
+    )
+    ransac = (
+        RansacConfig(max_correspondence_distance=1.5 * voxel_size)
+        if ransac is None
+        else stage_config(ransac, RansacConfig, "ransac")
+    )
     given = (as_cloud(source, "source"), as_cloud(target, "target"))
     for name, cloud in zip(("source", "target"), given, strict=True):
         radius = rms_radius(cloud.points)

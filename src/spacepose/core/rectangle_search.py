@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, as_points
+from spacepose.core.config import stage_config
 from spacepose.core.moments import distribution, is_collinear, no_plane, normalised_weights
 from spacepose.core.planes import Plane, PlaneConfig, dense_support, extract_planes
 from spacepose.core.rectangle_measurement import RectangleMeasurement, measure_rectangle
@@ -136,6 +137,8 @@ def find_rectangles(
     DegenerateGeometryError
         The points span no plane (all on a line or at one place).
     """
+    plane_config = stage_config(plane_config, PlaneConfig, "plane_config")
+    config = stage_config(config, RectangleConfig)
     pts = as_points(cloud_or_points, min_points=3)
     if is_collinear(distribution(pts)[1]):
         raise no_plane(pts, getattr(cloud_or_points, "source", None))
