@@ -15,6 +15,7 @@ The same simulation (same seed) always produces the same bytes.
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,7 +29,7 @@ from spacepose.core.config import load_structured
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS, Simulation
 from spacepose.core.sim.targets import Rectangle
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.text_io import check_timing, read_text
 from spacepose.tools.trajectory_io import read_tum, write_tum
@@ -212,6 +213,7 @@ def read_run(path: str | Path) -> Run:
     # milliseconds was navigated a thousand times too slow without a word).
     check_timing(groundtruth.timestamps, root / GROUNDTRUTH)
     frame_paths = _numbered_frames(root)
+    _warn_of_timestamps(root)
     if len(frame_paths) != len(groundtruth):
         raise InputError(
             f"{len(frame_paths)} frame files in {FRAMES_DIR}/ but {len(groundtruth)} poses in "
@@ -224,6 +226,24 @@ def read_run(path: str | Path) -> Run:
             raise InputError(f"orbit run folder is missing {TRUTH}", root)
         truth = read_truth(root / TRUTH, groundtruth.timestamps)
     return Run(root, scenario, groundtruth, read_cloud(root / MODEL_CLOUD), frame_paths, truth)
+
+
+def _warn_of_timestamps(root: Path) -> None:
+    """Warn of a ``timestamps.txt`` (in any case) in a run folder or its ``frames/``: it times
+    a folder of frame files, while a run's frames are timed by its ``groundtruth.tum``, and it
+    was passed over without a word (the user's times never used)."""
+    for folder in (root, root / FRAMES_DIR):
+        for path in sorted(folder.iterdir()):
+            if path.name.lower() == "timestamps.txt":
+                warnings.warn(
+                    SpaceposeWarning(
+                        f"not read: a run folder's frames are timed by its {GROUNDTRUTH} "
+                        f"(timestamps.txt times a folder of frame files; give {FRAMES_DIR}/ "
+                        "itself to time its frames by it, or remove it)",
+                        path,
+                    ),
+                    stacklevel=3,
+                )
 
 
 def _frame_name(k: int) -> str:
