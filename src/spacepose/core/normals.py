@@ -397,7 +397,7 @@ class NormalConsistency:
 
 
 def normal_consistency(
-    cloud: PointCloud, k: int = 10, bin_width_deg: float = 10.0, workers: int = -1
+    cloud: PointCloud | ArrayLike, k: int = 10, bin_width_deg: float = 10.0, workers: int = -1
 ) -> NormalConsistency:
     """Angles between each point's normal and those of its k nearest neighbours.
 
@@ -412,12 +412,22 @@ def normal_consistency(
     workers
         Threads for the neighbour search.
     """
+    # An (N, 3) array ended in AttributeError ('has_normals'), a bin width of 0 in
+    # ZeroDivisionError and one of NaN in "cannot convert float NaN to integer".
+    cloud = as_cloud(cloud, "cloud")
     if not cloud.has_normals:
-        raise InputError("normal consistency needs a cloud with normals", cloud.source)
+        raise InputError(
+            "normal consistency needs a cloud with normals (run estimate_normals first)",
+            cloud.source,
+        )
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+        raise InputError(f"normal consistency needs k >= 1 neighbours, got {k!r}", cloud.source)
     if len(cloud) < k + 1:
         raise InputError(f"normal consistency with k={k} needs more than {k} points", cloud.source)
-    n_bins = 180.0 / bin_width_deg
-    if bin_width_deg <= 0 or abs(n_bins - round(n_bins)) > 1e-9:
+    valid = isinstance(bin_width_deg, (int, float, np.integer, np.floating))
+    valid = valid and not isinstance(bin_width_deg, bool) and 0 < bin_width_deg <= 180
+    n_bins = 180.0 / bin_width_deg if valid else 0.0
+    if not valid or abs(n_bins - round(n_bins)) > 1e-9:
         raise InputError(f"bin_width_deg must divide 180, got {bin_width_deg}")
     _, idx = knn(cloud.points, None, k + 1, workers=workers)
     # Drop each point itself (not simply column 0, which a duplicate point may occupy).
