@@ -12,13 +12,16 @@ from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.gicp import gicp
 from spacepose.core.icp import icp
 from spacepose.core.mls import mpp_mls
-from spacepose.core.normals import estimate_normals
+from spacepose.core.normals import estimate_normals, normal_consistency
 from spacepose.core.planes import PlaneConfig, extract_planes
 from spacepose.core.ransac import global_registration
 from spacepose.core.rectangle_search import find_rectangles
 from spacepose.core.registration import kabsch
+from spacepose.core.trajectory import Trajectory
 from spacepose.errors import ConfigError, InputError, SpaceposeWarning
+from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.runs import read_run
+from spacepose.tools.trajectory_io import write_kitti, write_tum
 
 
 def _plane(n: int = 400, seed: int = 0) -> np.ndarray:
@@ -215,3 +218,60 @@ def test_a_run_folder_without_timestamps_reads_without_a_word(lab_run):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SpaceposeWarning)
         assert len(read_run(lab_run)) == 2
+
+
+# -- normal_consistency: an array, a bin width of 0 or NaN ---------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        ((), "cloud: normal consistency needs a cloud with normals (run estimate_normals first)"),
+        ((10, 0.0), "bin_width_deg must divide 180, got 0.0"),
+        ((10, float("nan")), "bin_width_deg must divide 180, got nan"),
+        ((0,), "cloud: normal consistency needs k >= 1 neighbours, got 0"),
+    ],
+)
+def test_normal_consistency_of_bad_arguments_is_an_input_error(args, message):
+    """An (N, 3) array ended in AttributeError ('has_normals'), a bin width of 0 in
+    ZeroDivisionError, one of NaN in 'cannot convert float NaN to integer', and k = 0 in a
+    NaN share without a word."""
+    points = _plane()
+    cloud = points if not args else estimate_normals(points)
+    with pytest.raises(InputError) as exc:
+        normal_consistency(cloud, *args)
+    assert str(exc.value) == message
+
+
+# -- writers: a folder by the file's name, float32 overflow ---------------------------------------
+
+
+@pytest.mark.parametrize("name", ["cloud.ply", "cloud.npz", "est.tum", "est.kitti"])
+def test_writing_onto_a_folder_names_it(tmp_path, name):
+    """A folder by the output's name ended in a bare IsADirectoryError."""
+    out = tmp_path / name
+    out.mkdir()
+    with pytest.raises(InputError) as exc:
+        if name.startswith("cloud"):
+            write_cloud(out, _plane(10))
+        else:
+            trajectory = Trajectory(np.arange(2.0), np.tile(np.eye(4), (2, 1, 1)))
+            (write_tum if name.endswith(".tum") else write_kitti)(out, trajectory)
+    assert str(exc.value) == f"{out}: output exists and is not a regular file (a folder?)"
+
+
+def test_writing_float32_beyond_its_range_is_refused(tmp_path):
+    """1e100 m written as float32 was stored as inf (numpy's overflow warning alone), and the
+    file read back without those points."""
+    out = tmp_path / "far.ply"
+    points = _plane(10)
+    points[3] = [1e100, 0.0, 1.0]
+    with pytest.raises(InputError) as exc:
+        write_cloud(out, points)
+    assert str(exc.value) == (
+        f"{out}: points reach |coordinate| 1e+100, beyond float32's 3.4e+38: write them with "
+        "dtype='float64'"
+    )
+    assert not out.exists()
+    write_cloud(out, points, dtype="float64")
+    np.testing.assert_array_equal(read_cloud(out).points, points)

@@ -23,11 +23,13 @@ from numpy.typing import ArrayLike, NDArray
 from spacepose.core.cloud import PointCloud, check_scale
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.npy_io import as_float64, read_npy, read_npz, write_npy, write_npz
+from spacepose.tools.outputs import check_writable
 from spacepose.tools.pcd_io import read_pcd_table, write_pcd
 from spacepose.tools.text_io import not_a_file
 
 _XYZ = ("x", "y", "z")
 _PLY_NORMALS = ("nx", "ny", "nz")
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 _PCD_NORMALS = ("normal_x", "normal_y", "normal_z")
 _TEXT_SUFFIXES = (".xyz", ".txt", ".csv")
 # Widest scene (m) a cloud in millimetres can span: 100 km, past any ToF camera or LiDAR.
@@ -238,6 +240,19 @@ def write_cloud(
         if arr.ndim != 2 or arr.shape[1] not in (3, 6):
             raise InputError(f"cloud array must be (N, 3) or (N, 6), got {arr.shape}", path)
         cloud = PointCloud(arr[:, :3], arr[:, 3:] if arr.shape[1] == 6 else None, source=str(path))
+    if dtype == "float32":
+        # Beyond float32's range a coordinate was stored as inf (numpy's overflow warning
+        # alone), and the file read back with those points dropped.
+        peak, largest = float(max(cloud.points.max(), -cloud.points.min())), _FLOAT32_MAX
+        if peak > largest:
+            raise InputError(
+                f"points reach |coordinate| {peak:.3g}, beyond float32's {largest:.3g}: write "
+                "them with dtype='float64'",
+                path,
+            )
+    # A folder by the file's name (or a file where its folder goes) ended in a bare
+    # IsADirectoryError / FileExistsError.
+    check_writable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     writer(path, cloud.points, cloud.normals, binary, np.dtype(dtype))
     return path

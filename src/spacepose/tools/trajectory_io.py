@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.cloud_io import warn_not_unit
+from spacepose.tools.outputs import check_writable
 from spacepose.tools.text_io import read_text
 
 # Largest |‖q‖ − 1| of a quaternion read without a warning.
@@ -135,6 +136,7 @@ def tum_lines(traj: Trajectory) -> str:
 def write_tum(path: str | Path, traj: Trajectory) -> Path:
     """Write ``traj`` as a TUM file (see :func:`tum_lines`); returns the path."""
     path = Path(path)
+    check_writable(path)  # a folder by that name ended in a bare IsADirectoryError
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tum_lines(traj))
     return path
@@ -185,6 +187,7 @@ def nearest_rotations(R: NDArray[np.float64]) -> NDArray[np.float64]:
 def write_kitti(path: str | Path, traj: Trajectory) -> Path:
     """Write ``traj`` as a KITTI pose file (timestamps are not stored); returns the path."""
     path = Path(path)
+    check_writable(path)  # a folder by that name ended in a bare IsADirectoryError
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savetxt(path, traj.poses[:, :3, :].reshape(-1, 12), fmt=_FMT)
     return path
