@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from spacepose.cli import main
+from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.gicp import gicp
@@ -275,3 +276,21 @@ def test_writing_float32_beyond_its_range_is_refused(tmp_path):
     assert not out.exists()
     write_cloud(out, points, dtype="float64")
     np.testing.assert_array_equal(read_cloud(out).points, points)
+
+
+# -- se3: a rotation matrix where a transform goes ------------------------------------------------
+
+
+@pytest.mark.parametrize("apply", [se3.transform_points, se3.rotate_vectors])
+def test_a_3x3_matrix_is_no_transform(apply):
+    """transform_points(R, p) with R 3x3 added R's third column as a translation without a
+    word; points of the wrong width ended in numpy's matmul error."""
+    points = _plane(5)
+    with pytest.raises(InputError) as exc:
+        apply(np.eye(3), points)
+    assert str(exc.value) == "T_a_b must be a 4x4 transform, got shape (3, 3)"
+    with pytest.raises(InputError) as exc:
+        apply(np.eye(4), points[:, :2])
+    what = "points" if apply is se3.transform_points else "vectors"
+    assert str(exc.value) == f"{what} must have shape (N, 3), got (5, 2)"
+    np.testing.assert_array_equal(apply(np.eye(4), points), points)

@@ -99,14 +99,37 @@ def compose(*transforms: ArrayLike) -> NDArray[np.float64]:
 
 
 def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> NDArray[np.float64]:
-    """Map points (N, 3) given in frame b into frame a."""
-    T_a_b = np.asarray(T_a_b, dtype=np.float64)
-    return np.asarray(points_b, dtype=np.float64) @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+    """Map points (N, 3) given in frame b into frame a.
+
+    Raises
+    ------
+    InputError
+        ``T_a_b`` is not 4×4 (a 3×3 rotation was taken as a transform whose translation was
+        its third column) or the points are not (..., 3).
+    """
+    T_a_b, points_b = _pair(T_a_b, points_b, "points")
+    return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
 
 
 def rotate_vectors(T_a_b: ArrayLike, vectors_b: ArrayLike) -> NDArray[np.float64]:
-    """Rotate direction vectors (N, 3), e.g. normals, from frame b into frame a."""
-    return np.asarray(vectors_b, dtype=np.float64) @ np.asarray(T_a_b, dtype=np.float64)[:3, :3].T
+    """Rotate direction vectors (N, 3), e.g. normals, from frame b into frame a (``T_a_b``
+    4×4, as :func:`transform_points`)."""
+    T_a_b, vectors_b = _pair(T_a_b, vectors_b, "vectors")
+    return vectors_b @ T_a_b[:3, :3].T
+
+
+def _pair(
+    T: ArrayLike, rows: ArrayLike, name: str
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A 4×4 transform and (..., 3) rows as float64 arrays; shape errors as InputError (numpy's
+    matmul error named neither, and a 3×3 matrix passed silently)."""
+    T = np.asarray(T, dtype=np.float64)
+    rows = np.asarray(rows, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"T_a_b must be a 4x4 transform, got shape {T.shape}")
+    if rows.ndim < 1 or rows.shape[-1] != 3:
+        raise InputError(f"{name} must have shape (N, 3), got {rows.shape}")
+    return T, rows
 
 
 def skew(v: ArrayLike) -> NDArray[np.float64]:
