@@ -433,15 +433,20 @@ def test_real_outdoor_lidar_in_metres_is_not_taken_for_millimetres() -> None:
         assert mm.millimetres and mm.spacing == pytest.approx(1e3 * check.spacing)
 
 
-def test_normals_of_zero_length_are_refused_and_others_made_unit(tmp_path: Path) -> None:
-    """A file's normals of zero length have no direction: refused, naming the file. Normals
-    of another length (5 here) weighed their points' residuals by it; they are read as
-    their directions, with a warning. Unit normals are kept bit for bit."""
+def test_normals_of_zero_length_are_left_out_and_others_made_unit(tmp_path: Path) -> None:
+    """A file's normals of zero length have no direction (a point type with normal fields no
+    step filled): the file's normals are left out, with a warning naming the file, and its
+    points read. Normals of another length (5 here) weighed their points' residuals by it;
+    they are read as their directions, with a warning. Unit normals are kept bit for bit."""
     p = np.random.default_rng(0).uniform(0, 1, (100, 3))
     zero = tmp_path / "zero.npy"
-    np.save(zero, np.c_[p, np.zeros_like(p)])
-    with pytest.raises(FileFormatError, match=r"zero.npy: 100 normals have zero length"):
-        read_cloud(zero)
+    normals = np.tile([0.0, 0.0, 1.0], (100, 1))
+    normals[7] = 0.0
+    np.save(zero, np.c_[p, normals])
+    with pytest.warns(SpaceposeWarning, match=r"zero.npy: 1 normals have zero length .*left out"):
+        cloud = read_cloud(zero)
+    assert cloud.normals is None
+    np.testing.assert_array_equal(cloud.points, p)
     long = tmp_path / "long.xyz"
     long.write_text("".join(f"{x:.6f} {y:.6f} {z:.6f} 0 0 5\n" for x, y, z in p))
     with pytest.warns(SpaceposeWarning, match=r"long.xyz: 100 normals are not of unit length"):

@@ -123,9 +123,11 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
 _RESCALE = "scale the file by 0.001 (read_cloud(..., scale=1e-3))"
 
 
-def _unit_normals(normals: NDArray[np.float64], path: Path) -> NDArray[np.float64]:
-    """A file's normals as unit vectors: one of zero length has no direction (refused), one
-    of another length is read as its direction, with a warning (a registration weighs a
+def _unit_normals(normals: NDArray[np.float64], path: Path) -> NDArray[np.float64] | None:
+    """A file's normals as unit vectors, or None: one of zero length has no direction, and a
+    file with such normals (a point type with normal fields no step filled, as PCL's
+    PointNormal left at zero) has its normals left out, with a warning, to be estimated; one of
+    another length is read as its direction, with a warning (a registration weighs a
     point-to-plane residual by its normal's length)."""
     # Lengths of rows scaled by their largest component: a normal of 1e300 is a direction too,
     # and its square must not overflow (numpy's bare warning, and an inf length kept it as is).
@@ -137,11 +139,12 @@ def _unit_normals(normals: NDArray[np.float64], path: Path) -> NDArray[np.float6
         length = largest * unit_length
     zero = np.flatnonzero(finite & (length < 1e-6))
     if len(zero):
-        raise FileFormatError(
+        problem = (
             f"{len(zero)} normals have zero length (first at point {zero[0]}): a normal needs a "
-            "direction; write the file without normals to have them estimated",
-            path,
+            "direction; the file's normals are left out and estimated"
         )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=3)
+        return None
     off = np.flatnonzero(finite & (np.abs(length - 1.0) > 1e-3))
     if len(off):
         k = off[0]
