@@ -17,12 +17,13 @@ from spacepose.core.metrics import evaluate
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import ConfigError, InputError
+from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import write_cloud
+from spacepose.tools.evaluation import compare_trajectory_files
 from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.runs import write_run
 from spacepose.tools.tracking_io import HEALTH_COLUMNS, track_folder, tracker_config
-from spacepose.tools.trajectory_io import read_tum
+from spacepose.tools.trajectory_io import read_tum, write_tum
 
 N_FRAMES = 4
 
@@ -180,6 +181,37 @@ def test_unreadable_frame_is_lost_and_the_others_written(frame_dir, tmp_path, ca
     assert rows[3]["reasons"] == UNTESTED_MODEL
     est = read_tum(out)
     np.testing.assert_allclose(est.timestamps, 100.0 + 0.5 * np.arange(N_FRAMES))
+
+
+def test_a_garbage_first_frame_is_revised_in_the_files(frame_dir, lab, tmp_path, capsys):
+    """Model-free, a first frame of noise no later frame confirms gives way to frame 1 as the
+    target frame (core.spare_anchor): the files are written again with frame 0 lost and frame
+    1 the identity, and frames 1-3 are scored against the truth re-based on frame 1."""
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for p in sorted(frame_dir.glob("*")):
+        (bad / p.name).write_bytes(p.read_bytes())
+    noise = np.random.default_rng(0).uniform(-1.0, 1.0, (5000, 3)) + np.array([0.0, 0.0, 2.0])
+    write_cloud(bad / "f000.ply", noise)
+    out = tmp_path / "e.tum"
+    assert main(["track", str(bad), "--out", str(out), "--no-mls"]) == 0
+    printed = " ".join(capsys.readouterr().out.split())
+    assert "1 ok, 2 degraded, 1 lost" in printed
+    with (tmp_path / "e.health.csv").open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["frame"]) for r in rows] == list(range(N_FRAMES))
+    assert [r["status"] for r in rows][:2] == ["lost", "ok"]
+    assert "target frame is frame 1's" in rows[0]["reasons"]
+    assert all(r["status"] != "lost" for r in rows[1:])
+    est = read_tum(out)
+    np.testing.assert_allclose(est.timestamps, 100.0 + 0.5 * np.arange(N_FRAMES))
+    np.testing.assert_allclose(est.poses[1], np.eye(4), atol=1e-12)
+    # The user's path: the lost frame 0 left out by its health row, re-based on frame 1.
+    gt = write_tum(tmp_path / "gt.tum", Trajectory(est.timestamps, lab.T_sensor_target))
+    with pytest.warns(SpaceposeWarning, match="lost"):
+        table = compare_trajectory_files(out, gt, rebase_first=True).table.to_dict()
+    assert max(table["mean"][a] for a in ("x_mm", "y_mm", "z_mm")) < 2.0
+    assert max(table["mean"][a] for a in ("pitch_deg", "yaw_deg", "roll_deg")) < 0.1
 
 
 class _NoTracking:

@@ -167,3 +167,21 @@ def test_model_free_registration_starts_after_its_batch():
     # the default batch is 200 frames, scored in the fusion experiment. Here: the plumbing.
     assert np.linalg.norm(e[0:3]) < 0.15
     np.testing.assert_allclose(nav.T_F_B[:3, :3].T @ nav.T_F_B[:3, :3], np.eye(3), atol=1e-9)
+
+
+def test_a_model_free_batch_drops_a_first_frame_that_gave_way(orbit):
+    """A first frame 1 km off (a glitch) no later frame confirms gives way to frame 1 as the
+    target frame (core.spare_anchor): its pose, in the abandoned frame, leaves the model-free
+    batch, which then holds frame 1's identity and the ok poses after it."""
+    _, n, R_O_C, _, frames = orbit
+    glitch = frames[0].cloud.points + np.array([0.0, 0.0, 1000.0])
+    clouds = [glitch, *(f.cloud for f in frames[1:8])]
+    nav = FusedNavigator([], n, R_O_C, FusionConfig(measurements="registration"), None)
+    tracks = [nav.step(f.timestamp, c).track for f, c in zip(frames, clouds, strict=False)]
+    assert nav.tracker.first_index == 1 and tracks[0].status == "ok"
+    assert any(t.revises for t in tracks)
+    times = [t for t, _ in nav._batch]
+    assert times[0] == frames[1].timestamp and frames[0].timestamp not in times
+    np.testing.assert_array_equal(nav._batch[0][1], np.eye(4))
+    ok = [t.timestamp for t in tracks[2:] if t.status == "ok"]
+    assert times[1:] == ok and ok

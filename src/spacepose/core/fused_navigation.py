@@ -258,6 +258,12 @@ class FusedNavigator:
         )
         prior = (ekf.predict_pose(), ekf.pose_covariance()) if seeded else None
         track = self.tracker.track_frame(cloud, t, prior)
+        if track.revises and self._batch is not None:
+            # Model-free, a first frame no later frame confirmed gave way to a later one
+            # (core.spare_anchor): the batch's pose of it was in the abandoned target frame.
+            self._batch = [
+                (r.timestamp, r.T_sensor_target) for r in track.revises if r.status == "ok"
+            ]
         used, nis, started = None, float("nan"), False
         T_pred = None if ekf is None else ekf.predict_pose()
         # A frame the motion model's prediction held carries that prediction, the filter's own

@@ -101,6 +101,7 @@ class SceneFollower:
 
             first_index, first = self._first
             self.scene = Tracker(self._config, None, self._workers)
+            self.scene._spare = None  # a spare's revisions would be of frames it never reported
             # Frame numbers as the run's.
             self.scene.continue_at(first_index)
             self.scene.track_frame(*first)

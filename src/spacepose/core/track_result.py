@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -64,6 +65,10 @@ class TrackResult:
         (:func:`~spacepose.core.residual_structure.residual_structure`: 1 for white residuals;
         model-free, above ``health.ok_structure`` the frame is degraded); NaN where it was not
         measured (against a model, a first or a lost frame).
+    revises
+        Results that replace those reported for earlier frames (their ``index``): model-free,
+        when a first frame no later frame confirmed gives way to a later one as the target
+        frame (:mod:`spacepose.core.spare_anchor`); empty otherwise.
     """
 
     index: int
@@ -81,6 +86,7 @@ class TrackResult:
     coarse: bool = False
     keyframe: bool = False
     structure: float = float("nan")
+    revises: tuple[TrackResult, ...] = ()
 
     @property
     def sigma(self) -> NDArray[np.float64]:
@@ -94,6 +100,22 @@ class TrackingOutput:
 
     trajectory: Trajectory
     results: list[TrackResult]
+
+
+def with_time(result: TrackResult, ms: float) -> TrackResult:
+    """``result`` with ``ms`` more of other work in its step (``other`` and ``total``)."""
+    times = dict(result.time_ms)
+    for stage in ("other", "total"):
+        times[stage] = times.get(stage, 0.0) + ms
+    return dataclasses.replace(result, time_ms=times)
+
+
+def revise_results(results: list[TrackResult], latest: TrackResult) -> None:
+    """Replace in ``results`` those of the frames ``latest`` revises (matched by index)."""
+    where = {r.index: k for k, r in enumerate(results)} if latest.revises else {}
+    for revised in latest.revises:
+        if revised.index in where:
+            results[where[revised.index]] = revised
 
 
 def lost_result(

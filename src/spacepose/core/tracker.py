@@ -48,6 +48,7 @@ from spacepose.core.motion import MotionModel, Prediction, next_timestamp
 from spacepose.core.relocalise import Checked, Relocaliser
 from spacepose.core.scale import DataScale
 from spacepose.core.scene_follower import SCENE_NOTE, SceneFollower
+from spacepose.core.spare_anchor import SpareAnchor
 from spacepose.core.support import SupportSeparation
 from spacepose.core.threads import thread_count
 from spacepose.core.track_result import (
@@ -58,6 +59,8 @@ from spacepose.core.track_result import (
     elapsed_ms,
     first_result,
     lost_result,
+    revise_results,
+    with_time,
 )
 from spacepose.core.track_sequence import track_sequence as track_sequence
 from spacepose.core.tracker_config import StageLengths, TrackerConfig
@@ -117,6 +120,10 @@ class Tracker:
         self._scene: SceneFollower | None = None
         if model is None and config.isolate_target:
             self._scene = SceneFollower(config, workers)
+        # Model-free: the first frame's result, and a spare tracker while no later frame has
+        # confirmed it (core.spare_anchor).
+        self._first: TrackResult | None = None
+        self._spare = None if model is not None else SpareAnchor(config, workers)
 
     @property
     def model_based(self) -> bool:
@@ -132,6 +139,12 @@ class Tracker:
     def scale(self) -> DataScale | None:
         """The lengths derived from the first usable frame (None before it)."""
         return self._frames.scale
+
+    @property
+    def first_index(self) -> int | None:
+        """Model-free: the frame whose sensor frame is the target frame (None before it, and
+        against a model)."""
+        return None if self._first is None else self._first.index
 
     @property
     def lengths(self) -> StageLengths | None:
@@ -185,6 +198,8 @@ class Tracker:
         result = self._track_frame(cloud, timestamp, prior)
         if self._scene is not None:
             result = self._follow_scene(cloud, timestamp, prior, result)
+        if self._spare is not None:
+            result = self._follow_spare(cloud, timestamp, result)
         return result
 
     def _track_frame(
@@ -253,8 +268,13 @@ class Tracker:
     def track(
         self, frames: Iterable[tuple[PointCloud | ArrayLike | None, float]]
     ) -> list[TrackResult]:
-        """Track a sequence of ``(cloud, timestamp)`` pairs; one result per frame."""
-        return [self.track_frame(cloud, t) for cloud, t in frames]
+        """Track a sequence of ``(cloud, timestamp)`` pairs; one result per frame, a result a
+        later frame revised (:attr:`TrackResult.revises`) replaced."""
+        results: list[TrackResult] = []
+        for cloud, t in frames:
+            results.append(self.track_frame(cloud, t))
+            revise_results(results, results[-1])
+        return results
 
     def coarse_pose(self, cloud: PointCloud | ArrayLike) -> NDArray[np.float64] | None:
         """Coarse ``T_sensor_target`` of a frame alone (preprocessing + FPFH + RANSAC against
@@ -361,6 +381,20 @@ class Tracker:
         vars(self).update(vars(whole))
         return dataclasses.replace(scene, reasons=(*scene.reasons, SCENE_NOTE))
 
+    def _follow_spare(
+        self, cloud: PointCloud | ArrayLike | None, timestamp: float, result: TrackResult
+    ) -> TrackResult:
+        """Model-free, until a frame after the first is accepted (core.spare_anchor). The
+        frame's time counts both trackers'."""
+        tic = time.perf_counter()
+        needed, adopted = self._spare.follow((cloud, timestamp), result, self._first)
+        if adopted is None:
+            self._spare = self._spare if needed else None
+            return with_time(result, elapsed_ms(tic))
+        spare, spare_result = adopted
+        vars(self).update(vars(spare))  # its spare is None: a spare keeps none
+        return with_time(spare_result, result.time_ms.get("total", 0.0))
+
     # -- state -------------------------------------------------------------------------------
 
     def _start(
@@ -373,7 +407,8 @@ class Tracker:
         self._support.first = first
         self._motion.accept(timestamp, T, cov, None, restart=True)
         close_times(times, self._t_start)
-        return first_result(index, timestamp, times)
+        self._first = first_result(index, timestamp, times)
+        return self._first
 
     def _dense(self, prepared: PreparedCloud) -> PreparedCloud | None:
         """A new keyframe's finer registration target (:meth:`FramePreparer.keyframe_cloud`;

@@ -119,6 +119,30 @@ def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path]:
     )
 
 
+@dataclasses.dataclass(frozen=True)
+class _Row:
+    """A frame's result as :func:`track_folder` writes it: ``where`` names its file in the
+    summary's first lost frame; an untracked frame (out of time order) has no TUM line."""
+
+    result: TrackResult
+    where: str
+    tracked: bool
+
+
+def _write_rows(tum_fh: TextIO, health_fh: TextIO, rows: Sequence[_Row], header: bool) -> None:
+    """Append ``rows`` (and the health table's header first when ``header``), flushed."""
+    writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
+    if header:
+        writer.writeheader()
+    for row in rows:
+        r = row.result
+        if row.tracked:
+            tum_fh.write(tum_lines(Trajectory([r.timestamp], [r.T_sensor_target])))
+        writer.writerow(health_row(r))
+    tum_fh.flush()
+    health_fh.flush()
+
+
 def _out_of_order(frame: FrameInput, last_time: float) -> TrackResult:
     """The ``lost`` result of a frame whose time does not come after the frame before's."""
     what = "repeats" if frame.timestamp == last_time else "does not come after"
@@ -236,16 +260,15 @@ def track_folder(
     tracker = Tracker(config, model_cloud, workers)
     dump_config(config, config_path)  # creates the folder
     scale_path.unlink(missing_ok=True)  # a former run's lengths are not this run's
-    statuses: list[str] = []
+    rows: list[_Row] = []
     times: list[float] = []
-    first_lost = None
     written_scale = None
     with tum.open("w") as tum_fh, open_table(health) as health_fh:
-        writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
-        writer.writeheader()
+        _write_rows(tum_fh, health_fh, [], header=True)
         last_time = -np.inf
         for frame in frames:
-            if not frame.timestamp > last_time:
+            tracked = frame.timestamp > last_time
+            if not tracked:
                 # A bag's header stamps, read as the frames come: a repeat or a step back is
                 # this frame's fault, not the run's; the trajectory skips it (TUM times rise).
                 result = _out_of_order(frame, last_time)
@@ -253,12 +276,26 @@ def track_folder(
             else:
                 result = tracker.track_frame(frame.cloud, frame.timestamp)
                 last_time = frame.timestamp
-                tum_fh.write(tum_lines(Trajectory([result.timestamp], [result.T_sensor_target])))
             if frame.error is not None:  # the read error says more than the tracker's "no points"
                 result = dataclasses.replace(result, reasons=(frame.error,))
-            writer.writerow(health_row(result))
-            tum_fh.flush()
-            health_fh.flush()
+            # The tracker's reasons ("unusable frame: 1 point(s)") name no file; a read error
+            # does.
+            where = "" if frame.error is not None else f", {frame.source}"
+            rows.append(_Row(result, where, tracked))
+            if result.revises:
+                # Earlier frames' results revised (a model-free first frame replaced): the
+                # files are written again, a few lines at the start of a run.
+                new = {r.index: r for r in result.revises}
+                rows = [
+                    dataclasses.replace(r, result=new.get(r.result.index, r.result)) for r in rows
+                ]
+                tum_fh.seek(0)
+                tum_fh.truncate()
+                health_fh.seek(0)
+                health_fh.truncate()
+                _write_rows(tum_fh, health_fh, rows, header=True)
+            else:
+                _write_rows(tum_fh, health_fh, rows[-1:], header=False)
             if tracker.scale is not None and tracker.scale is not written_scale:
                 # The lengths derived from the first usable frame, as soon as it sets them (an
                 # interrupted run keeps them), and again when the whole scene becomes the
@@ -266,15 +303,18 @@ def track_folder(
                 written_scale = tracker.scale
                 lengths = tracker.scale.to_dict() | tracker.lengths.to_dict()
                 scale_path.write_text(json.dumps(lengths, indent=2) + "\n")
-            statuses.append(result.status)
             times.append(result.time_ms["total"])
-            if result.status == "lost" and first_lost is None:
-                # The tracker's reasons ("unusable frame: 1 point(s)") name no file; a read
-                # error does.
-                where = "" if frame.error is not None else f", {frame.source}"
-                first_lost = f"frame {len(statuses) - 1}{where}: {'; '.join(result.reasons)}"
             if progress is not None:
-                progress(len(statuses), len(frames), result.status)
+                progress(len(rows), len(frames), result.status)
+    statuses = [r.result.status for r in rows]
+    first_lost = next(
+        (
+            f"frame {k}{r.where}: {'; '.join(r.result.reasons)}"
+            for k, r in enumerate(rows)
+            if r.result.status == "lost"
+        ),
+        None,
+    )
     return {
         "frames": len(statuses),
         "ok": statuses.count("ok"),

@@ -181,17 +181,22 @@ def navigate_fused_with_truth(
         out["n_rect"][k] = row.nav.n_rect
         out["seeded"][k] = row.seeded
         track = row.track
+        for revised in () if track is None else track.revises:
+            if revised.status == "lost":  # a first frame that gave way (core.spare_anchor)
+                out["tracker_error"][revised.index] = out["tracker_sigma"][revised.index] = np.nan
+                out["tracker_nees"][revised.index] = np.nan
         if track is not None and track.status != "lost":
             out["gated"][k] = any(r.startswith(GATE_REASON) for r in track.reasons)
             T_true = frame.T_sensor_target
-            if model_free:  # the track is T_k0 (methods.md §0.7)
-                T_true = T_true @ se3.invert(sim.T_sensor_target[0])
+            if model_free:  # the track is T_k0, 0 its first frame's (methods.md §0.7)
+                T_true = T_true @ se3.invert(sim.T_sensor_target[nav.tracker.first_index])
             e, s, nees = tracker_errors(track.T_sensor_target, track.covariance, T_true)
             out["tracker_error"][k], out["tracker_sigma"][k], out["tracker_nees"][k] = e, s, nees
         ekf = nav.ekf
         if ekf is not None:
             if model_free and truth_rows is sim.truth:
-                truth_rows = relabelled_truth(sim.truth, nav.T_F_B, sim.T_sensor_target[0])
+                T_C_Bp0 = sim.T_sensor_target[nav.tracker.first_index]
+                truth_rows = relabelled_truth(sim.truth, nav.T_F_B, T_C_Bp0)
             record_filter(out, k, ekf, truth_rows[k])
     out["ekf"] = nav.ekf
     out["truth"] = truth_rows

@@ -1,0 +1,106 @@
+"""Model-free: a first frame that no later frame confirms is replaced (docs/methods.md §5.6).
+
+The first usable frame defines the target frame (§0.7). When it is garbage a sensor gave (a
+warm-up frame of flying pixels, a glitch 1 km off), every later frame is lost against it and
+the run never starts. While no frame after it has been accepted, each frame the run's tracker
+loses is also given to a spare tracker started on a lost frame; once the spare registers a frame
+onto its own first one, it carries on as the run's tracker, and the target frame is that first
+frame's sensor frame.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from spacepose.core.cloud import PointCloud
+from spacepose.core.track_result import TrackResult
+from spacepose.core.tracker_config import TrackerConfig
+
+if TYPE_CHECKING:
+    from spacepose.core.tracker import Tracker
+
+Frame = tuple["PointCloud | ArrayLike | None", float]
+
+
+def abandoned_anchor(first: TrackResult, new_anchor: int) -> TrackResult:
+    """The revised result of a first frame no later frame confirmed: lost, its pose unknown."""
+    reason = (
+        f"a first frame no later frame confirmed: the target frame is frame {new_anchor}'s "
+        "sensor frame instead"
+    )
+    return dataclasses.replace(
+        first, status="lost", covariance=np.diag(np.full(6, np.inf)), reasons=(reason,)
+    )
+
+
+def new_anchor(first: TrackResult, old_anchor: int) -> TrackResult:
+    """The revised result of the frame that now defines the target frame (it was lost against
+    the first one): the identity, as every model-free first frame's."""
+    reason = f"the target frame restarts here: frame {old_anchor}, the first, was never confirmed"
+    return dataclasses.replace(first, reasons=(reason,))
+
+
+class SpareAnchor:
+    """A tracker started on a frame the run's tracker lost, while the run's first frame is
+    still unconfirmed.
+
+    Parameters
+    ----------
+    config, workers
+        The run's tracker config and threads.
+    """
+
+    def __init__(self, config: TrackerConfig, workers: int) -> None:
+        self._config, self._workers = config, workers
+        self.tracker: Tracker | None = None
+
+    def follow(
+        self, frame: Frame, result: TrackResult, first: TrackResult | None
+    ) -> tuple[bool, tuple[Tracker, TrackResult] | None]:
+        """Follow the run's tracker's ``result`` on ``frame`` ``(cloud, timestamp)``, its first
+        frame's result ``first`` (None before it).
+
+        Returns
+        -------
+        needed
+            False once a frame after the first was accepted: the first frame is confirmed and
+            stays the target frame.
+        adopted
+            Once the spare registered a lost frame onto its own first one: the spare, which
+            the run's tracker should carry on as, and its result on the frame, revising the
+            two first frames' results (:attr:`TrackResult.revises`); None otherwise.
+        """
+        if first is None or result.status != "lost":
+            return first is None or result.index == first.index, None
+        spare = self._track(frame, result.index)
+        if spare is None:
+            return True, None
+        tracker, spare_result = spare
+        anchor = tracker._first
+        revised = (abandoned_anchor(first, anchor.index), new_anchor(anchor, first.index))
+        return False, (tracker, dataclasses.replace(spare_result, revises=revised))
+
+    def _track(self, frame: Frame, index: int) -> tuple[Tracker, TrackResult] | None:
+        """The spare's result on frame ``index`` the run's tracker lost, once it registered the
+        frame onto its own first one; None otherwise: the spare then starts afresh on this
+        frame (or, when the frame is unusable, on the next one)."""
+        if self.tracker is not None:
+            result = self.tracker.track_frame(*frame)
+            if result.status != "lost":
+                return self.tracker, result
+        self.tracker = self._fresh(index)
+        if self.tracker.track_frame(*frame).status == "lost":
+            self.tracker = None
+        return None
+
+    def _fresh(self, index: int) -> Tracker:
+        from spacepose.core.tracker import Tracker
+
+        tracker = Tracker(self._config, None, self._workers)
+        tracker.continue_at(index)
+        tracker._spare = None  # a spare keeps no spare of its own
+        return tracker
