@@ -13,12 +13,27 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from spacepose.errors import InputError
+
 
 def cluster_labels(points: NDArray[np.float64], distance: float) -> NDArray[np.intp]:
     """Labels (N,) of the groups of points connected by links shorter than ``distance``.
 
     Labels are numbered in the order of each group's lowest point index.
+
+    Raises
+    ------
+    InputError
+        ``distance`` is not a positive, finite number of metres (0 or NaN left every point its
+        own cluster, a negative or infinite one put them all in one), or the points are not a
+        finite (N, 3) array.
     """
+    _check_distance("distance", distance)
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise InputError(f"cluster_labels: points must have shape (N, 3), got {points.shape}")
+    if not np.isfinite(points).all():
+        raise InputError("cluster_labels: points have non-finite entries (NaN or inf)")
     n = len(points)
     pairs = cKDTree(points).query_pairs(distance, output_type="ndarray")
     graph = coo_matrix(
@@ -54,6 +69,9 @@ def main_cluster_group(
     -----
     Ties between equally large clusters go to the one holding the lowest point index.
     """
+    _check_distance("merge_distance", merge_distance)
+    if not 0.0 < min_share <= 1.0:
+        raise InputError(f"min_share must be in (0, 1], got {min_share}")
     labels = cluster_labels(points, distance)
     sizes = np.bincount(labels)
     # argmax returns the first label of the largest size: labels follow the lowest point index.
@@ -79,3 +97,13 @@ def main_cluster_group(
         waiting &= ~joining
         frontier = joining
     return group
+
+
+def _check_distance(name: str, value: float) -> None:
+    """A link length must be a positive, finite number of metres."""
+    try:
+        ok = 0.0 < float(value) < np.inf
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(f"{name} must be a positive, finite number of metres, got {value!r}")
