@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
+from spacepose.core import se3
 from spacepose.core.clusters import cluster_labels, main_cluster_group
 from spacepose.errors import InputError
 
@@ -45,3 +47,75 @@ def test_cluster_labels_of_bad_points_is_an_input_error():
         cluster_labels(points, 0.02)
     assert str(exc.value) == "cluster_labels: points have non-finite entries (NaN or inf)"
     assert len(cluster_labels(np.zeros((0, 3)), 0.02)) == 0
+
+
+# -- se3: mis-shaped transforms, NaN twists ------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (
+            lambda: se3.invert(np.eye(3)),
+            "invert needs a 4x4 transform (or a stack of them), got shape (3, 3)",
+        ),
+        (
+            lambda: se3.invert(np.eye(4)[:3]),
+            "invert needs a 4x4 transform (or a stack of them), got shape (3, 4)",
+        ),
+        (lambda: se3.adjoint(np.eye(3)), "adjoint needs a 4x4 transform, got shape (3, 3)"),
+        (
+            lambda: se3.make_transform(np.eye(4), [0, 0, 1]),
+            "make_transform: R must be a 3x3 rotation matrix, got shape (4, 4)",
+        ),
+        (
+            lambda: se3.make_transform(np.eye(3), [0, 1]),
+            "make_transform: t must be 3 numbers (x, y, z), got shape (2,)",
+        ),
+        (
+            lambda: se3.compose(np.eye(4), np.eye(3)),
+            "compose: transform 1 must be 4x4, got shape (3, 3)",
+        ),
+    ],
+)
+def test_se3_of_a_mis_shaped_transform_is_an_input_error(call, message):
+    """Each ended in numpy's IndexError ('index 3 is out of bounds'), broadcast or matmul
+    error, naming neither the function nor the argument."""
+    with pytest.raises(InputError) as exc:
+        call()
+    assert str(exc.value) == message
+
+
+def test_se3_of_good_shapes_is_unchanged():
+    T = se3.make_transform(Rotation.from_rotvec([0.1, 0.2, 0.3]), [1.0, 2.0, 3.0])
+    np.testing.assert_allclose(se3.compose(T, se3.invert(T)), np.eye(4), atol=1e-12)
+    assert se3.invert(np.tile(T, (2, 1, 1))).shape == (2, 4, 4)
+    assert se3.make_transform(np.eye(3), [[1.0], [2.0], [3.0]])[2, 3] == 3.0
+    np.testing.assert_allclose(se3.adjoint(T)[:3, :3], T[:3, :3])
+
+
+@pytest.mark.parametrize("entry", [0, 4])
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_se3_exp_of_a_non_finite_twist_is_an_input_error(entry, value):
+    """exp of a NaN twist returned a transform of NaN (inf in omega: 'math domain error')."""
+    xi = np.zeros(6)
+    xi[entry] = value
+    with pytest.raises(InputError, match=r"^exp: the twist has non-finite entries \(NaN or inf\)"):
+        se3.exp(xi)
+
+
+@pytest.mark.parametrize(("row", "column"), [(0, 0), (2, 1), (1, 3)])
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_se3_log_of_a_non_finite_transform_is_an_input_error(row, column, value):
+    """log of a NaN transform returned a NaN twist; an inf on the diagonal the zero twist."""
+    T = np.eye(4)
+    T[row, column] = value
+    with pytest.raises(InputError) as exc:
+        se3.log(T)
+    assert str(exc.value) == "log: the transform has non-finite entries (NaN or inf)"
+
+
+def test_se3_exp_and_log_of_finite_input_are_unchanged():
+    xi = np.array([0.1, -0.2, 0.3, 1.0, 2.0, -3.0])
+    np.testing.assert_allclose(se3.log(se3.exp(xi)), xi, atol=1e-12)
+    assert se3.exp([0, 0, 0, 1e200, 0, 0])[0, 3] == 1e200

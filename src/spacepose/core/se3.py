@@ -24,6 +24,7 @@ _I3 = np.eye(3)
 # Rotation angle beyond which log() takes scipy's route (the axis is ill-conditioned there).
 NEAR_PI = np.pi - 0.1
 _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
+_ONES3 = np.ones(3)
 
 
 def as_transform(T: ArrayLike, name: str = "transform") -> NDArray[np.float64]:
@@ -72,16 +73,36 @@ def non_rigid(T: NDArray[np.float64]) -> NDArray[np.bool_]:
 
 
 def make_transform(R: ArrayLike | Rotation, t: ArrayLike) -> NDArray[np.float64]:
-    """Build ``T`` (4×4) from a rotation (3×3 matrix or ``Rotation``) and a translation (3,)."""
+    """Build ``T`` (4×4) from a rotation (3×3 matrix or ``Rotation``) and a translation (3,).
+
+    Raises
+    ------
+    InputError
+        ``R`` is not 3×3 (a 4×4 transform, a stack of rotations) or ``t`` is not 3 numbers.
+    """
+    R = R.as_matrix() if isinstance(R, Rotation) else np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if R.shape != (3, 3):
+        raise InputError(f"make_transform: R must be a 3x3 rotation matrix, got shape {R.shape}")
+    if t.size != 3:
+        raise InputError(f"make_transform: t must be 3 numbers (x, y, z), got shape {t.shape}")
     T = np.eye(4)
-    T[:3, :3] = R.as_matrix() if isinstance(R, Rotation) else np.asarray(R, dtype=np.float64)
-    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    T[:3, :3] = R
+    T[:3, 3] = t.reshape(3)
     return T
 
 
 def invert(T: ArrayLike) -> NDArray[np.float64]:
-    """Inverse of a rigid transform, or of a stack (..., 4, 4), without a general inverse."""
+    """Inverse of a rigid transform, or of a stack (..., 4, 4), without a general inverse.
+
+    Raises
+    ------
+    InputError
+        ``T`` is not (..., 4, 4) (a 3×3 rotation ended in numpy's IndexError).
+    """
     T = np.asarray(T, dtype=np.float64)
+    if T.shape[-2:] != (4, 4):
+        raise InputError(f"invert needs a 4x4 transform (or a stack of them), got shape {T.shape}")
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
     out = np.zeros_like(T)
     out[..., :3, :3] = Rt
@@ -91,10 +112,19 @@ def invert(T: ArrayLike) -> NDArray[np.float64]:
 
 
 def compose(*transforms: ArrayLike) -> NDArray[np.float64]:
-    """Product ``T1 @ T2 @ ...`` of rigid transforms (``compose(T_a_b, T_b_c) = T_a_c``)."""
+    """Product ``T1 @ T2 @ ...`` of rigid transforms (``compose(T_a_b, T_b_c) = T_a_c``).
+
+    Raises
+    ------
+    InputError
+        A transform is not 4×4 (numpy's matmul error named neither which nor why).
+    """
     out = np.eye(4)
-    for T in transforms:
-        out = out @ np.asarray(T, dtype=np.float64)
+    for k, T in enumerate(transforms):
+        T = np.asarray(T, dtype=np.float64)
+        if T.shape != (4, 4):
+            raise InputError(f"compose: transform {k} must be 4x4, got shape {T.shape}")
+        out = out @ T
     return out
 
 
@@ -154,13 +184,27 @@ def _left_jacobian_so3(omega: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def exp(xi: ArrayLike) -> NDArray[np.float64]:
-    """Exponential map: twist ``(omega, v)`` (6,) -> transform (4, 4)."""
+    """Exponential map: twist ``(omega, v)`` (6,) -> transform (4, 4).
+
+    Raises
+    ------
+    InputError
+        ``xi`` is not 6 numbers, or holds NaN or inf (a NaN transform was returned).
+    """
     try:
         xi = np.asarray(xi, dtype=np.float64).reshape(6)
     except (TypeError, ValueError):
         raise InputError(f"a twist must be 6 numbers (omega, v), got {xi!r:.60}") from None
     omega, v = xi[:3], xi[3:]
-    theta = math.sqrt(omega @ omega)
+    theta2 = omega @ omega
+    # |omega|² and the sum of v are finite unless an entry is NaN or inf (or |omega| beyond
+    # 1e154): two comparisons where np.isfinite costs ~1 µs, and ICP calls this every iteration.
+    if not (theta2 < math.inf and abs(v @ _ONES3) < math.inf):
+        if not np.isfinite(xi).all():
+            raise InputError(f"exp: the twist has non-finite entries (NaN or inf), got {xi}")
+        if not theta2 < math.inf:
+            raise InputError(f"exp: the twist's rotation |omega|² overflows float64, got {xi}")
+    theta = math.sqrt(theta2)
     wx, wy, wz = omega
     W = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
     W2 = W @ W
@@ -180,7 +224,13 @@ def exp(xi: ArrayLike) -> NDArray[np.float64]:
 
 
 def log(T: ArrayLike) -> NDArray[np.float64]:
-    """Logarithm map: transform (4, 4) -> twist ``(omega, v)`` (6,). Inverse of :func:`exp`."""
+    """Logarithm map: transform (4, 4) -> twist ``(omega, v)`` (6,). Inverse of :func:`exp`.
+
+    Raises
+    ------
+    InputError
+        ``T`` is not 4×4, or holds NaN or inf (a NaN twist was returned).
+    """
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         raise InputError(f"log needs a 4x4 transform, got shape {T.shape}")
@@ -191,12 +241,21 @@ def log(T: ArrayLike) -> NDArray[np.float64]:
     # of every pose-graph iteration and scipy costs ~40 µs a call.
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     sin = 0.5 * math.sqrt(w @ w)
-    theta = math.atan2(sin, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0))
+    cos = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    t = T[:3, 3]
+    # NaN or inf anywhere in the top three rows leaves sin, cos or the sum of t non-finite (an
+    # inf on the diagonal alone gave the zero twist): three comparisons here, np.isfinite
+    # (~1 µs) only when one fails (or a square overflows).
+    if not (sin < math.inf and abs(cos) < math.inf and abs(t @ _ONES3) < math.inf) and not (
+        np.isfinite(T[:3]).all()
+    ):
+        raise InputError("log: the transform has non-finite entries (NaN or inf)")
+    theta = math.atan2(sin, cos)
     if theta > NEAR_PI:
         omega = Rotation.from_matrix(R).as_rotvec()
     else:
         omega = 0.5 * w * (theta / sin if sin > 0.0 else 1.0)
-    v = np.linalg.solve(_left_jacobian_so3(omega), T[:3, 3])
+    v = np.linalg.solve(_left_jacobian_so3(omega), t)
     return np.concatenate([omega, v])
 
 
@@ -241,8 +300,16 @@ def geodesic_mean(
 
 
 def adjoint(T: ArrayLike) -> NDArray[np.float64]:
-    """6×6 adjoint of T for twists ordered ``(omega, v)``: ``exp(Ad_T xi) = T exp(xi) T⁻¹``."""
+    """6×6 adjoint of T for twists ordered ``(omega, v)``: ``exp(Ad_T xi) = T exp(xi) T⁻¹``.
+
+    Raises
+    ------
+    InputError
+        ``T`` is not 4×4 (a 3×3 rotation ended in numpy's IndexError).
+    """
     T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise InputError(f"adjoint needs a 4x4 transform, got shape {T.shape}")
     R, t = T[:3, :3], T[:3, 3]
     Ad = np.zeros((6, 6))
     Ad[:3, :3] = R
