@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
 from spacepose.core.clusters import cluster_labels, main_cluster_group
+from spacepose.core.robust import adaptive_scale, robust_weights
 from spacepose.errors import InputError
 
 
@@ -119,3 +120,25 @@ def test_se3_exp_and_log_of_finite_input_are_unchanged():
     xi = np.array([0.1, -0.2, 0.3, 1.0, 2.0, -3.0])
     np.testing.assert_allclose(se3.log(se3.exp(xi)), xi, atol=1e-12)
     assert se3.exp([0, 0, 0, 1e200, 0, 0])[0, 3] == 1e200
+
+
+# -- adaptive_scale: NaN residuals ----------------------------------------------------------------
+
+
+def test_adaptive_scale_of_non_finite_residuals_is_an_input_error():
+    """NaN gave σ = NaN, and robust weights of NaN; an inf among them a σ without a word."""
+    for r in ([0.001, np.nan, 0.002], [0.001, np.inf, 0.002, 0.001]):
+        with pytest.raises(InputError) as exc:
+            adaptive_scale(r)
+        assert (
+            str(exc.value) == "adaptive_scale: the residuals have non-finite entries (NaN or inf)"
+        )
+        with pytest.raises(InputError, match=r"^robust weights: the residuals have non-finite"):
+            robust_weights(np.array(r), "huber")
+
+
+def test_adaptive_scale_of_no_residuals_is_the_documented_zero():
+    """No residuals: σ 0, an exact fit, and unit weights downstream (a documented fallback)."""
+    assert adaptive_scale([]) == 0.0
+    w = robust_weights(np.zeros(0), "cauchy")
+    assert (w.scale, len(w.weights)) == (0.0, 0)

@@ -34,6 +34,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 
 from spacepose.core.config import StageConfig
+from spacepose.errors import InputError
 
 RobustKernelName = Literal["none", "huber", "cauchy", "geman_mcclure"]
 
@@ -123,8 +124,32 @@ def sandwich_variance(psi2: float, total: float, slope: float, m: int, n_params:
 
 
 def adaptive_scale(residuals: ArrayLike) -> float:
-    """Robust σ of zero-mean residuals: ``1.4826 · median |r|`` (0 for no residuals)."""
+    """Robust σ of zero-mean residuals: ``1.4826 · median |r|``.
+
+    No residuals give 0, the scale of an exact fit: :func:`kernel_width` then leaves every
+    weight at 1 (nothing to down-weight), which is what a registration with no matches yet
+    needs.
+
+    Raises
+    ------
+    InputError
+        A residual is NaN or inf (σ was NaN, or the median of the finite ones, without a word).
+    """
     r = np.abs(np.asarray(residuals, dtype=np.float64))
+    _finite_peak(r, "adaptive_scale")
+    return _median_scale(r)
+
+
+def _finite_peak(r: NDArray[np.float64], name: str) -> float:
+    """``max |r|`` of absolute residuals ``r`` (0 for none); InputError unless finite."""
+    peak = float(r.max()) if len(r) else 0.0
+    if not peak < np.inf:  # NaN compares False
+        raise InputError(f"{name}: the residuals have non-finite entries (NaN or inf)")
+    return peak
+
+
+def _median_scale(r: NDArray[np.float64]) -> float:
+    """:func:`adaptive_scale` of finite absolute residuals ``r``."""
     return MAD_TO_SIGMA * float(np.median(r)) if len(r) else 0.0
 
 
@@ -167,8 +192,10 @@ def kernel_width(
     """``(σ, c)`` of :func:`robust_weights` for residuals (M,): the fixed or adaptive σ and the
     kernel width ``c = TUNING[kernel] · σ``, c = 0 when every weight is 1 (no kernel, or nearly
     every residual zero: an exact fit, nothing to down-weight)."""
-    sigma = adaptive_scale(residuals) if scale is None else float(scale)
-    floor = _MIN_RELATIVE_SCALE * float(np.abs(residuals).max()) if len(residuals) else 0.0
+    r = np.abs(residuals)
+    peak = _finite_peak(r, "robust weights")
+    sigma = _median_scale(r) if scale is None else float(scale)
+    floor = _MIN_RELATIVE_SCALE * peak
     if kernel == "none" or sigma <= floor:
         return sigma, 0.0
     return sigma, TUNING[kernel] * sigma
