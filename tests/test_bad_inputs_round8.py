@@ -10,7 +10,8 @@ from scipy.spatial.transform import Rotation
 from spacepose.core import se3
 from spacepose.core.clusters import cluster_labels, main_cluster_group
 from spacepose.core.robust import adaptive_scale, robust_weights
-from spacepose.errors import InputError
+from spacepose.errors import InputError, SpaceposeWarning
+from spacepose.tools.cloud_io import read_cloud
 
 
 def _plane(n: int = 400, seed: int = 0) -> np.ndarray:
@@ -142,3 +143,50 @@ def test_adaptive_scale_of_no_residuals_is_the_documented_zero():
     assert adaptive_scale([]) == 0.0
     w = robust_weights(np.zeros(0), "cauchy")
     assert (w.scale, len(w.weights)) == (0.0, 0)
+
+
+# -- read_cloud: a file with NaN normals ----------------------------------------------------------
+
+
+def _pcd_with_normals(path, normals: np.ndarray) -> None:
+    """An ASCII PCD of 200 plate points with the given normals (as PCL writes PointNormal)."""
+    points = _plane(len(normals))
+    header = (
+        "VERSION 0.7\nFIELDS x y z normal_x normal_y normal_z\nSIZE 4 4 4 4 4 4\n"
+        f"TYPE F F F F F F\nCOUNT 1 1 1 1 1 1\nWIDTH {len(points)}\nHEIGHT 1\n"
+        f"VIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\nDATA ascii\n"
+    )
+    rows = "".join(" ".join(f"{v:.9g}" for v in row) + "\n" for row in np.c_[points, normals])
+    path.write_text(header + rows)
+
+
+@pytest.mark.parametrize("unfilled", [[3], [3, 17, 150], list(range(200))])
+def test_nan_normals_in_a_file_are_left_out_not_their_points(tmp_path, unfilled):
+    """PCL's normal estimation leaves NaN where a point has too few neighbours: those points
+    were dropped without a word, and a file of NaN normals only was refused ('no row with
+    finite points and normals'), though every point was good."""
+    path = tmp_path / "scan.pcd"
+    normals = np.tile([0.0, 0.0, -1.0], (200, 1))
+    normals[unfilled] = np.nan
+    _pcd_with_normals(path, normals)
+    with pytest.warns(SpaceposeWarning) as caught:
+        cloud = read_cloud(path)
+    assert [str(w.message) for w in caught] == [
+        f"{path}: {len(unfilled)} of 200 normals are NaN or inf at finite points (first at "
+        f"point {unfilled[0]}), which would drop those points: the file's normals are left out "
+        "and estimated"
+    ]
+    assert (len(cloud), cloud.n_dropped, cloud.has_normals) == (200, 0, False)
+
+
+def test_a_nan_normal_with_its_nan_point_is_dropped_as_before(tmp_path):
+    import warnings
+
+    path = tmp_path / "scan.npy"
+    rows = np.c_[_plane(10), np.tile([0.0, 0.0, -1.0], (10, 1))]
+    rows[4] = np.nan
+    np.save(path, rows)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        cloud = read_cloud(path)
+    assert (len(cloud), cloud.n_dropped, cloud.has_normals) == (9, 1, True)

@@ -113,7 +113,7 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     except OSError as exc:  # refused by the system: this file fails (a frame is lost), not the run
         raise FileFormatError(f"cannot read: {exc.strerror or exc}", path) from None
     if normals is not None:
-        normals = _unit_normals(normals, path)
+        normals = _unit_normals(normals, path, points)
     cloud = PointCloud(points * scale, normals, source=str(path))
     if scale == 1.0:
         warn_if_not_metres(cloud, path)
@@ -123,16 +123,29 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
 _RESCALE = "scale the file by 0.001 (read_cloud(..., scale=1e-3))"
 
 
-def _unit_normals(normals: NDArray[np.float64], path: Path) -> NDArray[np.float64] | None:
+def _unit_normals(
+    normals: NDArray[np.float64], path: Path, points: NDArray[np.float64]
+) -> NDArray[np.float64] | None:
     """A file's normals as unit vectors, or None: one of zero length has no direction, and a
     file with such normals (a point type with normal fields no step filled, as PCL's
-    PointNormal left at zero) has its normals left out, with a warning, to be estimated; one of
-    another length is read as its direction, with a warning (a registration weighs a
-    point-to-plane residual by its normal's length)."""
+    PointNormal left at zero) has its normals left out, with a warning, to be estimated; so has
+    one with NaN or inf normals at finite ``points`` (PCL's normal estimation where a point has
+    too few neighbours), which dropped those points without a word (every point, when no
+    normal was filled: the file was refused); one of another length is read as its direction,
+    with a warning (a registration weighs a point-to-plane residual by its normal's length)."""
     # Lengths of rows scaled by their largest component: a normal of 1e300 is a direction too,
     # and its square must not overflow (numpy's bare warning, and an inf length kept it as is).
     largest = np.max(np.abs(normals), axis=1)
     finite = np.isfinite(largest)
+    unfilled = np.flatnonzero(~finite & np.isfinite(points).all(axis=1))
+    if len(unfilled):
+        problem = (
+            f"{len(unfilled)} of {len(normals)} normals are NaN or inf at finite points (first "
+            f"at point {unfilled[0]}), which would drop those points: the file's normals are "
+            "left out and estimated"
+        )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=3)
+        return None
     scaled = normals / np.where(finite & (largest > 0), largest, 1.0)[:, None]
     unit_length = np.linalg.norm(scaled, axis=1)
     with np.errstate(over="ignore"):
