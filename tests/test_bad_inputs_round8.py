@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
 from spacepose.core.clusters import cluster_labels, main_cluster_group
+from spacepose.core.principal_axes import principal_axes
 from spacepose.core.robust import adaptive_scale, robust_weights
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
@@ -190,3 +191,56 @@ def test_a_nan_normal_with_its_nan_point_is_dropped_as_before(tmp_path):
         warnings.simplefilter("error", SpaceposeWarning)
         cloud = read_cloud(path)
     assert (len(cloud), cloud.n_dropped, cloud.has_normals) == (9, 1, True)
+
+
+# -- principal_axes: NaN times or attitudes, matrices that are no rotation -------------------------
+
+
+def _spin(n: int = 30) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` times 1 s apart and the attitudes of a body turning about a fixed axis."""
+    t = np.arange(float(n))
+    return t, Rotation.from_rotvec(np.outer(t, [0.01, 0.02, 0.03])).as_matrix()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ("nan_time", "principal_axes: the times t must be finite and increasing"),
+        ("times_2d", "principal_axes: t must be (N,) times, got shape (30, 3)"),
+        ("nan_attitude", "principal_axes: R_I_F[3] is not a rotation (finite, orthonormal, "
+         "det +1); 1 of 30 attitudes are not"),
+        ("zero_attitude", "principal_axes: R_I_F[3] is not a rotation (finite, orthonormal, "
+         "det +1); 1 of 30 attitudes are not"),
+        ("scaled", "principal_axes: R_I_F[0] is not a rotation (finite, orthonormal, det +1); "
+         "30 of 30 attitudes are not"),
+        ("nan_baseline", "principal_axes: baseline must be a whole number of frames, got nan"),
+    ],
+)  # fmt: skip
+def test_principal_axes_of_bad_attitudes_is_an_input_error(change, message):
+    """NaN times or attitudes ended in numpy's LinAlgError ('SVD did not converge'), a zero
+    matrix in scipy's 'Non-positive determinant', (N, 3) times in a broadcast error and a NaN
+    baseline in 'cannot convert float NaN to integer'; attitudes scaled by 2 were read as
+    their rotations without a word."""
+    t, R = _spin()
+    baseline = 5
+    if change == "nan_time":
+        t[5] = np.nan
+    elif change == "times_2d":
+        t = np.c_[t, t, t]
+    elif change == "nan_attitude":
+        R[3] = np.nan
+    elif change == "zero_attitude":
+        R[3] = 0.0
+    elif change == "scaled":
+        R = 2.0 * R
+    else:
+        baseline = float("nan")
+    with pytest.raises(InputError) as exc:
+        principal_axes(t, R, baseline)
+    assert str(exc.value) == message
+
+
+def test_principal_axes_of_good_attitudes_are_unchanged():
+    t, R = _spin()
+    R[4] = R[4] @ Rotation.from_rotvec([1e-7, 0.0, 0.0]).as_matrix() * (1.0 + 1e-7)
+    assert np.isfinite(principal_axes(t, R).moments).all()

@@ -73,12 +73,29 @@ def principal_axes(t: ArrayLike, R_I_F: ArrayLike, baseline: int = 5) -> Princip
     Raises
     ------
     InputError
-        Shapes disagree, times not increasing, or fewer than 4 rate samples.
+        Shapes disagree, times not finite and increasing, an attitude that is not a rotation
+        (NaN, zero, scaled or reflected; NaN ended in numpy's 'SVD did not converge', a scaled
+        matrix was taken as its rotation without a word), a baseline that is not a whole
+        number >= 1, or fewer than 4 rate samples.
     """
     t = np.asarray(t, dtype=np.float64)
     R = np.asarray(R_I_F, dtype=np.float64)
-    if R.shape != (len(t), 3, 3) or np.any(np.diff(t) <= 0):
-        raise InputError(f"need increasing times and (N, 3, 3) attitudes, got {R.shape}")
+    if t.ndim != 1:
+        raise InputError(f"principal_axes: t must be (N,) times, got shape {t.shape}")
+    if R.shape != (len(t), 3, 3):
+        raise InputError(f"principal_axes: R_I_F must be ({len(t)}, 3, 3), got {R.shape}")
+    if not np.isfinite(t).all() or np.any(np.diff(t) <= 0):
+        raise InputError("principal_axes: the times t must be finite and increasing")
+    bad = _not_rotations(R)
+    if len(bad):
+        raise InputError(
+            f"principal_axes: R_I_F[{bad[0]}] is not a rotation (finite, orthonormal, det +1); "
+            f"{len(bad)} of {len(R)} attitudes are not"
+        )
+    if isinstance(baseline, bool) or not float(baseline).is_integer():
+        raise InputError(
+            f"principal_axes: baseline must be a whole number of frames, got {baseline}"
+        )
     m = int(baseline)
     if len(t) - m < 4 or m < 1:
         raise InputError(f"{len(t)} attitudes give fewer than 4 rate samples at baseline {m}")
@@ -109,3 +126,12 @@ def principal_axes(t: ArrayLike, R_I_F: ArrayLike, baseline: int = 5) -> Princip
     residual = float(np.linalg.norm(A @ x) / np.sqrt(len(w_F)) / np.linalg.norm(x[6:]))
     k = inertia_ratios(lam) if lam.min() > 0 else np.full(3, np.nan)
     return PrincipalAxes(V, lam / scale, k, h, residual)
+
+
+def _not_rotations(R: NDArray[np.float64]) -> NDArray[np.intp]:
+    """Indices of the (N, 3, 3) matrices that are not rotations to 1e-3: the attitudes come
+    from products of validated rotations, each off orthonormal by up to 1e-6."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        off = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+        det = np.linalg.det(np.where(np.isfinite(R), R, 0.0))
+    return np.flatnonzero(~(off <= 1e-3) | ~(det > 0))
