@@ -11,6 +11,7 @@ from spacepose.core import se3
 from spacepose.core.clusters import cluster_labels, main_cluster_group
 from spacepose.core.principal_axes import principal_axes
 from spacepose.core.robust import adaptive_scale, robust_weights
+from spacepose.core.scale import derive_scale, point_spacing, range_noise
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
 
@@ -244,3 +245,31 @@ def test_principal_axes_of_good_attitudes_are_unchanged():
     t, R = _spin()
     R[4] = R[4] @ Rotation.from_rotvec([1e-7, 0.0, 0.0]).as_matrix() * (1.0 + 1e-7)
     assert np.isfinite(principal_axes(t, R).moments).all()
+
+
+# -- scale: counts of points that are no count ------------------------------------------------
+
+
+@pytest.mark.parametrize("count", [0, -5, 1.5, float("nan"), "many"])
+def test_derive_scale_of_no_target_count_is_an_input_error(count):
+    """target_points 0 ended in ZeroDivisionError, -5 in 'math domain error', and NaN gave the
+    spacing as the voxel without a word."""
+    with pytest.raises(InputError) as exc:
+        derive_scale(_plane(), count)
+    assert str(exc.value) == f"target_points must be a whole number >= 1, got {count!r}"
+
+
+@pytest.mark.parametrize("samples", [0, -1, 1.5, float("nan")])
+@pytest.mark.parametrize("measure", [point_spacing, range_noise])
+def test_spacing_and_noise_of_no_sample_count_are_an_input_error(measure, samples):
+    """-1 ended in numpy's 'negative dimensions are not allowed', 1.5 in a TypeError, NaN was
+    ignored, and range_noise of 0 samples was 0 m without a word."""
+    with pytest.raises(InputError) as exc:
+        measure(_plane(3000), samples)
+    assert str(exc.value) == f"samples must be a whole number >= 1, got {samples!r}"
+
+
+def test_scale_takes_whole_counts_given_as_floats():
+    points = _plane(3000)
+    assert point_spacing(points, 2000.0) == point_spacing(points)
+    assert derive_scale(points, 1000.0) == derive_scale(points, 1000)

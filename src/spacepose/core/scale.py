@@ -99,8 +99,10 @@ def point_spacing(points: ArrayLike, samples: int = _SPACING_SAMPLES, seed: int 
     Raises
     ------
     InputError
-        Fewer than two points, or every point at one place.
+        Fewer than two points, every point at one place, or ``samples`` not a whole number
+        >= 1 (-1 ended in numpy's 'negative dimensions', 1.5 in a TypeError, NaN was ignored).
     """
+    samples = _check_count("samples", samples)
     pts = as_points(points)
     if len(pts) < 2:
         raise InputError(f"{len(pts)} point(s): a spacing needs at least two")
@@ -158,6 +160,7 @@ def range_noise(
     """
     if k < 4:
         raise InputError(f"range noise needs k >= 4 neighbours (a plane and a residual), got {k}")
+    samples = _check_count("samples", samples)
     pts = as_points(points)
     ranges = np.linalg.norm(pts, axis=1)
     keep = ranges > 0
@@ -204,6 +207,17 @@ def _ray_spread(
     return float(np.median(np.sqrt(np.einsum("sk,sk->s", e, e) / (k - 3))))
 
 
+def _check_count(name: str, value: int) -> int:
+    """``value`` as an int: a count of points must be a whole number >= 1 (2000.0 passes)."""
+    try:
+        whole = not isinstance(value, bool) and float(value).is_integer() and value >= 1
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole:
+        raise InputError(f"{name} must be a whole number >= 1, got {value!r}")
+    return int(value)
+
+
 def voxel_for(spacing: float, n_points: int, target_points: int) -> float:
     """Voxel edge (m) that leaves about ``target_points`` of a surface sampled at ``spacing``."""
     area = n_points * spacing**2
@@ -230,9 +244,17 @@ def derive_scale(
         Points a frame should keep after downsampling (``n_target`` above).
     voxel_size
         A voxel edge (m) to use instead of the derived one.
+
+    Raises
+    ------
+    InputError
+        ``target_points`` is not a whole number >= 1 (0 ended in ZeroDivisionError, a negative
+        count in 'math domain error', NaN gave the spacing as the voxel without a word), or as
+        :func:`point_spacing` and :func:`~spacepose.core.voxel.voxel_cells`.
     """
     from spacepose.core.voxel import voxel_cells
 
+    target_points = _check_count("target_points", target_points)
     pts = as_points(points)
     spacing = point_spacing(pts)
     noise = range_noise(pts)
