@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
 from spacepose.core.clusters import cluster_labels, main_cluster_group
+from spacepose.core.depth import DepthCamera, depth_to_cloud, render_depth
 from spacepose.core.principal_axes import principal_axes
 from spacepose.core.robust import adaptive_scale, robust_weights
 from spacepose.core.scale import derive_scale, point_spacing, range_noise
@@ -273,3 +274,32 @@ def test_scale_takes_whole_counts_given_as_floats():
     points = _plane(3000)
     assert point_spacing(points, 2000.0) == point_spacing(points)
     assert derive_scale(points, 1000.0) == derive_scale(points, 1000)
+
+
+# -- depth: a stride or an image size that is no whole number ----------------------------------
+
+
+_CAMERA = DepthCamera(fx=60, fy=60, cx=40, cy=30, depth_scale=0.001)
+
+
+@pytest.mark.parametrize("stride", [0, 1.5, float("nan")])
+def test_depth_to_cloud_of_no_whole_stride_is_an_input_error(stride):
+    """A stride of 1.5 or NaN ended in a TypeError ('slice indices must be integers')."""
+    with pytest.raises(InputError) as exc:
+        depth_to_cloud(np.full((60, 80), 1000, np.uint16), _CAMERA, stride, source="d.png")
+    assert str(exc.value) == f"d.png: stride must be a whole number >= 1, got {stride!r}"
+
+
+@pytest.mark.parametrize(("height", "width"), [(-1, 80), (60.5, 80), (60, 0)])
+def test_render_depth_of_no_image_size_is_an_input_error(height, width):
+    """-1 ended in numpy's 'negative dimensions', 60.5 in a TypeError, 0 gave an empty image."""
+    name, value = ("height", height) if height != 60 else ("width", width)
+    with pytest.raises(InputError) as exc:
+        render_depth(_plane(), _CAMERA, height, width)
+    assert str(exc.value) == f"{name} must be a whole number >= 1, got {value!r}"
+
+
+def test_depth_takes_whole_sizes_given_as_floats():
+    image = render_depth(_plane(), _CAMERA, 60.0, 80)
+    assert image.shape == (60, 80) and image.max() > 0
+    assert len(depth_to_cloud(np.full((60, 80), 1000, np.uint16), _CAMERA, 2.0)) == 30 * 40

@@ -214,6 +214,17 @@ def undistort(camera: DepthCamera, xd: ArrayLike, yd: ArrayLike) -> tuple[NDArra
     return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
 
 
+def _whole(name: str, value: int, minimum: int, source: str | None = None) -> int:
+    """``value`` as an int, or an InputError unless it is a whole number >= ``minimum``."""
+    try:
+        whole = not isinstance(value, bool) and float(value).is_integer() and value >= minimum
+    except (TypeError, ValueError, OverflowError):
+        whole = False
+    if not whole:
+        raise InputError(f"{name} must be a whole number >= {minimum}, got {value!r}", source)
+    return int(value)
+
+
 def pixel_rays(camera: DepthCamera, height: int, width: int) -> NDArray[np.float64]:
     """Undistorted normalised coordinates ``(x_n, y_n)`` of every pixel, (H, W, 2).
 
@@ -270,10 +281,10 @@ class OrganisedCloud:
         Raises
         ------
         InputError
-            No pixel has a return.
+            ``stride`` is not a whole number >= 1 (1.5 or NaN ended in a TypeError about slice
+            indices), or no pixel has a return.
         """
-        if stride < 1:
-            raise InputError(f"stride must be >= 1, got {stride}", source)
+        stride = _whole("stride", stride, 1, source)
         points = self.points[::stride, ::stride]
         valid = self.valid[::stride, ::stride]
         if not valid.any():
@@ -375,7 +386,15 @@ def render_depth(
     Returns
     -------
     (H, W) depth ``z`` in metres, 0 where no point lands.
+
+    Raises
+    ------
+    InputError
+        Points not a finite (N, 3) array, or ``height`` / ``width`` not a whole number >= 1
+        (-1 ended in numpy's 'negative dimensions', 60.5 in a TypeError, 0 gave an empty image).
     """
+    height = _whole("height", height, 1)
+    width = _whole("width", width, 1)
     pts = as_points(points)
     pts = pts[pts[:, 2] > 0]
     xd, yd = distort(camera, pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2])
