@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
 from spacepose.core.clusters import cluster_labels, main_cluster_group
+from spacepose.core.crlb import crlb
 from spacepose.core.depth import DepthCamera, depth_to_cloud, render_depth
 from spacepose.core.principal_axes import principal_axes
 from spacepose.core.robust import adaptive_scale, robust_weights
@@ -303,3 +304,25 @@ def test_depth_takes_whole_sizes_given_as_floats():
     image = render_depth(_plane(), _CAMERA, 60.0, 80)
     assert image.shape == (60, 80) and image.max() > 0
     assert len(depth_to_cloud(np.full((60, 80), 1000, np.uint16), _CAMERA, 2.0)) == 30 * 40
+
+
+# -- crlb: normals that are not unit vectors -----------------------------------------------------
+
+
+@pytest.mark.parametrize(("length", "shown"), [(2.0, "2"), (0.0, "0"), (0.5, "0.5")])
+def test_crlb_of_non_unit_normals_is_an_input_error(length, shown):
+    """A normal of length 2 counted its point four times in the Fisher information, one of
+    length 0 not at all: the bound came out wrong without a word."""
+    normals = np.tile([0.0, 0.0, -1.0], (400, 1))
+    normals[[7, 9]] *= length
+    with pytest.raises(InputError) as exc:
+        crlb(_plane(), normals, 0.001)
+    assert str(exc.value) == (
+        f"normals must be unit vectors: 2 of 400 are not (first at row 7, length {shown})"
+    )
+
+
+def test_crlb_of_unit_normals_is_unchanged():
+    normals = np.tile([0.0, 0.0, -1.0], (400, 1)) * (1.0 + 1e-6)
+    bound = crlb(_plane(), normals, 0.001)
+    assert bound.rank == 3 and bound.degenerate

@@ -71,11 +71,25 @@ def fisher_point_to_plane(
     -------
     ``J = Σ h_i h_iᵀ / σ_i²`` with ``h_i = (p_i × n_i, n_i)``, in units of (1/rad², 1/(rad·m),
     1/m²) by block.
+
+    Raises
+    ------
+    InputError
+        Shapes disagree, a value is not finite, σ is not > 0, or a normal is not of unit length
+        (within 1e-3): a normal of length 2 counted its point 4 times, one of zero length not
+        at all, and the bound came out wrong without a word.
     """
     p = as_points(points, "points")
     n = as_points(normals, "normals")
     if len(p) != len(n):
         raise InputError(f"{len(p)} points for {len(n)} normals")
+    length = np.sqrt(np.einsum("ij,ij->i", n, n))
+    off = np.flatnonzero(np.abs(length - 1.0) > 1e-3)
+    if len(off):
+        raise InputError(
+            f"normals must be unit vectors: {len(off)} of {len(n)} are not (first at row "
+            f"{off[0]}, length {length[off[0]]:.6g})"
+        )
     s = np.asarray(sigma, dtype=np.float64)
     s = np.full(len(p), float(s)) if s.ndim == 0 else s
     if s.shape != (len(p),):
