@@ -280,7 +280,8 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
     Raises
     ------
     FileFormatError
-        Missing file, unknown extension, unreadable content or no triangles.
+        Missing file, unknown extension, unreadable content, a vertex of NaN or inf, or no
+        triangles.
     InputError
         A scale that is not a positive finite number.
     """
@@ -294,9 +295,22 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
     if not (np.isfinite(scale) and scale > 0):
         raise InputError(f"mesh scale must be a positive number, got {scale}", path)
     try:
+        # Unprocessed first: processing drops the faces on a NaN or inf vertex without a word
+        # (a box with one such corner lost 4 of its 12 triangles; one of a single triangle was
+        # "no triangles").
+        raw = trimesh.load(path, force="mesh", process=False)
         mesh = trimesh.load(path, force="mesh", process=True)
     except Exception as exc:  # trimesh raises many types for bad files; report them alike
         raise FileFormatError(f"cannot read mesh: {exc}", path) from None
+    if isinstance(raw, trimesh.Trimesh) and len(raw.faces):
+        corners = np.asarray(raw.vertices)[np.asarray(raw.faces)]
+        bad = np.count_nonzero(~np.isfinite(corners).all(axis=(1, 2)))
+        if bad:
+            raise FileFormatError(
+                f"{bad} of {len(raw.faces)} triangles have a corner of NaN or inf "
+                "coordinates, and would be left out",
+                path,
+            )
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise FileFormatError("the file holds no triangles", path)
     mesh = trimesh.Trimesh(np.asarray(mesh.vertices) * scale, np.asarray(mesh.faces), process=True)
