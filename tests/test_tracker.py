@@ -332,6 +332,20 @@ def test_a_bad_first_frame_gives_way_to_a_later_one_without_a_model(lab, bad):
     np.testing.assert_array_equal(out.trajectory.poses[1:], alone.trajectory.poses)
 
 
+def test_a_spare_numbers_its_frames_as_the_run_does(lab):
+    """A frame number skipped between (a frame out of time order, which spacepose track does
+    not give the tracker) is skipped by the spare too: its result carries the run's number."""
+    sim, frames = lab
+    tracker = Tracker(TrackerConfig(), None, 2)
+    glitch = frames[0].cloud.points + np.array([0.0, 0.0, 1000.0])
+    tracker.track_frame(glitch, sim.timestamps[0])
+    assert tracker.track_frame(frames[1].cloud, sim.timestamps[1]).status == "lost"
+    tracker.continue_at(3)
+    result = tracker.track_frame(frames[3].cloud, sim.timestamps[3])
+    assert result.index == 3 and result.status != "lost"
+    assert [r.index for r in result.revises] == [0, 1] and tracker.first_index == 1
+
+
 def test_a_good_first_frame_stays_the_target_frame_when_the_second_is_garbage(lab):
     """A frame lost after a good first frame starts a spare, but the next frame registers onto
     the first one: it stays the target frame, and nothing is revised."""

@@ -89,6 +89,7 @@ class SpareAnchor:
         frame onto its own first one; None otherwise: the spare then starts afresh on this
         frame (or, when the frame is unusable, on the next one)."""
         if self.tracker is not None:
+            self.tracker.continue_at(index)  # numbered as the run's (a frame skipped between)
             result = self.tracker.track_frame(*frame)
             if result.status != "lost":
                 return self.tracker, result
