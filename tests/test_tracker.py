@@ -278,7 +278,7 @@ def test_model_based_tracking_starts_by_coarse_registration(lab):
     assert all(r.reference_index == -1 for r in out.results)
 
 
-def _garbage(frame, bad: str) -> np.ndarray:
+def _bad_first(frame, bad: str) -> np.ndarray:
     """A first frame gone wrong: uniform noise in a 2 m box ahead, or ``frame`` 1 km off."""
     if bad == "noise":
         return np.random.default_rng(0).uniform(-1.0, 1.0, (5000, 3)) + np.array([0, 0, 2.0])
@@ -295,7 +295,7 @@ def test_a_bad_first_frame_does_not_lock_a_model_based_tracker(lab, bad):
     coarsely, and a lost frame before any accepted pose leaves no lengths behind: the run is
     re-acquired within two frames and frames 3-7 are ok within 2 mm and 0.2°."""
     sim, frames = lab
-    garbage = _garbage(frames[0], bad)
+    garbage = _bad_first(frames[0], bad)
     clouds = [garbage, *(f.cloud for f in frames[1:8])]
     out = track_sequence(clouds, sim.timestamps[:8], TrackerConfig(), sim.model_cloud(), 2)
     assert out.results[0].status != "ok"
@@ -313,7 +313,7 @@ def test_a_bad_first_frame_gives_way_to_a_later_one_without_a_model(lab, bad):
     defines the target frame, and every later frame is the pose a run starting on frame 1
     gives, ok from frame 4 on within 2 mm and 0.2° of the truth re-based on frame 1."""
     sim, frames = lab
-    garbage = _garbage(frames[0], bad)
+    garbage = _bad_first(frames[0], bad)
     clouds = [garbage, *(f.cloud for f in frames[1:])]
     out = track_sequence(clouds, sim.timestamps, TrackerConfig(), None, 2)
     assert out.results[0].status == "lost" and "frame 1's" in out.results[0].reasons[0]
@@ -334,7 +334,7 @@ def test_a_spare_numbers_its_frames_as_the_run_does(lab):
     not give the tracker) is skipped by the spare too: its result carries the run's number."""
     sim, frames = lab
     tracker = Tracker(TrackerConfig(), None, 2)
-    tracker.track_frame(_garbage(frames[0], "far"), sim.timestamps[0])
+    tracker.track_frame(_bad_first(frames[0], "far"), sim.timestamps[0])
     assert tracker.track_frame(frames[1].cloud, sim.timestamps[1]).status == "lost"
     tracker.continue_at(3)
     result = tracker.track_frame(frames[3].cloud, sim.timestamps[3])
@@ -347,7 +347,7 @@ def test_a_good_first_frame_stays_the_target_frame_when_the_second_is_garbage(la
     the first one: it stays the target frame, and nothing is revised."""
     sim, frames = lab
     clouds = [f.cloud for f in frames]
-    clouds[1] = _garbage(frames[1], "far")
+    clouds[1] = _bad_first(frames[1], "far")
     out = track_sequence(clouds, sim.timestamps, TrackerConfig(), None, 2)
     assert out.results[0].status == "ok" and out.results[1].status == "lost"
     assert all(r.status != "lost" for r in out.results[2:])
