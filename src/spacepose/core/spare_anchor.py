@@ -24,6 +24,10 @@ if TYPE_CHECKING:
     from spacepose.core.tracker import Tracker
 
 Frame = tuple["PointCloud | ArrayLike | None", float]
+# Frames the run's tracker may accept without a fit before its first frame stands: a spare costs
+# a frame's work each, and a scene that no registration fits within the bounds (a support
+# moving otherwise, noise ×3) never confirms a first frame.
+MAX_UNFIT = 3
 
 
 def abandoned_anchor(first: TrackResult, new_anchor: int) -> TrackResult:
@@ -57,25 +61,35 @@ class SpareAnchor:
     def __init__(self, config: TrackerConfig, workers: int) -> None:
         self._config, self._workers = config, workers
         self.tracker: Tracker | None = None
+        self._unfit = 0
 
     def follow(
-        self, frame: Frame, result: TrackResult, first: TrackResult | None
+        self, frame: Frame, result: TrackResult, first: TrackResult | None, fits: bool
     ) -> tuple[bool, tuple[Tracker, TrackResult] | None]:
         """Follow the run's tracker's ``result`` on ``frame`` ``(cloud, timestamp)``, its first
-        frame's result ``first`` (None before it).
+        frame's result ``first`` (None before it); ``fits``: the result is accepted and fits
+        (fitness and RMSE within their ok bounds, :meth:`TrackerState.fits`).
 
         Returns
         -------
         needed
-            False once a frame after the first was accepted: the first frame is confirmed and
-            stays the target frame.
+            False once a frame after the first was accepted and fits (the first frame is
+            confirmed and stays the target frame), or after :data:`MAX_UNFIT` frames
+            accepted without fitting.
         adopted
-            Once the spare registered a lost frame onto its own first one: the spare, which
-            the run's tracker should carry on as, and its result on the frame, revising the
-            two first frames' results (:attr:`TrackResult.revises`); None otherwise.
+            Once the spare registered a frame that the run's tracker lost or did not fit onto
+            its own first one, and it fits: the spare, which the run's tracker should carry on
+            as, and its result on the frame, revising the two first frames' results
+            (:attr:`TrackResult.revises`); None otherwise.
         """
-        if first is None or result.status != "lost":
-            return first is None or result.index == first.index, None
+        if first is None or result.index == first.index:
+            return True, None
+        if fits:
+            return False, None
+        if result.status != "lost":
+            self._unfit += 1
+            if self._unfit > MAX_UNFIT:
+                return False, None
         spare = self._track(frame, result.index)
         if spare is None:
             return True, None
@@ -85,13 +99,13 @@ class SpareAnchor:
         return False, (tracker, dataclasses.replace(spare_result, revises=revised))
 
     def _track(self, frame: Frame, index: int) -> tuple[Tracker, TrackResult] | None:
-        """The spare's result on frame ``index`` the run's tracker lost, once it registered the
-        frame onto its own first one; None otherwise: the spare then starts afresh on this
-        frame (or, when the frame is unusable, on the next one)."""
+        """The spare's result on frame ``index``, once it registered the frame onto its own
+        first one and it fits; None otherwise: the spare then starts afresh on this frame (or,
+        when the frame is unusable, on the next one)."""
         if self.tracker is not None:
             self.tracker.continue_at(index)  # numbered as the run's (a frame skipped between)
             result = self.tracker.track_frame(*frame)
-            if result.status != "lost":
+            if self.tracker.fits(result):
                 return self.tracker, result
         self.tracker = self._fresh(index)
         if self.tracker.track_frame(*frame).status == "lost":

@@ -108,6 +108,14 @@ class TrackerState:
         """Every stage's lengths, set from :attr:`scale` (None before the first usable frame)."""
         return self._frames.lengths
 
+    def fits(self, result: TrackResult) -> bool:
+        """Whether ``result`` was accepted with its registration's fitness and RMSE within
+        their ok bounds (:mod:`spacepose.core.health`)."""
+        if result.status == "lost" or self._frames.scale is None:
+            return False
+        bounds = health_bounds(self._context(), self.model_based)
+        return result.fitness >= bounds.ok_fitness and result.rmse <= bounds.ok_rmse
+
     def continue_at(self, index: int) -> None:
         """Number the next frame ``index``: the frames before it went to another tracker (a
         run's whole-scene tracker starts late, :mod:`spacepose.core.scene_follower`).
