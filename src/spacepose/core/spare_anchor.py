@@ -1,11 +1,12 @@
 """Model-free: a first frame that no later frame confirms is replaced (docs/methods.md §5.6).
 
 The first usable frame defines the target frame (§0.7). When it is garbage a sensor gave (a
-warm-up frame of flying pixels, a glitch 1 km off), every later frame is lost against it and
-the run never starts. While no frame after it has been accepted, each frame the run's tracker
-loses is also given to a spare tracker started on a lost frame; once the spare registers a frame
-onto its own first one, it carries on as the run's tracker, and the target frame is that first
-frame's sensor frame.
+warm-up frame of flying pixels, a glitch 1 km off), every later frame is lost against it, or
+registered onto it with a poor fit, and the run never starts. While no frame after it has been
+accepted with a fit, each frame the run's tracker loses or fits badly is also given to a spare
+tracker started on such a frame; once the spare registers a frame onto its own first one with a
+fit, it carries on as the run's tracker, and the target frame is that first frame's sensor
+frame.
 """
 
 from __future__ import annotations
@@ -49,8 +50,8 @@ def new_anchor(first: TrackResult, old_anchor: int) -> TrackResult:
 
 
 class SpareAnchor:
-    """A tracker started on a frame the run's tracker lost, while the run's first frame is
-    still unconfirmed.
+    """A tracker started on a frame the run's tracker lost or fitted badly, while the run's
+    first frame is still unconfirmed.
 
     Parameters
     ----------
