@@ -346,6 +346,19 @@ def test_a_first_frame_of_noise_that_later_frames_fit_badly_gives_way():
     np.testing.assert_array_equal(out.trajectory.poses[1:], alone.trajectory.poses)
 
 
+def test_a_spare_ends_after_three_frames_that_never_fit(lab):
+    """A scene no registration fits within the ok bounds (here an RMSE bound of 1 % of a voxel)
+    never confirms its first frame: the spare, whose frames fit no better, is not taken, and
+    ends after three such frames, no result revised."""
+    _, frames = lab
+    strict = TrackerConfig(health=HealthConfig(ok_rmse=0.01))
+    tracker = Tracker(strict, None, 2)
+    results = [tracker.track_frame(f.cloud, f.timestamp) for f in frames[:6]]
+    assert all(r.status == "degraded" and not r.revises for r in results[1:])
+    assert tracker.first_index == 0 and tracker._spare is None
+    assert not tracker.fits(results[-1])
+
+
 def test_a_spare_numbers_its_frames_as_the_run_does(lab):
     """A frame number skipped between (a frame out of time order, which spacepose track does
     not give the tracker) is skipped by the spare too: its result carries the run's number."""
