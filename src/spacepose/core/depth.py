@@ -165,8 +165,13 @@ def distort(camera: DepthCamera, x: ArrayLike, y: ArrayLike) -> tuple[NDArray, N
     -------
     x_d, y_d
         Distorted normalised coordinates, same shape.
+
+    Raises
+    ------
+    InputError
+        ``x`` and ``y`` have different shapes (numpy's broadcast error before).
     """
-    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    x, y = _coordinates("distort", "x", x, "y", y)
     p1, p2 = camera.p1, camera.p2
     r2 = x * x + y * y
     radial, _ = _radial(camera, r2)
@@ -190,8 +195,13 @@ def undistort(camera: DepthCamera, xd: ArrayLike, yd: ArrayLike) -> tuple[NDArra
     x, y
         Undistorted normalised coordinates; NaN where the inverse was not found to 1e-9
         (normalised units), e.g. beyond the fold of a strong barrel distortion.
+
+    Raises
+    ------
+    InputError
+        ``xd`` and ``yd`` have different shapes.
     """
-    xd, yd = np.asarray(xd, dtype=np.float64), np.asarray(yd, dtype=np.float64)
+    xd, yd = _coordinates("undistort", "xd", xd, "yd", yd)
     p1, p2 = camera.p1, camera.p2
     x, y = xd.copy(), yd.copy()
     # Where the inverse fails the iterates overflow or divide by zero: they end as NaN, the
@@ -214,6 +224,19 @@ def undistort(camera: DepthCamera, xd: ArrayLike, yd: ArrayLike) -> tuple[NDArra
     return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
 
 
+def _coordinates(
+    caller: str, x_name: str, x: ArrayLike, y_name: str, y: ArrayLike
+) -> tuple[NDArray, NDArray]:
+    """``x`` and ``y`` as float arrays of one shape; InputError naming both shapes otherwise."""
+    xa, ya = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if xa.shape != ya.shape:
+        raise InputError(
+            f"{caller}: {x_name} and {y_name} must have the same shape, got {xa.shape} and "
+            f"{ya.shape}"
+        )
+    return xa, ya
+
+
 def _whole(name: str, value: int, minimum: int, source: str | None = None) -> int:
     """``value`` as an int, or an InputError unless it is a whole number >= ``minimum``."""
     try:
@@ -230,7 +253,15 @@ def pixel_rays(camera: DepthCamera, height: int, width: int) -> NDArray[np.float
 
     Read-only and cached per camera and image size: every frame of a sequence shares them.
     NaN where the distortion cannot be inverted.
+
+    Raises
+    ------
+    InputError
+        ``height`` or ``width`` is not a whole number >= 1 (0 gave numpy's "mean of empty
+        slice" warnings, 2.5 rays of a 3-pixel row), or most pixels cannot be undistorted.
     """
+    height = _whole("pixel_rays: height", height, 1)
+    width = _whole("pixel_rays: width", width, 1)
     return _pixel_rays(camera, height, width)
 
 
