@@ -8,8 +8,10 @@ import warnings
 import numpy as np
 import pytest
 
+from spacepose.cli import main
 from spacepose.core.depth import DepthCamera, distort, pixel_rays, undistort
-from spacepose.errors import InputError
+from spacepose.core.sim.targets import load_mesh
+from spacepose.errors import FileFormatError, InputError
 
 _WIDE = DepthCamera(fx=500.0, fy=500.0, cx=2.0, cy=2.0, k1=0.1)
 
@@ -50,3 +52,47 @@ def test_distort_of_unequal_coordinates_is_an_input_error(function):
     xd, yd = distort(_WIDE, [[0.1, 0.2]], [[0.0, 0.1]])
     assert xd.shape == yd.shape == (1, 2)
     np.testing.assert_allclose(undistort(_WIDE, xd, yd)[0], [[0.1, 0.2]], atol=1e-9)
+
+
+# -- a mesh whose face refers to a vertex the file does not hold ----------------------------------
+
+
+_TETRA = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n"
+_PLY = (
+    "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+    "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+    "0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 1 2\n3 0 1 {last}\n"
+)
+
+
+def test_an_obj_face_on_a_missing_vertex_names_the_face_and_the_vertex_count(tmp_path, capsys):
+    """trimesh's numpy wording came through: 'cannot read mesh: index 8 is out of bounds for
+    axis 0 with size 4', naming neither the face nor the vertex it refers to."""
+    good = tmp_path / "tetra.obj"
+    good.write_text(_TETRA)
+    assert len(load_mesh(good).mesh.faces) == 4
+    bad = tmp_path / "broken.obj"
+    bad.write_text(_TETRA.replace("f 1 2 4", "f 1 2 9"))
+    message = (
+        f"{bad}: face 2 (line 6) refers to vertex 9, but the file has 4 vertices before it "
+        "(OBJ numbers them from 1)"
+    )
+    with pytest.raises(FileFormatError) as exc:
+        load_mesh(bad)
+    assert str(exc.value) == message
+    argv = ["simulate", "lab", "--frames", "1", "--model", str(bad), "--out", str(tmp_path / "r")]
+    assert main(argv) == 1
+    assert capsys.readouterr().err.strip() == f"error: {message}"
+
+
+def test_a_ply_face_on_a_missing_vertex_names_the_face_and_the_vertex_count(tmp_path):
+    good = tmp_path / "good.ply"
+    good.write_text(_PLY.format(last=3))
+    assert len(load_mesh(good).mesh.faces) == 2
+    bad = tmp_path / "broken.ply"
+    bad.write_text(_PLY.format(last=8))
+    with pytest.raises(FileFormatError) as exc:
+        load_mesh(bad)
+    assert str(exc.value) == (
+        f"{bad}: face 2 of 2 refers to vertex index 8, but the file has 4 vertices (indices 0 to 3)"
+    )

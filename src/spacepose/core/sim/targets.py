@@ -299,6 +299,22 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
         # (a box with one such corner lost 4 of its 12 triangles; one of a single triangle was
         # "no triangles").
         raw = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for bad files; report them alike
+        raise FileFormatError(_obj_face_problem(path) or f"cannot read mesh: {exc}", path) from None
+    if isinstance(raw, trimesh.Trimesh) and len(raw.faces):
+        # A face on a vertex the file does not hold ended in numpy's "index 8 is out of bounds
+        # for axis 0 with size 4", naming neither the face nor the vertex count.
+        faces = np.asarray(raw.faces)
+        outside = np.flatnonzero(((faces < 0) | (faces >= len(raw.vertices))).any(axis=1))
+        if len(outside):
+            first = faces[outside[0]]
+            index = int(first[(first < 0) | (first >= len(raw.vertices))][0])
+            raise FileFormatError(
+                f"face {outside[0] + 1} of {len(faces)} refers to vertex index {index}, but the "
+                f"file has {len(raw.vertices)} vertices (indices 0 to {len(raw.vertices) - 1})",
+                path,
+            )
+    try:
         mesh = trimesh.load(path, force="mesh", process=True)
     except Exception as exc:  # trimesh raises many types for bad files; report them alike
         raise FileFormatError(f"cannot read mesh: {exc}", path) from None
@@ -317,6 +333,38 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
     if center:
         mesh.apply_translation(-mesh.bounds.mean(axis=0))
     return Target(path.stem, mesh)
+
+
+def _obj_face_problem(path: Path) -> str | None:
+    """The first face of an OBJ file on a vertex the file does not hold, in words, or None.
+
+    trimesh fails on such a face with numpy's "index 9 is out of bounds for axis 0 with size 4".
+    """
+    if path.suffix.lower() != ".obj":
+        return None
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return None
+    vertices = faces = 0
+    for number, line in enumerate(lines, start=1):
+        fields = line.split()
+        if fields and fields[0] == "v":
+            vertices += 1
+        elif fields and fields[0] == "f":
+            faces += 1
+            for corner in fields[1:]:
+                try:
+                    index = int(corner.split("/")[0])
+                except ValueError:
+                    continue
+                # OBJ counts vertices from 1; a negative index counts back from the last so far.
+                if not (1 <= index <= vertices or -vertices <= index <= -1):
+                    return (
+                        f"face {faces} (line {number}) refers to vertex {index}, but the file "
+                        f"has {vertices} vertices before it (OBJ numbers them from 1)"
+                    )
+    return None
 
 
 def sample_surface(target: Target, count: int, seed: int = 0) -> PointCloud:
