@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from spacepose.cli import main
+from spacepose.core.clusters import main_cluster_group
 from spacepose.core.depth import DepthCamera, distort, pixel_rays, undistort
 from spacepose.core.sim.targets import load_mesh
 from spacepose.errors import FileFormatError, InputError
@@ -96,3 +97,14 @@ def test_a_ply_face_on_a_missing_vertex_names_the_face_and_the_vertex_count(tmp_
     assert str(exc.value) == (
         f"{bad}: face 2 of 2 refers to vertex index 8, but the file has 4 vertices (indices 0 to 3)"
     )
+
+
+# -- main_cluster_group of no points --------------------------------------------------------------
+
+
+def test_main_cluster_group_of_no_points_is_an_empty_mask():
+    """It failed inside argmax ('attempt to get argmax of an empty sequence'); cluster_labels
+    of no points gives no labels, so the group of no points is no points."""
+    mask = main_cluster_group(np.zeros((0, 3)), 0.02, 0.1, 0.1)
+    assert mask.shape == (0,)
+    assert mask.dtype == bool

@@ -65,6 +65,11 @@ def main_cluster_group(
     workers
         Threads for the nearest-neighbour queries.
 
+    Returns
+    -------
+    NDArray
+        The mask; empty for no points (argmax of no cluster sizes failed before).
+
     Notes
     -----
     Ties between equally large clusters go to the one holding the lowest point index.
@@ -73,6 +78,8 @@ def main_cluster_group(
     if not 0.0 < min_share <= 1.0:
         raise InputError(f"min_share must be in (0, 1], got {min_share}")
     labels = cluster_labels(points, distance)
+    if len(labels) == 0:
+        return np.zeros(0, dtype=bool)
     sizes = np.bincount(labels)
     # argmax returns the first label of the largest size: labels follow the lowest point index.
     largest = int(np.argmax(sizes))
