@@ -7,6 +7,7 @@ import importlib
 import json
 import math
 import pkgutil
+import re
 import types
 import typing
 
@@ -348,10 +349,14 @@ def test_prior_quaternion_must_be_a_rotation(values):
 
 
 def test_prior_quaternion_of_any_non_zero_norm_is_normalised():
-    assert prior_quaternion([0, 0, 0, 2], "q") == (0.0, 0.0, 0.0, 1.0)
+    # Normalised with a warning of the norm (tests/test_bad_inputs_round9.py).
+    with pytest.warns(SpaceposeWarning, match="^q: the quaternion has norm 2, not 1"):
+        assert prior_quaternion([0, 0, 0, 2], "q") == (0.0, 0.0, 0.0, 1.0)
     # Norms that underflow or overflow on their own.
     for scale in (1e-200, 1e300):
-        q = np.array(prior_quaternion([scale, 0, 0, scale], "q"))
+        norm = re.escape(f"norm {scale * math.sqrt(2):.6g}, not 1")
+        with pytest.warns(SpaceposeWarning, match=norm):
+            q = np.array(prior_quaternion([scale, 0, 0, scale], "q"))
         np.testing.assert_allclose(q, [math.sqrt(0.5), 0, 0, math.sqrt(0.5)])
 
 

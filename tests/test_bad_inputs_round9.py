@@ -12,7 +12,8 @@ from spacepose.cli import main
 from spacepose.core.clusters import main_cluster_group
 from spacepose.core.depth import DepthCamera, distort, pixel_rays, undistort
 from spacepose.core.sim.targets import load_mesh
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
+from spacepose.tools.navigation_io import prior_quaternion
 
 _WIDE = DepthCamera(fx=500.0, fy=500.0, cx=2.0, cy=2.0, k1=0.1)
 
@@ -108,3 +109,22 @@ def test_main_cluster_group_of_no_points_is_an_empty_mask():
     mask = main_cluster_group(np.zeros((0, 3)), 0.02, 0.1, 0.1)
     assert mask.shape == (0,)
     assert mask.dtype == bool
+
+
+# -- navigate --prior of a norm far from 1 --------------------------------------------------------
+
+
+def test_a_prior_of_norm_2_is_normalised_with_a_warning(tmp_path, capsys):
+    """0,0,0,2 was normalised without a word: a typo or a scaled vector passed for a prior."""
+    with pytest.warns(SpaceposeWarning) as record:
+        assert prior_quaternion([0, 0, 0, 2], "--prior") == (0.0, 0.0, 0.0, 1.0)
+    assert [str(w.message) for w in record] == [
+        "--prior: the quaternion has norm 2, not 1; normalised"
+    ]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        prior_quaternion([0.7071, 0, 0, 0.7071], "--prior")  # 4 decimals: no warning
+    args = ["navigate", str(tmp_path), "--out", str(tmp_path / "nav" / "p.csv")]
+    assert main([*args, "--prior", "0,0,0,2"]) == 1  # no frames in the folder
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == "warning: --prior: the quaternion has norm 2, not 1; normalised"

@@ -46,6 +46,10 @@ from spacepose.tools.runs import SCENARIO, read_run
 from spacepose.tools.text_io import read_text
 from spacepose.tools.tracking_io import check_not_a_frame, open_table, write_health_csv
 
+# How far from 1 a prior quaternion's norm may be before its normalisation is warned of: four
+# numbers written to 3 decimals are within it, a norm of 2 (or 0.5) is not.
+_PRIOR_NORM_TOLERANCE = 0.01
+
 # What navigation reads from a scenario file (the orbit, the chaser's attitude, the catalogue,
 # a model, the sensor's field of view, the debugging prior), and the rest of what a simulated
 # orbit run's scenario.json holds (a test keeps these in step with the simulator).
@@ -312,6 +316,11 @@ def prior_quaternion(values: ArrayLike, name: str) -> tuple[float, float, float,
     ------
     ConfigError
         Not four finite numbers, or a zero norm: no rotation (scipy would fail on it mid-run).
+
+    Warns
+    -----
+    SpaceposeWarning
+        The norm is more than 0.01 from 1 (it is normalised, as before, but no longer silently).
     """
     try:
         q = np.asarray(values, dtype=np.float64)
@@ -323,8 +332,17 @@ def prior_quaternion(values: ArrayLike, name: str) -> tuple[float, float, float,
             f"{name}: the quaternion must be four finite numbers with a non-zero norm, got {got}"
         )
     # Scaled first: the norm of 1e-200s underflows to 0 and that of 1e308s overflows.
-    q = q / np.max(np.abs(q))
+    largest = float(np.max(np.abs(q)))
+    q = q / largest
+    norm = float(np.linalg.norm(q)) * largest  # inf past 1.8e308, and warned of as such
     q /= np.linalg.norm(q)
+    if not abs(norm - 1.0) <= _PRIOR_NORM_TOLERANCE:
+        # Accepted (its direction is the rotation), but a norm of 2 is a typo or a scaled
+        # vector more often than a deliberate choice: it was normalised without a word.
+        warnings.warn(
+            SpaceposeWarning(f"{name}: the quaternion has norm {norm:.6g}, not 1; normalised"),
+            stacklevel=2,
+        )
     return (float(q[0]), float(q[1]), float(q[2]), float(q[3]))
 
 
