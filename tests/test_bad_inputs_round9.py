@@ -3,17 +3,22 @@ parameter) and the problem, never a traceback or a silently wrong result."""
 
 from __future__ import annotations
 
+import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from spacepose.cli import main
+from spacepose.core import se3
 from spacepose.core.clusters import main_cluster_group
 from spacepose.core.depth import DepthCamera, distort, pixel_rays, undistort
 from spacepose.core.sim.targets import load_mesh
+from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.navigation_io import prior_quaternion
+from spacepose.tools.trajectory_io import write_tum
 
 _WIDE = DepthCamera(fx=500.0, fy=500.0, cx=2.0, cy=2.0, k1=0.1)
 
@@ -128,3 +133,43 @@ def test_a_prior_of_norm_2_is_normalised_with_a_warning(tmp_path, capsys):
     assert main([*args, "--prior", "0,0,0,2"]) == 1  # no frames in the folder
     err = capsys.readouterr().err.splitlines()
     assert err[0] == "warning: --prior: the quaternion has norm 2, not 1; normalised"
+
+
+# -- report on a run whose health CSV was half written --------------------------------------------
+
+
+def _lab_run(root: Path, health: str) -> Path:
+    """A lab run of 5 frames with one track, ``icp``, and its health table ``health``."""
+    (root / "tracks").mkdir(parents=True)
+    (root / "scenario.json").write_text(json.dumps({"scenario": "lab", "seed": 0}))
+    t = np.arange(5.0)
+    poses = np.stack([se3.make_transform(np.eye(3), [0.01 * k, 0.0, 1.2]) for k in t])
+    write_tum(root / "groundtruth.tum", Trajectory(t, poses))
+    write_tum(root / "tracks" / "icp.tum", Trajectory(t, poses))
+    (root / "tracks" / "icp.health.csv").write_text(health)
+    return root
+
+
+_HEALTH = "frame,timestamp,status,fitness\n" + "".join(f"{k},{k}.0,ok,1\n" for k in range(4))
+
+
+@pytest.mark.parametrize(
+    ("last", "problem"),
+    [
+        ("4,4.0,lo", "line 6 has 3 fields, the header 4: a half-written or hand-edited file?"),
+        ("4,4.0", "line 6 has 2 fields, the header 4: a half-written or hand-edited file?"),
+        ("4,4.0,LOST,1\n", "row 5 has status 'LOST', not one of ok, degraded, lost"),
+    ],
+)
+def test_report_of_a_half_written_health_csv_leaves_it_out_and_says_why(
+    tmp_path, capsys, last, problem
+):
+    """A last row cut short (a run stopped mid-write) was read with its missing fields as None:
+    its status ('lo', or none) was drawn as a black flag of no meaning, without a word."""
+    run = _lab_run(tmp_path / "run", _HEALTH + last)
+    assert main(["report", str(run)]) == 0
+    health = run / "tracks" / "icp.health.csv"
+    assert f"warning: {health}: left out of the report: {problem}" in capsys.readouterr().err
+    _lab_run(tmp_path / "good", _HEALTH + "4,4.0,lost,nan\n")
+    assert main(["report", str(tmp_path / "good")]) == 0
+    assert "warning" not in capsys.readouterr().err

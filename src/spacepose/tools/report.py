@@ -136,16 +136,30 @@ def _read_json(path: Path) -> object:
 def _read_csv(path: Path, required: Sequence[str] = ()) -> dict[str, list[str]]:
     try:
         with path.open(newline="") as fh:
-            rows = list(csv.DictReader(fh))
+            reader = csv.reader(fh)
+            lines = [(reader.line_num, row) for row in reader]
     except UnicodeDecodeError as exc:
         # Its own ``reason`` ("invalid start byte") would be all the report shows.
         raise FileFormatError(not_text(exc), path) from None
-    if not rows:
+    except csv.Error as exc:
+        raise FileFormatError(f"not a readable CSV file: {exc}", path) from None
+    lines = [(number, row) for number, row in lines if row]  # blank lines, as DictReader
+    if len(lines) < 2:
         raise InputError("CSV file has no data rows", path)
-    missing = [c for c in required if c not in rows[0]]
+    header = lines[0][1]
+    for number, row in lines[1:]:
+        if len(row) != len(header):
+            # A half-written last row (a run stopped mid-write) was read with its missing
+            # fields as None: a status cut to "lo" or none at all was drawn as another flag.
+            raise FileFormatError(
+                f"line {number} has {len(row)} fields, the header {len(header)}: a half-written "
+                "or hand-edited file?",
+                path,
+            )
+    missing = [c for c in required if c not in header]
     if missing:
         raise FileFormatError(f"CSV file has no {', '.join(missing)} column", path)
-    return {k: [r[k] for r in rows] for k in rows[0]}
+    return {k: [row[i] for _, row in lines[1:]] for i, k in enumerate(header)}
 
 
 def _scenario_section(run: Path) -> str:
@@ -234,6 +248,14 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
 
     def flags(path: Path) -> str:
         status = _read_csv(path, ("status",))["status"]
+        other = next((k for k, v in enumerate(status) if v not in plots.STATUS_COLOUR), None)
+        if other is not None:
+            # Drawn as a black flag of no meaning before.
+            raise FileFormatError(
+                f"row {other + 1} has status {status[other]!r}, not one of "
+                f"{', '.join(plots.STATUS_COLOUR)}",
+                path,
+            )
         # The timeline is drawn against the ground truth's times, one flag a frame.
         if len(status) != len(t):
             raise FileFormatError(f"{len(status)} rows for {len(t)} ground-truth frames", path)
