@@ -301,35 +301,28 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
         raw = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files; report them alike
         raise FileFormatError(_obj_face_problem(path) or f"cannot read mesh: {exc}", path) from None
-    if isinstance(raw, trimesh.Trimesh) and len(raw.faces):
-        # A face on a vertex the file does not hold ended in numpy's "index 8 is out of bounds
-        # for axis 0 with size 4", naming neither the face nor the vertex count.
-        faces = np.asarray(raw.faces)
-        outside = np.flatnonzero(((faces < 0) | (faces >= len(raw.vertices))).any(axis=1))
-        if len(outside):
-            first = faces[outside[0]]
-            index = int(first[(first < 0) | (first >= len(raw.vertices))][0])
-            raise FileFormatError(
-                f"face {outside[0] + 1} of {len(faces)} refers to vertex index {index}, but the "
-                f"file has {len(raw.vertices)} vertices (indices 0 to {len(raw.vertices) - 1})",
-                path,
-            )
-    try:
-        mesh = trimesh.load(path, force="mesh", process=True)
-    except Exception as exc:  # trimesh raises many types for bad files; report them alike
-        raise FileFormatError(f"cannot read mesh: {exc}", path) from None
-    if isinstance(raw, trimesh.Trimesh) and len(raw.faces):
-        corners = np.asarray(raw.vertices)[np.asarray(raw.faces)]
-        bad = np.count_nonzero(~np.isfinite(corners).all(axis=(1, 2)))
-        if bad:
-            raise FileFormatError(
-                f"{bad} of {len(raw.faces)} triangles have a corner of NaN or inf "
-                "coordinates, and would be left out",
-                path,
-            )
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+    if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
         raise FileFormatError("the file holds no triangles", path)
-    mesh = trimesh.Trimesh(np.asarray(mesh.vertices) * scale, np.asarray(mesh.faces), process=True)
+    faces, vertices = np.asarray(raw.faces), np.asarray(raw.vertices)
+    # A face on a vertex the file does not hold ended in numpy's "index 8 is out of bounds for
+    # axis 0 with size 4", naming neither the face nor the vertex count.
+    outside = (faces < 0) | (faces >= len(vertices))
+    if outside.any():
+        k = int(np.flatnonzero(outside.any(axis=1))[0])
+        raise FileFormatError(
+            f"face {k + 1} of {len(faces)} refers to vertex index {faces[k][outside[k]][0]}, but "
+            f"the file has {len(vertices)} vertices (indices 0 to {len(vertices) - 1})",
+            path,
+        )
+    bad = np.count_nonzero(~np.isfinite(vertices[faces]).all(axis=(1, 2)))
+    if bad:
+        raise FileFormatError(
+            f"{bad} of {len(faces)} triangles have a corner of NaN or inf coordinates, and "
+            "would be left out",
+            path,
+        )
+    # Processed once, here: the file is read once.
+    mesh = trimesh.Trimesh(vertices * scale, faces, process=True)
     if center:
         mesh.apply_translation(-mesh.bounds.mean(axis=0))
     return Target(path.stem, mesh)
