@@ -232,3 +232,25 @@ def test_cli_tracks_the_grid_with_a_tracker_config_file(tmp_path) -> None:
     assert "'keyframe_density': 1.0" in table["tracker"]
     config.write_text("keyframe_density: 0.5\n")
     assert main([*args, "--tracker", str(config), "--out", str(out)]) == 1
+
+
+def test_a_run_the_tracker_fails_on_is_a_row_with_its_error(monkeypatch) -> None:
+    """A tracker error on one frame ends that run with an ``error`` naming the frame, not the
+    grid (a run before a wall once ended a 144-run grid so)."""
+    from spacepose.core.tracker import Tracker
+    from spacepose.errors import InputError
+    from spacepose.tools.experiments.robustness import cell_table, run_cell
+
+    original = Tracker.track_frame
+
+    def failing(self, cloud, timestamp, *args, **kwargs):
+        if timestamp >= 2.0:
+            raise InputError("points: need at least 1 point(s)")
+        return original(self, cloud, timestamp, *args, **kwargs)
+
+    monkeypatch.setattr(Tracker, "track_frame", failing)
+    cell = Cell(target="lab", range=25.0, seed=0)
+    record = run_cell(cell, 4)
+    assert record["error"] == "frame 2: points: need at least 1 point(s)"
+    assert "metrics" not in record
+    assert cell_table([record])[0]["errors"] == [record["error"]]

@@ -79,9 +79,11 @@ class ClutterBody:
         T_support = self.predict(timestamp)
         d_support = _gated_distance(self.ref, points, T_support, gate, workers)
         near = np.flatnonzero(np.isfinite(d_support))
+        keep = np.ones(len(points), dtype=bool)
+        if not len(near):  # the support is out of view (or left it)
+            return keep
         # The target's distance only where the support is near (a search of a third of them).
         d_target = _gated_distance(target_ref, points[near], T_ref_frame_target, gate, workers)
-        keep = np.ones(len(points), dtype=bool)
         keep[near[d_support[near] < d_target]] = False
         return keep
 

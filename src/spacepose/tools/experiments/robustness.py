@@ -61,8 +61,9 @@ def run_cell(
     """Simulate and track one run with a ``tracker`` config; its coordinates, metrics and frame
     rows.
 
-    An invalid cell (unknown motion, missing mesh) gives a record with ``error`` and no metrics,
-    so that one bad cell does not end a grid.
+    An invalid cell (unknown motion, missing mesh), or a frame the tracker fails on with an
+    error of the package's, gives a record with ``error`` and no metrics, so that one bad cell
+    does not end a grid.
     """
     record: dict[str, Any] = {"cell": asdict(cell)}
     try:
@@ -74,7 +75,10 @@ def run_cell(
     results, truths = [], []
     for k in range(len(sim)):
         frame = sim.frame(k)
-        results.append(tracking.track_frame(frame.cloud, frame.timestamp))
+        try:
+            results.append(tracking.track_frame(frame.cloud, frame.timestamp))
+        except SpaceposeError as exc:  # a fault of the tracker's: this run's row says so
+            return record | {"error": f"frame {k}: {exc}"}
         revise_results(results, results[-1])
         truths.append(FrameTruth.from_frame(frame, sim.T_sensor_target[0]))
     # The truth re-based on the frame whose sensor frame is the target frame: a later one
