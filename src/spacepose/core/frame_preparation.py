@@ -23,6 +23,7 @@ from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.mls import mpp_mls
 from spacepose.core.moments import on_a_line
+from spacepose.core.motion import Prediction
 from spacepose.core.neighbors import knn
 from spacepose.core.normals import estimate_normals, plane_offsets
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
@@ -34,6 +35,7 @@ from spacepose.core.segmentation import (
     region_of,
     returns,
 )
+from spacepose.core.target_cut import cut_to_target
 from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
 from spacepose.core.voxel import voxel_cells, voxel_downsample
 from spacepose.errors import DegenerateGeometryError, InputError
@@ -290,12 +292,37 @@ class FramePreparer:
         """Where the prediction puts the target: the sphere around it (its region's, widened by
         the crop margin and ``slack`` m), or None when the frame is not cropped so (target
         isolation off, a target alone in view, no region or no prediction yet)."""
-        if not self.config.isolate_target or self.alone:
-            return None
-        if self.region is None or T_predicted is None:
+        if not self.crops or T_predicted is None:
             return None
         center = se3.transform_points(T_predicted, self.region.center[None])[0]
         return center, self.config.crop_margin * self.region.radius + slack
+
+    @property
+    def crops(self) -> bool:
+        """Whether a later frame is cropped to where the prediction puts the target (target
+        isolation on, something beside the object on the first frame, its region known)."""
+        return self.config.isolate_target and not self.alone and self.region is not None
+
+    def cut(
+        self, prepared: PreparedCloud, reference: Keyframe, prediction: Prediction, reach: float
+    ) -> PreparedCloud:
+        """A frame cropped while the velocity is unknown, cut to the target's clusters
+        (:func:`~spacepose.core.target_cut.cut_to_target`, within ``reach`` m and the fine
+        gate of ``reference`` where ``prediction`` puts it); any other frame as it is.
+
+        Then the crop is widened by the largest motion allowed, and takes in what lies
+        around the target (a wall behind a large one) before any look for a support
+        (methods.md §5.8) could split it off; later crops follow the target within the
+        prediction's reach, and what they hold beside it is that look's to split (a table
+        under the target, cut away, left the turntable in a compromise with the target)."""
+        if not self.crops or prediction.velocity_known:
+            return prepared
+        L, h = self.lengths, self.config.health
+        fitness = h.ok_fitness if self._model_region is None else h.model_fitness
+        T, gate = prediction.T_sensor_target, reach + L.gate
+        return cut_to_target(
+            prepared, reference, T, gate, L.voxel, h.min_points, fitness, self.workers
+        )
 
     def _whole_frame(
         self, pc: PointCloud, T_predicted: NDArray[np.float64] | None, slack: float

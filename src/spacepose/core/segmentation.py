@@ -15,7 +15,10 @@ target alone:
    object, the Earth behind a satellite); everything else (the wall behind, debris, stray
    pixels) is background;
 2. on every later frame, :func:`crop_sphere`: the points within the object's bounding sphere,
-   carried by the predicted pose and widened by the motion model's error.
+   carried by the predicted pose and widened by the motion model's error; then, when a body
+   lies in the sphere beside the target (a wall behind a large one), :func:`clusters_near`
+   keeps the clusters where the prediction puts the target
+   (:func:`spacepose.core.target_cut.cut_to_target`).
 
 Both steps use only the point spacing and the object's own size, so they work unchanged from a
 mock-up at 1 m to a satellite at 25 m. A background *touching* the target (a turntable under
@@ -48,6 +51,9 @@ _MIN_CELL_POINTS = 3
 # A cluster holding less than this share of the frame's points and of its cells (of the
 # object's cells, for a part of it) is debris or flying pixels.
 _MIN_SHARE = 0.02
+# A later frame's cluster is the target's when its share of points near the predicted target
+# is at least this part of the best cluster's (clusters_near).
+_NEAR_SHARE = 0.5
 # A cluster whose gap to the object is below this share of the object's radius is part of it
 # (the lab mock-up's far wing hangs 8.4 cm from its 0.13 m bus, its boom unseen).
 _MERGE_RADII = 0.75
@@ -161,6 +167,29 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
             kept[~solid] = _beside(all_cells[~solid], cells[keep])
             return kept[all_of_point]
         keep = grown
+
+
+def clusters_near(points: ArrayLike, cell: float, near: ArrayLike) -> NDArray[np.bool_]:
+    """(N,) mask of the points of the connected clusters (grid cells of edge ``cell`` m,
+    linked to their 26 neighbours) that are the target's on a later frame: those whose share
+    of ``near`` points (N,) is at least :data:`_NEAR_SHARE` of the largest share of any
+    cluster. All points when none or every one is near.
+
+    ``near`` marks the points close to where the prediction puts the target's reference
+    (:func:`spacepose.core.target_cut.cut_to_target`). A face that turns into view lies in
+    the target's cluster with the faces seen before; a wall the crop took in behind a large
+    target is a cluster of its own, with only its few points in front near the target.
+    """
+    pts = as_points(points)
+    near = np.asarray(near, dtype=bool)
+    if near.shape != (len(pts),):
+        raise InputError(f"near must be ({len(pts)},) booleans, got {near.shape}")
+    if near.all() or not near.any():
+        return np.ones(len(pts), dtype=bool)
+    centroids, of_point = voxel_cells(pts, cell)
+    labels = _cluster_labels(np.floor(centroids / cell).astype(np.int64))[of_point]
+    share = np.bincount(labels, weights=near) / np.bincount(labels)
+    return (share >= _NEAR_SHARE * share.max())[labels]
 
 
 def solid(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:

@@ -136,6 +136,7 @@ class Tracker(TrackerState):
         if prediction is not None:
             tic = time.perf_counter()
             T, reach = prediction.T_sensor_target, wide_gate(self._context(), prediction)
+            prepared = self._frames.cut(prepared, self._fine.reference(), prediction, reach)
             if self._support is not None:
                 prepared = self._support.remove(
                     prepared, self._fine.reference(), T, timestamp, reach
