@@ -248,3 +248,14 @@ def test_real_scanner_noise_is_not_split_into_two_bodies(pair) -> None:
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(bodies, "_shift_cost", lambda *args: 0.0)
             assert bodies.split_motion(src, tgt, T, sigma, gate, gate, workers=2) is None
+
+
+def test_the_real_pair_example_prints_its_table(capsys) -> None:
+    """``examples/real_pair.py`` (the README's figures): our rows pass small_gicp's test."""
+    import runpy
+
+    runpy.run_path(str(PAIR.parents[2] / "examples" / "real_pair.py"), run_name="__main__")
+    rows = [line.split("|") for line in capsys.readouterr().out.splitlines()[2:]]
+    ours = {r[1].strip(): (float(r[2]), float(r[3])) for r in rows if "spacepose" in r[1]}
+    assert set(ours) == {"spacepose gicp", "spacepose point_to_plane"}
+    assert all(mm < 50.0 and np.radians(deg) < 0.05 for mm, deg in ours.values())
