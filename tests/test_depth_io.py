@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -272,3 +274,18 @@ def test_depth_files_sorted(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="no depth images"):
         depth_files(tmp_path / "empty")
+
+
+def test_our_layout_may_name_its_distortion_model(tmp_path):
+    """ROS's ``distortion_model`` beside our fields: the model our coefficients are is read,
+    another refused by name (before: pydantic's 'Extra inputs are not permitted')."""
+    flat = "fx: 525\nfy: 525\ncx: 319.5\ncy: 239.5\n"
+    path = tmp_path / "intrinsics.yaml"
+    path.write_text(flat + "k1: 0.1\ndistortion_model: plumb_bob\n")
+    assert read_intrinsics(path).k1 == 0.1
+    path.write_text(flat + "distortion_model: equidistant\n")  # no coefficient: no distortion
+    assert read_intrinsics(path).k1 == 0.0
+    path.write_text(flat + "k1: 0.1\ndistortion_model: equidistant\n")
+    message = "distortion model 'equidistant' is not supported (plumb_bob, rational_polynomial)"
+    with pytest.raises(ConfigError, match=re.escape(f"intrinsics.yaml: {message}")):
+        read_intrinsics(path)

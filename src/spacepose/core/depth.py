@@ -86,6 +86,8 @@ class DepthCamera(StageConfig):
 
 # OpenCV's distortion coefficients in their order (plumb-bob gives the first five).
 _OPENCV_DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+#: ROS's names of the distortion models whose coefficients those are.
+DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
 
 
 def matrix_fields(
@@ -135,8 +137,9 @@ def matrix_fields(
     if not np.all(np.isfinite(d)):
         # A YAML null reads as NaN.
         raise InputError(f"the distortion coefficients hold non-finite numbers: {d.tolist()}")
-    if np.any(d) and distortion_model not in (None, "plumb_bob", "rational_polynomial"):
-        raise InputError(f"distortion model {distortion_model!r} is not supported")
+    if np.any(d) and distortion_model not in (None, *DISTORTION_MODELS):
+        supported = ", ".join(DISTORTION_MODELS)
+        raise InputError(f"distortion model {distortion_model!r} is not supported ({supported})")
     fields = {"fx": k[0], "fy": k[4], "cx": k[2], "cy": k[5]}
     return fields | {n: float(v) for n, v in zip(_OPENCV_DISTORTION, d, strict=False) if v}
 

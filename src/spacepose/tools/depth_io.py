@@ -24,7 +24,14 @@ from PIL import Image, UnidentifiedImageError
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
-from spacepose.core.depth import DepthCamera, depth_to_cloud, distort, matrix_fields, pixel_rays
+from spacepose.core.depth import (
+    DISTORTION_MODELS,
+    DepthCamera,
+    depth_to_cloud,
+    distort,
+    matrix_fields,
+    pixel_rays,
+)
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, warn_if_not_metres, warn_if_too_near
 from spacepose.tools.npy_io import load_npy, npy_shape
@@ -317,6 +324,7 @@ def read_intrinsics(path: str | Path) -> DepthCamera:
             )
         data = _ros_fields(data) if "camera_matrix" in data else data
         data = _open3d_fields(data) if "intrinsic_matrix" in data else data
+        data = _flat_fields(data) if "distortion_model" in data else data
     except InputError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     return validate_config(DepthCamera, data, path)
@@ -347,6 +355,19 @@ def _ros_fields(data: dict) -> dict:
         | size
         | _not_given_twice(rest, given, "the ROS camera_info layout")
     )
+
+
+def _flat_fields(data: dict) -> dict:
+    """Our layout with ROS's ``distortion_model`` beside it: the model our ``k1``..``k6``,
+    ``p1``, ``p2`` are (:data:`~spacepose.core.depth.DISTORTION_MODELS`), or any model with no
+    coefficient given (as :func:`~spacepose.core.depth.matrix_fields` takes it)."""
+    rest = dict(data)
+    model = rest.pop("distortion_model")
+    if model not in (None, *DISTORTION_MODELS) and any(rest.get(n) for n in _ROS_GIVES[4:]):
+        raise InputError(
+            f"distortion model {model!r} is not supported ({', '.join(DISTORTION_MODELS)})"
+        )
+    return rest
 
 
 def _not_given_twice(rest: dict, given: tuple[str, ...], layout: str) -> dict:
