@@ -82,7 +82,7 @@ def test_a_large_target_near_a_wall_is_tracked_from_its_second_frame(clutter):
     crop held 11,000 of the wall's 17,500 points, the second frame registered at a fitness of
     0.37 (σ 362 mm) and every frame was more than 1 % of the range off (the grid's tracked
     tolerance: 12 mm). Cut to its clusters, frame 1 registers as without the wall, and frames
-    2 and 3, near the target at 75-83 % of their points, need no cut."""
+    2 and 3, not cut (velocity known), register at a fitness of 0.75-0.83."""
     cell = Cell(target="random:3", range=1.2, motion="tumbling-5", clutter=clutter, seed=0)
     frames = run_cell(cell, 4)["frames"]
     assert [f["tracked"] for f in frames] == [True] * 4
