@@ -90,6 +90,20 @@ _OPENCV_DISTORTION = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial")
 
 
+def check_distortion_model(model: str | None, has_coefficients: bool) -> None:
+    """Refuse a distortion model other than :data:`DISTORTION_MODELS` (or none) that comes
+    with coefficients: they would be read as another model's.
+
+    Raises
+    ------
+    InputError
+        Naming the model and the supported ones.
+    """
+    if has_coefficients and model not in (None, *DISTORTION_MODELS):
+        supported = ", ".join(DISTORTION_MODELS)
+        raise InputError(f"distortion model {model!r} is not supported ({supported})")
+
+
 def matrix_fields(
     K: ArrayLike, D: ArrayLike = (), distortion_model: str | None = None
 ) -> dict[str, float]:
@@ -137,9 +151,7 @@ def matrix_fields(
     if not np.all(np.isfinite(d)):
         # A YAML null reads as NaN.
         raise InputError(f"the distortion coefficients hold non-finite numbers: {d.tolist()}")
-    if np.any(d) and distortion_model not in (None, *DISTORTION_MODELS):
-        supported = ", ".join(DISTORTION_MODELS)
-        raise InputError(f"distortion model {distortion_model!r} is not supported ({supported})")
+    check_distortion_model(distortion_model, bool(np.any(d)))
     fields = {"fx": k[0], "fy": k[4], "cx": k[2], "cy": k[5]}
     return fields | {n: float(v) for n, v in zip(_OPENCV_DISTORTION, d, strict=False) if v}
 

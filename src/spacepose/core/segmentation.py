@@ -15,10 +15,10 @@ target alone:
    object, the Earth behind a satellite); everything else (the wall behind, debris, stray
    pixels) is background;
 2. on every later frame, :func:`crop_sphere`: the points within the object's bounding sphere,
-   carried by the predicted pose and widened by the motion model's error; then, when a body
-   lies in the sphere beside the target (a wall behind a large one), :func:`clusters_near`
-   keeps the clusters where the prediction puts the target
-   (:func:`spacepose.core.target_cut.cut_to_target`).
+   carried by the predicted pose and widened by the motion model's error (by the largest
+   motion allowed while the velocity is unknown: then, when a body lies in the sphere beside
+   the target, a wall behind a large one, :func:`clusters_near` keeps the clusters where the
+   prediction puts the target, :func:`spacepose.core.target_cut.cut_to_target`).
 
 Both steps use only the point spacing and the object's own size, so they work unchanged from a
 mock-up at 1 m to a satellite at 25 m. A background *touching* the target (a turntable under

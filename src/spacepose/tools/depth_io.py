@@ -25,8 +25,8 @@ from PIL import Image, UnidentifiedImageError
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.depth import (
-    DISTORTION_MODELS,
     DepthCamera,
+    check_distortion_model,
     depth_to_cloud,
     distort,
     matrix_fields,
@@ -363,10 +363,7 @@ def _flat_fields(data: dict) -> dict:
     coefficient given (as :func:`~spacepose.core.depth.matrix_fields` takes it)."""
     rest = dict(data)
     model = rest.pop("distortion_model")
-    if model not in (None, *DISTORTION_MODELS) and any(rest.get(n) for n in _ROS_GIVES[4:]):
-        raise InputError(
-            f"distortion model {model!r} is not supported ({', '.join(DISTORTION_MODELS)})"
-        )
+    check_distortion_model(model, any(rest.get(n) for n in _ROS_GIVES[4:]))
     return rest
 
 
