@@ -43,6 +43,8 @@ def test_clusters_near_keeps_the_clusters_the_prediction_covers():
     assert clusters_near(points, 0.04, np.zeros(len(points), bool)).all()
     with pytest.raises(InputError, match="near must be"):
         clusters_near(points, 0.04, near[:-1])
+    with pytest.raises(InputError, match="near must be"):
+        clusters_near(points, 0.04, np.where(near, 1.0, np.nan))
 
 
 def test_a_wall_the_crop_took_in_is_cut_and_the_target_kept():

@@ -181,9 +181,10 @@ def clusters_near(points: ArrayLike, cell: float, near: ArrayLike) -> NDArray[np
     target is a cluster of its own, with only its few points in front near the target.
     """
     pts = as_points(points)
-    near = np.asarray(near, dtype=bool)
-    if near.shape != (len(pts),):
-        raise InputError(f"near must be ({len(pts)},) booleans, got {near.shape}")
+    near = np.asarray(near)
+    if near.shape != (len(pts),) or near.dtype != bool:
+        # A float mask would read NaN as near.
+        raise InputError(f"near must be ({len(pts)},) booleans, got {near.dtype} {near.shape}")
     if near.all() or not near.any():
         return np.ones(len(pts), dtype=bool)
     centroids, of_point = voxel_cells(pts, cell)
