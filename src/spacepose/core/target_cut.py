@@ -22,6 +22,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
+from spacepose.core.bodies import nearest_within
+from spacepose.core.clutter_body import subset
 from spacepose.core.correspondences import find_correspondences
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.segmentation import clusters_near
@@ -66,18 +68,16 @@ def cut_to_target(
     """
     points = prepared.cloud.points
     T_ref_frame = reference.T_ref_target @ se3.invert(T_sensor_target)
-    moved = se3.transform_points(T_ref_frame, points)
-    s, _, _ = find_correspondences(reference.prepared.tree, moved, reach, workers)
+    _, s, _, _ = nearest_within(reference.prepared, points, T_ref_frame, reach, workers)
     if len(s) >= fitness * len(points):
         return prepared  # the rest would not take the frame's fit below its bound
     near = np.zeros(len(points), dtype=bool)
     near[s] = True
     keep = clusters_near(points, CUT_CELL_VOXELS * voxel, near)
-    kept = np.flatnonzero(keep)
-    if len(kept) == len(points) or len(kept) < min_points:
+    kept = np.count_nonzero(keep)
+    if kept == len(points) or kept < min_points:
         return prepared
-    covariances = None if prepared.covariances is None else prepared.covariances[kept]
-    cut = PreparedCloud(prepared.cloud.select(kept), covariances)
+    cut = subset(prepared, keep)
     if prepared.raw is not None:
         # A raw point is the target's when a kept voxel centroid lies within a voxel of it.
         on, _, _ = find_correspondences(cut.tree, prepared.raw.points, voxel, workers)
