@@ -143,7 +143,9 @@ class Tracker(TrackerState):
                 )
             first_pass = first_pass_gate(self._context(), prediction)
             checked = self._fine.register(prepared, T, first_pass, prediction)
-            prepared, checked = self._fine.split_off_support(prepared, checked, timestamp, reach)
+            prepared, checked = self._fine.split_off_support(
+                prepared, checked, timestamp, reach, prediction
+            )
             checked = self._fine.close_on_first(prepared, checked, prediction)
             times["fine"] += elapsed_ms(tic)
         relocaliser = self._relocaliser
