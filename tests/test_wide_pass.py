@@ -44,6 +44,25 @@ def test_the_first_pass_reaches_two_voxels_on_frames_the_grid_hardly_thins(
     assert first_pass_gate(context, predicted) == pytest.approx(gate)
 
 
+@pytest.mark.parametrize(
+    ("error", "reach"),
+    [
+        ((0.01, 0.002), 3.0 * (0.01 + 2.2 * 0.002)),
+        # Wrong by a radius (frames followed onto the wrong surfaces): no further than a frame
+        # may move knowing no velocity (max_motion, 0.5 radii), the reach without one.
+        ((1.5, 0.1), 0.5 * 2.2),
+    ],
+)
+def test_the_prediction_reaches_no_further_than_without_a_velocity(error, reach) -> None:
+    scale = DataScale(spacing=0.02, points=8000, voxel=0.05, radius=2.2, noise=0.01)
+    context = CheckContext(TrackerConfig(), scale, _Motion(error))
+    assert frame_check.wide_gate(context, Prediction.given(np.eye(4), np.eye(6))) == (
+        pytest.approx(reach)
+    )
+    unknown = Prediction(np.eye(4), np.eye(6), velocity_known=False)
+    assert frame_check.wide_gate(context, unknown) == pytest.approx(0.5 * 2.2)
+
+
 @pytest.fixture(scope="module")
 def accelerating_at_25m() -> dict:
     # Generated spacecraft 14 on an accelerating slide at 25 m (flash LiDAR, 82 mm voxels):
