@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -254,3 +255,21 @@ def test_a_run_the_tracker_fails_on_is_a_row_with_its_error(monkeypatch) -> None
     assert record["error"] == "frame 2: points: need at least 1 point(s)"
     assert "metrics" not in record
     assert cell_table([record])[0]["errors"] == [record["error"]]
+
+
+def test_a_cells_coverage_is_pooled_over_the_ok_frames_of_its_seeds() -> None:
+    """A seed without an ``ok`` frame has no coverage and leaves the cell's as the others give
+    it (it used to make the 5-seed mean NaN, failed as if frames lay outside 3σ); the others
+    count by their ``ok`` frames: (3 + 2) of (4 + 2) here."""
+    from spacepose.tools.experiments.robustness import cell_table
+
+    def record(seed: int, ok: int, coverage: float) -> dict:
+        metrics = {"frames": 11, "tracked_share": 1.0, "ok": ok, "false_ok": 0}
+        return {"cell": asdict(Cell(seed=seed)), "metrics": metrics | {"coverage_3sigma": coverage}}
+
+    rows = cell_table([record(0, 0, float("nan")), record(1, 4, 0.75), record(2, 2, 1.0)])
+    assert rows[0]["coverage_3sigma"] == pytest.approx(5 / 6)
+    assert rows[0]["coverage_3sigma_std"] == pytest.approx(0.125)
+    assert "coverage_3sigma" in rows[0]["fails"] and "no_ok_frame" not in rows[0]["fails"]
+    alone = cell_table([record(0, 0, float("nan"))])[0]
+    assert np.isnan(alone["coverage_3sigma"]) and "no_ok_frame" in alone["fails"]

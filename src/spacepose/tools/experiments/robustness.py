@@ -142,7 +142,8 @@ def run_cells(
 def cell_table(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per cell: mean and std over its seeds of every metric, and the criteria it fails.
 
-    ``false_ok`` and the status counts are summed over the seeds; the "Done when" criteria
+    ``false_ok`` and the status counts are summed over the seeds, the 3σ coverage is pooled
+    over the ``ok`` frames of every seed; the "Done when" criteria
     (:data:`~spacepose.tools.experiments.robustness_scores.DONE_WHEN`) are checked on the means
     (the sum for ``false_ok``).
     """
@@ -166,12 +167,25 @@ def cell_table(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
                     row[name] = [m[name] for m in metrics]
                 elif name in ("false_ok", "ok", "degraded", "lost", "coarse", "keyframes"):
                     row[name] = int(sum(m[name] for m in metrics))
+                elif name == "coverage_3sigma":
+                    row[name], row[f"{name}_std"] = _pooled_coverage(metrics)
                 elif isinstance(value, int | float):
                     vals = np.array([m[name] for m in metrics], dtype=np.float64)
                     row[name], row[f"{name}_std"] = float(np.mean(vals)), float(np.std(vals))
         row["fails"] = failed_criteria(row)
         table.append(row)
     return table
+
+
+def _pooled_coverage(metrics: Sequence[dict[str, Any]]) -> tuple[float, float]:
+    """Share of a cell's ``ok`` frames within 3σ, pooled over its runs, and the std over the
+    runs that have ``ok`` frames (a run without one has no coverage, and must not make the
+    cell's NaN); NaN, NaN when no run has one."""
+    runs = [(m["coverage_3sigma"], m["ok"]) for m in metrics if m["ok"] > 0]
+    if not runs:
+        return float("nan"), float("nan")
+    share, count = np.array(runs, dtype=np.float64).T
+    return float(np.sum(share * count) / np.sum(count)), float(np.std(share))
 
 
 def failed_criteria(row: dict[str, Any]) -> list[str]:
