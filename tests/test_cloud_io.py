@@ -515,3 +515,30 @@ def test_a_text_file_with_a_header_and_no_rows_is_one_error_and_no_warning(tmp_p
         warnings.simplefilter("error")
         with _raises_naming(path, "no point rows"):
             read_cloud(path)
+
+
+def test_an_npz_with_other_than_one_normal_a_point_is_refused(tmp_path: Path) -> None:
+    """10 normals for 5,000 points went on to a numpy broadcast error and a traceback."""
+    p = np.random.default_rng(0).uniform(0, 1, (5000, 3))
+    path = tmp_path / "short.npz"
+    np.savez(path, points=p, normals=np.tile([0.0, 0.0, 1.0], (10, 1)))
+    with pytest.raises(FileFormatError, match=r"short.npz: .npz has 10 normals for 5000 points"):
+        read_cloud(path)
+
+
+def test_a_text_cloud_with_all_normals_zero_warns_once_and_reads_its_points(
+    tmp_path: Path,
+) -> None:
+    """Six columns all zero in the last three: no colours and no directions. The colour test
+    took the mean of no direction (numpy's bare "Mean of empty slice" warnings, four lines
+    before the file's own)."""
+    p = np.random.default_rng(1).uniform(0, 1, (200, 3))
+    path = tmp_path / "zero.xyz"
+    path.write_text("".join(f"{x:.6f} {y:.6f} {z:.6f} 0 0 0\n" for x, y, z in p))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cloud = read_cloud(path)
+    assert [type(w.message) for w in caught] == [SpaceposeWarning]
+    assert "200 normals have zero length" in str(caught[0].message)
+    assert cloud.normals is None
+    np.testing.assert_allclose(cloud.points, p, atol=1e-6)

@@ -471,6 +471,8 @@ def _colours(values: NDArray[np.float64]) -> bool:
     if np.mean(np.abs(lengths - 1.0) > 1e-3) <= 0.5:
         return False
     some = lengths > 0  # black is a colour, and no direction
+    if not some.any():
+        return False  # all zero: no direction, and no colour either (normals left unfilled)
     directions = values[some] / lengths[some, None]
     mean = directions.mean(axis=0)
     if not np.any(mean):

@@ -142,6 +142,10 @@ def read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | Non
     for name, arr in (("points", points), ("normals", normals)):
         if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or arr.dtype.kind not in "fiu"):
             raise FileFormatError(f".npz '{name}' must be numeric (N, 3), got {arr.shape}", path)
+    if normals is not None and len(normals) != len(points):
+        raise FileFormatError(
+            f".npz has {len(normals)} normals for {len(points)} points: one a point", path
+        )
     return as_float64(points), None if normals is None else as_float64(normals)
 
 
