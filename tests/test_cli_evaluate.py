@@ -267,3 +267,25 @@ def test_a_fast_ground_truth_paired_within_a_wide_tolerance_is_scored(tmp_path: 
     nearest = t_gt[np.abs(t_gt[None] - t_est[:, None]).argmin(axis=1)]
     expected = np.sqrt(np.mean((0.1 * (nearest - t_est)) ** 2))  # 0.28 mm
     assert result.table.ate_translation_rmse == pytest.approx(expected, rel=1e-9)
+
+
+def test_warns_on_a_model_free_track_in_millimetres_of_a_target_turning_at_range(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A model-free track (T_k0, first pose the identity) written in millimetres against a
+    truth in metres of a target 2 m away turning in place: rebased as the scores are, the
+    motions are 1000 times apart; rebased the other way the truth barely moved, the factor
+    came out thousands, no unit's, and the 100 m errors went unflagged."""
+    n = 12
+    gt_poses = np.repeat(np.eye(4)[None], n, axis=0)
+    for k in range(n):
+        gt_poses[k, :3, :3] = Rotation.from_rotvec([0.0, 0.05 * k, 0.01 * k]).as_matrix()
+        gt_poses[k, :3, 3] = [0.01 * k, 0.0, 2.0]
+    free = gt_poses @ np.linalg.inv(gt_poses[0])
+    free[:, :3, 3] *= 1e3
+    times = np.arange(n, dtype=float)
+    est = write_tum(tmp_path / "free_mm.tum", Trajectory(times, free))
+    gt = write_tum(tmp_path / "gt.tum", Trajectory(times, gt_poses))
+    assert main(["evaluate", str(est), str(gt), "--json", "--rebase-first"]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "from its first pose" in err and "1e+03 times" in err, err
