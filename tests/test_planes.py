@@ -306,3 +306,10 @@ def test_dense_support_keeps_a_whole_grid_and_few_points():
     # Two coplanar patches: the larger one is the face.
     two = np.vstack([grid, grid[:300] + np.array([1.0, 0.0, 0.0])])
     np.testing.assert_array_equal(dense_support(two, [0, 0, 1.0]), np.arange(len(grid)))
+
+
+def test_ransac_plane_names_the_file_of_points_on_a_line() -> None:
+    """extract_planes named the file of a cloud that spans no plane, ransac_plane did not."""
+    line = np.c_[np.linspace(0.0, 1.0, 50), np.zeros(50), np.ones(50)]
+    with pytest.raises(DegenerateGeometryError, match=r"^scan_7.ply: all 50 points are collinear"):
+        ransac_plane(PointCloud(line, source="scan_7.ply"))

@@ -242,7 +242,7 @@ def ransac_plane(
     """
     pts = as_points(points, min_points=3)
     if is_collinear(distribution(pts)[1]):
-        raise no_plane(pts)
+        raise no_plane(pts, getattr(points, "source", None))
     rng = np.random.default_rng(config.seed) if rng is None else rng
     n_hyp = config.max_iterations
     if config.outlier_ratio is not None:
