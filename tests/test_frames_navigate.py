@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import warnings
 
 import numpy as np
@@ -157,3 +158,14 @@ def test_a_scenario_file_key_no_scenario_holds_is_named(run_dir, tmp_path, monke
     with pytest.warns(SpaceposeWarning, match=r"typo\.json: unknown keys \['rectangle'\]"):
         with pytest.raises(Stop):
             navigate_run(run_dir, tmp_path / "b.csv", scenario=typo)
+    # The same key in a run folder's own scenario.json (edited by hand) was read silently.
+    edited = tmp_path / "edited"
+    shutil.copytree(run_dir, edited)
+    (edited / "scenario.json").write_text(json.dumps(scenario | {"mean_motoin": 1e-3}))
+    with pytest.warns(SpaceposeWarning, match=r"scenario\.json: unknown keys \['mean_motoin'\]"):
+        with pytest.raises(Stop):
+            navigate_run(edited, tmp_path / "c.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(Stop):
+            navigate_run(run_dir, tmp_path / "d.csv")

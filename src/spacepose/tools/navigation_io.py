@@ -197,6 +197,8 @@ def navigate_run(
     elif (Path(input_dir) / SCENARIO).is_file():
         source = str(Path(input_dir) / SCENARIO)
         description = read_run(input_dir).scenario
+        if description.get("scenario") == "orbit":  # an edited run's misspelt key, as above
+            _warn_unknown_keys(description, source)
     else:
         raise InputError(
             "a folder of frames needs a scenario file (mean_motion, R_O_C, rectangles)", input_dir
