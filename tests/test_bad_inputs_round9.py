@@ -173,3 +173,13 @@ def test_report_of_a_half_written_health_csv_leaves_it_out_and_says_why(
     _lab_run(tmp_path / "good", _HEALTH + "4,4.0,lost,nan\n")
     assert main(["report", str(tmp_path / "good")]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_a_text_file_named_ply_is_no_ply_mesh(tmp_path, capsys):
+    """trimesh's 'list index out of range' came through for a text file named .ply."""
+    bad = tmp_path / "notes.ply"
+    bad.write_text("hello world\n1 2 3\n")
+    argv = ["simulate", "lab", "--frames", "1", "--model", str(bad), "--out", str(tmp_path / "r")]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {bad}: not a PLY file: it begins with b'hell', not the line 'ply'"

@@ -300,7 +300,8 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
         # "no triangles").
         raw = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files; report them alike
-        raise FileFormatError(_obj_face_problem(path) or f"cannot read mesh: {exc}", path) from None
+        problem = _obj_face_problem(path) or _not_ply(path) or f"cannot read mesh: {exc}"
+        raise FileFormatError(problem, path) from None
     if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
         raise FileFormatError("the file holds no triangles", path)
     faces, vertices = np.asarray(raw.faces), np.asarray(raw.vertices)
@@ -326,6 +327,18 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
     if center:
         mesh.apply_translation(-mesh.bounds.mean(axis=0))
     return Target(path.stem, mesh)
+
+
+def _not_ply(path: Path) -> str | None:
+    """Why a .ply file is no PLY at all (trimesh said "list index out of range" of a text file
+    so named), or None."""
+    if path.suffix.lower() != ".ply":
+        return None
+    with path.open("rb") as fh:
+        head = fh.read(4)
+    if head.rstrip(b"\r\n") == b"ply":
+        return None
+    return f"not a PLY file: it begins with {head!r}, not the line 'ply'"
 
 
 def _obj_face_problem(path: Path) -> str | None:
