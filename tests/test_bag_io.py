@@ -399,9 +399,27 @@ def test_a_bag_without_frame_topics_says_so(lab, tmp_path, capsys):
         assert "--topic" not in err
 
 
-@pytest.mark.parametrize("content", [b"", b"not a bag at all\n"])
-def test_unreadable_bag_is_one_line(tmp_path, capsys, content):
+@pytest.mark.parametrize(
+    ("content", "problem"),
+    [
+        (b"", "cannot open the bag"),
+        # rosbags said "'utf-8' codec can't decode byte 0x9d" of random bytes.
+        (b"not a bag at all\n", "not a ROS 1 bag: it begins with b'not a ba'"),
+        (bytes([0x9D, 0x83, 0xE9, 0x22]) * 64, "not a ROS 1 bag: it begins with b'\\x9d"),
+    ],
+)
+def test_unreadable_bag_is_one_line(tmp_path, capsys, content, problem):
     (tmp_path / "run.bag").write_bytes(content)
     assert main(["track", str(tmp_path / "run.bag"), "--out", str(tmp_path / "e.tum")]) == 1
     err = capsys.readouterr().err.strip()
-    assert "run.bag: cannot open the bag" in err and "\n" not in err
+    assert f"run.bag: {problem}" in err and "\n" not in err, err
+
+
+def test_a_ros2_bag_with_an_empty_metadata_file_says_so(tmp_path, capsys):
+    """rosbags said "'NoneType' object is not subscriptable"."""
+    bag = tmp_path / "run"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("\n")
+    assert main(["track", str(bag), "--out", str(tmp_path / "e.tum")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == f"error: {bag}: not a ROS 2 bag: its metadata.yaml is empty", err

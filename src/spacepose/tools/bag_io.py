@@ -39,6 +39,8 @@ POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 BAG_SUFFIXES: tuple[str, ...] = (".bag", ".db3", ".mcap")
+# The first line of every ROS 1 bag (format 2.0, the only one rosbags reads).
+_ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
 # sensor_msgs/PointField datatypes -> numpy kinds (byte order added per message).
 _POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 # Depth image encodings -> (numpy kind, metres per unit).
@@ -60,13 +62,33 @@ def _bag_root(path: Path) -> Path:
     return path
 
 
+def _not_a_bag(root: Path) -> str | None:
+    """Why ``root`` is no bag at all, before ``rosbags`` words it (a random file named .bag
+    gave "'utf-8' codec can't decode byte 0x9d", an empty metadata.yaml "'NoneType' object is
+    not subscriptable"), or None."""
+    if root.is_dir():
+        if not (root / "metadata.yaml").read_text(errors="replace").strip():
+            return "not a ROS 2 bag: its metadata.yaml is empty"
+        return None
+    if root.suffix.lower() == ".bag" and root.stat().st_size > 0:
+        with root.open("rb") as fh:
+            head = fh.read(len(_ROSBAG1_MAGIC))
+        if head != _ROSBAG1_MAGIC:
+            return f"not a ROS 1 bag: it begins with {head[:8]!r}, not {_ROSBAG1_MAGIC!r}"
+    return None
+
+
 @contextmanager
 def _open_reader(path: Path) -> Iterator[Any]:
     """An open ``rosbags`` AnyReader on the bag, closed on exit."""
     from rosbags.highlevel import AnyReader, AnyReaderError
 
+    root = _bag_root(path)
+    problem = _not_a_bag(root)
+    if problem is not None:
+        raise FileFormatError(problem, path)
     try:
-        reader = AnyReader([_bag_root(path)])
+        reader = AnyReader([root])
         reader.open()
     except (AnyReaderError, OSError, ValueError, KeyError) as exc:
         raise FileFormatError(f"cannot open the bag: {exc}", path) from None
