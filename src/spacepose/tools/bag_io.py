@@ -66,15 +66,18 @@ def _not_a_bag(root: Path) -> str | None:
     """Why ``root`` is no bag at all, before ``rosbags`` words it (a random file named .bag
     gave "'utf-8' codec can't decode byte 0x9d", an empty metadata.yaml "'NoneType' object is
     not subscriptable"), or None."""
-    if root.is_dir():
-        if not (root / "metadata.yaml").read_text(errors="replace").strip():
-            return "not a ROS 2 bag: its metadata.yaml is empty"
-        return None
-    if root.suffix.lower() == ".bag" and root.stat().st_size > 0:
-        with root.open("rb") as fh:
-            head = fh.read(len(_ROSBAG1_MAGIC))
-        if head != _ROSBAG1_MAGIC:
-            return f"not a ROS 1 bag: it begins with {head[:8]!r}, not {_ROSBAG1_MAGIC!r}"
+    try:
+        if root.is_dir():
+            if not (root / "metadata.yaml").read_text(errors="replace").strip():
+                return "not a ROS 2 bag: its metadata.yaml is empty"
+            return None
+        if root.suffix.lower() == ".bag" and root.stat().st_size > 0:
+            with root.open("rb") as fh:
+                head = fh.read(len(_ROSBAG1_MAGIC))
+            if head != _ROSBAG1_MAGIC:
+                return f"not a ROS 1 bag: it begins with {head[:8]!r}, not {_ROSBAG1_MAGIC!r}"
+    except OSError:
+        return None  # unreadable: the reader's own error says so
     return None
 
 
