@@ -303,7 +303,8 @@ def write_outputs(
             "the centroid), the larger of translation and rotation",
             "error_over_chain": "the same against the CRLB accumulated along the tracker's own "
             "keyframe chain",
-            "coverage_3sigma": "share of ok frames within 3 sigma on all six axes",
+            "coverage_3sigma": "share of ok frames within 3 sigma on all six axes (pooled over "
+            "the seeds' ok frames)",
             "false_ok": "ok frames beyond 5 sigma on any axis (summed over seeds)",
             "done_when": [f"{n} {op} {b:g}" for n, op, b in DONE_WHEN],
         },
