@@ -169,3 +169,20 @@ def test_a_scenario_file_key_no_scenario_holds_is_named(run_dir, tmp_path, monke
         warnings.simplefilter("error")
         with pytest.raises(Stop):
             navigate_run(run_dir, tmp_path / "d.csv")
+
+
+def test_a_run_with_no_readable_frame_says_so_alone(run_dir, tmp_path):
+    """Every frame unreadable: the error went on to "none of the frames shows a whole
+    rectangle of the catalogue (check the catalogue's sizes ...)", sending the user after the
+    catalogue, which no frame was there to test."""
+    bad = tmp_path / "run"
+    shutil.copytree(run_dir, bad)
+    for frame in (bad / "frames").iterdir():
+        frame.write_text("not a cloud\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SpaceposeWarning)  # one per frame, as it is read
+        with pytest.raises(InputError) as exc:
+            navigate_run(bad, tmp_path / "nav.csv", prior_q_I_B=_prior(run_dir))
+    message = str(exc.value)
+    assert f"no frame navigated: none of the {FRAMES} frames could be read (frame 0: " in message
+    assert "catalogue" not in message

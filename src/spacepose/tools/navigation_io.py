@@ -251,9 +251,13 @@ def navigate_run(
             why = _why_no_registration(tracks, fusion, model is not None, health_csv)
         if unreadable:
             k = min(unreadable)
+            first = f"(frame {k}: {unreadable[k]})"
+            # With none read, the rest of the reason (a catalogue's sizes, a tracker's poses)
+            # would send the user after what no frame was there to show.
             why = (
-                f"{len(unreadable)} of {len(rows)} frames could not be read (frame {k}: "
-                f"{unreadable[k]}); {why}"
+                f"no frame navigated: none of the {len(rows)} frames could be read {first}"
+                if len(unreadable) == len(rows)
+                else f"{len(unreadable)} of {len(rows)} frames could not be read {first}; {why}"
             )
         raise InputError(why, input_dir)
     return NavigationSummary(
