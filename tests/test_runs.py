@@ -176,3 +176,18 @@ def test_frames_are_paired_with_poses_by_number(tmp_path, lab_sim) -> None:
     (frames / "002.ply").rename(frames / "2 copy.ply")
     with pytest.raises(InputError, match=r"frames/2 copy\.ply is not a frame name"):
         read_run(root)
+
+
+def test_a_frame_of_a_run_in_another_format_is_named_at_the_gap(tmp_path, lab_sim) -> None:
+    """Frame 2 written as .npy among .ply frames: the error named the gap at 000003.ply and not
+    the file that was there, unread."""
+    root = tmp_path / "lab"
+    write_run(root, lab_sim)
+    frames = root / "frames"
+    (frames / "000002.ply").rename(frames / "000002.npy")
+    with pytest.raises(
+        InputError,
+        match=r"frames/000003\.ply is numbered 3 where frame 2 belongs \(000002\.npy is not "
+        r"read: a run's frames are \.ply\)",
+    ):
+        read_run(root)

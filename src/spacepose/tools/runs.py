@@ -275,9 +275,16 @@ def _numbered_frames(root: Path) -> tuple[Path, ...]:
     for k, (number, path) in enumerate(numbered):
         if number != k:
             what = "repeats" if k and numbered[k - 1][0] == number else f"is numbered {number}"
+            # A run's frames are .ply: frame k written in another format fills no gap.
+            other = sorted(
+                p.name
+                for p in (root / FRAMES_DIR).iterdir()
+                if p.suffix.lower() != ".ply" and p.stem.isdigit() and int(p.stem) == k
+            )
+            also = f" ({', '.join(other)} is not read: a run's frames are .ply)" if other else ""
             raise InputError(
-                f"{FRAMES_DIR}/{path.name} {what} where frame {k} belongs: frame k is pose k of "
-                f"{GROUNDTRUTH}, so the files are numbered 0, 1, 2, ... without a gap",
+                f"{FRAMES_DIR}/{path.name} {what} where frame {k} belongs{also}: frame k is pose "
+                f"k of {GROUNDTRUTH}, so the files are numbered 0, 1, 2, ... without a gap",
                 root,
             )
     return tuple(path for _, path in numbered)
