@@ -317,6 +317,9 @@ def test_intrinsics_for_point_clouds_are_refused_not_ignored(sim, folders, tmp_p
     run = write_run(tmp_path / "run", simulate(scenario_config("lab", frames=2)))
     with pytest.raises(InputError, match="run: intrinsics apply to depth images, and this is a"):
         open_frames(run, intrinsics=intrinsics)
+    # Refused before the file is read: a cloud given as intrinsics was "not UTF-8" first.
+    with pytest.raises(InputError, match="run: intrinsics apply to depth images, and this is a"):
+        open_frames(run, intrinsics=run / "frames" / "000000.ply")
     assert (
         main(["track", str(run), "--out", str(tmp_path / "e.tum"), "--intrinsics", intrinsics]) == 1
     )

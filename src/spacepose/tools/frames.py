@@ -66,6 +66,14 @@ class FrameInput:
     error: str | None = None
 
 
+# A run folder's frames are point clouds in metres: intrinsics given for them are a mistake,
+# not a no-op (as for a bag's PointCloud2 topic).
+_RUN_INTRINSICS = (
+    "intrinsics apply to depth images, and this is a run folder of point clouds: leave out "
+    "--intrinsics"
+)
+
+
 def read_frame_cloud(path: Path) -> PointCloud:
     """One frame's point cloud file (:func:`read_cloud`), sensor frame, warned about when its
     points lie nearer the sensor than any sensor ranges
@@ -162,6 +170,10 @@ def open_frames(
     root = Path(path)
     if not root.exists():
         raise InputError("does not exist", root)
+    if intrinsics is not None and root.is_dir() and (root / "scenario.json").is_file():
+        # Refused before the file is read: a wrong file given (a .ply) was reported as a
+        # config "not UTF-8", about a file the run would never have read.
+        raise InputError(_RUN_INTRINSICS, root)
     camera = None if intrinsics is None else depth_io.read_intrinsics(intrinsics)
     if is_bag(root):
         if camera is not None:  # sized by the file; else checked at each image's size
@@ -172,14 +184,6 @@ def open_frames(
     if not root.is_dir():
         raise InputError("not a folder of frames (or a run folder, or a ROS bag)", root)
     if (root / "scenario.json").is_file():
-        if camera is not None:
-            # Its frames are point clouds in metres: intrinsics given for them are a mistake,
-            # not a no-op (as for a bag's PointCloud2 topic).
-            raise InputError(
-                "intrinsics apply to depth images, and this is a run folder of point clouds: "
-                "leave out --intrinsics",
-                root,
-            )
         return _open_run(root)
     if (root / "frames").is_dir():
         # A run folder that lost its scenario: its own files (model.ply) would be tracked as
