@@ -187,7 +187,7 @@ def test_a_frame_of_a_run_in_another_format_is_named_at_the_gap(tmp_path, lab_si
     (frames / "000002.ply").rename(frames / "000002.npy")
     with pytest.raises(
         InputError,
-        match=r"frames/000003\.ply is numbered 3 where frame 2 belongs \(000002\.npy is not "
+        match=r"frames/000003\.ply is numbered 3 where frame 2 belongs \(000002\.npy not "
         r"read: a run's frames are \.ply\)",
     ):
         read_run(root)

@@ -39,6 +39,12 @@ TIMESTAMPS_FILE = "timestamps.txt"
 # Tables spacepose writes beside its outputs: an output written into a folder of frames is no
 # frame of the next run over it.
 _OWN_TABLES = (".health.csv", ".candidates.csv")
+# A run folder's frames are point clouds in metres: intrinsics given for them are a mistake,
+# not a no-op (as for a bag's PointCloud2 topic).
+_RUN_INTRINSICS = (
+    "intrinsics apply to depth images, and this is a run folder of point clouds: leave out "
+    "--intrinsics"
+)
 
 
 @dataclass(frozen=True)
@@ -64,14 +70,6 @@ class FrameInput:
     cloud: PointCloud | None
     source: str
     error: str | None = None
-
-
-# A run folder's frames are point clouds in metres: intrinsics given for them are a mistake,
-# not a no-op (as for a bag's PointCloud2 topic).
-_RUN_INTRINSICS = (
-    "intrinsics apply to depth images, and this is a run folder of point clouds: leave out "
-    "--intrinsics"
-)
 
 
 def read_frame_cloud(path: Path) -> PointCloud:

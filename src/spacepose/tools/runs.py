@@ -279,9 +279,12 @@ def _numbered_frames(root: Path) -> tuple[Path, ...]:
             other = sorted(
                 p.name
                 for p in (root / FRAMES_DIR).iterdir()
-                if p.suffix.lower() != ".ply" and p.stem.isdigit() and int(p.stem) == k
+                if p.suffix.lower() != ".ply"
+                and p.stem.isascii()
+                and p.stem.isdigit()
+                and int(p.stem) == k
             )
-            also = f" ({', '.join(other)} is not read: a run's frames are .ply)" if other else ""
+            also = f" ({', '.join(other)} not read: a run's frames are .ply)" if other else ""
             raise InputError(
                 f"{FRAMES_DIR}/{path.name} {what} where frame {k} belongs{also}: frame k is pose "
                 f"k of {GROUNDTRUTH}, so the files are numbered 0, 1, 2, ... without a gap",
