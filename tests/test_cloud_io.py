@@ -542,3 +542,18 @@ def test_a_text_cloud_with_all_normals_zero_warns_once_and_reads_its_points(
     assert "200 normals have zero length" in str(caught[0].message)
     assert cloud.normals is None
     np.testing.assert_allclose(cloud.points, p, atol=1e-6)
+
+
+def test_a_cloud_narrower_than_any_sensor_resolves_is_warned_about(tmp_path: Path) -> None:
+    """70,000 points within 1e-29 m went to `planes` as one plane of 0 x 0 m, without a word;
+    a cloud of a few millimetres (a small part seen close) is read silently."""
+    p = np.random.default_rng(2).uniform(0, 1, (500, 3))
+    tiny = tmp_path / "tiny.npy"
+    np.save(tiny, 1e-29 * p)
+    with pytest.warns(SpaceposeWarning, match=r"tiny.npy: coordinates span 1.\d+e-29 m, closer"):
+        read_cloud(tiny)
+    small = tmp_path / "small.npy"
+    np.save(small, 3e-3 * p)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(read_cloud(small)) == 500

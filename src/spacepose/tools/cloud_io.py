@@ -34,6 +34,9 @@ _PCD_NORMALS = ("normal_x", "normal_y", "normal_z")
 _TEXT_SUFFIXES = (".xyz", ".txt", ".csv")
 # Widest scene (m) a cloud in millimetres can span: 100 km, past any ToF camera or LiDAR.
 _FARTHEST_M = 1e5
+# Narrowest span (m) a cloud of a surface can have: a micrometre, a thousandth of the finest
+# range resolution of any ToF camera or LiDAR; points closer together are one return.
+_NARROWEST_M = 1e-6
 # Significant digits that round-trip a value of the given precision through text.
 _DIGITS = {"float32": 9, "float64": 17}
 # No sensor ranges nearer (m): returns closer than this in the median are a unit error.
@@ -180,9 +183,18 @@ def warn_not_unit(
 
 def warn_if_not_metres(cloud: PointCloud, source: str | Path, remedy: str = _RESCALE) -> None:
     """Warn (:class:`SpaceposeWarning`, naming ``source``) when a cloud's coordinates look like
-    millimetres, or span more than any sensor sees even in millimetres; ``remedy`` says what
-    to change (for a file of points, its scale)."""
+    millimetres, span more than any sensor sees even in millimetres, or less than any
+    resolves (:data:`_NARROWEST_M`); ``remedy`` says what to change (for a file of points,
+    its scale)."""
     check = check_scale(cloud.points)
+    if len(cloud) > 1 and 0.0 < check.extent < _NARROWEST_M:
+        # planes took 70,000 such points for one plane of 0 x 0 m, without a word.
+        problem = (
+            f"coordinates span {check.extent:.3g} m, closer together than any sensor resolves: "
+            "corrupt values, or another unit?"
+        )
+        warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
+        return
     if not check.millimetres:
         return
     if check.extent * 1e-3 > _FARTHEST_M:
