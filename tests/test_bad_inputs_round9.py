@@ -183,3 +183,26 @@ def test_a_text_file_named_ply_is_no_ply_mesh(tmp_path, capsys):
     assert main(argv) == 1
     err = capsys.readouterr().err.strip()
     assert err == f"error: {bad}: not a PLY file: it begins with b'hell', not the line 'ply'"
+
+
+def test_an_unreadable_ply_mesh_is_one_error_not_a_traceback(tmp_path, monkeypatch):
+    """The .ply check after trimesh failed opened the file again: an unreadable one raised a
+    bare PermissionError there. Root reads any file, so the denial is simulated."""
+    from pathlib import Path
+
+    mesh = tmp_path / "locked.ply"
+    mesh.write_text(_PLY.format(last=3))
+    real_open = Path.open
+
+    def denied(self, *args, **kwargs):
+        if self == mesh:
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_open(self, *args, **kwargs)
+
+    def load(*args, **kwargs):
+        raise PermissionError("denied")
+
+    monkeypatch.setattr(Path, "open", denied)
+    monkeypatch.setattr("trimesh.load", load)
+    with pytest.raises(FileFormatError, match=r"locked.ply: cannot read mesh: denied"):
+        load_mesh(mesh)

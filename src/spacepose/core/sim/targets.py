@@ -334,8 +334,11 @@ def _not_ply(path: Path) -> str | None:
     so named), or None."""
     if path.suffix.lower() != ".ply":
         return None
-    with path.open("rb") as fh:
-        head = fh.read(4)
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(4)
+    except OSError:
+        return None  # unreadable: trimesh's own error stands, as for an OBJ
     if head.rstrip(b"\r\n") == b"ply":
         return None
     return f"not a PLY file: it begins with {head!r}, not the line 'ply'"
