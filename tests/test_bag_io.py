@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import io
+import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
@@ -26,6 +29,7 @@ ROS1 = get_typestore(Stores.ROS1_NOETIC)
 PC2 = "sensor_msgs/msg/PointCloud2"
 IMAGE = "sensor_msgs/msg/Image"
 INFO = "sensor_msgs/msg/CameraInfo"
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
 
 
 def _stamp(k: int) -> tuple[int, int]:
@@ -423,3 +427,107 @@ def test_a_ros2_bag_with_an_empty_metadata_file_says_so(tmp_path, capsys):
     assert main(["track", str(bag), "--out", str(tmp_path / "e.tum")]) == 1
     err = capsys.readouterr().err.strip()
     assert err == f"error: {bag}: not a ROS 2 bag: its metadata.yaml is empty", err
+
+
+# --------------------------------------------------------------------------------------------
+# Compressed depth: what image_transport records (compressedDepth and compressed transports)
+
+
+def _png(values: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(values).save(buffer, format="PNG")
+    return buffer.getvalue()
+
+
+def _compressed(store, k: int, form: str, payload: bytes):
+    return store.types[COMPRESSED](
+        header=_header(store, k), format=form, data=np.frombuffer(payload, dtype=np.uint8)
+    )
+
+
+def _quantised_inverse(depth_m: np.ndarray, quantization=100.0, depth_max=10.0):
+    """compressed_depth_image_transport's encoding of a 32FC1 map (its defaults): the header
+    and the 16-bit inverse depth q = A / z + B, 0 where no return."""
+    a = quantization * (quantization + 1.0)
+    b = 1.0 - a / depth_max
+    with np.errstate(divide="ignore"):
+        q = np.where(depth_m > 0, np.rint(a / depth_m + b), 0).astype(np.uint16)
+    return struct.pack("<iff", 0, a, b) + _png(q), a
+
+
+@pytest.mark.parametrize("ros1", [False, True])
+def test_compressed_depth_topics_track_like_the_raw_image(lab, tmp_path, capsys, ros1):
+    """A 16UC1 map through the compressedDepth transport (header + PNG) and through the
+    compressed one (a PNG) gives the raw Image topic's clouds to the bit; a JPEG colour stream
+    beside them is no frame topic, and is refused by name."""
+    store = ROS1 if ros1 else ROS2
+    camera = lab["camera"]
+    jpeg = io.BytesIO()
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(jpeg, format="JPEG")
+    messages = [("/cam/depth/camera_info", INFO, _camera_info(store, camera, ros1=ros1))]
+    for k in range(3):
+        millimetres = np.rint(np.nan_to_num(lab["grids"][k][..., 2]) * 1000).astype(np.uint16)
+        header = struct.pack("<iff", 0, 0.0, 0.0)
+        messages += [
+            ("/cam/depth/image_raw", IMAGE, _image(store, k, millimetres)),
+            ("/cam/depth/image_raw/compressedDepth", COMPRESSED,
+             _compressed(store, k, "16UC1; compressedDepth png", header + _png(millimetres))),
+            ("/cam/depth/image_raw/compressed", COMPRESSED,
+             _compressed(store, k, "16UC1; png compressed mono16", _png(millimetres))),
+            ("/cam/color/compressed", COMPRESSED,
+             _compressed(store, k, "rgb8; jpeg compressed bgr8", jpeg.getvalue())),
+        ]  # fmt: skip
+    bag = _write(tmp_path / ("run.bag" if ros1 else "run"), messages, ros1=ros1)
+    raw = [f.cloud.points for f in open_bag(bag, "/cam/depth/image_raw")]
+    for topic in ("/cam/depth/image_raw/compressedDepth", "/cam/depth/image_raw/compressed"):
+        frames = list(open_bag(bag, topic))
+        assert [f.error for f in frames] == [None] * 3
+        assert frames[0].timestamp == 1_700_000_000.0
+        for frame, points in zip(frames, raw, strict=True):
+            np.testing.assert_array_equal(frame.cloud.points, points)
+    with pytest.raises(InputError, match=r"/cam/color/compressed carries 'rgb8; jpeg compr"):
+        open_bag(bag, "/cam/color/compressed")
+    # Three depth topics to choose from; the colour stream is not listed among them.
+    assert main(["track", str(bag), "--out", str(tmp_path / "e.tum")]) == 1
+    err = capsys.readouterr().err
+    assert "3 PointCloud2/Image topics" in err and "/cam/color" not in err, err
+
+
+def test_a_32fc1_compressed_depth_map_is_its_inverse_depth_decoded(lab, tmp_path):
+    """32FC1 through compressedDepth is quantised inverse depth: decoded z is within the
+    quantisation step z² / (2A) of the map, and no return stays no return."""
+    z = lab["grids"][0][..., 2].astype(np.float64)
+    payload, a = _quantised_inverse(np.nan_to_num(z))
+    message = _compressed(ROS2, 0, "32FC1; compressedDepth png", payload)
+    info = _camera_info(ROS2, lab["camera"], ros1=False)
+    topic = "/cam/depth/image_raw/compressedDepth"
+    bag = _write(
+        tmp_path / "run", [("/cam/depth/camera_info", INFO, info), (topic, COMPRESSED, message)]
+    )
+    (frame,) = list(open_bag(bag))
+    finite = np.isfinite(z)
+    assert len(frame.cloud) == int(finite.sum())
+    got, expected = np.sort(frame.cloud.points[:, 2]), np.sort(z[finite])
+    step = expected**2 / (2 * a)
+    assert np.all(np.abs(got - expected) <= step * 1.01 + 1e-6)
+    assert np.abs(got - expected).max() > 0.2 * step.max()  # quantised, not passed through
+
+
+def test_an_rvl_or_undecodable_compressed_depth_frame_is_lost_and_the_rest_read(lab, tmp_path):
+    millimetres = np.rint(np.nan_to_num(lab["grids"][0][..., 2]) * 1000).astype(np.uint16)
+    good = struct.pack("<iff", 0, 0.0, 0.0) + _png(millimetres)
+    forms = [
+        ("16UC1; compressedDepth png", good),
+        ("16UC1; compressedDepth rvl", good[:40]),
+        ("16UC1; compressedDepth png", good[:200]),  # truncated PNG
+        ("16UC1; compressedDepth png", good),
+    ]
+    messages = [("/cam/depth/camera_info", INFO, _camera_info(ROS2, lab["camera"], ros1=False))]
+    for k, (form, payload) in enumerate(forms):
+        message = _compressed(ROS2, k, form, payload)
+        messages.append(("/cam/depth/image_raw/compressedDepth", COMPRESSED, message))
+    bag = _write(tmp_path / "run", messages)
+    frames = list(open_bag(bag))
+    assert [f.cloud is not None for f in frames] == [True, False, False, True]
+    assert "RVL depth codec is not read" in frames[1].error
+    assert "cannot decode the image" in frames[2].error

@@ -5,9 +5,11 @@ A bag is a ``.bag`` file (ROS 1) or a ROS 2 bag folder (``metadata.yaml`` with i
 
 - ``sensor_msgs/PointCloud2``: the ``x``, ``y``, ``z`` fields, at any offset, of any numeric
   datatype, either byte order, with row padding; NaN points (``is_dense`` false) are dropped;
-- ``sensor_msgs/Image`` depth (``16UC1``/``mono16`` in millimetres, ``32FC1`` in metres),
-  back-projected with the intrinsics of the bag's ``sensor_msgs/CameraInfo`` (the topic beside
-  the image's, else the bag's only one; its first message) or of an intrinsics file.
+- ``sensor_msgs/Image`` depth (``16UC1``/``mono16`` in millimetres, ``32FC1`` in metres) or
+  ``sensor_msgs/CompressedImage`` depth (:mod:`spacepose.tools.ros_depth`), back-projected with
+  the intrinsics of the bag's ``sensor_msgs/CameraInfo`` (the topic beside the raw image's,
+  else the bag's only one; its first message) or of an intrinsics file. A compressed topic
+  whose first message is no depth map (a JPEG colour stream) is no frame topic.
 
 A frame's time is its header stamp (seconds), or the bag's record time when the stamp is zero.
 A message that cannot be decoded becomes a frame without a cloud and the reason why; so does
@@ -34,17 +36,21 @@ from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.depth_io import check_camera, depth_cloud
 from spacepose.tools.frames import FrameInput, warn_if_kilometres
 from spacepose.tools.npy_io import as_float64
+from spacepose.tools.ros_depth import (
+    COMPRESSED_IMAGE,
+    IMAGE,
+    depth_values,
+    is_depth_format,
+    raw_topic,
+)
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-IMAGE = "sensor_msgs/msg/Image"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 BAG_SUFFIXES: tuple[str, ...] = (".bag", ".db3", ".mcap")
 # The first line of every ROS 1 bag (format 2.0, the only one rosbags reads).
 _ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
 # sensor_msgs/PointField datatypes -> numpy kinds (byte order added per message).
 _POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
-# Depth image encodings -> (numpy kind, metres per unit).
-_DEPTH_ENCODINGS = {"16UC1": ("u2", 0.001), "mono16": ("u2", 0.001), "32FC1": ("f4", 1.0)}
 
 
 def is_bag(path: str | Path) -> bool:
@@ -165,30 +171,6 @@ def pointcloud2_points(msg: Any) -> NDArray[np.float64]:
     return np.column_stack([as_float64(records[n]) for n in names])
 
 
-def image_depth(msg: Any) -> tuple[NDArray, float]:
-    """The (H, W) values of a depth ``sensor_msgs/Image`` and their metres per unit.
-
-    Raises
-    ------
-    FileFormatError
-        An encoding other than ``16UC1``/``mono16``/``32FC1``, or less data than the header says.
-    """
-    if msg.encoding not in _DEPTH_ENCODINGS:
-        raise FileFormatError(
-            f"depth Image encoding {msg.encoding!r} (supported: {', '.join(_DEPTH_ENCODINGS)})"
-        )
-    kind, scale = _DEPTH_ENCODINGS[msg.encoding]
-    dtype = np.dtype((">" if msg.is_bigendian else "<") + kind)
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if msg.step < msg.width * dtype.itemsize or data.size < msg.height * msg.step:
-        raise FileFormatError(
-            f"Image holds {data.size} bytes for {msg.height} rows of step {msg.step}"
-        )
-    rows = data[: msg.height * msg.step].reshape(msg.height, msg.step)
-    values = np.ascontiguousarray(rows[:, : msg.width * dtype.itemsize]).view(dtype)
-    return values, scale
-
-
 def camera_from_info(msg: Any, depth_scale: float) -> DepthCamera:
     """A :class:`DepthCamera` from a ``sensor_msgs/CameraInfo`` (ROS 1 ``K``/``D`` or ROS 2
     ``k``/``d``; ``plumb_bob`` or ``rational_polynomial`` distortion).
@@ -284,14 +266,15 @@ class BagFrames:
     def _cloud(self, msg: Any, source: str) -> PointCloud:
         if self.msgtype == POINTCLOUD2:
             return PointCloud(pointcloud2_points(msg), source=source)
-        values, scale = image_depth(msg)
+        values, scale = depth_values(msg, self.msgtype, source)
         camera = self.camera
         assert camera is not None  # open_bag gives every Image topic a camera
         if camera.depth_scale != scale:
             camera = camera.model_copy(update={"depth_scale": scale})
         # Checked as a depth folder's images are: the lens at the image's size, the units.
+        encoding = msg.format if self.msgtype == COMPRESSED_IMAGE else msg.encoding
         return depth_cloud(
-            values, camera, source, f"the {msg.encoding} encoding is {scale:g} m per unit"
+            values, camera, source, f"the {encoding} encoding is {scale:g} m per unit"
         )
 
 
@@ -322,7 +305,10 @@ def open_bag(
     path = Path(path)
     with _open_reader(path) as reader:
         types = {c.topic: c.msgtype for c in reader.connections}
-        candidates = {t: m for t, m in types.items() if m in (POINTCLOUD2, IMAGE)}
+        candidates = {t: m for t, m in types.items() if m in (POINTCLOUD2, IMAGE, COMPRESSED_IMAGE)}
+        # A compressed colour stream (JPEG) beside the depth one is no frame topic.
+        pictures = _not_depth(reader, [t for t, m in candidates.items() if m == COMPRESSED_IMAGE])
+        candidates = {t: m for t, m in candidates.items() if t not in pictures}
         listing = ", ".join(f"{t} ({m.rsplit('/', 1)[-1]})" for t, m in sorted(candidates.items()))
         listing = listing or "none"
         if topic is None:
@@ -340,6 +326,12 @@ def open_bag(
                     path,
                 )
             topic = next(iter(candidates))
+        elif topic in pictures:
+            raise InputError(
+                f"topic {topic} carries {pictures[topic]!r} images, not depth maps; frame "
+                f"topics: {listing}",
+                path,
+            )
         elif topic not in candidates:
             what = "not in the bag" if topic not in types else f"a {types[topic]}"
             raise InputError(f"topic {topic} is {what}; frame topics: {listing}", path)
@@ -354,15 +346,32 @@ def open_bag(
                 "metres): leave out --intrinsics, or choose an Image topic",
                 path,
             )
-        if candidates[topic] == IMAGE and camera is None:
+        if candidates[topic] != POINTCLOUD2 and camera is None:
             camera = _bag_camera(reader, topic, path)
     return BagFrames(path, topic, candidates[topic], count, camera)
 
 
+def _not_depth(reader: Any, topics: list[str]) -> dict[str, str]:
+    """The format of each compressed image topic whose first message holds no depth map."""
+    found = {}
+    for topic in topics:
+        connections = [c for c in reader.connections if c.topic == topic]
+        for conn, _, raw in reader.messages(connections):
+            try:
+                form = reader.deserialize(raw, conn.msgtype).format
+            except Exception:  # whatever rosbags meets: the frames will say why
+                break
+            if not is_depth_format(form):
+                found[topic] = form
+            break
+    return found
+
+
 def _bag_camera(reader: Any, image_topic: str, path: Path) -> DepthCamera:
-    """The first CameraInfo beside ``image_topic`` (same namespace), else the bag's only one."""
+    """The first CameraInfo beside ``image_topic`` (same namespace; a compressed topic's raw
+    image's), else the bag's only one."""
     infos = [c for c in reader.connections if c.msgtype == CAMERA_INFO]
-    namespace = image_topic.rsplit("/", 1)[0]
+    namespace = raw_topic(image_topic).rsplit("/", 1)[0]
     beside = [c for c in infos if c.topic.rsplit("/", 1)[0] == namespace]
     chosen = beside or infos
     if len({c.topic for c in chosen}) != 1:

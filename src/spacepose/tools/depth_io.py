@@ -13,6 +13,7 @@ lines of ``depth.txt`` (``#`` comments ignored; the paths relative to the folder
 from __future__ import annotations
 
 import functools
+import io
 import re
 import struct
 import warnings
@@ -88,29 +89,60 @@ def read_depth_image(path: str | Path) -> NDArray:
                 path,
             )
         return values
+    return _image_values(path, path)
+
+
+def decode_depth_image(data: bytes, source: str) -> NDArray:
+    """Decode one depth image held in memory (a PNG or TIFF in a bag message), checked as
+    :func:`read_depth_image` checks a file.
+
+    Parameters
+    ----------
+    data
+        The encoded image.
+    source
+        What holds it (a bag's message), named in errors and warnings.
+
+    Returns
+    -------
+    (H, W) stored values (uint16, int32 or float32).
+
+    Raises
+    ------
+    FileFormatError
+        Not an image, corrupt or truncated, or not one channel of 16-bit integers or 32-bit
+        floats.
+    """
+    return _image_values(io.BytesIO(data), source)
+
+
+def _image_values(file: Path | io.BytesIO, source: str | Path) -> NDArray:
+    """One decoded depth image, refused unless one page of one 16-bit or float channel."""
     # Pillow warns of what it skips in a damaged file (a line each, naming no file): kept
     # back, they are said once, naming the image, when it decodes; its error says the rest.
     with warnings.catch_warnings(record=True) as skipped:
         warnings.simplefilter("always")
-        values, mode, pages = _decode(path)
+        values, mode, pages = _decode(file, source)
     if pages != 1:  # a stack would be read as its first page, the rest dropped
-        raise FileFormatError(f"holds {pages} images; a depth map is one (one file a frame)", path)
+        raise FileFormatError(
+            f"holds {pages} images; a depth map is one (one file a frame)", source
+        )
     if mode not in _DEPTH_MODES or values.ndim != 2:
         raise FileFormatError(
             f"a depth map must be one channel of 16-bit integers or 32-bit floats, "
             f"got Pillow mode {mode!r}",
-            path,
+            source,
         )
     said = list(dict.fromkeys(" ".join(str(w.message).split()) for w in skipped))
     if said:
         more = f" (and {len(said) - 2} more)" if len(said) > 2 else ""
         problem = f"decoded despite Pillow's warnings: {'; '.join(said[:2])}{more}"
-        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
+        warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
     return values
 
 
-def _decode(path: Path) -> tuple[NDArray, str, int]:
-    """An image file's values, Pillow mode and page count.
+def _decode(file: Path | io.BytesIO, source: str | Path) -> tuple[NDArray, str, int]:
+    """An image's values, Pillow mode and page count (``file`` a path or the bytes).
 
     Raises
     ------
@@ -118,18 +150,18 @@ def _decode(path: Path) -> tuple[NDArray, str, int]:
         Missing, not an image, too large, or corrupt.
     """
     try:
-        with Image.open(path) as image:
+        with Image.open(file) as image:
             pages = getattr(image, "n_frames", 1)
             image.load()
             return np.array(image), image.mode, pages
     except FileNotFoundError:
-        raise FileFormatError("file not found", path) from None
+        raise FileFormatError("file not found", source) from None
     except UnidentifiedImageError:
-        raise FileFormatError("not an image Pillow can decode", path) from None
+        raise FileFormatError("not an image Pillow can decode", source) from None
     except Image.DecompressionBombError as exc:  # a header claiming more pixels than any camera
-        raise FileFormatError(f"refused: {exc}", path) from None
+        raise FileFormatError(f"refused: {exc}", source) from None
     except _DECODE_ERRORS as exc:
-        raise FileFormatError(f"cannot decode the image: {exc}", path) from None
+        raise FileFormatError(f"cannot decode the image: {exc}", source) from None
 
 
 def image_size(path: str | Path) -> tuple[int, int] | None:
