@@ -313,3 +313,17 @@ def test_ransac_plane_names_the_file_of_points_on_a_line() -> None:
     line = np.c_[np.linspace(0.0, 1.0, 50), np.zeros(50), np.ones(50)]
     with pytest.raises(DegenerateGeometryError, match=r"^scan_7.ply: all 50 points are collinear"):
         ransac_plane(PointCloud(line, source="scan_7.ply"))
+
+
+def test_coordinates_too_large_to_resolve_the_threshold_are_refused() -> None:
+    """A plane scaled by 1e30 gave "0 planes" and numpy's "Mean of empty slice": float64
+    resolves 2e15 m there, and every refit lost its inliers to rounding. The same plane
+    scaled by 1e3 (1,000 m across, within reach) is still found."""
+    rng = np.random.default_rng(3)
+    plane = np.c_[rng.uniform(0.0, 1.0, (500, 2)), np.zeros(500)]
+    for call in (ransac_plane, extract_planes):
+        cloud = PointCloud(plane * 1e30, source="scan_9.ply")
+        with pytest.raises(InputError, match=r"^scan_9.ply: coordinates up to 1e\+30 m leave"):
+            call(cloud)
+    found = extract_planes(plane * 1e3)
+    assert len(found) == 1 and found[0].n_inliers == 500

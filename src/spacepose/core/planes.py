@@ -200,6 +200,20 @@ def dense_support(
     return dense[largest_component(np.column_stack([uv[dense], np.zeros(len(dense))]), step)]
 
 
+def _check_resolution(pts: NDArray[np.float64], threshold: float, source: str | None) -> None:
+    """Refuse coordinates so large that float64 cannot resolve the inlier threshold there: a
+    plane's distances would be rounding noise, and its refit found no inlier (a cloud scaled
+    by 1e30 gave 0 planes and numpy's "Mean of empty slice")."""
+    resolution = 16 * float(np.spacing(np.abs(pts).max()))
+    if resolution > threshold:
+        raise InputError(
+            f"coordinates up to {np.abs(pts).max():.3g} m leave float64 a resolution of "
+            f"{resolution:.3g} m there, coarser than the {threshold:g} m plane threshold: "
+            "corrupt values, or another unit?",
+            source,
+        )
+
+
 def _refit(points: NDArray[np.float64], inliers: NDArray[np.intp], config: PlaneConfig) -> Plane:
     """PCA refit of a hypothesis' inliers, the refitted plane's inliers, their largest group."""
     normal, offset = fit_plane(points[inliers])
@@ -241,6 +255,7 @@ def ransac_plane(
         All points collinear.
     """
     pts = as_points(points, min_points=3)
+    _check_resolution(pts, config.distance_threshold, getattr(points, "source", None))
     if is_collinear(distribution(pts)[1]):
         raise no_plane(pts, getattr(points, "source", None))
     rng = np.random.default_rng(config.seed) if rng is None else rng
@@ -385,6 +400,7 @@ def extract_planes(
     """
     config = stage_config(config, PlaneConfig)
     pts = as_points(cloud_or_points, min_points=3)
+    _check_resolution(pts, config.distance_threshold, getattr(cloud_or_points, "source", None))
     if is_collinear(distribution(pts)[1]):
         raise no_plane(pts, getattr(cloud_or_points, "source", None))
     rng = np.random.default_rng(config.seed)
