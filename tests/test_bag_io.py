@@ -17,7 +17,7 @@ from rosbags.typesys import Stores, get_typestore
 from spacepose.cli import main
 from spacepose.core.depth import DepthCamera, render_depth
 from spacepose.core.sim import scenario_config, simulate
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.bag_io import camera_from_info, open_bag, pointcloud2_points
 from spacepose.tools.depth_io import read_intrinsics
 from spacepose.tools.tracking_io import track_folder, tracker_config
@@ -531,3 +531,53 @@ def test_an_rvl_or_undecodable_compressed_depth_frame_is_lost_and_the_rest_read(
     assert [f.cloud is not None for f in frames] == [True, False, False, True]
     assert "RVL depth codec is not read" in frames[1].error
     assert "cannot decode the image" in frames[2].error
+
+
+def _restamped(msg, sec: int, nanosec: int):
+    msg.header.stamp = ROS2.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+    return msg
+
+
+def test_a_clock_from_zero_is_the_header_stamps_and_unset_stamps_the_record_times(lab, tmp_path):
+    """A simulation's clock stamps its first frame 0: that frame used to take its record time
+    (1e9 s here, the wall clock in a real bag) and every later frame, stamped 0.1 s on, was
+    lost as "not after" it. A topic whose stamps are all unset takes the record times."""
+    grid = lab["grids"][0][::8, ::8]
+    sim_clock = [("/points", PC2, _restamped(_pointcloud2(ROS2, k, grid), 0, k * 10**8))
+                 for k in range(4)]  # fmt: skip
+    frames = list(open_bag(_write(tmp_path / "sim", sim_clock)))
+    np.testing.assert_allclose([f.timestamp for f in frames], [0.0, 0.1, 0.2, 0.3], atol=1e-12)
+    unset = [("/points", PC2, _restamped(_pointcloud2(ROS2, k, grid), 0, 0)) for k in range(4)]
+    frames = list(open_bag(_write(tmp_path / "unset", unset)))
+    # _write's record times
+    np.testing.assert_allclose([f.timestamp for f in frames], [1.0, 1.1, 1.2, 1.3], atol=1e-12)
+
+
+def test_every_message_is_read_whatever_the_metadata_counts(lab, tmp_path):
+    """A metadata.yaml counting 1 of 3 messages read 1 frame without a word; counting 0, the
+    bag was refused as holding none."""
+    grid = lab["grids"][0][::8, ::8]
+    messages = [("/points", PC2, _pointcloud2(ROS2, k, grid)) for k in range(3)]
+    bag = _write(tmp_path / "run", messages, mcap=False)
+    metadata = bag / "metadata.yaml"
+    text = metadata.read_text()
+    assert "message_count: 3" in text
+    metadata.write_text(text.replace("message_count: 3", "message_count: 1"))
+    with pytest.warns(SpaceposeWarning, match=r"counts 1 messages on /points and holds 3: all 3"):
+        frames = list(open_bag(bag))
+    assert [f.error for f in frames] == [None] * 3
+    metadata.write_text(text.replace("message_count: 3", "message_count: 0"))
+    frames = open_bag(bag)
+    assert len(frames) == 3 and [f.error for f in frames] == [None] * 3
+
+
+def test_a_ros2_recording_without_its_metadata_says_so(lab, tmp_path, capsys):
+    bag = _write(tmp_path / "run", [("/points", PC2, _pointcloud2(ROS2, 0, lab["grids"][0]))],
+                 mcap=False)  # fmt: skip
+    (bag / "metadata.yaml").unlink()
+    assert main(["track", str(bag), "--out", str(tmp_path / "e.tum")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.endswith(
+        "run: holds run.db3 but no metadata.yaml: a ROS 2 bag whose recording did not finish? "
+        "(`ros2 bag reindex` writes it)"
+    ), err

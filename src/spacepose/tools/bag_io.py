@@ -11,7 +11,8 @@ A bag is a ``.bag`` file (ROS 1) or a ROS 2 bag folder (``metadata.yaml`` with i
   else the bag's only one; its first message) or of an intrinsics file. A compressed topic
   whose first message is no depth map (a JPEG colour stream) is no frame topic.
 
-A frame's time is its header stamp (seconds), or the bag's record time when the stamp is zero.
+A frame's time is its header stamp (seconds), or the bag's record time when the topic's first
+messages are all stamped zero (a driver that leaves stamps unset).
 A message that cannot be decoded becomes a frame without a cloud and the reason why; so does
 every message from a corrupt stretch of the bag on (a chunk that does not decompress ends what
 can be read), with a NaN time.
@@ -20,6 +21,7 @@ can be read), with a NaN time.
 from __future__ import annotations
 
 import struct
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -31,7 +33,7 @@ from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera, matrix_fields
-from spacepose.errors import FileFormatError, InputError, SpaceposeError
+from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.depth_io import check_camera, depth_cloud
 from spacepose.tools.frames import FrameInput, warn_if_kilometres
@@ -107,8 +109,9 @@ def _open_reader(path: Path) -> Iterator[Any]:
         reader.close()
 
 
-def stamp_seconds(msg: Any, record_time_ns: int) -> float:
-    """The header stamp of ``msg`` in seconds; the record time when the stamp is zero.
+def stamp_seconds(msg: Any, record_time_ns: int, header_clock: bool = True) -> float:
+    """The header stamp of ``msg`` in seconds; the record time when its topic's stamps are
+    unset (``header_clock`` false: :func:`_header_clock`).
 
     Raises
     ------
@@ -117,7 +120,7 @@ def stamp_seconds(msg: Any, record_time_ns: int) -> float:
         time in nanoseconds there), which moved the frame up to 4 s on without a word.
     """
     stamp = msg.header.stamp
-    if stamp.sec == 0 and stamp.nanosec == 0:
+    if not header_clock:
         return record_time_ns * 1e-9
     if stamp.nanosec >= 1_000_000_000:
         raise InputError(
@@ -201,9 +204,13 @@ class BagFrames:
     topic, msgtype
         The frame topic and its message type.
     count
-        Number of messages (frames) on the topic.
+        Number of messages (frames) on the topic, as the bag's index or metadata counts them
+        (every message is read, and a count that differs is warned about).
     camera
         Intrinsics for a depth Image topic (None for PointCloud2).
+    header_clock
+        Whether frame times are the header stamps (False: the record times; the topic's first
+        messages are all stamped zero).
     """
 
     path: Path
@@ -211,6 +218,7 @@ class BagFrames:
     msgtype: str
     count: int
     camera: DepthCamera | None = None
+    header_clock: bool = True
     model_path: Path | None = None
 
     def __len__(self) -> int:
@@ -224,7 +232,7 @@ class BagFrames:
         with _open_reader(self.path) as reader:
             connections = [c for c in reader.connections if c.topic == self.topic]
             messages = reader.messages(connections)
-            while index < self.count:
+            while True:
                 try:
                     conn, time_ns, raw = next(messages)
                 except StopIteration:
@@ -234,7 +242,7 @@ class BagFrames:
                     # decompress, a damaged record): the frames from here on cannot be read.
                     problem = " ".join(str(exc).split()) or type(exc).__name__
                     error = f"cannot read the bag from message #{index} on: {problem}"
-                    for k in range(index, self.count):
+                    for k in range(index, max(self.count, index + 1)):
                         source = f"{self.path}:{self.topic}#{k}"
                         yield FrameInput(k, float("nan"), None, source, error)
                     return
@@ -242,7 +250,7 @@ class BagFrames:
                 cloud, error, timestamp = None, None, time_ns * 1e-9
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
-                    timestamp = stamp_seconds(msg, time_ns)
+                    timestamp = stamp_seconds(msg, time_ns, self.header_clock)
                     cloud = self._cloud(msg, source)
                     if self.msgtype == POINTCLOUD2:
                         # As a folder's cloud files, each frame: a driver in millimetres or
@@ -262,6 +270,15 @@ class BagFrames:
                     error = f"cannot decode the message: {exc}"
                 yield FrameInput(index, timestamp, cloud, source, error)
                 index += 1
+        if index != self.count:  # a crashed recording's metadata.yaml, say: all were read
+            warnings.warn(
+                SpaceposeWarning(
+                    f"the bag counts {self.count} messages on {self.topic} and holds {index}: "
+                    f"all {index} read",
+                    self.path,
+                ),
+                stacklevel=2,
+            )
 
     def _cloud(self, msg: Any, source: str) -> PointCloud:
         if self.msgtype == POINTCLOUD2:
@@ -337,6 +354,8 @@ def open_bag(
             raise InputError(f"topic {topic} is {what}; frame topics: {listing}", path)
         connections = [c for c in reader.connections if c.topic == topic]
         count = sum(c.msgcount for c in connections)
+        if count <= 0:  # a metadata.yaml may count none (a crashed recording): count them
+            count = sum(1 for _ in reader.messages(connections))
         if count == 0:  # a topic declared but never published
             raise InputError(f"no messages on {topic}: the bag holds no frame", path)
         if candidates[topic] == POINTCLOUD2 and camera is not None:
@@ -348,7 +367,28 @@ def open_bag(
             )
         if candidates[topic] != POINTCLOUD2 and camera is None:
             camera = _bag_camera(reader, topic, path)
-    return BagFrames(path, topic, candidates[topic], count, camera)
+        header_clock = _header_clock(reader, connections)
+    return BagFrames(path, topic, candidates[topic], count, camera, header_clock=header_clock)
+
+
+def _header_clock(reader: Any, connections: list[Any], first: int = 3) -> bool:
+    """Whether a topic's header stamps are its clock: one of its ``first`` messages stamped
+    other than zero, or none of them readable (each frame then says why). Decided once per
+    topic: a simulation's clock starting at 0 stamps its first frame 0, and that frame taken
+    at its record time (the wall clock, 1.7e9 s) left every later frame "not after" it, lost."""
+    try:
+        zeros = 0
+        for _, (conn, _, raw) in zip(range(first), reader.messages(connections), strict=False):
+            try:
+                stamp = reader.deserialize(raw, conn.msgtype).header.stamp
+            except Exception:  # whatever rosbags meets: the frame itself will say why
+                continue
+            if stamp.sec != 0 or stamp.nanosec != 0:
+                return True
+            zeros += 1
+    except Exception:  # a corrupt chunk: the frames will say so
+        return True
+    return zeros == 0
 
 
 def _not_depth(reader: Any, topics: list[str]) -> dict[str, str]:

@@ -204,6 +204,13 @@ def open_frames(
         # Images without intrinsics: say what is missing, not that there is nothing.
         return _open_depth_folder(root, None)
     if not paths:
+        storage = sorted(p.name for p in root.iterdir() if p.suffix.lower() in (".db3", ".mcap"))
+        if storage:  # a ROS 2 recording that did not finish writes its metadata.yaml last
+            raise InputError(
+                f"holds {storage[0]} but no metadata.yaml: a ROS 2 bag whose recording did not "
+                "finish? (`ros2 bag reindex` writes it)",
+                root,
+            )
         raise InputError(f"no frame files ({', '.join(CLOUD_SUFFIXES)}) in the folder", root)
     return FrameSequence(paths, _folder_timestamps(root, len(paths)))
 
