@@ -233,6 +233,39 @@ def test_lost_frames_of_the_health_table_are_left_out(
     assert "has 1 rows for" in captured.err
 
 
+def test_lost_frames_are_counted_in_the_estimate_they_were_left_out_of(
+    tmp_path: Path, random_trajectory: Trajectory, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two of three frames lost: the estimate was counted without them, "1 poses against 3 in
+    gt.tum: only the 1 estimated ones are scored", though it holds 3 as the truth does."""
+    three = Trajectory(random_trajectory.timestamps[:3], random_trajectory.poses[:3])
+    est = write_tum(tmp_path / "est.tum", three)
+    gt = write_tum(tmp_path / "gt.tum", three)
+    (tmp_path / "est.health.csv").write_text("frame,status\n0,ok\n1,lost\n2,lost\n")
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [
+        f"warning: {est}: 2 frame(s) lost in est.health.csv left out (their poses are the "
+        "motion model's predictions)"
+    ]
+    out = json.loads(captured.out)
+    assert (out["n"], out["n_estimated"], out["n_ground_truth"]) == (1, 3, 3)
+    # Against a longer truth, the count is the file's and the scored ones are named apart.
+    gt = write_tum(tmp_path / "gt.tum", random_trajectory)
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    assert (
+        f"warning: {est}: 3 poses against 20 in gt.tum: only the 1 estimated ones not lost are "
+        "scored"
+    ) in capsys.readouterr().err.splitlines()
+    # A status none of ok, degraded, lost is named with its file, and every frame scored.
+    (tmp_path / "est.health.csv").write_text("frame,status\n0,ok\n1,banana\n2,lost\n")
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    assert (
+        f"warning: {est}: est.health.csv row 2 has status 'banana', not one of ok, degraded, "
+        "lost: lost frames, if any, are scored"
+    ) in capsys.readouterr().err.splitlines()
+
+
 def test_a_ground_truth_with_two_poses_at_one_time_is_refused(
     tmp_path: Path, random_trajectory: Trajectory, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -307,6 +307,34 @@ def test_bad_text_rows_name_the_line(tmp_path: Path) -> None:
         read_cloud(path)
 
 
+@pytest.mark.parametrize(
+    ("name", "rows", "hint"),
+    [
+        ("quoted.csv", ['"0.123","0.4","1.2"', '"-0.19339","0.5","1.0"'], "quoted numbers?"),
+        ("hex.xyz", ["0x1.0p-1 0x1.8p+0 0x1.2p+0"] * 2, "hexadecimal floats?"),  # float.hex()
+    ],
+)
+def test_a_first_line_neither_numbers_nor_naming_xyz_is_named_as_line_1(
+    tmp_path: Path, name: str, rows: list[str], hint: str
+) -> None:
+    """Every value quoted, or written by float.hex(): the first line was taken for a header
+    naming no x/y/z column and skipped, and the error named line 2."""
+    path = tmp_path / name
+    path.write_text("\n".join(rows) + "\n")
+    with pytest.raises(FileFormatError) as info:
+        read_cloud(path)
+    head = rows[0].replace(",", " ").split()
+    assert str(info.value).startswith(
+        f"{path}: line 1: not numbers, and as a header it does not name x, y and z columns: "
+        f"{head} ({hint} write them"
+    )
+    # Headers naming their columns still read.
+    for header in ("x y z", "//X,Y,Z", "x,y,z,intensity", '"x","y","z"'):
+        sep = "," if "," in header else " "
+        path.write_text(f"{header}\n" + sep.join(["1"] * len(header.split(sep))) + "\n")
+        np.testing.assert_array_equal(read_cloud(path).points, [[1.0, 1.0, 1.0]])
+
+
 def test_bad_npy_shape(tmp_path: Path) -> None:
     path = tmp_path / "s.npy"
     np.save(path, np.zeros((5, 4)))

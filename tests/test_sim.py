@@ -138,6 +138,27 @@ def test_load_mesh_bad_input(tmp_path) -> None:
         sample_surface(lab_target(), 0)
 
 
+@pytest.mark.parametrize(
+    "corners",
+    [
+        "v 0 0 0\nv 1 0 0\nv 2 0 0\n",  # on one line
+        "v 0 0 0\nv 0.1 0.2 0.3\nv 0.3 0.6 0.9\n",  # on one line, up to rounding
+        "v 1 1 1\nv 1 1 1\nv 1 1 1\n",  # one point
+    ],
+)
+def test_a_mesh_of_zero_area_triangles_is_refused_up_front(tmp_path, corners) -> None:
+    """Every triangle of zero area: `simulate lab --model` failed at frame 0 with "the sensor
+    sees nothing", which pointed at the range and the scale, not at the mesh."""
+    path = tmp_path / "degen.obj"
+    path.write_text(corners + "f 1 2 3\nf 3 2 1\n")
+    with pytest.raises(FileFormatError) as info:
+        load_mesh(path)
+    assert str(info.value) == f"{path}: all 2 triangles have zero area: no surface to render"
+    # One triangle with an area is a surface, however small.
+    path.write_text(corners + "v 0 1e-6 0\nv 1e-6 0 0\nf 1 2 3\nf 4 5 1\n")
+    assert len(load_mesh(path).mesh.faces) == 2
+
+
 # --------------------------------------------------------------------------------------------
 # Sensors
 

@@ -179,6 +179,40 @@ def test_bad_kitti(tmp_path: Path) -> None:
         read_kitti(path, timestamps=[0.0, 1.0])
 
 
+def test_kitti_rotations_near_orthonormal_warn_and_far_ones_say_how_far(
+    tmp_path: Path, random_trajectory: Trajectory
+) -> None:
+    """A file written to 4 decimals was refused as "pose 7 is not a rigid transform", saying
+    neither how far off it was nor that a TUM quaternion as far off is read with a warning."""
+    path = tmp_path / "est.kitti"
+    identity = "1 0 0 0 0 1 0 0 0 0 1 0\n"
+    # cos 30° written 0.8664: RᵀR off the identity by 6.5e-4, within 1e-3.
+    path.write_text(identity + "0.8664 -0.5 0 1 0.5 0.866 0 2 0 0 1 3\n")
+    with pytest.warns(SpaceposeWarning) as caught:
+        traj = read_kitti(path)
+    assert [str(w.message) for w in caught] == [
+        f"{path}: 1 rotation blocks are off orthonormal (line 2: RᵀR off the identity by "
+        "0.00065, over 0.0001: too few digits written?); read as their nearest rotations"
+    ]
+    R = traj.poses[1, :3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-14)
+    np.testing.assert_allclose(R, Rotation.from_euler("z", 30, degrees=True).as_matrix(), atol=1e-3)
+    # Beyond 1e-3 no rounding explains it: refused, saying how far off.
+    path.write_text(identity * 7 + "0.8760 -0.5 0 1 0.5 0.866 0 2 0 0 1 3\n")
+    with pytest.raises(FileFormatError) as info:
+        read_kitti(path)
+    assert str(info.value) == (
+        f"{path}: line 8: pose 7 is not a rigid transform: its rotation block is not a proper "
+        "rotation (RᵀR off the identity by 0.017, det 1.009; a rotation has 0 and 1); up to "
+        "0.001 is read as rounding"
+    )
+    # 6 decimals, as KITTI's tools print: read without a word.
+    np.savetxt(path, random_trajectory.poses[:, :3, :].reshape(-1, 12), fmt="%.6f")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_kitti(path)
+
+
 def test_missing_tum(tmp_path: Path) -> None:
     with _raises_naming(tmp_path / "absent.tum", "no such file"):
         read_tum(tmp_path / "absent.tum")

@@ -428,8 +428,17 @@ def checked_model(model: PointCloud | ArrayLike, min_points: int) -> PointCloud:
     ------
     InputError
         Not a finite (N, 3) cloud, or fewer points.
+    DegenerateGeometryError
+        Every point on one line or at one place: no surface to register onto (found on the
+        first frame, it was reported as every frame's fault, after all of them were run).
     """
     pc = as_cloud(model, "model")
     if len(pc) < min_points:
         raise InputError(f"model has {len(pc)} points (< {min_points})", pc.source)
+    if on_a_line(pc.points):
+        raise DegenerateGeometryError(
+            f"model: all {len(pc)} points lie on a line or at one place: no surface to register "
+            "onto",
+            pc.source,
+        )
     return pc

@@ -442,6 +442,8 @@ def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
     # A header line names its columns ("x,y,z", CloudCompare's "//X,Y,Z"); a row with a number
     # in it is a row, however malformed its first field ("0x1 2 3" was taken for a header).
     header = not any(_is_number(token) for token in head)
+    if header:
+        _check_header(head, first + 1, path)
     skip = first + 1 if header else 0
     try:
         with warnings.catch_warnings():
@@ -491,6 +493,45 @@ def _colours(values: NDArray[np.float64]) -> bool:
         return False
     apart = directions @ (mean / np.linalg.norm(mean)) < np.cos(np.radians(10.0))
     return bool(np.mean(apart) > 0.1)
+
+
+def _check_header(head: list[str], line: int, path: Path) -> None:
+    """Refuse a first line with no number that names none of x, y, z as a header.
+
+    Such a line is a bad row, not a header: taken for one and skipped, the error pointed at
+    the next line (every value quoted, ``"0.1","0.2","0.3"``; C's hexadecimal floats). A
+    header naming some of x, y, z is left to :func:`_named_columns`.
+
+    Raises
+    ------
+    FileFormatError
+        ``line N: not numbers, and as a header it does not name x, y and z columns: [...]``.
+    """
+    names = [token.strip("/\"'").lower() for token in head]
+    if set(_XYZ) & set(names):
+        return
+    hint = ""
+    if all(_is_number(name) for name in names):
+        hint = " (quoted numbers? write them without quotes)"
+    elif all(_is_hex_float(token) for token in head):
+        hint = " (hexadecimal floats? write them in decimal)"
+    raise FileFormatError(
+        f"line {line}: not numbers, and as a header it does not name x, y and z columns: "
+        f"{head}{hint}",
+        path,
+    )
+
+
+def _is_hex_float(token: str) -> bool:
+    """Whether ``token`` is a float as ``float.hex()`` writes it (``0x1.8p+0``); a bare ``a``
+    is a column's name, though ``float.fromhex`` reads it as 10."""
+    if not token.lstrip("+-").lower().startswith("0x"):
+        return False
+    try:
+        float.fromhex(token)
+    except ValueError:
+        return False
+    return True
 
 
 def _named_columns(

@@ -52,7 +52,7 @@ class TrajectoryComparison:
     table
         Per-axis errors (mm, deg) and ATE RMSE of the paired poses.
     n_estimated, n_ground_truth
-        Poses in each file.
+        Poses in each file (lost frames included; ``table.n`` counts those scored).
     rebase_first
         Whether both were expressed relative to their first paired pose.
     warnings
@@ -127,6 +127,8 @@ def compare_trajectory_files(
     est, gt = read_trajectory(est_path), read_trajectory(gt_path)
     _check_one_truth_per_time(gt.timestamps, gt_path)
     _check_frame_numbers((est_path, est), (gt_path, gt))
+    # Counted as read: less the lost frames, "1 poses against 3" read as a file of 1 pose.
+    n_read = len(est)
     est, _, lost_note = without_lost_frames(est_path, est)
     try:
         _, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
@@ -134,10 +136,11 @@ def compare_trajectory_files(
     except InputError as exc:
         raise InputError(f"against {gt_path.name}: {exc.reason}", est_path) from None
     notes = [] if lost_note is None else [lost_note]
-    if len(est) != len(gt):
+    if n_read != len(gt):
+        scored = "estimated ones" if len(est) == n_read else "estimated ones not lost"
         notes.append(
-            f"{len(est)} poses against {len(gt)} in {gt_path.name}: only the {len(est)} "
-            "estimated ones are scored"
+            f"{n_read} poses against {len(gt)} in {gt_path.name}: only the {len(est)} "
+            f"{scored} are scored"
         )
     shared = shared_pairings(i_gt)
     if shared is not None:
@@ -159,7 +162,7 @@ def compare_trajectory_files(
         notes.extend(_unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name, rebase_first))
     for note in notes:
         warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
-    return TrajectoryComparison(table, len(est), len(gt), rebase_first, tuple(notes))
+    return TrajectoryComparison(table, n_read, len(gt), rebase_first, tuple(notes))
 
 
 def shared_pairings(i_gt: np.ndarray) -> str | None:

@@ -7,20 +7,27 @@ write/read round trip reproduces the poses to float64 precision.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from spacepose.core import se3
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import warn_not_unit
 from spacepose.tools.outputs import check_writable
 from spacepose.tools.text_io import read_text
 
 # Largest |‖q‖ − 1| of a quaternion read without a warning.
 _QUATERNION_TOLERANCE = 1e-3
+# Largest max |RᵀR − I| of a KITTI rotation block read as its nearest rotation without a
+# warning (6 digits leave ~1e-6), and with one (4 decimals leave up to ~1e-3, the tolerance
+# of a TUM quaternion's length); beyond that no rounding explains it: refused.
+_ROUNDING_TOLERANCE = 1e-4
+_KITTI_TOLERANCE = 1e-3
 
 _TUM_COLUMNS = 8
 _KITTI_COLUMNS = 12
@@ -155,33 +162,65 @@ def read_kitti(path: str | Path, timestamps: ArrayLike | None = None) -> Traject
     Raises
     ------
     FileFormatError
-        As :func:`read_tum`, or when a 3×3 block is not a rotation, or the number of timestamps
-        does not match the number of poses.
+        As :func:`read_tum`, or when a 3×3 block is not a rotation (``RᵀR`` off the identity
+        by more than 1e-3, or a reflection; the message says by how much), or the number of
+        timestamps does not match the number of poses.
+
+    Warns
+    -----
+    SpaceposeWarning
+        Rotation blocks off orthonormal by more than 1e-4 (rounded to 4 decimals) and up to
+        1e-3, read as their nearest rotations; the message names the first one's line.
     """
     path = Path(path)
     rows, lines = _read_rows(path, _KITTI_COLUMNS, "KITTI")
     poses = np.zeros((len(rows), 4, 4))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
     poses[:, 3, 3] = 1.0
-    poses[:, :3, :3] = nearest_rotations(poses[:, :3, :3])
+    R = poses[:, :3, :3]
+    off = _off_orthonormal(R)
+    far = np.flatnonzero((off > _KITTI_TOLERANCE) | (np.linalg.det(R) <= 0))
+    if len(far):
+        k = int(far[0])
+        try:  # as_transform says how far off, as `register --init` does
+            se3.as_transform(poses[k], f"pose {k} is not a rigid transform: its")
+        except InputError as exc:
+            raise FileFormatError(
+                f"line {lines[k]}: {exc.reason}; up to {_KITTI_TOLERANCE:g} is read as rounding",
+                path,
+            ) from None
+    rounded = np.flatnonzero(off > _ROUNDING_TOLERANCE)
+    if len(rounded):
+        k = int(rounded[0])
+        problem = (
+            f"{len(rounded)} rotation blocks are off orthonormal (line {lines[k]}: RᵀR off the "
+            f"identity by {off[k]:.2g}, over {_ROUNDING_TOLERANCE:g}: too few digits written?); "
+            "read as their nearest rotations"
+        )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
+    poses[:, :3, :3] = nearest_rotations(R, _KITTI_TOLERANCE)
     t = np.arange(len(rows), dtype=np.float64) if timestamps is None else timestamps
     return _trajectory(path, t, poses, lines)
 
 
-def nearest_rotations(R: NDArray[np.float64]) -> NDArray[np.float64]:
+def nearest_rotations(R: NDArray[np.float64], tolerance: float = 1e-4) -> NDArray[np.float64]:
     """Project near-rotations (N, 3, 3) onto SO(3); leave the others for validation to reject.
 
     KITTI files are often printed with 6-7 significant digits, and a hand-written transform
     with 4 (``0.8660`` for cos 30°), which leaves ``RᵀR`` off the identity by up to ~1e-4:
     re-orthonormalising (SVD, nearest in Frobenius norm) keeps such files readable without
-    accepting matrices that are not rotations at all.
+    accepting matrices that are not rotations at all. ``tolerance`` is the largest
+    max |RᵀR − I| projected.
     """
     U, _, Vt = np.linalg.svd(R)
     projected = U @ Vt
-    close = (np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2)) < 1e-4) & (
-        np.linalg.det(projected) > 0
-    )
+    close = (_off_orthonormal(R) <= tolerance) & (np.linalg.det(projected) > 0)
     return np.where(close[:, None, None], projected, R)
+
+
+def _off_orthonormal(R: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N,) max |RᵀR − I| of each of the (N, 3, 3) blocks ``R``."""
+    return np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
 
 
 def write_kitti(path: str | Path, traj: Trajectory) -> Path:

@@ -281,7 +281,7 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
     ------
     FileFormatError
         Missing file, unknown extension, unreadable content, a vertex of NaN or inf, or no
-        triangles.
+        triangles (none at all, or none of non-zero area).
     InputError
         A scale that is not a positive finite number.
     """
@@ -322,11 +322,28 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
             "would be left out",
             path,
         )
+    if not _has_area(vertices[faces]):
+        # Rendered, such a mesh failed at frame 0 as "the sensor sees nothing (target 1.23 m
+        # away ...)", which sent the user to the range and the scale, not the file.
+        raise FileFormatError(
+            f"all {len(faces)} triangles have zero area: no surface to render", path
+        )
     # Processed once, here: the file is read once.
     mesh = trimesh.Trimesh(vertices * scale, faces, process=True)
     if center:
         mesh.apply_translation(-mesh.bounds.mean(axis=0))
     return Target(path.stem, mesh)
+
+
+def _has_area(triangles: NDArray[np.float64]) -> bool:
+    """Whether any of the (F, 3, 3) triangles has an area, beyond rounding, for its size: a
+    sliver of corners on one line has a cross product of rounding error, not exactly zero."""
+    edges = triangles[:, 1:] - triangles[:, :1]
+    # Scaled by the largest coordinate difference: squares of 1e200 would overflow.
+    size = np.abs(edges).max(axis=(1, 2))
+    unit = edges / np.where(size > 0, size, 1.0)[:, None, None]
+    doubled = np.linalg.norm(np.cross(unit[:, 0], unit[:, 1]), axis=1)
+    return bool(np.any((size > 0) & (doubled > 1e-12)))
 
 
 def _not_ply(path: Path) -> str | None:
