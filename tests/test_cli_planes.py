@@ -134,3 +134,7 @@ def test_errors_are_one_line_and_exit_code_1(scene, tmp_path, capsys):
     assert main(["planes", str(path), "--sigma", "10"]) == 1
     err = capsys.readouterr().err.strip()
     assert "noise sigma 10 m is as large as the cloud itself" in err and "\n" not in err
+    # A plane threshold as large: one "plane" of every face, its normal between theirs.
+    assert main(["planes", str(path), "--threshold", "100"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "plane threshold 100 m is as large as the cloud itself" in err and "\n" not in err

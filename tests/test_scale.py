@@ -99,3 +99,26 @@ def test_noise_grows_the_voxel_of_a_dense_frame_at_most_twice():
     sparse = derive_scale(_tilted_plane_frame(0.01, 0, pixels=40), 3000)
     assert sparse.voxel == sparse.spacing
     assert derive_scale(_tilted_plane_frame(0.01, 0), 3000, voxel_size=0.005).voxel == 0.005
+
+
+def test_a_configured_voxel_wider_than_the_frame_is_named(tmp_path, capsys) -> None:
+    """A tracker config's voxel_size of 1000 m was reported as "4 points after preprocessing
+    (< 100)" on every frame, the setting not named."""
+    from spacepose.cli import main
+    from spacepose.core.cloud import PointCloud
+
+    grid = np.stack(np.meshgrid(np.linspace(-0.45, 0.45, 60), np.linspace(-0.3, 0.3, 40)), -1)
+    points = np.c_[grid.reshape(-1, 2), np.full(2400, 1.2)]
+    with pytest.raises(InputError, match=r"^f.ply: the configured voxel_size 1000 m is wider "
+                       r"than the frame \(0\.9 m across\)$"):  # fmt: skip
+        derive_scale(PointCloud(points, source="f.ply"), 3000, voxel_size=1000.0)
+    assert derive_scale(points, 3000, voxel_size=0.01).voxel == 0.01
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(2):
+        np.save(frames / f"{k}.npy", points)
+    (tmp_path / "cfg.yaml").write_text("voxel_size: 1000\n")
+    args = ["track", str(frames), "--out", str(tmp_path / "e.tum"), "--config"]
+    assert main([*args, str(tmp_path / "cfg.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert "every frame was lost" in err and "configured voxel_size 1000 m is wider" in err, err

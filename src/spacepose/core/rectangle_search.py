@@ -133,7 +133,8 @@ def find_rectangles(
     Raises
     ------
     InputError
-        ``config.sigma`` as large as the cloud's RMS radius (every side would measure 0).
+        ``config.sigma`` as large as the cloud's RMS radius (every side would measure 0), or
+        ``plane_config.distance_threshold`` (one slab would hold every face).
     DegenerateGeometryError
         The points span no plane (all on a line or at one place).
     """
@@ -149,6 +150,13 @@ def find_rectangles(
         raise InputError(
             f"noise sigma {config.sigma:g} m is as large as the cloud itself (RMS radius "
             f"{rms_radius:.3g} m): sigma is the points' noise",
+            getattr(cloud_or_points, "source", None),
+        )
+    if plane_config.distance_threshold >= rms_radius:
+        # One slab would hold the whole cloud, every face in one "plane" of tilted normal.
+        raise InputError(
+            f"plane threshold {plane_config.distance_threshold:g} m is as large as the cloud "
+            f"itself (RMS radius {rms_radius:.3g} m): it is a plane's half-thickness",
             getattr(cloud_or_points, "source", None),
         )
     return [

@@ -250,7 +250,8 @@ def derive_scale(
     InputError
         ``target_points`` is not a whole number >= 1 (0 ended in ZeroDivisionError, a negative
         count in 'math domain error', NaN gave the spacing as the voxel without a word), or as
-        :func:`point_spacing` and :func:`~spacepose.core.voxel.voxel_cells`.
+        :func:`point_spacing` and :func:`~spacepose.core.voxel.voxel_cells`; a ``voxel_size``
+        wider than the frame.
     """
     from spacepose.core.voxel import voxel_cells
 
@@ -259,6 +260,13 @@ def derive_scale(
     spacing = point_spacing(pts)
     noise = range_noise(pts)
     voxel = voxel_size
+    if voxel is not None and voxel > (extent := float(np.max(np.ptp(pts, axis=0)))):
+        # One voxel would hold the whole frame: said so, not as "4 points after preprocessing".
+        raise InputError(
+            f"the configured voxel_size {voxel:g} m is wider than the frame ({extent:.3g} m "
+            "across)",
+            getattr(points, "source", None),
+        )
     if voxel is None:
         voxel = voxel_for(spacing, len(pts), target_points)
         if voxel > spacing:

@@ -74,6 +74,12 @@ _SPACING_SAMPLES = 2000
 # voxels: GICP stops below a 10 µm step, ICP below a 1 µm RMSE change).
 _TRANSLATION_TOLERANCE = 1e-3
 _RMSE_TOLERANCE = 1e-4
+# Two clouds this many times apart in radius and in spacing alike are in different units
+# (millimetres and metres are 1000 apart; two views of one scene differ by a few times).
+_UNIT_FACTOR = 200.0
+# Below this share of the source within the last gate a fit is more likely wrong than partial:
+# the real LiDAR pair's scans overlap at 0.90, a 90° local minimum of a cloud on itself 0.39.
+_LOW_FITNESS = 0.5
 
 
 class RegisterConfig(StageConfig):
@@ -221,6 +227,27 @@ def derived_voxel(scales: list[CloudScale], config: RegisterConfig) -> float:
     return voxel
 
 
+def _warn_if_units_differ(scales: list[CloudScale], source: PointCloud, target: PointCloud) -> None:
+    """Warn when the two clouds differ by a unit's factor in size and in spacing alike (a scan in
+    millimetres onto one in metres): the registration then fails far from the cause, as "0
+    correspondences within 140 m; the initial guess is too far off". A partial scan against a
+    map differs in size, not in spacing."""
+    small, large = sorted(scales, key=lambda s: s.radius)
+    if min(small.radius, small.spacing) <= 0:  # coincident points: refused below as such
+        return
+    if large.radius > _UNIT_FACTOR * small.radius and large.spacing > _UNIT_FACTOR * small.spacing:
+        names = f"{source.source or 'source'} and {target.source or 'target'}"
+        factor = large.radius / small.radius
+        warnings.warn(
+            SpaceposeWarning(
+                f"the clouds differ {factor:.3g}-fold in size and spacing (radius "
+                f"{scales[0].radius:.3g} m and {scales[1].radius:.3g} m): the same unit?",
+                names,
+            ),
+            stacklevel=3,
+        )
+
+
 def gate_schedule(fine_gate: float, start_gate: float) -> tuple[float, ...]:
     """Gates halving from ``start_gate`` down to ``fine_gate`` (m), ``fine_gate`` last."""
     stages = max(0, math.ceil(math.log2(start_gate / fine_gate))) if start_gate > 0 else 0
@@ -273,6 +300,7 @@ def register(
         if len(cloud) < 3:
             raise InputError(f"{len(cloud)} point(s): a rigid fit needs 3", cloud.source)
     scales = [cloud_scale(c.points, config.seed) for c in (source, target)]
+    _warn_if_units_differ(scales, source, target)
     voxel = config.voxel_size or derived_voxel(scales, config)
     for cloud, scale in zip((source, target), scales, strict=True):
         if config.voxel_size is not None and voxel > scale.radius:
@@ -477,6 +505,16 @@ def register_files(
         raise type(exc)(exc.reason, pair) from None
     if outcome.degeneracy.degenerate:
         warnings.warn(SpaceposeWarning(outcome.degeneracy.summary(), pair), stacklevel=2)
+    if outcome.result.fitness < _LOW_FITNESS:  # its σ describes the fit, not whether it is right
+        warnings.warn(
+            SpaceposeWarning(
+                f"only {100 * outcome.result.fitness:.0f} % of the source lies within "
+                f"{outcome.gates[-1]:.3g} m of the target: a local minimum, or clouds that "
+                "overlap little? (the covariance assumes the fit is the right one)",
+                pair,
+            ),
+            stacklevel=2,
+        )
     if out is not None:
         summary = {"source": str(source_path), "target": str(target_path), **outcome.to_dict()}
         summary["config"] = config.model_dump(mode="json")
