@@ -382,10 +382,11 @@ def test_an_empty_sensor_name_is_refused(tmp_path, capsys):
 def test_a_model_that_collapses_at_the_frame_voxel_loses_every_frame_by_name(
     frames, tmp_path, capsys
 ):
-    # 200 copies of one point pass the model's count, then fall to 1 point at the voxel the
+    # 200 points within 20 µm pass the model's count, then fall to 1 point at the voxel the
     # first frame sets: the second frame raised AttributeError on half-built stages.
     model = tmp_path / "one_spot.xyz"
-    np.savetxt(model, np.tile([0.1, 0.2, 1.0], (200, 1)))
+    spot = np.random.default_rng(0).uniform(-1e-5, 1e-5, (200, 3))
+    np.savetxt(model, spot + np.array([0.1, 0.2, 1.0]))
     out = tmp_path / "e.tum"
     assert main(["track", str(frames), "--model", str(model), "--out", str(out)]) == 1
     err = _one_line(capsys).splitlines()[-1]

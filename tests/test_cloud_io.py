@@ -585,3 +585,17 @@ def test_a_cloud_narrower_than_any_sensor_resolves_is_warned_about(tmp_path: Pat
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert len(read_cloud(small)) == 500
+
+
+def test_rows_with_an_infinite_coordinate_are_dropped_with_a_warning(tmp_path) -> None:
+    """NaN rows are a sensor's "no return" and go unsaid; inf (or 1e400, past float64) is a
+    corrupt value, and was dropped unsaid too."""
+    path = tmp_path / "scan.xyz"
+    path.write_text("0 0 1\n1 0 1\ninf 0 1\n0 1 1\n1e400 1 1\nnan 0 0\n1 1 1.1\n")
+    with pytest.warns(SpaceposeWarning, match=r"scan.xyz: 2 of 7 rows with an infinite coordina"):
+        cloud = read_cloud(path)
+    assert len(cloud) == 4
+    path.write_text("0 0 1\n1 0 1\nnan 0 1\n0 1 1\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(read_cloud(path)) == 3

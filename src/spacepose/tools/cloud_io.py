@@ -71,7 +71,7 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     Returns
     -------
     PointCloud in the frame the file's coordinates are in, in metres (times ``scale``); rows
-    with NaN are dropped.
+    with NaN are dropped, and rows with inf too, with a warning.
 
     Warns
     -----
@@ -118,9 +118,26 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     if normals is not None:
         normals = _unit_normals(normals, path, points)
     cloud = PointCloud(points * scale, normals, source=str(path))
+    if cloud.n_dropped:
+        _warn_if_infinite(points, path)
     if scale == 1.0:
         warn_if_not_metres(cloud, path)
     return cloud
+
+
+def _warn_if_infinite(points: NDArray[np.float64], path: Path) -> None:
+    """Warn of rows dropped for an infinite coordinate: NaN is how a sensor writes "no return",
+    but inf (or a number past float64, ``1e400``) is a corrupt value, and was dropped unsaid."""
+    infinite = int(np.count_nonzero(np.isinf(points).any(axis=1)))
+    if infinite:
+        warnings.warn(
+            SpaceposeWarning(
+                f"{infinite} of {len(points)} rows with an infinite coordinate dropped (NaN is "
+                "no return; inf a corrupt value?)",
+                path,
+            ),
+            stacklevel=3,
+        )
 
 
 _RESCALE = "scale the file by 0.001 (read_cloud(..., scale=1e-3))"
