@@ -172,6 +172,9 @@ def test_unreadable_frame_is_lost_and_the_others_written(frame_dir, tmp_path, ca
     # frame has yet tested the motion model that predicts f003: both degraded.
     assert "1 ok, 2 degraded, 1 lost" in " ".join(printed.out.split())
     assert "warning: --method icp is deprecated: use point_to_plane" in printed.err
+    # Named on stderr too, not only in the table (it was in the summary's count alone).
+    said = [line for line in printed.err.splitlines() if "not read" in line]
+    assert len(said) == 1 and said[0].startswith(f"warning: {bad / 'f002.ply'}: not read, frame lo")
     with (tmp_path / "e.health.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert [r["status"] for r in rows] == ["ok", "degraded", "lost", "degraded"]
@@ -397,3 +400,19 @@ def test_a_model_on_a_line_is_refused_before_any_frame(frame_dir, tmp_path, caps
         "register onto"
     ), err
     assert not out.exists() and not (tmp_path / "est.health.csv").exists()
+
+
+def test_unreadable_frames_past_three_are_counted_in_one_line(frame_dir, tmp_path, capsys):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for p in sorted(frame_dir.glob("*.ply")):
+        (bad / p.name).write_bytes(p.read_bytes())
+    for k in range(4, 11):
+        (bad / f"f{k:03d}.ply").write_bytes(b"")
+    assert main(["track", str(bad), "--out", str(tmp_path / "e.tum"), "--no-mls"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    named = [line for line in err if line.startswith(f"warning: {bad}") and "not read" in line]
+    assert [line.split(": not read")[0][-8:] for line in named] == [
+        "f004.ply", "f005.ply", "f006.ply"
+    ]  # fmt: skip
+    assert err[-1].startswith("warning: 4 more file(s) with the same warning: not read, frame"), err

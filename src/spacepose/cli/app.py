@@ -96,7 +96,9 @@ def _print_warning(text: str) -> None:
 
 
 def _one_line(message: str) -> str:
-    return " ".join(part.strip() for part in str(message).splitlines() if part.strip())
+    text = " ".join(part.strip() for part in str(message).splitlines() if part.strip())
+    # A file name that is not UTF-8 holds surrogates no terminal encodes: its bytes escaped.
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
 
 
 class _OneLineWarnings:

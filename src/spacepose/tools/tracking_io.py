@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, TextIO
@@ -19,7 +20,7 @@ from spacepose.core.config import dump_config, load_config, validate_config
 from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import InputError
+from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.frames import CLOUD_SUFFIXES, FrameInput, Frames, input_files, open_frames
 from spacepose.tools.outputs import check_spares_inputs, check_writable
@@ -278,6 +279,11 @@ def track_folder(
                 last_time = frame.timestamp
             if frame.error is not None:  # the read error says more than the tracker's "no points"
                 result = dataclasses.replace(result, reasons=(frame.error,))
+                # On stderr too, not in the table alone (the CLI counts repeats past three).
+                problem = frame.error.removeprefix(f"{frame.source}: ")
+                warnings.warn(
+                    SpaceposeWarning(f"not read, frame lost: {problem}", frame.source), stacklevel=2
+                )
             # The tracker's reasons ("unusable frame: 1 point(s)") name no file; a read error
             # does.
             where = "" if frame.error is not None else f", {frame.source}"
