@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -289,3 +290,44 @@ def test_our_layout_may_name_its_distortion_model(tmp_path):
     message = "distortion model 'equidistant' is not supported (plumb_bob, rational_polynomial)"
     with pytest.raises(ConfigError, match=re.escape(f"intrinsics.yaml: {message}")):
         read_intrinsics(path)
+
+
+def test_exr_depth_channels(tmp_path):
+    """One channel, or the one named as depth (Blender's multilayer ``ViewLayer.Depth.Z``
+    beside its colour), or equal R, G, B (a depth saved grey); a colour image is refused with
+    its channels' names, and a corrupt file as such."""
+    import OpenEXR
+
+    depth = _depth_m(np.random.default_rng(3)).astype(np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+
+    def exr(name: str, channels: dict) -> Path:
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(tmp_path / name))
+        return tmp_path / name
+
+    colour = np.random.default_rng(4).random((24, 32)).astype(np.float16)
+    for path in (
+        write_depth_image(tmp_path / "z.exr", depth, depth_scale=1.0),
+        exr(
+            "layers.exr",
+            {
+                "ViewLayer.Combined.R": colour,
+                "ViewLayer.Combined.G": colour,
+                "ViewLayer.Depth.Z": depth,
+            },
+        ),
+        exr("grey.exr", {"R": depth, "G": depth, "B": depth, "A": np.ones_like(depth)}),
+    ):
+        values = read_depth_image(path)
+        assert values.dtype == np.float32
+        np.testing.assert_array_equal(values, depth)
+    half = exr("half.exr", {"V": depth.astype(np.float16)})
+    np.testing.assert_array_equal(read_depth_image(half), depth.astype(np.float16))
+    with pytest.raises(FileFormatError, match=r"colour.exr: channels B, G, R: none is depth"):
+        read_depth_image(exr("colour.exr", {"R": colour, "G": depth, "B": depth}))
+    (tmp_path / "bad.exr").write_bytes(b"v/1\x01" + bytes(200))
+    with pytest.raises(FileFormatError, match=r"bad.exr: cannot decode the image"):
+        read_depth_image(tmp_path / "bad.exr")
+    with pytest.raises(FileFormatError, match=r"none.exr: file not found"):
+        read_depth_image(tmp_path / "none.exr")

@@ -329,6 +329,42 @@ def test_intrinsics_for_point_clouds_are_refused_not_ignored(sim, folders, tmp_p
     assert main(["register", *frames, "--intrinsics", intrinsics]) == 1
     err = capsys.readouterr().err.strip()
     assert err.endswith(
-        "intrinsics.yaml: intrinsics apply to depth images (.png, .tif, .tiff), and neither "
+        "intrinsics.yaml: intrinsics apply to depth images (.png, .tif, .tiff, .exr), and neither "
         "000000.ply nor 000001.ply is one: leave out --intrinsics"
     ), err
+
+
+def test_exr_depth_maps_with_a_far_plane_read_as_their_images(folders, tmp_path):
+    """A renderer's float EXR depth (Blender's depth pass: metres, 1e10 where nothing is hit)
+    gives the PNGs' points to float32's rounding, and tracks as the same maps with 0 for no
+    return, to the bit. Its background used to be read as points 1e10 m out: the cloud spread
+    over 1e10 m and the poses moved by 0.2 mm."""
+    intrinsics = (folders["depth"] / "intrinsics.yaml").read_text()
+    stamps = (folders["depth"] / "timestamps.txt").read_text()
+    for background in ("far", "zero"):
+        (tmp_path / background).mkdir()
+        for png in sorted(folders["depth"].glob("*.png")):
+            metres = (read_depth_image(png) * DEPTH_SCALE).astype(np.float32)
+            metres[metres == 0] = 1e10 if background == "far" else 0.0
+            write_depth_image(tmp_path / background / f"{png.stem}.exr", metres, depth_scale=1.0)
+        (tmp_path / background / "intrinsics.yaml").write_text(
+            intrinsics.replace(f"depth_scale: {DEPTH_SCALE!r}", "depth_scale: 1.0")
+        )
+        (tmp_path / background / "timestamps.txt").write_text(stamps)
+    reference = [f.cloud.points for f in open_frames(folders["depth"])]
+    with pytest.warns(SpaceposeWarning, match=r"0000.exr: a renderer's far plane, read as no re"):
+        frames = list(open_frames(tmp_path / "far"))
+    for k, frame in enumerate(frames):
+        assert frame.error is None and len(frame.cloud) == len(reference[k])
+        assert np.max(np.abs(frame.cloud.points - reference[k])) < 1e-6
+    config = tracker_config()
+    with pytest.warns(SpaceposeWarning, match="far plane"):
+        track_folder(tmp_path / "far", tmp_path / "far.tum", config)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        track_folder(tmp_path / "zero", tmp_path / "zero.tum", config)
+    track_folder(folders["depth"], tmp_path / "png.tum", config)
+    far, zero = read_tum(tmp_path / "far.tum"), read_tum(tmp_path / "zero.tum")
+    np.testing.assert_array_equal(far.poses, zero.poses)
+    # float32 metres put points on other sides of voxel edges than 0.1 mm units: 0.03 mm.
+    assert np.max(np.abs(far.poses - read_tum(tmp_path / "png.tum").poses)) < 1e-4

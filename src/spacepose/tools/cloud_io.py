@@ -51,7 +51,7 @@ _RANGE_SAMPLE = 4096
 
 # Depth images (16-bit or float, one channel): read by spacepose.tools.depth_io with a camera's
 # intrinsics, never as clouds; named here so that a cloud reader can say what one is.
-DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff")
+DEPTH_SUFFIXES: tuple[str, ...] = (".png", ".tif", ".tiff", ".exr")
 
 
 def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:

@@ -1,8 +1,10 @@
-"""Depth image files: 16-bit PNG / TIFF depth maps, their intrinsics file, TUM RGB-D's list.
+"""Depth image files: 16-bit PNG / TIFF and float EXR depth maps, their intrinsics file, TUM
+RGB-D's list.
 
 A depth folder holds one image per frame (``.png``, ``.tif``, ``.tiff``; 16-bit integers or
-32-bit floats, one channel, decoded by Pillow; or ``.npy``, an (H, W) integer (16-bit or
-wider) or float array as renderers and simulators save them, NaN or inf for no return) and an
+32-bit floats, one channel, decoded by Pillow; ``.exr``, a renderer's float depth channel,
+:mod:`spacepose.tools.exr_io`; or ``.npy``, an (H, W) integer (16-bit or wider) or float array
+as renderers and simulators save them, NaN or inf for no return) and an
 intrinsics file (``intrinsics.yaml``, ``.yml`` or ``.json``: the fields of
 :class:`spacepose.core.depth.DepthCamera`, or ROS's ``camera_info`` YAML, or Open3D's pinhole
 JSON; :func:`read_intrinsics`), or one given explicitly. Frames are the images sorted by
@@ -35,6 +37,7 @@ from spacepose.core.depth import (
 )
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, warn_if_not_metres, warn_if_too_near
+from spacepose.tools.exr_io import EXR_SUFFIX, exr_size, read_exr_depth, write_exr_depth
 from spacepose.tools.npy_io import load_npy, npy_shape
 from spacepose.tools.text_io import check_timing, not_a_file, read_text
 
@@ -47,6 +50,9 @@ TUM_DEPTH_LIST = "depth.txt"
 # step (normalised image units) of its central differences.
 _FOLD_SAMPLES = 64
 _JACOBIAN_STEP = 1e-6
+# A float depth map's pixels this many times its nearest depths are a renderer's far plane (a
+# target 1 m away before a wall 1 km behind it is 1,000 times; Blender's background, 1e10 m).
+_FAR_PLANE_RATIO = 1e4
 # A pincushion that draws the image's edge to less than half its pinhole radius is no lens's:
 # a ToF lens bends its corners by a few per cent, a fisheye's barrel the other way.
 _FARTHEST_PINCUSHION = 2.0
@@ -60,8 +66,8 @@ _DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
 
 
 def read_depth_image(path: str | Path) -> NDArray:
-    """Decode one depth image: (H, W) stored values (uint16, int32 or float32; any integer or
-    float type from a ``.npy`` array).
+    """Decode one depth image: (H, W) stored values (uint16, int32 or float32; float32 from an
+    ``.exr``; any integer or float type from a ``.npy`` array).
 
     Raises
     ------
@@ -73,6 +79,8 @@ def read_depth_image(path: str | Path) -> NDArray:
     path = Path(path)
     if path.exists() and not path.is_file():  # a folder, or a pipe Pillow would wait on
         raise FileFormatError(not_a_file(path), path)
+    if path.suffix.lower() == EXR_SUFFIX:
+        return read_exr_depth(path)
     if path.suffix.lower() == ".npy":
         values = load_npy(path)
         if values.ndim != 2 or values.dtype.kind not in "fiu":
@@ -171,6 +179,8 @@ def image_size(path: str | Path) -> tuple[int, int] | None:
     if Path(path).suffix.lower() == ".npy":
         shape = npy_shape(Path(path))
         return None if shape is None or len(shape) != 2 else (shape[1], shape[0])
+    if Path(path).suffix.lower() == EXR_SUFFIX:
+        return exr_size(Path(path))
     try:
         with warnings.catch_warnings():  # the frame's own read says what is wrong with it
             warnings.simplefilter("ignore")
@@ -183,7 +193,7 @@ def image_size(path: str | Path) -> tuple[int, int] | None:
 def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float = 0.001) -> Path:
     """Write a depth image (metres, 0 = no return) as 16-bit units of ``depth_scale`` metres
     (PNG or TIFF by suffix), or as 32-bit float metres for a ``.tif``/``.tiff`` when
-    ``depth_scale`` is 1.
+    ``depth_scale`` is 1, or as float32 units of ``depth_scale`` in an ``.exr``.
 
     Raises
     ------
@@ -197,7 +207,9 @@ def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float =
         raise InputError(f"depth images are {', '.join(DEPTH_SUFFIXES)}", path)
     if depth.ndim != 2 or not np.all(np.isfinite(depth)) or np.any(depth < 0):
         raise InputError("a depth image must be 2-D, finite and non-negative (metres)", path)
-    if depth_scale == 1.0 and path.suffix.lower() != ".png":
+    if path.suffix.lower() == EXR_SUFFIX:
+        values = (depth / depth_scale).astype(np.float32)  # a renderer's float depths
+    elif depth_scale == 1.0 and path.suffix.lower() != ".png":
         values = depth.astype(np.float32)
     else:
         units = np.rint(depth / depth_scale)
@@ -210,7 +222,10 @@ def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float =
             )
         values = units.astype(np.uint16)
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(values).save(path)
+    if path.suffix.lower() == EXR_SUFFIX:
+        write_exr_depth(path, values)
+    else:
+        Image.fromarray(values).save(path)
     return path
 
 
@@ -271,6 +286,7 @@ def depth_cloud(
         The points are in another unit (:func:`warn_if_depth_units`).
     """
     height, width = np.shape(values)[:2]
+    camera = _without_far_plane(values, camera, source)
     if (camera.width or width, camera.height or height) == (width, height):
         problem, _ = lens_problem(camera, height, width)  # another size is refused below
         if problem is not None:
@@ -281,6 +297,34 @@ def depth_cloud(
         raise _why_no_return(values, camera, source) or exc from None
     warn_if_depth_units(cloud, source, remedy)
     return cloud
+
+
+def _without_far_plane(values: NDArray, camera: DepthCamera, source: str | Path) -> DepthCamera:
+    """``camera`` with a ``max_depth`` below a renderer's far plane, when it has none and the map
+    holds depths :data:`_FAR_PLANE_RATIO` times its nearest (1st percentile) or more (Blender
+    writes 1e10 m where nothing is hit, most of a render's pixels): read as points 1e10 m out,
+    they spread the cloud over 1e10 m and moved the lab run's poses by 0.2 mm. Said once a
+    map, with the depth found."""
+    if camera.max_depth is not None or not np.issubdtype(np.asarray(values).dtype, np.floating):
+        return camera
+    z = np.asarray(values, dtype=np.float64) * camera.depth_scale
+    hit = z[np.isfinite(z) & (z > 0)]
+    if len(hit) == 0:
+        return camera
+    cut = _FAR_PLANE_RATIO * float(np.percentile(hit, 1))
+    far = hit >= cut
+    if not far.any():
+        return camera
+    warnings.warn(
+        SpaceposeWarning(
+            f"a renderer's far plane, read as no return ({int(far.sum())} pixels at "
+            f"{hit[far].min():.3g} m or more, over {_FAR_PLANE_RATIO:g} times the nearest "
+            "depths; set max_depth in the intrinsics to say so)",
+            source,
+        ),
+        stacklevel=3,
+    )
+    return camera.model_copy(update={"max_depth": cut})
 
 
 def warn_if_depth_units(cloud: PointCloud, source: str | Path, remedy: str) -> None:
