@@ -416,3 +416,17 @@ def test_unreadable_frames_past_three_are_counted_in_one_line(frame_dir, tmp_pat
         "f004.ply", "f005.ply", "f006.ply"
     ]  # fmt: skip
     assert err[-1].startswith("warning: 4 more file(s) with the same warning: not read, frame"), err
+
+
+@pytest.mark.parametrize(
+    ("name", "hint"),
+    [("rec.mkv", "an Azure Kinect recording? extract its depth track to 16-bit PNGs"),
+     ("scan.pcap", "a LiDAR packet capture: convert its scans to .pcd or .ply frames"),
+     ("frame.ply", None)],
+)  # fmt: skip
+def test_a_recording_no_reader_decodes_says_how_to_get_frames(tmp_path, capsys, name, hint):
+    (tmp_path / name).write_bytes(bytes(range(256)) * 4)
+    assert main(["track", str(tmp_path / name), "--out", str(tmp_path / "e.tum")]) == 1
+    err = _one_line_error(capsys)
+    assert f"{name}: not a folder of frames (or a run folder, or a ROS bag)" in err
+    assert (hint in err) if hint else err.endswith("ROS bag)"), err

@@ -82,6 +82,18 @@ def read_frame_cloud(path: Path) -> PointCloud:
     return cloud
 
 
+# Recordings no reader here decodes, and the way to frames that one does.
+_RECORDINGS = {
+    ".mkv": "an Azure Kinect recording? extract its depth track to 16-bit PNGs (Open3D's "
+    "AzureKinectMKVReader, or k4arecorder's tools) with an intrinsics.yaml",
+    ".pcap": "a LiDAR packet capture: convert its scans to .pcd or .ply frames with the sensor's "
+    "SDK (a folder of one file a frame)",
+    ".pcapng": "a LiDAR packet capture: convert its scans to .pcd or .ply frames with the "
+    "sensor's SDK (a folder of one file a frame)",
+    ".oni": "an OpenNI recording: export its depth frames to 16-bit PNGs with an intrinsics.yaml",
+}
+
+
 def warn_if_kilometres(cloud: PointCloud, source: str | Path) -> None:
     """Warn (naming ``source``) when a sensor-frame cloud's points lie nearer the sensor than
     any sensor ranges (:func:`~spacepose.tools.cloud_io.warn_if_too_near`): coordinates in
@@ -180,7 +192,9 @@ def open_frames(
     if topic is not None:
         raise InputError(f"--topic {topic} applies to a ROS bag, and this is not one", root)
     if not root.is_dir():
-        raise InputError("not a folder of frames (or a run folder, or a ROS bag)", root)
+        known = _RECORDINGS.get(root.suffix.lower())
+        what = f"; {known}" if known else ""
+        raise InputError(f"not a folder of frames (or a run folder, or a ROS bag){what}", root)
     if (root / "scenario.json").is_file():
         return _open_run(root)
     if (root / "frames").is_dir():
