@@ -322,3 +322,28 @@ def test_warns_on_a_model_free_track_in_millimetres_of_a_target_turning_at_range
     assert main(["evaluate", str(est), str(gt), "--json", "--rebase-first"]) == 0
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "from its first pose" in err and "1e+03 times" in err, err
+
+
+def test_ground_truth_of_the_sensor_in_a_world_frame_is_scored_inverted(
+    files: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """TUM RGB-D's groundtruth.txt holds T_world_sensor; the estimate, the still scene's pose
+    in the sensor frame. The file of the inverses, written here through scipy's quaternions,
+    scored with --gt-sensor-poses, gives the numbers of the file of the poses themselves."""
+    est, gt = files
+    lines = []
+    for row in np.loadtxt(gt):
+        R_sensor_world = Rotation.from_quat(row[4:8])
+        R_world_sensor = R_sensor_world.inv()
+        t = -R_world_sensor.apply(row[1:4])
+        lines.append(" ".join(f"{v:.17g}" for v in [row[0], *t, *R_world_sensor.as_quat()]))
+    (tmp_path / "camera.tum").write_text("\n".join(lines) + "\n")
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    reference = json.loads(capsys.readouterr().out)
+    args = ["evaluate", str(est), str(tmp_path / "camera.tum"), "--json"]
+    assert main([*args, "--gt-sensor-poses"]) == 0
+    inverted = json.loads(capsys.readouterr().out)
+    for key in ("ate_translation_rmse_mm", "ate_rotation_rmse_deg"):
+        assert inverted[key] == pytest.approx(reference[key], abs=1e-9)
+    assert main(args) == 0  # taken as the scene's poses: far off
+    assert json.loads(capsys.readouterr().out)["ate_translation_rmse_mm"] > 100.0

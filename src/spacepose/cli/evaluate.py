@@ -18,6 +18,12 @@ def evaluate(
     rebase_first: bool = typer.Option(
         False, "--rebase-first", help="Express both relative to their first pose (model-free)."
     ),
+    gt_sensor_poses: bool = typer.Option(
+        False,
+        "--gt-sensor-poses",
+        help="GT holds the sensor's pose in a world frame (T_world_sensor, as TUM RGB-D's "
+        "groundtruth.txt): scored as its inverses, the still scene's pose in the sensor frame.",
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON."),
 ) -> None:
     """Per-axis errors (mean and std of |error|, Li's Table 2) and ATE RMSE (as evo_ape).
@@ -27,7 +33,9 @@ def evaluate(
     """
     from spacepose.tools.evaluation import compare_trajectory_files
 
-    result = compare_trajectory_files(est, gt, rebase_first=rebase_first)
+    result = compare_trajectory_files(
+        est, gt, rebase_first=rebase_first, gt_sensor_poses=gt_sensor_poses
+    )
     table = result.table
     if as_json:
         # Plain print: rich would wrap long lines and break the JSON for a pipe.

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from spacepose.core import se3
 from spacepose.core.metrics import TIMESTAMP_TOLERANCE, ErrorTable, associate, evaluate
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeWarning
@@ -96,6 +97,7 @@ def compare_trajectory_files(
     gt_path: str | Path,
     rebase_first: bool = False,
     tolerance: float = TIMESTAMP_TOLERANCE,
+    gt_sensor_poses: bool = False,
 ) -> TrajectoryComparison:
     """Read, pair by timestamp and score ``est_path`` against ``gt_path``.
 
@@ -105,6 +107,10 @@ def compare_trajectory_files(
         Trajectories (TUM or KITTI) of the same pose, e.g. ``T_sensor_target``, metres.
     rebase_first
         Express both relative to their first paired pose (model-free tracking, methods.md §0).
+    gt_sensor_poses
+        ``gt_path`` holds the sensor's pose in a world frame, ``T_world_sensor`` (TUM RGB-D's
+        ``groundtruth.txt``, most SLAM datasets): scored as its inverses, ``T_sensor_world``,
+        the pose of a still scene (the target) in the sensor frame, which the estimate holds.
     tolerance
         Largest time difference of a pair, seconds.
 
@@ -125,6 +131,8 @@ def compare_trajectory_files(
     """
     est_path, gt_path = Path(est_path), Path(gt_path)
     est, gt = read_trajectory(est_path), read_trajectory(gt_path)
+    if gt_sensor_poses:
+        gt = Trajectory(gt.timestamps, se3.invert(gt.poses), gt.source)
     _check_one_truth_per_time(gt.timestamps, gt_path)
     _check_frame_numbers((est_path, est), (gt_path, gt))
     # Counted as read: less the lost frames, "1 poses against 3" read as a file of 1 pose.
