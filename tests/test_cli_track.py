@@ -430,3 +430,40 @@ def test_a_recording_no_reader_decodes_says_how_to_get_frames(tmp_path, capsys, 
     err = _one_line_error(capsys)
     assert f"{name}: not a folder of frames (or a run folder, or a ROS bag)" in err
     assert (hint in err) if hint else err.endswith("ROS bag)"), err
+
+
+def test_each_frames_covariance_is_written_to_the_bit(frame_dir, tmp_path, capsys):
+    """EST.cov.csv holds what the tracker gives a filter, the whole 6×6 covariance (the health
+    table has its diagonal's roots alone): read back, its upper triangle is the in-process
+    tracker's to the bit, and it is positive definite, its diagonal the health table's σ²."""
+    from spacepose.core.tracker import Tracker
+    from spacepose.tools.cloud_io import read_cloud
+    from spacepose.tools.tracking_io import COVARIANCE_COLUMNS, read_covariance_csv
+
+    out = tmp_path / "est.tum"
+    assert main(["track", str(frame_dir), "--out", str(out)]) == 0, capsys.readouterr().err
+    covariances = read_covariance_csv(tmp_path / "est.cov.csv")
+    with (tmp_path / "est.cov.csv").open() as fh:
+        assert tuple(next(csv.reader(fh))) == COVARIANCE_COLUMNS and len(COVARIANCE_COLUMNS) == 23
+    tracker = Tracker(tracker_config())
+    frames = sorted(frame_dir.glob("*.ply"))
+    stamps = 100.0 + 0.5 * np.arange(N_FRAMES)
+    expected = np.array(
+        [
+            tracker.track_frame(read_cloud(p), t).covariance
+            for p, t in zip(frames, stamps, strict=True)
+        ]
+    )
+    # The upper triangle to the bit; the lower mirrors it (the tracker's own is symmetric to
+    # rounding, 5e-16 of its largest entry).
+    upper = np.triu_indices(6)
+    np.testing.assert_array_equal(
+        covariances[:, upper[0], upper[1]], expected[:, upper[0], upper[1]]
+    )
+    np.testing.assert_allclose(covariances, expected, rtol=1e-12, atol=0)
+    assert np.all(np.linalg.eigvalsh(covariances[1:]) > 0)
+    with (tmp_path / "est.health.csv").open() as fh:
+        sigma = np.array([[float(r[f"sig_{a}"]) for a in ("rx", "ry", "rz", "tx", "ty", "tz")]
+                          for r in csv.DictReader(fh)])  # fmt: skip
+    diagonal = np.sqrt(np.diagonal(covariances, axis1=1, axis2=2))
+    np.testing.assert_allclose(diagonal, sigma, rtol=1e-5)

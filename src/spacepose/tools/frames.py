@@ -38,7 +38,7 @@ CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy
 TIMESTAMPS_FILE = "timestamps.txt"
 # Tables spacepose writes beside its outputs: an output written into a folder of frames is no
 # frame of the next run over it.
-_OWN_TABLES = (".health.csv", ".candidates.csv")
+_OWN_TABLES = (".health.csv", ".cov.csv", ".candidates.csv")
 # A run folder's frames are point clouds in metres: intrinsics given for them are a mistake,
 # not a no-op (as for a bag's PointCloud2 topic).
 _RUN_INTRINSICS = (

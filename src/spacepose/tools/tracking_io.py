@@ -15,12 +15,13 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
+from numpy.typing import NDArray
 
 from spacepose.core.config import dump_config, load_config, validate_config
 from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import InputError, SpaceposeWarning
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.frames import CLOUD_SUFFIXES, FrameInput, Frames, input_files, open_frames
 from spacepose.tools.outputs import check_spares_inputs, check_writable
@@ -72,6 +73,52 @@ def tracker_config(
     return validate_config(TrackerConfig, data, path)
 
 
+# The covariance table: each frame's 6×6 covariance of T_sensor_target (twist rx ry rz tx ty tz,
+# left perturbation in the sensor frame; rad², rad·m, m²) as its upper triangle, row by row.
+_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
+_UPPER = np.triu_indices(6)
+COVARIANCE_COLUMNS: tuple[str, ...] = (
+    "frame",
+    "timestamp",
+    *(f"c_{_AXES[i]}_{_AXES[j]}" for i, j in zip(*_UPPER, strict=True)),
+)
+
+
+def covariance_row(result: TrackResult) -> dict[str, object]:
+    """One row of :data:`COVARIANCE_COLUMNS`: the frame, its time, and the upper triangle of
+    its covariance to the bit (``repr``), so that a filter reading it gets what the tracker
+    gave."""
+    upper = np.asarray(result.covariance, dtype=np.float64)[_UPPER]
+    return {
+        "frame": result.index,
+        "timestamp": repr(result.timestamp),
+        **{c: repr(float(v)) for c, v in zip(COVARIANCE_COLUMNS[2:], upper, strict=True)},
+    }
+
+
+def read_covariance_csv(path: str | Path) -> NDArray[np.float64]:
+    """The (N, 6, 6) covariances of a :data:`COVARIANCE_COLUMNS` table, in its row order.
+
+    Raises
+    ------
+    FileFormatError
+        Not such a table (other columns, a value that is not a number).
+    """
+    path = Path(path)
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        if tuple(reader.fieldnames or ()) != COVARIANCE_COLUMNS:
+            raise FileFormatError("not a covariance table of spacepose track", path)
+        try:
+            upper = np.array([[float(row[c]) for c in COVARIANCE_COLUMNS[2:]] for row in reader])
+        except (TypeError, ValueError) as exc:
+            raise FileFormatError(f"a value that is not a number: {exc}", path) from None
+    out = np.zeros((len(upper), 6, 6))
+    out[:, _UPPER[0], _UPPER[1]] = upper.reshape(-1, 21)
+    out[:, _UPPER[1], _UPPER[0]] = upper.reshape(-1, 21)
+    return out
+
+
 def health_row(result: TrackResult) -> dict[str, object]:
     """One row of :data:`HEALTH_COLUMNS` (σ in rad and m, RMSE in m, time in ms, the residual
     structure unit-free; the reasons a frame is not ``ok`` joined by ``; ``)."""
@@ -107,9 +154,9 @@ def write_health_csv(path: str | Path, results: Sequence[TrackResult]) -> Path:
     return path
 
 
-def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path]:
+def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path, Path]:
     """``EST.tum`` -> (``EST.tum``, ``EST.health.csv``, ``EST.config.json``,
-    ``EST.scale.json``)."""
+    ``EST.scale.json``, ``EST.cov.csv``)."""
     out = Path(out)
     stem = out.with_suffix("")
     return (
@@ -117,6 +164,7 @@ def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path]:
         Path(f"{stem}.health.csv"),
         Path(f"{stem}.config.json"),
         Path(f"{stem}.scale.json"),
+        Path(f"{stem}.cov.csv"),
     )
 
 
@@ -130,18 +178,23 @@ class _Row:
     tracked: bool
 
 
-def _write_rows(tum_fh: TextIO, health_fh: TextIO, rows: Sequence[_Row], header: bool) -> None:
-    """Append ``rows`` (and the health table's header first when ``header``), flushed."""
+def _write_rows(files: tuple[TextIO, TextIO, TextIO], rows: Sequence[_Row], header: bool) -> None:
+    """Append ``rows`` to the trajectory, health and covariance files (the tables' headers
+    first when ``header``), flushed."""
+    tum_fh, health_fh, cov_fh = files
     writer = csv.DictWriter(health_fh, fieldnames=HEALTH_COLUMNS)
+    covariances = csv.DictWriter(cov_fh, fieldnames=COVARIANCE_COLUMNS)
     if header:
         writer.writeheader()
+        covariances.writeheader()
     for row in rows:
         r = row.result
         if row.tracked:
             tum_fh.write(tum_lines(Trajectory([r.timestamp], [r.T_sensor_target])))
         writer.writerow(health_row(r))
-    tum_fh.flush()
-    health_fh.flush()
+        covariances.writerow(covariance_row(r))
+    for fh in files:
+        fh.flush()
 
 
 def _out_of_order(frame: FrameInput, last_time: float) -> TrackResult:
@@ -153,7 +206,7 @@ def _out_of_order(frame: FrameInput, last_time: float) -> TrackResult:
 
 def check_output(out: str | Path) -> None:
     """Refuse an output location that cannot be written, before any work is done: each of the
-    four output files (:func:`~spacepose.tools.outputs.check_writable`).
+    five output files (:func:`~spacepose.tools.outputs.check_writable`).
 
     Raises
     ------
@@ -219,10 +272,11 @@ def track_folder(
     intrinsics: str | Path | None = None,
     topic: str | None = None,
 ) -> dict[str, Any]:
-    """Track every frame of an input and write the trajectory, health table, config and scale.
+    """Track every frame of an input and write the trajectory, health and covariance tables,
+    config and scale.
 
     The output location is checked and the input opened before tracking starts; the
-    trajectory and health rows are written (and flushed) frame by frame, so an interrupted run
+    trajectory and the tables' rows are written (and flushed) frame by frame, so an interrupted run
     keeps every frame done. A frame that cannot be read is reported ``lost`` with its reason.
 
     Parameters
@@ -232,8 +286,9 @@ def track_folder(
         :func:`open_frames`).
     out
         The TUM trajectory to write (one line per input frame, methods.md §0, but for a frame
-        whose time does not come after the last tracked one's); ``.health.csv``,
-        ``.config.json`` and (once a frame has set the scale) ``.scale.json``, the lengths
+        whose time does not come after the last tracked one's); ``.health.csv``, ``.cov.csv``
+        (:data:`COVARIANCE_COLUMNS`, a row a frame), ``.config.json`` and (once a frame has
+        set the scale) ``.scale.json``, the lengths
         derived from the first frame, are written beside it with the same stem.
     config
         Tracker config (written out as the effective config).
@@ -257,15 +312,16 @@ def track_folder(
     check_spares_inputs(output_paths(out), [*input_files(input, frames), *given])
     check_not_a_frame(Path(out), frames)
     model_cloud = None if model is None else read_cloud(model)
-    tum, health, config_path, scale_path = output_paths(out)
+    tum, health, config_path, scale_path, cov_path = output_paths(out)
     tracker = Tracker(config, model_cloud, workers)
     dump_config(config, config_path)  # creates the folder
     scale_path.unlink(missing_ok=True)  # a former run's lengths are not this run's
     rows: list[_Row] = []
     times: list[float] = []
     written_scale = None
-    with tum.open("w") as tum_fh, open_table(health) as health_fh:
-        _write_rows(tum_fh, health_fh, [], header=True)
+    with tum.open("w") as tum_fh, open_table(health) as health_fh, open_table(cov_path) as cov_fh:
+        files = (tum_fh, health_fh, cov_fh)
+        _write_rows(files, [], header=True)
         last_time = -np.inf
         for frame in frames:
             tracked = frame.timestamp > last_time
@@ -295,13 +351,12 @@ def track_folder(
                 rows = [
                     dataclasses.replace(r, result=new.get(r.result.index, r.result)) for r in rows
                 ]
-                tum_fh.seek(0)
-                tum_fh.truncate()
-                health_fh.seek(0)
-                health_fh.truncate()
-                _write_rows(tum_fh, health_fh, rows, header=True)
+                for fh in files:
+                    fh.seek(0)
+                    fh.truncate()
+                _write_rows(files, rows, header=True)
             else:
-                _write_rows(tum_fh, health_fh, rows[-1:], header=False)
+                _write_rows(files, rows[-1:], header=False)
             if tracker.scale is not None and tracker.scale is not written_scale:
                 # The lengths derived from the first usable frame, as soon as it sets them (an
                 # interrupted run keeps them), and again when the whole scene becomes the
@@ -330,6 +385,7 @@ def track_folder(
         "mean_time_ms": float(np.mean(times)) if times else float("nan"),
         "trajectory": str(tum),
         "health": str(health),
+        "covariance": str(cov_path),
         "config": str(config_path),
         "scale": str(scale_path) if tracker.scale is not None else None,
     }
