@@ -44,9 +44,11 @@ def track(
     intrinsics: Path | None = typer.Option(
         None, help="Depth image intrinsics (YAML/JSON: fx, fy, cx, cy, depth_scale, k1..k6, p1, p2)"
     ),
-    topic: str | None = typer.Option(None, help="Bag topic (PointCloud2 or depth Image)."),
+    topic: str | None = typer.Option(
+        None, help="Bag topic (PointCloud2, depth Image or CompressedImage)."
+    ),
 ) -> None:
-    """Track every frame; writes EST.tum, EST.health.csv, EST.config.json and EST.scale.json.
+    """Track every frame; writes EST.tum and its .health.csv, .cov.csv, .config.json, .scale.json.
 
     Without --model the first frame defines the target frame (its pose is the identity).
     """
