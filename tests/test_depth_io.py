@@ -331,3 +331,44 @@ def test_exr_depth_channels(tmp_path):
         read_depth_image(tmp_path / "bad.exr")
     with pytest.raises(FileFormatError, match=r"none.exr: file not found"):
         read_depth_image(tmp_path / "none.exr")
+
+
+def test_a_cut_multi_part_or_background_exr(tmp_path):
+    """A file cut short is a FileFormatError in the library's words, its six lines on stdout and
+    stderr held back (it ended in a traceback, "file has 0 parts"); a render's passes as parts
+    give their depth part, not the first (its luminance was read as depths); a map of the far
+    plane alone is no return, not a cloud 1e10 m out."""
+    import OpenEXR
+
+    depth = _depth_m(np.random.default_rng(5)).astype(np.float32)
+    whole = write_depth_image(tmp_path / "whole.exr", depth, depth_scale=1.0).read_bytes()
+    (tmp_path / "cut.exr").write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(FileFormatError, match=r"cut.exr: cannot decode the image"):
+        read_depth_image(tmp_path / "cut.exr")
+
+    def header(name: str) -> dict:
+        return {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, "name": name}
+
+    luminance = np.full_like(depth, 0.4)
+    parts = [
+        OpenEXR.Part(header("beauty"), {"Y": luminance}),
+        OpenEXR.Part(header("depth"), {"Z": depth}),
+    ]
+    OpenEXR.File(parts).write(str(tmp_path / "passes.exr"))
+    np.testing.assert_array_equal(read_depth_image(tmp_path / "passes.exr"), depth)
+    background = write_depth_image(tmp_path / "bg.exr", np.full((24, 32), 1e10), depth_scale=1.0)
+    camera = CAMERA.model_copy(update={"depth_scale": 1.0})
+    with pytest.raises(
+        InputError, match=r"bg.exr: no return: every pixel lies at 1e\+10 m or more"
+    ):
+        read_depth_cloud(background, camera)
+
+
+def test_the_exr_library_says_nothing_of_its_own(tmp_path, capfd):
+    depth = _depth_m(np.random.default_rng(6))
+    whole = write_depth_image(tmp_path / "d.exr", depth, depth_scale=1.0).read_bytes()
+    (tmp_path / "cut.exr").write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(FileFormatError):
+        read_depth_image(tmp_path / "cut.exr")
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""

@@ -53,6 +53,9 @@ _JACOBIAN_STEP = 1e-6
 # A float depth map's pixels this many times its nearest depths are a renderer's far plane (a
 # target 1 m away before a wall 1 km behind it is 1,000 times; Blender's background, 1e10 m).
 _FAR_PLANE_RATIO = 1e4
+# Depths no sensor returns, even read as millimetres (100 km): a far plane whatever the rest
+# (a render of the background alone is all 1e10 m).
+_BEYOND_ANY_SENSOR_M = 1e8
 # A pincushion that draws the image's edge to less than half its pinhole radius is no lens's:
 # a ToF lens bends its corners by a few per cent, a fisheye's barrel the other way.
 _FARTHEST_PINCUSHION = 2.0
@@ -301,20 +304,32 @@ def depth_cloud(
 
 def _without_far_plane(values: NDArray, camera: DepthCamera, source: str | Path) -> DepthCamera:
     """``camera`` with a ``max_depth`` below a renderer's far plane, when it has none and the map
-    holds depths :data:`_FAR_PLANE_RATIO` times its nearest (1st percentile) or more (Blender
-    writes 1e10 m where nothing is hit, most of a render's pixels): read as points 1e10 m out,
-    they spread the cloud over 1e10 m and moved the lab run's poses by 0.2 mm. Said once a
-    map, with the depth found."""
+    holds depths :data:`_FAR_PLANE_RATIO` times its nearest (1st percentile) or more, or past
+    :data:`_BEYOND_ANY_SENSOR_M` (Blender writes 1e10 m where nothing is hit, most of a render's
+    pixels): read as points 1e10 m out, they spread the cloud over 1e10 m and moved the lab
+    run's poses by 0.2 mm. Said once a map, with the depth found.
+
+    Raises
+    ------
+    InputError
+        Every pixel at the far plane (a render of the background alone).
+    """
     if camera.max_depth is not None or not np.issubdtype(np.asarray(values).dtype, np.floating):
         return camera
     z = np.asarray(values, dtype=np.float64) * camera.depth_scale
     hit = z[np.isfinite(z) & (z > 0)]
     if len(hit) == 0:
         return camera
-    cut = _FAR_PLANE_RATIO * float(np.percentile(hit, 1))
+    cut = min(_FAR_PLANE_RATIO * float(np.percentile(hit, 1)), _BEYOND_ANY_SENSOR_M)
     far = hit >= cut
     if not far.any():
         return camera
+    if far.all():  # a render of the background alone: "beyond max_depth" would blame the user
+        raise InputError(
+            f"no return: every pixel lies at {hit.min():.3g} m or more, a renderer's far plane "
+            "(the target out of view?)",
+            source,
+        )
     warnings.warn(
         SpaceposeWarning(
             f"a renderer's far plane, read as no return ({int(far.sum())} pixels at "

@@ -10,12 +10,19 @@ colour image is never read as depths.
 
 from __future__ import annotations
 
+import io
+import os
+import sys
+import tempfile
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
-from spacepose.errors import FileFormatError
+from spacepose.errors import FileFormatError, SpaceposeWarning
 
 EXR_SUFFIX = ".exr"
 # Channel names (the last part, case-insensitive) that hold depth.
@@ -28,16 +35,35 @@ def read_exr_depth(path: Path) -> NDArray[np.float32]:
     Raises
     ------
     FileFormatError
-        Not an EXR the library opens, or no channel that is depth alone.
-    """
-    import OpenEXR
+        Not an EXR the library opens (a truncated file: the library's own account of it), or
+        no channel that is depth alone.
 
-    try:
-        with OpenEXR.File(str(path), separate_channels=True) as exr:
-            channels = {name: part.pixels for name, part in exr.channels().items()}
-    except RuntimeError as exc:  # the library's one error for a missing or corrupt file
-        problem = "file not found" if not path.exists() else f"cannot decode the image: {exc}"
-        raise FileFormatError(" ".join(problem.split()), path) from None
+    Warns
+    -----
+    SpaceposeWarning
+        The library warned while decoding it (its message, once).
+    """
+    if not path.exists():
+        raise FileFormatError("file not found", path)
+    with _quiet() as said:
+        try:
+            channels = _channels(path)
+        except Exception as exc:  # RuntimeError, or a cut file's ValueError ("0 parts")
+            problem = " ".join(str(exc).split())
+            error = FileFormatError(f"cannot decode the image: {problem}", path)
+        else:
+            error = None
+    library = said().removeprefix(f"{path}: ")
+    if error is not None:
+        # The library's own account of a truncated file says more than its exception.
+        raise FileFormatError(f"{error.reason} ({library})", path) if library else error
+    if not channels:  # a file cut after its header opens with no part
+        reason = "cannot decode the image: it holds no channel (a truncated file?)"
+        raise FileFormatError(f"{reason} ({library})" if library else reason, path)
+    if library:
+        warnings.warn(
+            SpaceposeWarning(f"decoded despite OpenEXR's warning: {library}", path), stacklevel=3
+        )
     name = _depth_channel(channels, path)
     values = np.asarray(channels[name])
     if values.ndim != 2 or values.dtype.kind != "f":
@@ -46,6 +72,48 @@ def read_exr_depth(path: Path) -> NDArray[np.float32]:
             path,
         )
     return values.astype(np.float32, copy=False)
+
+
+def _channels(path: Path) -> dict[str, NDArray]:
+    """Every channel of every part, named ``part.channel`` when the file has several parts (a
+    render's beauty and depth passes): the first part alone held no depth in such a file, and
+    its luminance was tracked as depths."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path), separate_channels=True) as exr:
+        parts = exr.parts
+        if len(parts) == 1:
+            return {name: channel.pixels for name, channel in parts[0].channels.items()}
+        return {
+            f"{part.name()}.{name}": channel.pixels
+            for part in parts
+            for name, channel in part.channels.items()
+        }
+
+
+@contextmanager
+def _quiet() -> Iterator[Callable[[], str]]:
+    """The library prints its warnings and errors, from C++ to the process's stdout and stderr
+    and from its bindings to Python's (seven lines for a truncated file): held back while it
+    reads, and handed to the caller (the first line) through the function yielded."""
+    held: list[str] = []
+    saved = [os.dup(1), os.dup(2)]
+    printed = io.StringIO()
+    with tempfile.TemporaryFile() as sink:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            for fd in (1, 2):
+                os.dup2(sink.fileno(), fd)
+            with redirect_stdout(printed), redirect_stderr(printed):
+                yield lambda: held[0] if held else ""
+        finally:
+            for fd, copy in zip((1, 2), saved, strict=True):
+                os.dup2(copy, fd)
+                os.close(copy)
+            sink.seek(0)
+            text = sink.read().decode(errors="replace") + printed.getvalue()
+            held.extend(line.strip() for line in text.splitlines() if line.strip())
 
 
 def _depth_channel(channels: dict[str, NDArray], path: Path) -> str:
