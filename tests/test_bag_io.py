@@ -315,7 +315,9 @@ def test_a_frame_stamped_out_of_order_is_lost_and_the_rest_tracked(lab, tmp_path
         msg.header = _header(ROS2, stamps.get(k, k))
         messages.append(("/points", PC2, msg))
     bag = _write(tmp_path / "stamps_bag", messages)
-    summary = track_folder(bag, tmp_path / "est.tum", tracker_config())
+    # Said on stderr too, as an unreadable frame is (the table alone held it).
+    with pytest.warns(SpaceposeWarning, match=r"points#4: frame lost: timestamp .* does not come"):
+        summary = track_folder(bag, tmp_path / "est.tum", tracker_config())
     assert (summary["frames"], summary["lost"]) == (N_FRAMES, 2)
     health = (tmp_path / "est.health.csv").read_text().splitlines()[1:]
     assert "repeats the last tracked one" in health[2] and ",lost," in health[2]
@@ -581,3 +583,71 @@ def test_a_ros2_recording_without_its_metadata_says_so(lab, tmp_path, capsys):
         "run: holds run.db3 but no metadata.yaml: a ROS 2 bag whose recording did not finish? "
         "(`ros2 bag reindex` writes it)"
     ), err
+
+
+def _tiff(values: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    Image.fromarray(values).save(buffer, format="TIFF")
+    return buffer.getvalue()
+
+
+def test_compressed_payloads_that_contradict_their_format_are_lost_by_name(lab, tmp_path):
+    """Each was decoded without a word: a float image in 32FC1's compressedDepth as inverse
+    depth (a wall at 10 m), a header of NaN as "no return", a float TIFF said 16UC1 as
+    millimetres (every pose 1000 times too short). A float TIFF of a format naming no
+    encoding is metres, and a PNG of an empty format is read."""
+    z = np.nan_to_num(lab["grids"][0][..., 2]).astype(np.float32)
+    millimetres = np.rint(z * 1000).astype(np.uint16)
+    quantised, _ = _quantised_inverse(z.astype(np.float64))
+    nan_header = struct.pack("<iff", 0, np.nan, np.nan) + quantised[12:]
+    forms = [
+        ("32FC1; compressedDepth png", struct.pack("<iff", 0, 10100.0, -1009.0) + _tiff(z)),
+        ("32FC1; compressedDepth png", nan_header),
+        ("16UC1; tiff compressed", _tiff(z)),
+        ("tiff", _tiff(z)),
+        ("", _png(millimetres)),
+    ]
+    info = _camera_info(ROS2, lab["camera"], ros1=False)
+    messages = [("/cam/depth/camera_info", INFO, info)]
+    for k, (form, payload) in enumerate(forms):
+        messages.append(
+            ("/cam/depth/image_raw/compressed", COMPRESSED, _compressed(ROS2, k, form, payload))
+        )
+    frames = list(open_bag(_write(tmp_path / "run", messages)))
+    assert "carries 16-bit quantised inverse depth, and its image holds float32" in frames[0].error
+    assert "depthQuantA nan and depthQuantB nan decode" in frames[1].error
+    assert "says 16UC1, and its image holds float32 values" in frames[2].error
+    reference = next(iter(open_bag(lab["bag"], "/tof/depth/image_raw"))).cloud.points
+    for frame in frames[3:]:
+        assert frame.error is None
+        assert np.max(np.abs(np.sort(frame.cloud.points[:, 2]) - np.sort(reference[:, 2]))) < 6e-4
+
+
+def test_a_camera_info_of_another_namespace_is_used_and_said(lab, tmp_path):
+    millimetres = np.rint(np.nan_to_num(lab["grids"][0][..., 2]) * 1000).astype(np.uint16)
+    messages = [
+        ("/rgb/camera_info", INFO, _camera_info(ROS2, lab["camera"], ros1=False)),
+        ("/cam/depth/image_raw", IMAGE, _image(ROS2, 0, millimetres)),
+    ]
+    bag = _write(tmp_path / "run", messages)
+    said = r"no CameraInfo beside /cam/depth/image_raw; using /rgb/camera_info \(give --intr"
+    with pytest.warns(SpaceposeWarning, match=said):
+        open_bag(bag)
+
+
+def test_a_zero_stamp_on_a_wall_clock_is_unset_and_a_left_out_topic_named(lab, tmp_path, capsys):
+    """A frame stamped 0 among stamps of 1.7e9 s went to the trajectory at t = 0 without a
+    word; a compressed colour topic left out was not said to be, nor why."""
+    grid = lab["grids"][0][::8, ::8]
+    messages = [("/points", PC2, _pointcloud2(ROS2, k, grid)) for k in range(3)]
+    messages[0][2].header.stamp = ROS2.types["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+    frames = list(open_bag(_write(tmp_path / "run", messages)))
+    assert frames[0].error == "header stamp 0 on a clock that reads 1700000000 s: unset"
+    assert [f.error for f in frames[1:]] == [None, None]
+    jpeg = io.BytesIO()
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(jpeg, format="JPEG")
+    colour = _compressed(ROS2, 0, "rgb8; jpeg compressed bgr8", jpeg.getvalue())
+    bag = _write(tmp_path / "colour", [("/cam/color/compressed", COMPRESSED, colour)])
+    assert main(["track", str(bag), "--out", str(tmp_path / "e.tum")]) == 1
+    err = capsys.readouterr().err
+    assert "; /cam/color/compressed left out: its first message's format 'rgb8; jpeg" in err, err

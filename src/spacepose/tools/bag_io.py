@@ -51,6 +51,8 @@ CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 BAG_SUFFIXES: tuple[str, ...] = (".bag", ".db3", ".mcap")
 # The first line of every ROS 1 bag (format 2.0, the only one rosbags reads).
 _ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
+# A header stamp of zero is unset, not the clock's start, on a clock that reads past a day.
+_UNSET_STAMP_CLOCK = 86_400.0
 # sensor_msgs/PointField datatypes -> numpy kinds (byte order added per message).
 _POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
@@ -109,24 +111,28 @@ def _open_reader(path: Path) -> Iterator[Any]:
         reader.close()
 
 
-def stamp_seconds(msg: Any, record_time_ns: int, header_clock: bool = True) -> float:
+def stamp_seconds(msg: Any, record_time_ns: int, clock: float | None = 0.0) -> float:
     """The header stamp of ``msg`` in seconds; the record time when its topic's stamps are
-    unset (``header_clock`` false: :func:`_header_clock`).
+    unset (``clock`` None: :func:`_topic_clock`).
 
     Raises
     ------
     InputError
         A ``nanosec`` of a second or more: no valid ROS time (a driver writing the whole
-        time in nanoseconds there), which moved the frame up to 4 s on without a word.
+        time in nanoseconds there), which moved the frame up to 4 s on without a word; a stamp
+        of zero on a clock that reads past a day (``clock``): unset, and it put the frame 1.7e9
+        s before the next without a word.
     """
     stamp = msg.header.stamp
-    if not header_clock:
+    if clock is None:
         return record_time_ns * 1e-9
     if stamp.nanosec >= 1_000_000_000:
         raise InputError(
             f"header stamp nanosec {stamp.nanosec} is a second or more: not a ROS time "
             "(nanosec counts within the second)"
         )
+    if stamp.sec == 0 and stamp.nanosec == 0 and clock > _UNSET_STAMP_CLOCK:
+        raise InputError(f"header stamp 0 on a clock that reads {clock:.10g} s: unset")
     return stamp.sec + stamp.nanosec * 1e-9
 
 
@@ -208,9 +214,9 @@ class BagFrames:
         (every message is read, and a count that differs is warned about).
     camera
         Intrinsics for a depth Image topic (None for PointCloud2).
-    header_clock
-        Whether frame times are the header stamps (False: the record times; the topic's first
-        messages are all stamped zero).
+    clock
+        The largest of the topic's first header stamps (s); None when they are all zero, and
+        the frame times are then the record times (:func:`_topic_clock`).
     """
 
     path: Path
@@ -218,7 +224,7 @@ class BagFrames:
     msgtype: str
     count: int
     camera: DepthCamera | None = None
-    header_clock: bool = True
+    clock: float | None = 0.0
     model_path: Path | None = None
 
     def __len__(self) -> int:
@@ -250,7 +256,7 @@ class BagFrames:
                 cloud, error, timestamp = None, None, time_ns * 1e-9
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
-                    timestamp = stamp_seconds(msg, time_ns, self.header_clock)
+                    timestamp = stamp_seconds(msg, time_ns, self.clock)
                     cloud = self._cloud(msg, source)
                     if self.msgtype == POINTCLOUD2:
                         # As a folder's cloud files, each frame: a driver in millimetres or
@@ -331,9 +337,13 @@ def open_bag(
         if topic is None:
             if not candidates:  # nothing to choose with --topic: say what the bag holds
                 held = ", ".join(f"{t} ({m.rsplit('/', 1)[-1]})" for t, m in sorted(types.items()))
+                left = "".join(
+                    f"; {t} left out: its first message's format {form!r} names no depth encoding"
+                    for t, form in sorted(pictures.items())
+                )
                 raise InputError(
                     f"no PointCloud2/Image topic: the bag holds no frame (its topics: "
-                    f"{held or 'none'})",
+                    f"{held or 'none'}){left}",
                     path,
                 )
             if len(candidates) != 1:
@@ -367,28 +377,29 @@ def open_bag(
             )
         if candidates[topic] != POINTCLOUD2 and camera is None:
             camera = _bag_camera(reader, topic, path)
-        header_clock = _header_clock(reader, connections)
-    return BagFrames(path, topic, candidates[topic], count, camera, header_clock=header_clock)
+        clock = _topic_clock(reader, connections)
+    return BagFrames(path, topic, candidates[topic], count, camera, clock=clock)
 
 
-def _header_clock(reader: Any, connections: list[Any], first: int = 3) -> bool:
-    """Whether a topic's header stamps are its clock: one of its ``first`` messages stamped
-    other than zero, or none of them readable (each frame then says why). Decided once per
-    topic: a simulation's clock starting at 0 stamps its first frame 0, and that frame taken
-    at its record time (the wall clock, 1.7e9 s) left every later frame "not after" it, lost."""
+def _topic_clock(reader: Any, connections: list[Any], first: int = 3) -> float | None:
+    """The largest header stamp (s) of a topic's ``first`` messages, or None when they are all
+    stamped zero (a driver that leaves stamps unset: the record times are the frame times); 0
+    when none of them is readable (each frame then says why). Decided once per topic: a
+    simulation's clock starting at 0 stamps its first frame 0, and that frame taken at its
+    record time (the wall clock, 1.7e9 s) left every later frame "not after" it, lost."""
+    stamps = []
     try:
-        zeros = 0
         for _, (conn, _, raw) in zip(range(first), reader.messages(connections), strict=False):
             try:
                 stamp = reader.deserialize(raw, conn.msgtype).header.stamp
             except Exception:  # whatever rosbags meets: the frame itself will say why
                 continue
-            if stamp.sec != 0 or stamp.nanosec != 0:
-                return True
-            zeros += 1
+            stamps.append(stamp.sec + stamp.nanosec * 1e-9)
     except Exception:  # a corrupt chunk: the frames will say so
-        return True
-    return zeros == 0
+        return 0.0
+    if stamps and max(stamps) == 0.0:
+        return None
+    return max(stamps, default=0.0)
 
 
 def _not_depth(reader: Any, topics: list[str]) -> dict[str, str]:
@@ -414,6 +425,17 @@ def _bag_camera(reader: Any, image_topic: str, path: Path) -> DepthCamera:
     namespace = raw_topic(image_topic).rsplit("/", 1)[0]
     beside = [c for c in infos if c.topic.rsplit("/", 1)[0] == namespace]
     chosen = beside or infos
+    if not beside and len({c.topic for c in infos}) == 1:
+        # The bag's only CameraInfo may be another camera's (a RealSense bag with the colour
+        # camera's alone): used, and said.
+        warnings.warn(
+            SpaceposeWarning(
+                f"no CameraInfo beside {raw_topic(image_topic)}; using {infos[0].topic} (give "
+                "--intrinsics if that is another camera's)",
+                path,
+            ),
+            stacklevel=3,
+        )
     if len({c.topic for c in chosen}) != 1:
         found = ", ".join(sorted({c.topic for c in infos})) or "none"
         raise InputError(

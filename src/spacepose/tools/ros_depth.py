@@ -91,14 +91,16 @@ def compressed_depth(msg: Any, source: str) -> tuple[NDArray, float]:
     Returns
     -------
     values, scale
-        uint16 millimetres and 0.001 for a ``16UC1`` map; float32 metres (NaN: no return) and
-        1.0 for a ``32FC1`` map sent as inverse depth.
+        uint16 millimetres and 0.001 for a ``16UC1`` map (or a 16-bit image of a format naming
+        no encoding); float32 metres (NaN: no return) and 1.0 for a ``32FC1`` map sent as
+        inverse depth, or a float image of a format naming no encoding.
 
     Raises
     ------
     FileFormatError
         The ``rvl`` codec, another encoding than ``16UC1``/``mono16``/``32FC1`` before the
-        ``;``, or a payload that is no 16-bit depth image.
+        ``;``, a payload that is no depth image or not of the named encoding, or a ``32FC1``
+        header that decodes its values to no positive depth.
     """
     form = msg.format.strip()
     # "16UC1; compressedDepth png": the map's encoding before the ';' (a bare "png" names none).
@@ -122,23 +124,53 @@ def compressed_depth(msg: Any, source: str) -> tuple[NDArray, float]:
             f"{', '.join(_DEPTH_ENCODINGS)})"
         )
     values = decode_depth_image(data, source)
-    if encoding != "32FC1":
-        return values, 0.001
-    if header is None:  # a float map cannot travel as an image of the compressed transport
-        raise FileFormatError(f"CompressedImage format {form!r}: a 32FC1 map without its header")
-    _, quant_a, quant_b = header
-    inverse = values.astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = np.where(inverse > 0, quant_a / (inverse - quant_b), np.nan)
-    return depth.astype(np.float32), 1.0
+    floats = values.dtype.kind == "f"
+    if encoding == "32FC1":
+        if header is None:  # a float map cannot travel as an image of the compressed transport
+            raise FileFormatError(
+                f"CompressedImage format {form!r}: a 32FC1 map without its header"
+            )
+        if floats:  # the transport quantises: a float image here is no inverse depth
+            raise FileFormatError(
+                f"CompressedImage format {form!r} carries 16-bit quantised inverse depth, and "
+                f"its image holds {values.dtype} values"
+            )
+        return _inverse_depth(values, *header[1:], form), 1.0
+    if floats and encoding:  # 16UC1 said, floats sent: read as millimetres, 1000 times too near
+        raise FileFormatError(
+            f"CompressedImage format {form!r} says {encoding}, and its image holds "
+            f"{values.dtype} values"
+        )
+    return values, 1.0 if floats else 0.001
+
+
+def _inverse_depth(values: NDArray, quant_a: float, quant_b: float, form: str) -> NDArray:
+    """Depths (float32 m, NaN: no return) of compressedDepth's quantised inverse depths
+    ``q``: ``z = A / (q − B)``, refused unless positive and finite wherever ``q > 0`` (a header
+    of NaN, or B above the stored values, gave "no return" or negative depths, blamed on the
+    pixels)."""
+    stored = values.astype(np.float64)
+    returns = stored > 0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        depth = np.where(returns, quant_a / (stored - quant_b), np.nan)
+    bad = int(np.count_nonzero(returns & ~(np.isfinite(depth) & (depth > 0))))
+    if bad:
+        raise FileFormatError(
+            f"CompressedImage format {form!r}: its header's depthQuantA {quant_a:g} and "
+            f"depthQuantB {quant_b:g} decode {bad} of {int(returns.sum())} stored values to no "
+            "positive depth (z = A / (q - B))"
+        )
+    return depth.astype(np.float32)
 
 
 def is_depth_format(form: str) -> bool:
     """Whether a ``CompressedImage`` format string can hold a depth map: its encoding (before
-    the ``;``) is a depth encoding, or, naming none, its codec is lossless (PNG, TIFF)."""
+    the ``;``) is a depth encoding, or, naming none, its codec is lossless (PNG, TIFF), or it
+    is empty (a driver that leaves it so: the image decides)."""
     if ";" in form:
         return form.split(";", 1)[0].strip() in _DEPTH_ENCODINGS
-    return any(codec in form.lower() for codec in ("png", "tif", "compresseddepth"))
+    # A format naming nothing is tried (its image decides); a bare codec must be lossless.
+    return not form.strip() or any(c in form.lower() for c in ("png", "tif", "compresseddepth"))
 
 
 def raw_topic(topic: str) -> str:

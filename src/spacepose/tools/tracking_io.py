@@ -330,6 +330,9 @@ def track_folder(
                 # this frame's fault, not the run's; the trajectory skips it (TUM times rise).
                 result = _out_of_order(frame, last_time)
                 tracker.continue_at(frame.index + 1)
+                # Said as an unreadable frame is (the table alone held it).
+                problem = f"frame lost: {result.reasons[0]}"
+                warnings.warn(SpaceposeWarning(problem, frame.source), stacklevel=2)
             else:
                 result = tracker.track_frame(frame.cloud, frame.timestamp)
                 last_time = frame.timestamp
