@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,7 @@ import pytest
 from PIL import Image
 
 from spacepose.core.depth import DepthCamera
-from spacepose.errors import ConfigError, FileFormatError, InputError
+from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.depth_io import (
     depth_files,
     find_intrinsics,
@@ -372,3 +373,24 @@ def test_the_exr_library_says_nothing_of_its_own(tmp_path, capfd):
         read_depth_image(tmp_path / "cut.exr")
     out, err = capfd.readouterr()
     assert out == "" and err == ""
+
+
+def test_odd_pixels_of_a_map_that_back_projects_are_warned_about(tmp_path):
+    """Negative depths among the others were dropped unsaid; intrinsics of half the resolution
+    that give no size put every ray off without a word (their principal point sits a quarter
+    of the image from its centre)."""
+    depth = _depth_m(np.random.default_rng(7)).astype(np.float32)
+    depth[:, :4] *= -1.0
+    path = write_depth_image(tmp_path / "d.tiff", np.abs(depth), depth_scale=1.0)
+    Image.fromarray(depth).save(path)  # the negative columns as the file's own
+    camera = CAMERA.model_copy(update={"depth_scale": 1.0})
+    negative = int((depth < 0).sum())
+    with pytest.warns(SpaceposeWarning, match=rf"d.tiff: pixels of negative depth read as no "
+                      rf"return \({negative} of 768\)"):  # fmt: skip
+        read_depth_cloud(path, camera)
+    half = camera.model_copy(update={"fx": 150.0, "fy": 150.0, "cx": 7.75, "cy": 5.75})
+    with pytest.warns(SpaceposeWarning, match=r"principal point lies far from the image's cen"):
+        read_depth_cloud(path, half)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_depth_cloud(write_depth_image(tmp_path / "e.tiff", np.abs(depth), 1.0), camera)

@@ -56,6 +56,9 @@ _FAR_PLANE_RATIO = 1e4
 # Depths no sensor returns, even read as millimetres (100 km): a far plane whatever the rest
 # (a render of the background alone is all 1e10 m).
 _BEYOND_ANY_SENSOR_M = 1e8
+# A principal point this share of the image from its centre is another resolution's (half the
+# resolution's puts it a quarter out; lenses put theirs within a few per cent of the centre).
+_OFF_CENTRE = 0.2
 # A pincushion that draws the image's edge to less than half its pinhole radius is no lens's:
 # a ToF lens bends its corners by a few per cent, a fisheye's barrel the other way.
 _FARTHEST_PINCUSHION = 2.0
@@ -286,7 +289,9 @@ def depth_cloud(
     Warns
     -----
     SpaceposeWarning
-        The points are in another unit (:func:`warn_if_depth_units`).
+        The points are in another unit (:func:`warn_if_depth_units`), a far plane is read as
+        no return (:func:`_without_far_plane`), some depths are negative, or the principal
+        point of intrinsics without a size is a fifth of the image from its centre.
     """
     height, width = np.shape(values)[:2]
     camera = _without_far_plane(values, camera, source)
@@ -298,8 +303,35 @@ def depth_cloud(
         cloud = depth_to_cloud(values, camera, stride, source=str(source))
     except InputError as exc:
         raise _why_no_return(values, camera, source) or exc from None
+    _warn_if_odd_pixels(values, camera, source)
     warn_if_depth_units(cloud, source, remedy)
     return cloud
+
+
+def _warn_if_odd_pixels(values: NDArray, camera: DepthCamera, source: str | Path) -> None:
+    """Warn of what a map that back-projects reads oddly: depths below zero among the others
+    (read as no return, as a map all below zero is refused), and, with intrinsics that give no
+    size, a principal point a fifth of the image or more from its centre (intrinsics of
+    another resolution put every ray off without a word)."""
+    height, width = np.shape(values)[:2]
+    if np.issubdtype(np.asarray(values).dtype, np.signedinteger) or np.issubdtype(
+        np.asarray(values).dtype, np.floating
+    ):
+        negative = int(np.count_nonzero(np.asarray(values) < 0))
+        if negative:
+            problem = f"pixels of negative depth read as no return ({negative} of {width * height})"
+            warnings.warn(SpaceposeWarning(problem, source), stacklevel=4)
+    if camera.width is not None:
+        return
+    off_x = abs(camera.cx - 0.5 * (width - 1)) / width
+    off_y = abs(camera.cy - 0.5 * (height - 1)) / height
+    if max(off_x, off_y) >= _OFF_CENTRE:
+        problem = (
+            f"the principal point lies far from the image's centre: intrinsics of another "
+            f"resolution? (({camera.cx:g}, {camera.cy:g}) in a {width}x{height} image; give "
+            "width and height in the intrinsics to check them)"
+        )
+        warnings.warn(SpaceposeWarning(problem, source), stacklevel=4)
 
 
 def _without_far_plane(values: NDArray, camera: DepthCamera, source: str | Path) -> DepthCamera:
