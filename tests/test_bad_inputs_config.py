@@ -500,3 +500,15 @@ def test_a_config_key_yaml_reads_as_no_name_is_refused(tmp_path, text, key, unde
             load_config(model, path)
         message = _one_line(exc, path, model.__name__, f"the key {key}")
         assert (f"under {under}" in message) == (under is not None)
+
+
+def test_a_list_of_quoted_numbers_is_refused_as_a_quoted_number_is() -> None:
+    """``sensor_fov_deg: ["30", "30"]`` was read as the angles without a word, while
+    ``mean_motion: "0.0011"`` was refused as text."""
+    from spacepose.core.lost_in_space import LostInSpaceConfig, with_sensor_fov
+
+    config = LostInSpaceConfig()
+    assert with_sensor_fov(config, [30, 20], "scenario.json").fov_deg == (30.0, 20.0)
+    for fov in (["30", "30"], [30.0, "20"]):
+        with pytest.raises(ConfigError, match=r"^scenario.json: sensor_fov_deg: .*holds text"):
+            with_sensor_fov(config, fov, "scenario.json")

@@ -273,3 +273,10 @@ def test_a_cells_coverage_is_pooled_over_the_ok_frames_of_its_seeds() -> None:
     assert "coverage_3sigma" in rows[0]["fails"] and "no_ok_frame" not in rows[0]["fails"]
     alone = cell_table([record(0, 0, float("nan"))])[0]
     assert np.isnan(alone["coverage_3sigma"]) and "no_ok_frame" in alone["fails"]
+
+
+def test_a_cells_value_that_is_no_number_is_named(capsys) -> None:
+    from spacepose.cli import main
+
+    assert main(["experiment", "robustness", "--cells", "range=1.2+abc", "--frames", "3"]) == 1
+    assert capsys.readouterr().err.strip() == "error: --cells range=abc: 'abc' is not a number"

@@ -105,12 +105,12 @@ def refuse_boolean(model: type[BaseModel], value: Any, info: ValidationInfo) -> 
 
 def admits_text(annotation: Any) -> bool:
     """Whether a field annotated ``annotation`` may be given as text (a name, a path, a choice
-    of words)."""
+    of words), or hold text (a container of them)."""
 
     def text(a: Any) -> bool:
         return a in (Path, Any) or (isinstance(a, type) and issubclass(a, str))
 
-    return _admits(annotation, text, str, (Union, UnionType))
+    return _admits(annotation, text, str, (Union, UnionType, tuple, list))
 
 
 def refuse_text_number(model: type[BaseModel], value: Any, info: ValidationInfo) -> Any:
@@ -119,9 +119,12 @@ def refuse_text_number(model: type[BaseModel], value: Any, info: ValidationInfo)
     Pydantic reads ``"0.5"`` as 0.5 for a number field: in a file, ``gate: "0.5"`` is a value
     quoted by mistake (or a unit written in: ``"5 mm"``), not a number the user meant as text.
     """
-    if isinstance(value, str) and not admits_text(model.model_fields[info.field_name].annotation):
+    if not holds_text(value) or admits_text(model.model_fields[info.field_name].annotation):
+        return value
+    if isinstance(value, str):
         raise ValueError(f"{value!r} is text, not a value of this field (write it unquoted)")
-    return value
+    # A list of numbers quoted ("30", "30") was read as the numbers without a word.
+    raise ValueError(f"{value!r} holds text, not values of this field (write them unquoted)")
 
 
 def holds_text(value: Any) -> bool:

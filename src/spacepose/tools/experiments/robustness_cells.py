@@ -30,6 +30,8 @@ from spacepose.errors import ConfigError
 MODELS_DIR = Path(spacepose.__file__).resolve().parents[2] / "data" / "models"
 TARGETS = {"hubble": "hubble_model_kit.obj", "panels": "satellite_panels.obj"}
 AXES = ("target", "range", "noise", "motion", "clutter", "seed")
+# The axes whose values are numbers (read so from a command line's text).
+_NUMERIC = ("range", "noise", "seed")
 QUICK_FRAMES = 8
 # Quick subset: the default cell and one variant per axis; the wall alone at 3 m, where the
 # mock-up holds 1 % of the cells that the wall's spacing sizes.
@@ -89,15 +91,33 @@ def mesh_path(target: str) -> str:
     return str(path)
 
 
-def parse_cells(spec: str) -> dict[str, list[str]]:
-    """``"target=lab,range=1.2+25"`` -> ``{"target": ["lab"], "range": ["1.2", "25"]}``.
+def _number(name: str, text: str) -> float:
+    """A numeric axis's value as a number (a seed's ``2`` as 2.0 too: the grid takes a whole
+    float as its int).
 
     Raises
     ------
     ConfigError
-        An item that is not ``AXIS=VALUE[+VALUE...]``, an axis named twice, or no item at all.
+        ``text`` reads as no number.
     """
-    axes: dict[str, list[str]] = {}
+    try:
+        return float(text)
+    except ValueError:
+        raise ConfigError(f"--cells {name}={text}: {text!r} is not a number") from None
+
+
+def parse_cells(spec: str) -> dict[str, list[str] | list[float]]:
+    """``"target=lab,range=1.2+25"`` -> ``{"target": ["lab"], "range": [1.2, 25.0]}``: the
+    numbers of the numeric axes read here (a config file's quoted number is refused, and a
+    command line's are all text).
+
+    Raises
+    ------
+    ConfigError
+        An item that is not ``AXIS=VALUE[+VALUE...]``, an axis named twice, a numeric axis's
+        value that is no number, or no item at all.
+    """
+    axes: dict[str, list[str] | list[float]] = {}
     for item in filter(None, (s.strip() for s in spec.split(","))):
         name, sep, values = item.partition("=")
         name = name.strip()
@@ -107,7 +127,8 @@ def parse_cells(spec: str) -> dict[str, list[str]]:
             )
         if name in axes:
             raise ConfigError(f"--cells: axis {name} is named twice; join its values with +")
-        axes[name] = [v.strip() for v in values.split("+")]
+        written = [v.strip() for v in values.split("+")]
+        axes[name] = [_number(name, v) for v in written] if name in _NUMERIC else written
     if not axes:
         raise ConfigError(f"--cells {spec!r} names no cells; write AXIS=VALUE[+VALUE...]")
     return axes
