@@ -512,3 +512,15 @@ def test_a_list_of_quoted_numbers_is_refused_as_a_quoted_number_is() -> None:
     for fov in (["30", "30"], [30.0, "20"]):
         with pytest.raises(ConfigError, match=r"^scenario.json: sensor_fov_deg: .*holds text"):
             with_sensor_fov(config, fov, "scenario.json")
+
+
+@pytest.mark.parametrize("field", ["sigma_feature", "init_sigma_position", "sigma_accel"])
+def test_a_filter_sigma_whose_square_overflows_is_refused(tmp_path, field) -> None:
+    """1e160 ended navigate in an OverflowError traceback; 1e300 in numpy's overflow warnings,
+    then "zero norm quaternions"."""
+    path = tmp_path / "nav.yaml"
+    path.write_text(f"ekf:\n  {field}: 1e160\n")
+    with pytest.raises(ConfigError, match=rf"ekf.{field}: .*1e\+160 is too large a sigma"):
+        load_config(NavigationConfig, path)
+    path.write_text(f"ekf:\n  {field}: 1e3\n")
+    assert getattr(load_config(NavigationConfig, path).ekf, field) == 1e3

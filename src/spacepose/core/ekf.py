@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from pydantic import Field
+from pydantic import Field, ValidationInfo, field_validator
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
@@ -49,6 +49,9 @@ from spacepose.core.nav_state import (
     params_from_k,
 )
 from spacepose.errors import InputError
+
+# Largest σ a setting may give: its square, times another's, stays finite in float64.
+_LARGEST_SIGMA = 1e50
 
 
 class EKFConfig(StageConfig):
@@ -81,6 +84,18 @@ class EKFConfig(StageConfig):
         0.9999, gt=0, le=1, description="χ² gate on the innovation; 1 disables gating."
     )
     substeps: int = Field(10, ge=1, description="RK4 steps per prediction interval.")
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _square_stays_finite(cls, value: object, info: ValidationInfo) -> object:
+        # The filter multiplies variances by each other: 1e160 overflowed in a traceback, 1e300
+        # gave NaN quaternions after numpy's overflow warnings.
+        if "sigma" in info.field_name and isinstance(value, float) and value > _LARGEST_SIGMA:
+            raise ValueError(
+                f"{value:g} is too large a sigma: the filter's products of its square overflow "
+                f"(at most {_LARGEST_SIGMA:g})"
+            )
+        return value
 
 
 class RelativeNavEKF:
