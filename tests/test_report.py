@@ -309,3 +309,24 @@ def test_an_estimate_with_repeated_times_is_noted_and_not_paired_by_line(
     note = "gicp: 1 estimate(s) share a ground-truth pose with another (repeated timestamps)"
     assert note in page
     assert drawn == ["icp"]  # icp's times are the truth's; gicp's are not, so no curve
+
+
+def test_a_run_nested_in_another_is_scored_against_its_own_truth_alone(tmp_path: Path) -> None:
+    """The outer run scored the inner run's tracks, its groundtruth.tum taken for one, and its
+    nav.csv against the outer truth: 15 m off, without a word (a demo written into a run)."""
+    root = tmp_path / "outer"
+    _make_run(root)
+    inner = root / "lab" / "inner"
+    shutil.copytree(root / "orbit", inner / "orbit_copy")
+    shutil.copytree(root / "lab" / "tracks", inner / "tracks")
+    shutil.copy(root / "lab" / "groundtruth.tum", inner / "groundtruth.tum")
+    (inner / "scenario.json").write_text(json.dumps({"scenario": "lab", "seed": 4}))
+    gt = read_tum(inner / "groundtruth.tum")
+    far = se3.make_transform(np.eye(3), [15.0, 0.0, 0.0])
+    write_tum(inner / "tracks" / "far.tum", Trajectory(gt.timestamps, far @ gt.poses))
+    page = build_report(root, tmp_path / "r.html").read_text()
+    sections = re.split(r"<h2>Run: ", page)
+    outer = next(s for s in sections if s.startswith("lab<"))
+    own = next(s for s in sections if s.startswith("lab/inner<"))
+    assert "far" not in outer and "groundtruth" not in outer and "15000" not in outer
+    assert "far" in own and "15000" in own

@@ -204,7 +204,7 @@ def _mls_section(run: Path) -> str:
 
 def _tracking_section(run: Path, skipped: _Skipped) -> str:
     gt_path = run / "groundtruth.tum"
-    tracks = sorted(p for p in run.rglob("*.tum") if p != gt_path)
+    tracks = [p for p in _own_files(run, "*.tum") if p.name != GROUNDTRUTH]
     if not tracks:
         return ""
     if not gt_path.exists():  # the tracks cannot be scored: say so, not leave them out unseen
@@ -281,6 +281,19 @@ def _tracking_section(run: Path, skipped: _Skipped) -> str:
     return "<h3>Tracking</h3>" + "".join(parts)
 
 
+def _own_files(run: Path, pattern: str) -> list[Path]:
+    """The files matching ``pattern`` under ``run``, sorted, but for those of a run nested in
+    it (a subfolder with its own scenario.json, reported as a run of its own): an outer run
+    scored the inner one's tracks, and its groundtruth.tum as a track, against its own truth
+    (15 m off, without a word)."""
+    own = []
+    for path in run.rglob(pattern):
+        between = list(path.relative_to(run).parents)[:-1]  # the folders below ``run``
+        if not any((run / folder / "scenario.json").is_file() for folder in between):
+            own.append(path)
+    return sorted(own)
+
+
 def _table_cells(d: dict) -> list[tuple[float, float]]:
     keys = ("x_mm", "y_mm", "z_mm", "pitch_deg", "yaw_deg", "roll_deg")
     return [(d["mean"][k], d["std"][k]) for k in keys]
@@ -290,9 +303,11 @@ def _navigation_section(run: Path, skipped: _Skipped) -> str:
     truth_path = run / TRUTH
     # NAV.csv itself, not its companions (NAV.candidates.csv, NAV.health.csv).
     # Any case: the README writes NAV.csv, the demo nav.csv.
-    navs = sorted(
-        p for p in run.rglob("*.csv") if p.stem.lower().startswith("nav") and "." not in p.stem
-    )
+    navs = [
+        p
+        for p in _own_files(run, "*.csv")
+        if p.stem.lower().startswith("nav") and "." not in p.stem
+    ]
     if not truth_path.exists() or not navs:
         return ""
     # Checked as navigate reads it (read_run): a truth row at another time than its frame
