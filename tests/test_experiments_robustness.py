@@ -280,3 +280,20 @@ def test_a_cells_value_that_is_no_number_is_named(capsys) -> None:
 
     assert main(["experiment", "robustness", "--cells", "range=1.2+abc", "--frames", "3"]) == 1
     assert capsys.readouterr().err.strip() == "error: --cells range=abc: 'abc' is not a number"
+
+
+def test_quick_narrows_a_cells_file_and_a_value_named_twice_is_refused(tmp_path) -> None:
+    """``--quick --cells onlylab.yaml`` ran the whole grid on the axes the file left out (500
+    runs, where the same selection as a string ran 1); ``seed=0+0`` ran one run twice and
+    reported it as two seeds with no spread."""
+    from spacepose.errors import ConfigError
+    from spacepose.tools.experiments.robustness_cells import select_cells
+
+    cells = tmp_path / "onlylab.yaml"
+    cells.write_text("target: [lab]\n")
+    assert len(select_cells(str(cells), True, None)[0]) == 1
+    assert len(select_cells("target=lab", True, None)[0]) == 1
+    assert len(select_cells(str(cells), False, None)[0]) == 500
+    for spec, said in (("seed=0+0", "seed 0"), ("range=1.2+1.2", "range 1.2")):
+        with pytest.raises(ConfigError, match=rf"^--cells: {said} is named twice$"):
+            select_cells(spec, True, None)

@@ -219,17 +219,20 @@ def select_cells(
         (:func:`check_cells`).
     """
     source = "--cells"
+    # With --quick the axes a selection leaves out keep the quick cell's one value (a file's
+    # too: it ran the whole grid on the axes it did not name, 500 runs for "target: [lab]").
+    base = {} if not quick else {a: [v] for a, v in asdict(Cell(seed=seed)).items()}
+    base |= {"frames": QUICK_FRAMES} if quick else {}
     if cells is not None and is_cells_file(cells):
         source = cells
         grid = load_config(RobustnessGrid, cells)
         # An empty file would otherwise mean the whole grid, hours of runs nobody asked for.
         if not grid.model_fields_set:
             raise ConfigError(f"{cells}: holds no cells; set any of {', '.join(AXES)}")
-    elif cells is not None:
-        named = parse_cells(cells)
-        base = {} if not quick else {a: [v] for a, v in asdict(Cell(seed=seed)).items()}
-        base |= {"frames": QUICK_FRAMES} if quick else {}
+        named = {a: getattr(grid, a) for a in grid.model_fields_set}
         grid = validate_config(RobustnessGrid, base | named, source=source)
+    elif cells is not None:
+        grid = validate_config(RobustnessGrid, base | parse_cells(cells), source=source)
     elif quick:
         default = Cell(seed=seed)
         runs = [default, *(replace(default, **variant) for variant in QUICK_VARIANTS)]
@@ -237,6 +240,11 @@ def select_cells(
         return runs, frames or QUICK_FRAMES
     else:
         grid = RobustnessGrid()
+    for axis in AXES:
+        values = getattr(grid, axis)
+        twice = next((v for k, v in enumerate(values) if v in values[:k]), None)
+        if twice is not None:  # the same runs again, reported as more seeds with no spread
+            raise ConfigError(f"{source}: {axis} {twice} is named twice")
     runs = [Cell(*values) for values in itertools.product(*(getattr(grid, a) for a in AXES))]
     check_cells(runs, source)
     return runs, frames or grid.frames
