@@ -470,3 +470,21 @@ def test_tracking_runner_scores_a_short_lab_run_against_truth() -> None:
     assert {k: v for k, v in same.items() if not k.startswith("time")} == {
         k: v for k, v in metrics.items() if not k.startswith("time")
     }
+
+
+def test_a_campaign_whose_every_case_failed_says_so_and_exits_1(tmp_path, capsys, scheduler):
+    """Its one case failed (a noise scale of 1e300 puts the points past float64's squares),
+    and the command printed "1 cases (1 computed, 0 already done)" with exit code 0: the
+    failure sat in the table's error column alone."""
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "name: huge\ncase_kind: registration\ngrid:\n  scenario: [lab]\n  noise_scale: [1e300]\n"
+        "  method: [point_to_point]\n  seed: [0]\n"
+    )
+    args = ["campaign", str(config), "--out", str(tmp_path / "o"), "--scheduler", scheduler]
+    assert main(args) == 1
+    printed = capsys.readouterr()
+    assert "1 cases (1 computed, 0 already done, 1 failed (why: the error column))" in " ".join(
+        printed.out.split()
+    )
+    assert f"error: {config}: every case failed (the first: InputError: " in printed.err

@@ -19,7 +19,7 @@ def campaign(
     out: Path | None = typer.Option(None, help="Output folder (overrides config)."),
 ) -> None:
     """Run or resume a campaign: parts/, results.parquet, summary.json and plots go to OUT."""
-    from spacepose.errors import ConfigError
+    from spacepose.errors import ConfigError, InputError
     from spacepose.tools.campaign import RESULTS_FILE, run_campaign
     from spacepose.tools.campaign_spec import load_campaign_config
 
@@ -31,7 +31,12 @@ def campaign(
         )
     cfg = load_campaign_config(config, workers=workers, out=out)
     result = run_campaign(cfg, scheduler=scheduler)
+    failed = f", {result.n_failed} failed (why: the error column)" if result.n_failed else ""
     console.print(
         f"{result.table.num_rows} cases ({result.n_computed} computed, "
-        f"{result.n_skipped} already done) -> {result.out_dir / RESULTS_FILE}"
+        f"{result.n_skipped} already done{failed}) -> {result.out_dir / RESULTS_FILE}"
     )
+    if result.table.num_rows and result.n_failed == result.table.num_rows:
+        # A campaign with no result is a failure to report, as a track with no pose is.
+        first = result.table.column("error")[0].as_py()
+        raise InputError(f"every case failed (the first: {first})", config)

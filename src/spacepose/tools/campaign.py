@@ -322,6 +322,13 @@ class CampaignResult:
     n_computed: int
     n_skipped: int
 
+    @property
+    def n_failed(self) -> int:
+        """Cases of the table whose ``error`` column holds why they failed."""
+        if "error" not in self.table.column_names:
+            return 0
+        return int(self.table.num_rows - self.table.column("error").null_count)
+
 
 @contextlib.contextmanager
 def _dask_client(config: CampaignConfig, scheduler: str | None) -> Iterator[Any]:
