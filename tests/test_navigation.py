@@ -580,3 +580,21 @@ def test_cli_navigate_a_frame_folder_with_a_scenario_file(run_dir, tmp_path, cap
     capsys.readouterr()
     assert main(args) == 1
     assert "needs a scenario file" in capsys.readouterr().err
+
+
+def test_a_filter_that_only_predicts_after_its_start_is_warned_about(run_dir, tmp_path, capsys):
+    """A prior half a turn off started the filter on a pose no later rectangle agreed with:
+    every row after it predicted alone, 4 m and 178° off, counted as navigated without a word.
+    The prior near the truth updates, and is not warned about."""
+    out = tmp_path / "nav.csv"
+    assert main(["navigate", str(run_dir), "--out", str(out), "--prior=1,0,0,0"]) == 0
+    err = capsys.readouterr().err
+    assert (
+        "nav.csv: no measurement updated the filter after its start: 5 frames predicted alone"
+        in err
+    )
+    assert "(a --prior far from the target's attitude?)" in err, err
+    with out.open() as fh:
+        assert {r[-1] for r in list(csv.reader(fh))[2:]} == {"predict"}
+    assert main(["navigate", str(run_dir), "--out", str(out), "--debug-prior-from-truth"]) == 0
+    assert "updated" not in capsys.readouterr().err

@@ -260,6 +260,15 @@ def navigate_run(
                 else f"{len(unreadable)} of {len(rows)} frames could not be read {first}; {why}"
             )
         raise InputError(why, input_dir)
+    if navigated > 1 and not any(r.status == "update" for r in rows):
+        # Started, then predicted alone: counted as navigated, 4 m and 178° off after a --prior
+        # of the wrong side (no rectangle agreed with the pose it started from).
+        hint = " (a --prior far from the target's attitude?)" if prior_q_I_B is not None else ""
+        problem = (
+            f"no measurement updated the filter after its start: {navigated - 1} frames "
+            f"predicted alone{hint}"
+        )
+        warnings.warn(SpaceposeWarning(problem, nav_csv), stacklevel=2)
     return NavigationSummary(
         nav_csv,
         config_json,
