@@ -330,3 +330,17 @@ def test_a_run_nested_in_another_is_scored_against_its_own_truth_alone(tmp_path:
     own = next(s for s in sections if s.startswith("lab/inner<"))
     assert "far" not in outer and "groundtruth" not in outer and "15000" not in outer
     assert "far" in own and "15000" in own
+
+
+def test_a_navigation_of_a_run_without_truth_is_named_not_dropped(tmp_path: Path, capsys) -> None:
+    """Without truth.csv a run's nav.csv was left out of the page without a word, as its tracks
+    were without groundtruth.tum."""
+    root = tmp_path / "demo"
+    _make_run(root)
+    (root / "orbit" / "truth.csv").unlink()
+    assert main(["report", str(root), "--out", str(tmp_path / "r.html")]) == 0
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"warning: {root / 'orbit' / 'truth.csv'}: left out of the report: not found, so "
+        "nav.csv cannot be scored"
+    ), err

@@ -308,8 +308,12 @@ def _navigation_section(run: Path, skipped: _Skipped) -> str:
         for p in _own_files(run, "*.csv")
         if p.stem.lower().startswith("nav") and "." not in p.stem
     ]
-    if not truth_path.exists() or not navs:
+    if not navs:
         return ""
+    if not truth_path.exists():  # as tracks without groundtruth.tum: said, not left out unseen
+        raise InputError(
+            f"not found, so {', '.join(p.name for p in navs)} cannot be scored", truth_path
+        )
     # Checked as navigate reads it (read_run): a truth row at another time than its frame
     # scored every navigation against the wrong frame's state without a word.
     gt_path = run / GROUNDTRUTH
