@@ -344,6 +344,9 @@ def test_the_same_warning_for_many_files_is_printed_three_times_then_counted(mon
                 SpaceposeWarning("coordinates look like mm (a lot)", f"f{k}.ply"), stacklevel=1
             )
         warnings.warn(SpaceposeWarning("another problem", "g.ply"), stacklevel=1)
+        # The same message again (one run folder opened twice by a command): not said again.
+        warnings.warn(SpaceposeWarning("another problem", "g.ply"), stacklevel=1)
+        warnings.warn(SpaceposeWarning("coordinates look like mm (a lot)", "f0.ply"), stacklevel=1)
     assert screen.getvalue().splitlines() == [
         "warning: f0.ply: coordinates look like mm (a lot)",
         "warning: f1.ply: coordinates look like mm (a lot)",

@@ -108,6 +108,8 @@ class _OneLineWarnings:
 
     def __init__(self) -> None:
         self.repeats: Counter[tuple[type, str]] = Counter()
+        # Each message once: a run folder opened three times by one command warned three times.
+        self.said: set[str] = set()
 
     def __enter__(self) -> _OneLineWarnings:
         return self
@@ -118,10 +120,14 @@ class _OneLineWarnings:
             # source line Python's printer adds.
             _print_warning(f"{category.__name__}: {_one_line(str(message))}")
             return
+        text = _one_line(str(message))
+        if text in self.said:
+            return
+        self.said.add(text)
         key = (category, _problem(message.reason))
         self.repeats[key] += 1
         if self.repeats[key] <= self.shown:
-            _print_warning(_one_line(str(message)))
+            _print_warning(text)
 
     def __exit__(self, *exc_info: object) -> None:
         for (_, what), count in self.repeats.items():
