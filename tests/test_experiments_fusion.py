@@ -90,3 +90,17 @@ def test_seed_figures_leave_out_the_seeds_that_never_started():
     one = _mean_std(np.array([[0.5], [np.nan]]))
     assert one == {"mean": [0.5], "std": [0.0]}
     assert np.isnan(_mean_std(np.array([np.nan, np.nan]))["mean"])
+
+
+def test_the_table_says_what_no_seed_has_and_no_spread_of_one_seed():
+    """A run that navigated nothing read "nan ± nan" in fusion.md, and one seed "± 0"."""
+    from spacepose.tools.experiments.fusion import SUMMARY_KEYS, markdown_table
+
+    summary = {k: {"mean": float("nan"), "std": float("nan")} for k in SUMMARY_KEYS}
+    summary[SUMMARY_KEYS[0]] = {"mean": [1.25, 2.5, 3.0], "std": [0.0, 0.0, 0.0]}
+    runs = {"default / both": {"summary": summary, "per_seed": [{}], "seeds_navigated": 0}}
+    row = markdown_table(runs).splitlines()[2]
+    assert "nan" not in row and "±" not in row
+    assert row.startswith("| default / both | 1.25 / 2.5 / 3 | – |"), row
+    runs["default / both"]["per_seed"] = [{}, {}]
+    assert "1.25 ± 0 / 2.5 ± 0 / 3 ± 0" in markdown_table(runs)

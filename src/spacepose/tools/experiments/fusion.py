@@ -38,7 +38,7 @@ from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.sim.random_targets import generated_seed
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
-from spacepose.errors import ConfigError
+from spacepose.errors import ConfigError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register
 from spacepose.tools.experiments.yu_nav import (
@@ -302,14 +302,20 @@ def _mean_std(values: NDArray[np.float64]) -> dict[str, list[float] | float]:
 def markdown_table(runs: dict[str, dict[str, Any]]) -> str:
     """One row per target and measurement kind, mean ± std over seeds per axis."""
 
-    def cell(stat: dict[str, Any]) -> str:
+    def one(m: float, s: float, seeds: int) -> str:
+        if not np.isfinite(m):  # no seed has the figure (nothing navigated): "nan ± nan" before
+            return "–"
+        return f"{m:.3g}" if seeds < 2 else f"{m:.3g} ± {s:.2g}"  # one seed has no spread
+
+    def cell(stat: dict[str, Any], seeds: int) -> str:
         mean, std = np.atleast_1d(stat["mean"]), np.atleast_1d(stat["std"])
-        return " / ".join(f"{m:.3g} ± {s:.2g}" for m, s in zip(mean, std, strict=True))
+        return " / ".join(one(m, s, seeds) for m, s in zip(mean, std, strict=True))
 
     lines = ["| run | " + " | ".join(SUMMARY_KEYS) + " |", "|---" * (len(SUMMARY_KEYS) + 1) + "|"]
     for name, run in runs.items():
-        lines.append(f"| {name} | " + " | ".join(cell(run["summary"][k]) for k in SUMMARY_KEYS)
-                     + " |")  # fmt: skip
+        seeds = len(run["per_seed"])
+        cells = [cell(run["summary"][k], seeds) for k in SUMMARY_KEYS]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -333,4 +339,11 @@ def fusion(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
     table = {"frames": frames, "seeds": seeds, "runs": runs}
     (out_dir / "fusion.json").write_text(json.dumps(table, indent=2, default=float) + "\n")
     (out_dir / "fusion.md").write_text(markdown_table(runs))
+    for name, run in runs.items():
+        if run["seeds_navigated"] < len(seeds):  # its figures stand on the other seeds alone
+            problem = (
+                f"{name} navigated no frame on {len(seeds) - run['seeds_navigated']} of "
+                f"{len(seeds)} seeds ({frames} frames: too few to start?)"
+            )
+            warnings.warn(SpaceposeWarning(problem, out_dir / "fusion.md"), stacklevel=2)
     return table
