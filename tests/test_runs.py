@@ -147,6 +147,10 @@ def test_bad_run_folders(tmp_path, lab_sim, orbit_sim) -> None:
     (orbit / "truth.csv").write_text(truth.replace("\n0,", "\nzero,", 1))
     with pytest.raises(FileFormatError, match=r"truth\.csv: bad row"):
         read_run(orbit)
+    # Cut mid-row: numpy's "use `usecols` to select a subset" was no advice a user can take.
+    (orbit / "truth.csv").write_text(truth[: len(truth) // 2])
+    with pytest.raises(FileFormatError, match=r"truth\.csv: line \d+ has \d+ values, the header"):
+        read_run(orbit)
     (orbit / "truth.csv").unlink()
     with pytest.raises(InputError, match=r"missing truth\.csv"):
         read_run(orbit)

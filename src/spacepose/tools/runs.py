@@ -325,6 +325,14 @@ def read_truth(
     # np.loadtxt only warns on a body without data (blank or '#' comment lines alone).
     if not any(line.split("#")[0].strip() for line in lines[1:]):
         raise FileFormatError(f"{expected}, got none", path)
+    for k, line in enumerate(lines[1:], start=2):
+        values = line.split("#")[0].strip()
+        if values and len(values.split(",")) != len(TRUTH_COLUMNS):
+            # numpy said "the number of columns changed ...; use `usecols` to select a subset".
+            problem = (
+                f"line {k} has {len(values.split(','))} values, the header {len(TRUTH_COLUMNS)}"
+            )
+            raise FileFormatError(f"{problem} (a truncated file?)", path)
     try:
         table = np.loadtxt(lines[1:], delimiter=",", ndmin=2)
     except ValueError as exc:
