@@ -200,3 +200,13 @@ def test_write_bench_under_a_file_says_so(tmp_path: Path) -> None:
     out, problem = _under_a_file(tmp_path)
     with pytest.raises(InputError, match=problem):
         bench.write_bench({}, out)
+
+
+def test_bench_out_must_be_named_json(tmp_path: Path, capsys, monkeypatch) -> None:
+    """``--out run/truth.csv`` wrote the benchmark's JSON over a run's truth, without a word."""
+    truth = tmp_path / "truth.csv"
+    truth.write_text("t,rho_x\n0,1\n")
+    monkeypatch.setattr(bench, "run_benchmark", _not_called)
+    assert main(["bench", "--quick", "--repeats", "1", "--out", str(truth)]) == 1
+    assert "the benchmark writes JSON: name its file .json, not truth.csv" in _cli_error(capsys)
+    assert truth.read_text() == "t,rho_x\n0,1\n"

@@ -26,15 +26,15 @@ def bench(
     from spacepose.tools.bench import (
         accuracy_table,
         bench_config,
+        check_bench_output,
         run_benchmark,
         stage_table,
         write_bench,
     )
-    from spacepose.tools.outputs import check_writable
 
     options = bench_config(quick, config)
     # Before the benchmark, which takes minutes: a bad --out would throw its result away.
-    check_writable(out)
+    check_bench_output(out)
     with working("benchmarking"):
         result = run_benchmark(quick, peers, repeats, seed, workers, config=options)
     console.print(stage_table(result))

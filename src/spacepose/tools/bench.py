@@ -357,16 +357,31 @@ def _json_ready(value: Any) -> Any:
     return value
 
 
+def check_bench_output(path: str | Path) -> None:
+    """Refuse a benchmark output that cannot be written, or is not named ``.json``.
+
+    Raises
+    ------
+    InputError
+        :func:`~spacepose.tools.outputs.check_writable`'s reasons, or another suffix: the
+        benchmark's JSON written over a run's truth.csv destroyed it without a word.
+    """
+    path = Path(path)
+    check_writable(path)
+    if path.suffix.lower() != ".json":
+        raise InputError(f"the benchmark writes JSON: name its file .json, not {path.name}", path)
+
+
 def write_bench(result: dict, path: str | Path) -> Path:
     """Write a :func:`run_benchmark` result as JSON (non-finite numbers as null).
 
     Raises
     ------
     InputError
-        When the file cannot be written (:func:`~spacepose.tools.outputs.check_writable`).
+        When the file cannot be written, or is not named ``.json`` (:func:`check_bench_output`).
     """
     path = Path(path)
-    check_writable(path)
+    check_bench_output(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(_json_ready(result), indent=2, allow_nan=False) + "\n")
