@@ -17,7 +17,7 @@ import pytest
 import spacepose
 from spacepose.cli import main
 from spacepose.core.background import BackgroundConfig
-from spacepose.core.config import StageConfig, dump_config, load_config
+from spacepose.core.config import StageConfig, config_name, dump_config, load_config
 from spacepose.core.depth import DepthCamera
 from spacepose.core.navigation import NavigationConfig
 from spacepose.core.planes import PlaneConfig
@@ -153,7 +153,7 @@ def test_every_stage_config_rejects_inf_and_nan_in_every_float_field():
                     continue  # "no upper limit", tested below
                 with pytest.raises(ConfigError) as exc:
                     model.model_validate(defaults | {field: value})
-                _one_line(exc, model.__name__, field)
+                _one_line(exc, config_name(model), field)
                 checked += 1
     assert checked > 100
 
@@ -280,7 +280,7 @@ def test_a_number_written_as_text_is_refused_in_a_config(tmp_path):
     path.write_text('gate: "0.5"\nhealth:\n  ok_rmse: "0.67"\n')
     with pytest.raises(ConfigError) as exc:
         load_config(TrackerConfig, path)
-    _one_line(exc, path, "gate: Value error, '0.5' is text", "health.ok_rmse", "unquoted")
+    _one_line(exc, path, "gate: '0.5' is text", "health.ok_rmse", "unquoted")
     with pytest.raises(ConfigError, match="points_per_frame"):
         TrackerConfig.model_validate({"points_per_frame": "3000"})
     assert TrackerConfig.model_validate({"method": "gicp"}).method == "gicp"
@@ -306,7 +306,7 @@ def test_yaml_numbers_are_read_as_yaml_1_2_reads_them(tmp_path, written, value):
         return
     with pytest.raises(ConfigError) as exc:
         load_config(TrackerConfig, path)
-    _one_line(exc, path, f"icp.max_iterations: Value error, '{written}' is text")
+    _one_line(exc, path, f"icp.max_iterations: '{written}' is text")
 
 
 def test_points_per_frame_below_the_health_minimum_is_refused():
@@ -379,7 +379,7 @@ def test_a_scenario_field_of_view_that_is_no_pair_of_angles_is_one_line(tmp_path
     args = ["navigate", str(frames), "--out", str(tmp_path / "nav" / "p.csv")]
     assert main([*args, "--scenario", str(scenario)]) == 1
     err = _cli_error(capsys)
-    assert f"{scenario}: sensor_fov_deg: invalid LostInSpaceConfig: fov_deg" in err
+    assert f"{scenario}: sensor_fov_deg: invalid lost in space config: fov_deg" in err
 
 
 # Deeper than either parser's recursion: a RecursionError traceback before.
@@ -498,7 +498,7 @@ def test_a_config_key_yaml_reads_as_no_name_is_refused(tmp_path, text, key, unde
     for model in (TrackerConfig, NavigationConfig):
         with pytest.raises(ConfigError) as exc:
             load_config(model, path)
-        message = _one_line(exc, path, model.__name__, f"the key {key}")
+        message = _one_line(exc, path, config_name(model), f"the key {key}")
         assert (f"under {under}" in message) == (under is not None)
 
 

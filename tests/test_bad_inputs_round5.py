@@ -288,7 +288,7 @@ def test_a_campaign_integer_beyond_64_bits_is_refused_before_any_case(tmp_path, 
     config.write_text(f"out: {tmp_path / 'out'}\ngrid: {grid}\n")
     assert main(["campaign", str(config)]) == 1
     assert _cli_error(capsys) == (
-        f"error: {config}: invalid CampaignConfig: grid: Value error, axis 'seed' has an "
+        f"error: {config}: invalid campaign config: grid: axis 'seed' has an "
         "integer beyond 64 bits: [0, 100000000000000000000000]"
     )
     assert not (tmp_path / "out").exists()

@@ -73,7 +73,7 @@ def test_a_tracking_campaign_of_one_frame_is_refused(tmp_path):
     config.write_text(yaml.safe_dump({"case_kind": "tracking", "grid": grid | {"frames": [1]}}))
     with pytest.raises(ConfigError) as exc:
         load_campaign_config(config)
-    assert str(exc.value).startswith(f"{config}: invalid CampaignConfig:")
+    assert str(exc.value).startswith(f"{config}: invalid campaign config:")
     assert "frames values must be integers >= 2, got [1]" in str(exc.value)
 
 

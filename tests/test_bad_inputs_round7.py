@@ -161,7 +161,7 @@ def test_a_config_given_as_a_dict_is_validated_as_the_tracker_does():
     )
     with pytest.raises(ConfigError) as exc:
         extract_planes(points, {"sead": 1})
-    assert str(exc.value) == "invalid PlaneConfig: sead: Extra inputs are not permitted"
+    assert str(exc.value) == "invalid plane config: sead: Extra inputs are not permitted"
     with pytest.raises(ConfigError, match=r"^plane_config must be a PlaneConfig"):
         find_rectangles(points, plane_config=None)
 
@@ -172,7 +172,7 @@ def test_global_registration_configs_and_voxel_size_are_checked():
     points = _plane()
     with pytest.raises(ConfigError) as exc:
         global_registration(points, points, 0.01, fpfh={"max_nn": 0})
-    assert str(exc.value).startswith("invalid FPFHConfig: max_nn: ")
+    assert str(exc.value).startswith("invalid FPFH config: max_nn: ")
     with pytest.raises(ConfigError, match=r"^ransac must be a RansacConfig .* got str$"):
         global_registration(points, points, 0.01, ransac="fast")
     with pytest.raises(InputError) as exc:

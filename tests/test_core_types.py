@@ -199,23 +199,23 @@ def test_stage_config_errors_are_config_errors_naming_the_field() -> None:
     class _Inner(StageConfig):
         k: int = Field(10, ge=1)
 
-    class _Outer(StageConfig):
+    class OuterConfig(StageConfig):
         voxel_size: float = Field(0.01, gt=0)
         inner: _Inner = _Inner()
 
-    with pytest.raises(ConfigError, match=r"^invalid _Outer: voxel_size: .*greater than 0$"):
-        _Outer(voxel_size=-1)
-    with pytest.raises(ConfigError, match=r"^invalid _Outer: inner\.k: .*greater than or equal"):
-        _Outer(inner={"k": 0})
-    with pytest.raises(ConfigError, match=r"^invalid _Outer: bogus: Extra inputs"):
-        _Outer.model_validate({"bogus": 1})
-    assert _Outer(inner={"k": 3}).inner.k == 3 and _Outer().voxel_size == 0.01
+    with pytest.raises(ConfigError, match=r"^invalid outer config: voxel_size: .*greater than 0$"):
+        OuterConfig(voxel_size=-1)
+    with pytest.raises(ConfigError, match=r"^invalid outer config: inner\.k: .*greater than or eq"):
+        OuterConfig(inner={"k": 0})
+    with pytest.raises(ConfigError, match=r"^invalid outer config: bogus: Extra inputs"):
+        OuterConfig.model_validate({"bogus": 1})
+    assert OuterConfig(inner={"k": 3}).inner.k == 3 and OuterConfig().voxel_size == 0.01
 
 
 def test_tracker_config_with_a_negative_voxel_is_a_config_error() -> None:
     from spacepose.core.tracker import TrackerConfig
 
-    with pytest.raises(ConfigError, match=r"invalid TrackerConfig: voxel_size: .*greater than 0"):
+    with pytest.raises(ConfigError, match=r"invalid tracker config: voxel_size: .*greater than 0"):
         TrackerConfig(voxel_size=-1)
 
 

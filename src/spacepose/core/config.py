@@ -151,12 +151,21 @@ def config_error(
         if nested:
             problems += [(".".join(filter(None, [*loc, field])), msg) for field, msg in nested]
         else:
-            problems.append((".".join(loc), err["msg"]))
+            # Pydantic prefixes a validator's own words with "Value error, ".
+            problems.append((".".join(loc), err["msg"].removeprefix("Value error, ")))
     where = f"{source}: " if source else ""
-    listed = "; ".join(f"{field or '<root>'}: {msg}" for field, msg in problems)
-    error = ConfigError(f"{where}invalid {model.__name__}: {listed}")
+    listed = "; ".join(f"{field}: {msg}" if field else msg for field, msg in problems)
+    error = ConfigError(f"{where}invalid {config_name(model)}: {listed}")
     error.problems = problems
     return error
+
+
+def config_name(model: type[BaseModel]) -> str:
+    """A config model's name in words, as a user knows it: ``TrackerConfig`` -> "tracker
+    config", ``FPFHConfig`` -> "FPFH config", ``LostInSpaceConfig`` -> "lost in space config"
+    (the class names read as code in a one-line error)."""
+    words = re.sub(r"(?<=[a-z])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z])", " ", model.__name__).split()
+    return " ".join(w if w.isupper() and len(w) > 1 else w.lower() for w in words)
 
 
 def validate_config(model: type[C], data: dict | None, source: str | Path | None = None) -> C:
@@ -166,7 +175,7 @@ def validate_config(model: type[C], data: dict | None, source: str | Path | None
         # YAML reads "yes:", "1:" or "null:" as a boolean, number or None: pydantic's
         # "keywords must be strings" TypeError escaped as a traceback.
         where, bad = key
-        problem = f"invalid {model.__name__}: the key {bad!r}{where} is not a name"
+        problem = f"invalid {config_name(model)}: the key {bad!r}{where} is not a name"
         raise ConfigError(f"{source}: {problem}" if source else problem)
     try:
         return model.model_validate(data or {})

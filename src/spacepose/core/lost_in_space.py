@@ -141,7 +141,7 @@ def with_sensor_fov(config: LostInSpaceConfig, fov: object, source: str) -> Lost
     Raises
     ------
     ConfigError
-        ``source: sensor_fov_deg: invalid LostInSpaceConfig: ...``: not two angles in
+        ``source: sensor_fov_deg: invalid lost in space config: ...``: not two angles in
         (0, 180) deg (null, text, a negative or non-finite angle).
     """
     data = config.model_dump() | {"fov_deg": fov}
