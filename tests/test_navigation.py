@@ -598,3 +598,20 @@ def test_a_filter_that_only_predicts_after_its_start_is_warned_about(run_dir, tm
         assert {r[-1] for r in list(csv.reader(fh))[2:]} == {"predict"}
     assert main(["navigate", str(run_dir), "--out", str(out), "--debug-prior-from-truth"]) == 0
     assert "updated" not in capsys.readouterr().err
+
+
+def test_a_scenario_of_the_wrong_shapes_says_which_key() -> None:
+    """A list for mean_motion read "mean_motion / R_O_C are not numeric: float() argument must
+    be a string or a real number, not 'list'"; a mapping for the rectangles "no rectangle
+    catalogue found", beside the key."""
+    from spacepose.core.nav_start import scenario_geometry
+    from spacepose.errors import ConfigError
+    from spacepose.tools.catalogue import parse_catalogue
+
+    R = np.eye(3).tolist()
+    with pytest.raises(InputError, match=r"^s.json: mean_motion must be one number, got a list$"):
+        scenario_geometry({"mean_motion": [0.001], "R_O_C": R}, "s.json")
+    with pytest.raises(InputError, match=r"^s.json: R_O_C must be a 3x3 rotation matrix of num"):
+        scenario_geometry({"mean_motion": 0.001, "R_O_C": [[1, 0], [0, 1, 0]]}, "s.json")
+    with pytest.raises(ConfigError, match=r"s.json: rectangles must be a list of entries, got a "):
+        parse_catalogue({"rectangles": {"a": 1}}, source="s.json")

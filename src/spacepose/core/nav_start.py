@@ -55,11 +55,19 @@ def scenario_geometry(
                 # JSON's NaN and Infinity read as text through YAML.
                 raise InputError(f"{key} must be finite, got {scenario[key]!r}", source)
             raise InputError(f"{key} holds text where a number goes (write it unquoted)", source)
+    if isinstance(scenario["mean_motion"], list | tuple | dict):
+        kind = "a mapping" if isinstance(scenario["mean_motion"], dict) else "a list"
+        raise InputError(f"mean_motion must be one number, got {kind}", source)
     try:
         n = float(scenario["mean_motion"])
         R = np.asarray(scenario["R_O_C"], dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"mean_motion / R_O_C are not numeric: {exc}", source) from None
+    except (TypeError, ValueError):
+        problem = (
+            "mean_motion must be a number"
+            if not isinstance(scenario["mean_motion"], int | float)
+            else "R_O_C must be a 3x3 rotation matrix of numbers"
+        )
+        raise InputError(problem, source) from None
     if not np.isfinite(n) or n <= 0:
         raise InputError(f"mean_motion must be positive, got {n}", source)
     if n > _MAX_MEAN_MOTION:

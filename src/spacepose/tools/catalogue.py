@@ -53,6 +53,9 @@ def _entries_of(data: Any, source: str) -> list:
         if isinstance(target, dict) and "rectangles" in target:
             return _entries_of(target["rectangles"], source)
         if "rectangles" in data:
+            if not isinstance(data["rectangles"], list):  # "no catalogue found" beside the key
+                kind = "a mapping" if isinstance(data["rectangles"], dict) else "no list"
+                raise ConfigError(f"{source}: rectangles must be a list of entries, got {kind}")
             return _entries_of(data["rectangles"], source)
     raise ConfigError(
         f"{source}: no rectangle catalogue found (expected a list, 'rectangles' or "
