@@ -27,7 +27,7 @@ from spacepose.core.rectangle_measurement import measure_rectangle
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig
 from spacepose.core.sim import symmetric_orbit_target
 from spacepose.core.sim.scenarios import OrbitConfig, scenario_config, simulate_orbit
-from spacepose.errors import InputError
+from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.runs import write_run
 
@@ -615,3 +615,17 @@ def test_a_scenario_of_the_wrong_shapes_says_which_key() -> None:
         scenario_geometry({"mean_motion": 0.001, "R_O_C": [[1, 0], [0, 1, 0]]}, "s.json")
     with pytest.raises(ConfigError, match=r"s.json: rectangles must be a list of entries, got a "):
         parse_catalogue({"rectangles": {"a": 1}}, source="s.json")
+
+
+def test_a_config_files_prior_is_checked_naming_the_file(tmp_path) -> None:
+    from spacepose.errors import ConfigError
+    from spacepose.tools.navigation_io import load_navigation_config
+
+    path = tmp_path / "nav.yaml"
+    path.write_text("prior_q_I_B: [0, 0, 0, 0]\n")
+    with pytest.raises(ConfigError, match=rf"^{path}: prior_q_I_B: the quaternion must be four"):
+        load_navigation_config(path, "rectangles")
+    path.write_text("prior_q_I_B: [0, 0, 0, 2]\n")
+    with pytest.warns(SpaceposeWarning, match=r"nav.yaml: prior_q_I_B"):
+        config, _ = load_navigation_config(path, "rectangles")
+    assert config.prior_q_I_B == (0.0, 0.0, 0.0, 1.0)

@@ -297,8 +297,9 @@ def load_navigation_config(
     data = read_mapping(path) or {}
     # NAV.config.json of a fused run: refused as eleven "Extra inputs" though navigate wrote it.
     if "navigation" not in data and "tracker" not in data:
-        return validate_config(NavigationConfig, data, path), None
+        return _with_checked_prior(validate_config(NavigationConfig, data, path), path), None
     fusion = validate_config(FusionConfig, data, path)
+    fusion = fusion.model_copy(update={"navigation": _with_checked_prior(fusion.navigation, path)})
     if fusion.measurements != measurements:
         raise ConfigError(
             f"{path}: a fusion config for --measurements {fusion.measurements}, given with "
@@ -306,6 +307,15 @@ def load_navigation_config(
             "navigation config"
         )
     return fusion.navigation, fusion
+
+
+def _with_checked_prior(config: NavigationConfig, path: str | Path) -> NavigationConfig:
+    """``config`` with its ``prior_q_I_B`` checked and normalised here, where the file is known
+    (checked later, its error named the key alone, not the file)."""
+    if config.prior_q_I_B is None:
+        return config
+    prior = prior_quaternion(config.prior_q_I_B, f"{path}: prior_q_I_B")
+    return config.model_copy(update={"prior_q_I_B": prior})
 
 
 def output_paths(out: str | Path, measurements: Measurements = "rectangles") -> tuple[Path, ...]:
