@@ -629,3 +629,18 @@ def test_a_config_files_prior_is_checked_naming_the_file(tmp_path) -> None:
     with pytest.warns(SpaceposeWarning, match=r"nav.yaml: prior_q_I_B"):
         config, _ = load_navigation_config(path, "rectangles")
     assert config.prior_q_I_B == (0.0, 0.0, 0.0, 1.0)
+
+
+def test_a_navigation_config_given_as_the_scenario_says_so(run_dir, tmp_path, capsys) -> None:
+    """NAV.config.json given as --scenario: fourteen keys were warned of as unknown, then
+    "missing key 'mean_motion'" ended the run."""
+    out = tmp_path / "nav.csv"
+    assert main(["navigate", str(run_dir), "--out", str(out), "--debug-prior-from-truth"]) == 0
+    capsys.readouterr()
+    again = ["navigate", str(run_dir / "frames"), "--out", str(tmp_path / "again.csv")]
+    assert main([*again, "--scenario", str(out.with_suffix(".config.json"))]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"error: {out.with_suffix('.config.json')}: a navigation config (--config), not a "
+        "scenario (mean_motion, R_O_C, rectangles)"
+    ), err

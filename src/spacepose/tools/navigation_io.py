@@ -193,6 +193,7 @@ def navigate_run(
     if scenario is not None:
         source = str(scenario)
         description = _read_mapping(Path(scenario))
+        _refuse_a_config(description, source)
         _warn_unknown_keys(description, source)
     elif (Path(input_dir) / SCENARIO).is_file():
         source = str(Path(input_dir) / SCENARIO)
@@ -445,6 +446,23 @@ def _why_nothing(rows: Sequence[NavRow], candidates_csv: Path | None, has_model:
         f"no frame navigated: none of the {len(rows)} frames shows a whole rectangle of the "
         "catalogue (check the catalogue's sizes and the plane settings)"
     )
+
+
+def _refuse_a_config(description: dict, source: str) -> None:
+    """Refuse a navigation or fusion config given as the scenario (NAV.config.json): its
+    fourteen keys were warned of as unknown, then "missing key 'mean_motion'" ended the run.
+
+    Raises
+    ------
+    ConfigError
+        ``description`` holds no orbit key and a config's own sections.
+    """
+    sections = {"ekf", "plane", "rectangle", "lost_in_space", "navigation", "tracker"}
+    if not set(description) & {"mean_motion", "R_O_C"} and set(description) & sections:
+        raise ConfigError(
+            f"{source}: a navigation config (--config), not a scenario (mean_motion, R_O_C, "
+            "rectangles)"
+        )
 
 
 def _warn_unknown_keys(description: dict, source: str) -> None:
