@@ -344,3 +344,19 @@ def test_a_navigation_of_a_run_without_truth_is_named_not_dropped(tmp_path: Path
         f"warning: {root / 'orbit' / 'truth.csv'}: left out of the report: not found, so "
         "nav.csv cannot be scored"
     ), err
+
+
+def test_a_navigation_scored_on_less_than_the_run_is_warned_about(tmp_path: Path, capsys) -> None:
+    """A nav.csv of 4 rows for 10 frames was scored "over the second half" of its 4; a row the
+    filter updated holding NaN was left out of the RMS; both without a word."""
+    root = tmp_path / "demo"
+    _make_run(root)
+    nav = root / "orbit" / "nav.csv"
+    lines = nav.read_text().splitlines()
+    cells = lines[3].split(",")
+    cells[1], cells[-1] = "nan", "update"
+    nav.write_text("\n".join([*lines[:3], ",".join(cells), lines[4]]) + "\n")
+    assert main(["report", str(root), "--out", str(tmp_path / "r.html")]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {nav}: 4 rows for the run's 10 frames: scored over those rows only" in err
+    assert f"warning: {nav}: row 3 holds NaN though its status is update (1 such rows" in err

@@ -331,7 +331,9 @@ def _navigation_section(run: Path, skipped: _Skipped) -> str:
 def _nav_file(nav_path: Path, truth: dict[str, np.ndarray]) -> str:
     """The RMS table and error figures of one navigation output against truth."""
     parts = []
-    nav = {k: np.asarray(v, dtype=float) for k, v in _read_csv(nav_path).items() if k != "status"}
+    table = _read_csv(nav_path)
+    nav = {k: np.asarray(v, dtype=float) for k, v in table.items() if k != "status"}
+    _warn_if_partial(nav_path, nav, table.get("status"), len(truth.get("t", ())))
     if "t" in nav and "t" in truth:
         # Rows pair line by line: a table of other times would score other frames' states.
         n = min(len(nav["t"]), len(truth["t"]))
@@ -361,6 +363,29 @@ def _nav_file(nav_path: Path, truth: dict[str, np.ndarray]) -> str:
         )
         parts.append(_figure(plots.figure_png(fig), f"{name} error with ±3σ"))
     return "".join(parts)
+
+
+def _warn_if_partial(
+    nav_path: Path, nav: dict[str, np.ndarray], status: object, frames: int
+) -> None:
+    """Warn of a navigation table scored on less than the run: fewer rows than the run's
+    frames ("the second half" was then of those rows), or a row the filter updated that holds
+    NaN (it was left out of the RMS without a word)."""
+    rows = len(nav.get("t", ()))
+    if frames and rows < frames:
+        problem = f"{rows} rows for the run's {frames} frames: scored over those rows only"
+        warnings.warn(SpaceposeWarning(problem, nav_path), stacklevel=3)
+    if status is None:
+        return
+    state = [nav[k] for k in ("rho_x", "rho_y", "rho_z", "qw") if k in nav]
+    updated = np.asarray(status) == "update"
+    holes = np.flatnonzero(updated & ~np.all(np.isfinite(state), axis=0)) if state else []
+    if len(holes):
+        problem = (
+            f"row {holes[0] + 1} holds NaN though its status is update ({len(holes)} such rows, "
+            "left out of the RMS)"
+        )
+        warnings.warn(SpaceposeWarning(problem, nav_path), stacklevel=3)
 
 
 def _experiments_section(root: Path, skipped: _Skipped) -> str:
