@@ -644,3 +644,11 @@ def test_a_navigation_config_given_as_the_scenario_says_so(run_dir, tmp_path, ca
         f"error: {out.with_suffix('.config.json')}: a navigation config (--config), not a "
         "scenario (mean_motion, R_O_C, rectangles)"
     ), err
+
+
+def test_an_earlier_runs_candidates_are_not_left_beside_a_new_navigation(run_dir, tmp_path):
+    out = tmp_path / "nav.csv"
+    assert main(["navigate", str(run_dir), "--out", str(out)]) == 0  # lost in space: ambiguous
+    assert out.with_suffix(".candidates.csv").is_file()
+    assert main(["navigate", str(run_dir), "--out", str(out), "--debug-prior-from-truth"]) == 0
+    assert not out.with_suffix(".candidates.csv").exists()

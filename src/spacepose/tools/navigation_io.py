@@ -246,6 +246,8 @@ def navigate_run(
     candidates_csv = None
     if ambiguous:
         candidates_csv = write_candidates_csv(Path(out).with_suffix(".candidates.csv"), rows)
+    else:  # an earlier run's candidates are not this run's (left beside it, they read as so)
+        Path(out).with_suffix(".candidates.csv").unlink(missing_ok=True)
     if navigated == 0:
         why = _why_nothing(rows, candidates_csv, model is not None)
         if measurements == "registration":
