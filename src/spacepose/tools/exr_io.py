@@ -3,9 +3,10 @@
 
 A depth EXR holds float (16- or 32-bit) depths in one channel: the only channel, or the one
 channel named as depth (``Z``, ``depth``, ``distance``; after a layer's name, as Blender's
-multilayer files spell ``ViewLayer.Depth.Z``), or three equal ``R``, ``G``, ``B`` channels (a
-depth saved as a grey image). Any other set of channels is refused with its names, so that a
-colour image is never read as depths.
+multilayer files spell ``ViewLayer.Depth.Z``, or in any part of a multi-part file), or three
+equal ``R``, ``G``, ``B`` channels (a depth saved as a grey image). Any other set of channels is
+refused with its names, so that a colour image is never read as depths. What the library prints
+of a damaged file is held back and quoted in the error (or the warning) naming it.
 """
 
 from __future__ import annotations
@@ -139,9 +140,9 @@ def exr_size(path: Path) -> tuple[int, int] | None:
     import OpenEXR
 
     try:
-        with OpenEXR.File(str(path), header_only=True) as exr:
+        with _quiet(), OpenEXR.File(str(path), header_only=True) as exr:
             (x0, y0), (x1, y1) = exr.header()["dataWindow"]
-    except (RuntimeError, KeyError, TypeError, ValueError):
+    except (RuntimeError, KeyError, TypeError, ValueError):  # the frame's own read says why
         return None
     return int(x1 - x0 + 1), int(y1 - y0 + 1)
 

@@ -333,7 +333,6 @@ def _nav_file(nav_path: Path, truth: dict[str, np.ndarray]) -> str:
     parts = []
     table = _read_csv(nav_path)
     nav = {k: np.asarray(v, dtype=float) for k, v in table.items() if k != "status"}
-    _warn_if_partial(nav_path, nav, table.get("status"), len(truth.get("t", ())))
     if "t" in nav and "t" in truth:
         # Rows pair line by line: a table of other times would score other frames' states.
         n = min(len(nav["t"]), len(truth["t"]))
@@ -348,6 +347,7 @@ def _nav_file(nav_path: Path, truth: dict[str, np.ndarray]) -> str:
         # Its error curves were all NaN: numpy's bare warnings and matplotlib's "Axis limits
         # cannot be NaN or Inf" as the reason.
         raise InputError("no frame navigated (no row holds a state): nothing to score")
+    _warn_if_partial(nav_path, nav, table.get("status"), len(truth.get("t", ())))
     errors = navigation_errors(nav, truth)
     rms = errors.rms(0.5)
     rows = [(f"{name} ({unit})", *rms[name]) for name, (unit, *_) in errors.groups.items()]
