@@ -487,3 +487,16 @@ def test_cast_rays_recasts_a_ray_that_embree_puts_on_the_wrong_face(monkeypatch)
     assert np.allclose(ranges, expected[1], rtol=1e-12)
     assert np.allclose(ranges * directions[:, 2], 2.0, atol=1e-12)  # all on the wall's front
     assert np.allclose(normals, (0, 0, -1))
+
+
+def test_an_orbit_model_in_millimetres_is_named_as_such(tmp_path) -> None:
+    """A 1 m box written in millimetres was told to "stand off farther" than its 866 m."""
+    import trimesh
+
+    from spacepose.core.sim import OrbitConfig, simulate_orbit
+    from spacepose.errors import ConfigError
+
+    trimesh.creation.box(extents=(1000.0, 1000.0, 1000.0)).export(tmp_path / "box_mm.obj")
+    config = OrbitConfig(frames=2, model=str(tmp_path / "box_mm.obj"))
+    with pytest.raises(ConfigError, match=r"\(866 m from its centre\); a model in millimetres\?"):
+        simulate_orbit(config)

@@ -63,6 +63,8 @@ TRUTH_COLUMNS = (
 ).split(",")
 # Boresight z_C along +x_O (the target ahead), y_C towards the Earth (+z_O), x_C = y_C × z_C.
 R_O_C_AHEAD = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+# Farthest a spacecraft's surface lies from its centre (m): the ISS's is 55 m.
+_LARGEST_REACH_M = 100.0
 
 
 class _ScenarioConfig(StageConfig):
@@ -408,9 +410,12 @@ def simulate_orbit(config: OrbitConfig | None = None) -> Simulation:
     # from within, a run of frames that looks like any other (--range 1e-9 did).
     reach = float(np.max(np.linalg.norm(target.mesh.vertices, axis=1)))
     if config.standoff_m <= reach:
+        # The largest spacecraft (the ISS) reaches 55 m from its centre: 866 m is millimetres.
+        millimetres = reach > _LARGEST_REACH_M
+        remedy = "a model in millimetres? give it in metres" if millimetres else "stand off farther"
         raise ConfigError(
             f"scenario orbit: a standoff of {config.standoff_m:g} m puts the chaser within the "
-            f"target's reach ({reach:.3g} m from its centre); stand off farther"
+            f"target's reach ({reach:.3g} m from its centre); {remedy}"
         )
     R_O_C_known = misaligned(
         R_O_C_AHEAD,
