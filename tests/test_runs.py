@@ -195,3 +195,12 @@ def test_a_frame_of_a_run_in_another_format_is_named_at_the_gap(tmp_path, lab_si
         r"read: a run's frames are \.ply\)",
     ):
         read_run(root)
+
+
+def test_a_run_of_frames_too_sparse_to_track_is_warned_about(tmp_path) -> None:
+    """An orbit 200 m out wrote frames of 11 points without a word; every one is lost."""
+    from spacepose.core.sim import OrbitConfig, simulate_orbit
+    from spacepose.errors import SpaceposeWarning
+
+    with pytest.warns(SpaceposeWarning, match=r"frames: 2 of 2 frames hold fewer than 100 points"):
+        write_run(tmp_path / "far", simulate_orbit(OrbitConfig(frames=2, standoff_m=200.0)))

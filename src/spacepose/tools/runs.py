@@ -28,11 +28,15 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import load_structured
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS, Simulation
 from spacepose.core.sim.targets import Rectangle
+from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.text_io import check_timing, read_text
 from spacepose.tools.trajectory_io import read_tum, write_tum
+
+# The tracker's default health.min_points: a frame of fewer points is lost.
+_FEWEST_TRACKED = TrackerConfig().health.min_points
 
 FRAMES_DIR = "frames"
 GROUNDTRUTH = "groundtruth.tum"
@@ -158,11 +162,22 @@ def write_run(
     for stale in frames_dir.glob("[0-9]*.ply"):
         if stale.name not in wanted:
             stale.unlink()
+    sparse = []
     for k in range(len(sim)):
         frame = sim.frame(k)
         write_cloud(frames_dir / _frame_name(k), frame.cloud.points, binary=True, dtype="float32")
+        if len(frame.cloud) < _FEWEST_TRACKED:
+            sparse.append((k, len(frame.cloud)))
         if progress is not None:
             progress(k)
+    if sparse:  # such frames were written without a word, and every one is lost when tracked
+        k, n = sparse[0]
+        problem = (
+            f"{len(sparse)} of {len(sim)} frames hold fewer than {_FEWEST_TRACKED} points (frame "
+            f"{k}: {n}), the fewest a frame is tracked on: the target is too small or too far "
+            "for the sensor"
+        )
+        warnings.warn(SpaceposeWarning(problem, frames_dir), stacklevel=2)
     write_tum(out / GROUNDTRUTH, sim.groundtruth)
     write_cloud(out / MODEL_CLOUD, sim.model_cloud(), binary=True, dtype="float32")
     sim.target.mesh.export(
