@@ -59,3 +59,20 @@ def test_model_option_and_refusals(hubble_run, tmp_path, capsys):
     assert "catalogue" in capsys.readouterr().err
     assert main([*base, "--measurements", "planes"]) == 1
     assert "--measurements" in capsys.readouterr().err
+
+
+def test_a_frame_the_tracker_cannot_use_is_said_on_stderr(hubble_run, tmp_path, capsys):
+    """With registration poses a frame of two points was lost in NAV.health.csv alone; the
+    rectangles' path says such a frame on stderr."""
+    import shutil
+
+    from spacepose.tools.cloud_io import write_cloud
+
+    run = tmp_path / "run"
+    shutil.copytree(hubble_run, run)
+    write_cloud(run / "frames" / "000003.ply", np.array([[0.0, 0.0, 25.0], [0.1, 0.0, 25.0]]))
+    out = tmp_path / "nav.csv"
+    args = ["navigate", str(run), "--out", str(out), "--measurements", "registration"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {out.with_suffix('.health.csv')}: frame 3 navigated as empty: unusable" in err

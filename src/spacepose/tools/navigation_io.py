@@ -240,6 +240,11 @@ def navigate_run(
         ]
         health_csv = write_health_csv(Path(out).with_suffix(".health.csv"), tracks)
         config_json = dump_config(fusion, Path(out).with_suffix(".config.json"))
+        for k, track in enumerate(tracks):
+            unusable = [r for r in track.reasons if r.startswith("unusable frame")]
+            if k not in unreadable and unusable:  # said as the rectangles' path says its own
+                problem = f"frame {k} navigated as empty: {unusable[0]}"
+                warnings.warn(SpaceposeWarning(problem, health_csv), stacklevel=2)
     nav_csv = write_nav_csv(out, rows)
     navigated = sum(r.state is not None for r in rows)
     ambiguous = sum(r.status == "ambiguous" for r in rows)
