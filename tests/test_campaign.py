@@ -488,3 +488,22 @@ def test_a_campaign_whose_every_case_failed_says_so_and_exits_1(tmp_path, capsys
         printed.out.split()
     )
     assert f"error: {config}: every case failed (the first: InputError: " in printed.err
+
+
+def test_a_grid_value_no_scalar_type_takes_is_said_in_one_line(tmp_path, capsys):
+    """NaN listed pydantic's four union branches ("grid.noise_scale.0.bool: ...; .int: ...;
+    .float: ...; .str: ..."), and so did a list in a list; a folder that cannot be made was
+    "/proc/nope: No such file or directory"."""
+    head = "name: t\ncase_kind: registration\ngrid:\n  scenario: [lab]\n"
+    cases = (
+        ("  noise_scale: [.nan]\n  seed: [0]\n", "noise_scale: nan is not a finite number"),
+        ("  noise_scale: [1.0]\n  seed: [[0, 1]]\n", "seed: [0, 1] is no single value"),
+    )
+    path = tmp_path / "c.yaml"
+    for axes, said in cases:
+        path.write_text(head + "  method: [point_to_point]\n" + axes)
+        assert main(["campaign", str(path), "--out", str(tmp_path / "o")]) == 1
+        assert f"c.yaml: invalid campaign config: grid: {said}" in capsys.readouterr().err
+    path.write_text(head + "  method: [point_to_point]\n  noise_scale: [1.0]\n  seed: [0]\n")
+    assert main(["campaign", str(path), "--out", "/proc/nope/c"]) == 1
+    assert "cannot create the campaign folder" in capsys.readouterr().err

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from spacepose.core.config import load_structured
-from spacepose.errors import ConfigError, FileFormatError, SpaceposeError
+from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeError
 from spacepose.tools.campaign_cases import CaseFunction, Metrics, Scalar, get_runner
 from spacepose.tools.campaign_spec import (
     NAME_RE,
@@ -193,7 +193,12 @@ def prepare_out_dir(config: CampaignConfig) -> Path:
             )
     elif out.exists() and any(out.iterdir()):
         raise ConfigError(f"{out}: not empty and not a campaign folder (no {CAMPAIGN_FILE})")
-    (out / PARTS_DIR).mkdir(parents=True, exist_ok=True)
+    try:
+        (out / PARTS_DIR).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # "/proc/nope: No such file or directory" did not say what failed
+        raise InputError(
+            f"cannot create the campaign folder: {exc.strerror or exc}", exc.filename or out
+        ) from None
     # Temporary files of a killed run are incomplete by construction: drop them.
     for tmp in (out / PARTS_DIR).glob(".*.tmp"):
         tmp.unlink()

@@ -79,6 +79,21 @@ class CampaignConfig(StageConfig):
     threads_per_worker: int = Field(1, ge=1)
     connect_timeout_s: float = Field(10.0, gt=0)
 
+    @field_validator("grid", mode="before")
+    @classmethod
+    def _plain_values(cls, grid: object) -> object:
+        # Said here in one line: pydantic tried each scalar type in turn and listed all four
+        # failures ("grid.noise_scale.0.bool: ...; .int: ...; .float: ...; .str: ...").
+        if not isinstance(grid, dict):
+            return grid
+        for axis, values in grid.items():
+            for value in values if isinstance(values, list) else ():
+                if isinstance(value, list | dict):
+                    raise ValueError(f"{axis}: {value!r} is no single value (a list in a list?)")
+                if isinstance(value, float) and not math.isfinite(value):
+                    raise ValueError(f"{axis}: {value!r} is not a finite number")
+        return grid
+
     @field_validator("grid")
     @classmethod
     def _check_grid(cls, grid: dict[str, list[Scalar]]) -> dict[str, list[Scalar]]:
