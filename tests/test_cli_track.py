@@ -415,7 +415,7 @@ def test_unreadable_frames_past_three_are_counted_in_one_line(frame_dir, tmp_pat
     assert [line.split(": not read")[0][-8:] for line in named] == [
         "f004.ply", "f005.ply", "f006.ply"
     ]  # fmt: skip
-    assert err[-1].startswith("warning: 4 more file(s) with the same warning: not read, frame"), err
+    assert err[-1].startswith("warning: 4 more with the same warning: not read, frame"), err
 
 
 @pytest.mark.parametrize(

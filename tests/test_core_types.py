@@ -352,7 +352,7 @@ def test_the_same_warning_for_many_files_is_printed_three_times_then_counted(mon
         "warning: f1.ply: coordinates look like mm (a lot)",
         "warning: f2.ply: coordinates look like mm (a lot)",
         "warning: g.ply: another problem",
-        "warning: 4 more file(s) with the same warning: coordinates look like mm",
+        "warning: 4 more with the same warning: coordinates look like mm",
     ]
 
 

@@ -132,7 +132,7 @@ class _OneLineWarnings:
     def __exit__(self, *exc_info: object) -> None:
         for (_, what), count in self.repeats.items():
             if count > self.shown:
-                _print_warning(f"{count - self.shown} more file(s) with the same warning: {what}")
+                _print_warning(f"{count - self.shown} more with the same warning: {what}")
 
 
 def _problem(reason: str) -> str:
