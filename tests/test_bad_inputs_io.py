@@ -430,9 +430,7 @@ def test_a_folder_in_millimetres_warns_three_times_then_counts(frames, tmp_path,
     warned = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("warning:")]
     assert len(warned) == 4, warned
     assert all("coordinates look like millimetres" in ln for ln in warned[:3])
-    assert warned[3] == (
-        "warning: 2 more with the same warning: coordinates look like millimetres"
-    )
+    assert warned[3] == ("warning: 2 more with the same warning: coordinates look like millimetres")
 
 
 @pytest.mark.parametrize(
