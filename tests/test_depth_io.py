@@ -394,3 +394,22 @@ def test_odd_pixels_of_a_map_that_back_projects_are_warned_about(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         read_depth_cloud(write_depth_image(tmp_path / "e.tiff", np.abs(depth), 1.0), camera)
+
+
+def test_a_far_plane_is_one_shared_value_not_every_far_depth(tmp_path):
+    """A half-float render's background (65504, the largest half) is a far plane; a sensor's map
+    whose 2 % of spurious returns lie at a millimetre keeps its real returns 10-25 m out (a
+    cut at 10^4 times the nearest depths took every one past 10 m)."""
+    camera = CAMERA.model_copy(update={"depth_scale": 1.0})
+    rng = np.random.default_rng(8)
+    render = rng.uniform(1.0, 1.5, (24, 32))
+    render[:, 16:] = 65504.0
+    path = write_depth_image(tmp_path / "half.exr", render, depth_scale=1.0)
+    with pytest.warns(SpaceposeWarning, match=r"far plane, read as no return \(384 pixels at 6"):
+        assert len(read_depth_cloud(path, camera)) == 384
+    scene = rng.uniform(10.0, 25.0, (24, 32))
+    scene.ravel()[rng.choice(768, 16, replace=False)] = 1e-3
+    path = write_depth_image(tmp_path / "scene.tiff", scene, depth_scale=1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert len(read_depth_cloud(path, camera)) == 768

@@ -53,6 +53,8 @@ _JACOBIAN_STEP = 1e-6
 # A float depth map's pixels this many times its nearest depths are a renderer's far plane (a
 # target 1 m away before a wall 1 km behind it is 1,000 times; Blender's background, 1e10 m).
 _FAR_PLANE_RATIO = 1e4
+# Share of a map's returns one far-plane value holds at least (a render's background: most).
+_FAR_PLANE_SHARE = 0.01
 # Depths no sensor returns, even read as millimetres (100 km): a far plane whatever the rest
 # (a render of the background alone is all 1e10 m).
 _BEYOND_ANY_SENSOR_M = 1e8
@@ -336,10 +338,13 @@ def _warn_if_odd_pixels(values: NDArray, camera: DepthCamera, source: str | Path
 
 def _without_far_plane(values: NDArray, camera: DepthCamera, source: str | Path) -> DepthCamera:
     """``camera`` with a ``max_depth`` below a renderer's far plane, when it has none and the map
-    holds depths :data:`_FAR_PLANE_RATIO` times its nearest (1st percentile) or more, or past
-    :data:`_BEYOND_ANY_SENSOR_M` (Blender writes 1e10 m where nothing is hit, most of a render's
-    pixels): read as points 1e10 m out, they spread the cloud over 1e10 m and moved the lab
-    run's poses by 0.2 mm. Said once a map, with the depth found.
+    holds one: depths past :data:`_BEYOND_ANY_SENSOR_M`, or one value shared by at least
+    :data:`_FAR_PLANE_SHARE` of the returns and :data:`_FAR_PLANE_RATIO` times the nearest
+    (1st percentile) or more. Blender writes 1e10 m where nothing is hit, most of a render's
+    pixels: read as points 1e10 m out, they spread the cloud over 1e10 m and moved the lab run's
+    poses by 0.2 mm. One shared value, not every depth past a ratio: a sensor's spurious returns
+    near it (a per cent of pixels at a millimetre) would otherwise cut its real far ones. Said
+    once a map, with the depth found.
 
     Raises
     ------
@@ -352,10 +357,18 @@ def _without_far_plane(values: NDArray, camera: DepthCamera, source: str | Path)
     hit = z[np.isfinite(z) & (z > 0)]
     if len(hit) == 0:
         return camera
-    cut = min(_FAR_PLANE_RATIO * float(np.percentile(hit, 1)), _BEYOND_ANY_SENSOR_M)
-    far = hit >= cut
-    if not far.any():
+    top = float(hit.max())
+    if top >= _BEYOND_ANY_SENSOR_M:
+        cut = _BEYOND_ANY_SENSOR_M
+    elif top < _FAR_PLANE_RATIO * float(hit.min()):  # every map of a sensor (1.2 ms, 1280x720)
         return camera
+    elif np.count_nonzero(hit == top) >= _FAR_PLANE_SHARE * len(
+        hit
+    ) and top >= _FAR_PLANE_RATIO * float(np.percentile(hit, 1)):
+        cut = top
+    else:
+        return camera
+    far = hit >= cut
     if far.all():  # a render of the background alone: "beyond max_depth" would blame the user
         raise InputError(
             f"no return: every pixel lies at {hit.min():.3g} m or more, a renderer's far plane "
