@@ -273,18 +273,24 @@ def test_report_refuses_to_overwrite_a_file_it_reads(tmp_path: Path, capsys) -> 
     assert main(["report", str(root)]) == 0 and main(["report", str(root)]) == 0
 
 
-def test_tracks_of_a_run_without_ground_truth_are_named_not_dropped(tmp_path: Path, capsys) -> None:
-    """Without groundtruth.tum a run's tracks were left out of the page without a word."""
+@pytest.mark.parametrize(
+    ("truth", "scored"),
+    [("lab/groundtruth.tum", "gicp.tum, icp.tum"), ("orbit/truth.csv", "nav.csv")],
+)
+def test_files_of_a_run_without_its_truth_are_named_not_dropped(
+    tmp_path: Path, capsys, truth: str, scored: str
+) -> None:
+    """Without groundtruth.tum a run's tracks, and without truth.csv its nav.csv, were left out
+    of the page without a word."""
     root = tmp_path / "demo"
     _make_run(root)
-    (root / "lab" / "groundtruth.tum").unlink()
+    (root / truth).unlink()
     assert main(["report", str(root), "--out", str(tmp_path / "r.html")]) == 0
     err = capsys.readouterr().err.strip()
     assert err == (
-        f"warning: {root / 'lab' / 'groundtruth.tum'}: left out of the report: not found, so "
-        "gicp.tum, icp.tum cannot be scored"
+        f"warning: {root / truth}: left out of the report: not found, so {scored} cannot be scored"
     ), err
-    assert "gicp.tum, icp.tum cannot be scored" in (tmp_path / "r.html").read_text()
+    assert f"{scored} cannot be scored" in (tmp_path / "r.html").read_text()
 
 
 def test_an_estimate_with_repeated_times_is_noted_and_not_paired_by_line(
@@ -330,20 +336,6 @@ def test_a_run_nested_in_another_is_scored_against_its_own_truth_alone(tmp_path:
     own = next(s for s in sections if s.startswith("lab/inner<"))
     assert "far" not in outer and "groundtruth" not in outer and "15000" not in outer
     assert "far" in own and "15000" in own
-
-
-def test_a_navigation_of_a_run_without_truth_is_named_not_dropped(tmp_path: Path, capsys) -> None:
-    """Without truth.csv a run's nav.csv was left out of the page without a word, as its tracks
-    were without groundtruth.tum."""
-    root = tmp_path / "demo"
-    _make_run(root)
-    (root / "orbit" / "truth.csv").unlink()
-    assert main(["report", str(root), "--out", str(tmp_path / "r.html")]) == 0
-    err = capsys.readouterr().err.strip()
-    assert err == (
-        f"warning: {root / 'orbit' / 'truth.csv'}: left out of the report: not found, so "
-        "nav.csv cannot be scored"
-    ), err
 
 
 def test_a_navigation_scored_on_less_than_the_run_is_warned_about(tmp_path: Path, capsys) -> None:
