@@ -9,11 +9,12 @@ import pytest
 from spacepose.cli import main
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud_quality import normal_consistency
 from spacepose.core.fpfh import FPFHConfig, compute_fpfh
 from spacepose.core.gicp import gicp
 from spacepose.core.icp import icp
 from spacepose.core.mls import mpp_mls
-from spacepose.core.normals import estimate_normals, normal_consistency
+from spacepose.core.normals import estimate_normals
 from spacepose.core.planes import PlaneConfig, extract_planes
 from spacepose.core.ransac import global_registration
 from spacepose.core.rectangle_search import find_rectangles

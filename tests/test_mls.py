@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud_quality import normal_consistency
 from spacepose.core.config import validate_config
 from spacepose.core.mls import (
     MLSConfig,
@@ -16,7 +17,7 @@ from spacepose.core.mls import (
     polynomial_terms,
     voxel_index_points,
 )
-from spacepose.core.normals import NormalsConfig, estimate_normals, normal_consistency
+from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.errors import ConfigError, DegenerateGeometryError
 
 CENTRE = np.array([0.0, 0.0, 1.0])

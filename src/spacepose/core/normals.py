@@ -1,14 +1,11 @@
-"""Surface normals from neighbourhood covariances and their consistency (methods.md §1.1).
+"""Surface normals from neighbourhood covariances (methods.md §1.1).
 
 The normal at a point is the eigenvector of the smallest eigenvalue of the covariance of its
-neighbours (k nearest, or within a radius capped at k), oriented towards the sensor. The
-consistency measure of Li et al. (Fig. 5) is the distribution of the angles between the normals
-of neighbouring points.
+neighbours (k nearest, or within a radius capped at k), oriented towards the sensor. How
+consistent neighbouring normals are (Li et al.'s Fig. 5) is :mod:`spacepose.core.cloud_quality`.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -366,80 +363,6 @@ def estimate_normals(
         # A point exactly at the viewpoint has no line of sight: fall back to the boresight.
         normals[sparse] = np.where(norm > 0, sight / np.where(norm > 0, norm, 1.0), (0, 0, -1))
     return cloud.with_normals(orient_towards(pts, normals, viewpoint))
-
-
-@dataclass(frozen=True)
-class NormalConsistency:
-    """Distribution of the angles between the normals of neighbouring points (Li Fig. 5).
-
-    Attributes
-    ----------
-    angles_deg
-        (P,) angle ``arccos(n_i · n_j)`` in degrees for every point i and each of its neighbours
-        j, in 0–180° (normals are compared as stored, not folded to 0–90°).
-    bin_edges_deg
-        (B + 1,) histogram edges in degrees, 0 to 180.
-    counts
-        (B,) number of angles per bin.
-    share_below_20
-        Share of the angles below 20°, in [0, 1].
-    """
-
-    angles_deg: NDArray[np.float64]
-    bin_edges_deg: NDArray[np.float64]
-    counts: NDArray[np.int64]
-    share_below_20: float
-
-    @property
-    def shares(self) -> NDArray[np.float64]:
-        """(B,) share of the angles per bin."""
-        return self.counts / max(int(self.counts.sum()), 1)
-
-
-def normal_consistency(
-    cloud: PointCloud | ArrayLike, k: int = 10, bin_width_deg: float = 10.0, workers: int = -1
-) -> NormalConsistency:
-    """Angles between each point's normal and those of its k nearest neighbours.
-
-    Parameters
-    ----------
-    cloud
-        Points with normals (N, 3).
-    k
-        Number of neighbours per point, the point itself excluded.
-    bin_width_deg
-        Histogram bin width in degrees; must divide 180.
-    workers
-        Threads for the neighbour search.
-    """
-    # An (N, 3) array ended in AttributeError ('has_normals'), a bin width of 0 in
-    # ZeroDivisionError and one of NaN in "cannot convert float NaN to integer".
-    cloud = as_cloud(cloud, "cloud")
-    if not cloud.has_normals:
-        raise InputError(
-            "normal consistency needs a cloud with normals (run estimate_normals first)",
-            cloud.source,
-        )
-    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-        raise InputError(f"normal consistency needs k >= 1 neighbours, got {k!r}", cloud.source)
-    if len(cloud) < k + 1:
-        raise InputError(f"normal consistency with k={k} needs more than {k} points", cloud.source)
-    valid = isinstance(bin_width_deg, (int, float, np.integer, np.floating))
-    valid = valid and not isinstance(bin_width_deg, bool) and 0 < bin_width_deg <= 180
-    n_bins = 180.0 / bin_width_deg if valid else 0.0
-    if not valid or abs(n_bins - round(n_bins)) > 1e-9:
-        raise InputError(f"bin_width_deg must divide 180, got {bin_width_deg}")
-    _, idx = knn(cloud.points, None, k + 1, workers=workers)
-    # Drop each point itself (not simply column 0, which a duplicate point may occupy).
-    own = idx == np.arange(len(idx))[:, None]
-    own[own.sum(axis=1) == 0, -1] = True
-    i = np.repeat(np.arange(len(idx)), k)
-    j = idx[~own]
-    cos = np.einsum("ij,ij->i", cloud.normals[i], cloud.normals[j])
-    angles = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    edges = np.linspace(0.0, 180.0, round(n_bins) + 1)
-    counts, _ = np.histogram(angles, bins=edges)
-    return NormalConsistency(angles, edges, counts, float(np.mean(angles < 20.0)))
 
 
 def _viewpoint(viewpoint: ArrayLike) -> NDArray[np.float64]:

@@ -28,8 +28,9 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
+from spacepose.core.cloud_quality import normal_consistency
 from spacepose.core.mls import MLSConfig, mpp_mls
-from spacepose.core.normals import NormalsConfig, estimate_normals, normal_consistency
+from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.sim.scenarios import LabConfig, Simulation, simulate_lab
 from spacepose.core.sim.sensors import sensor_config
 from spacepose.core.tracker import Tracker, TrackerConfig
