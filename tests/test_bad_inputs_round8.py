@@ -343,7 +343,7 @@ def test_a_mesh_with_a_nan_vertex_is_refused(tmp_path, capsys):
     one such corner was simulated with a hole (6 of its 12 triangles left), and a one-triangle
     model was refused as 'the file holds no triangles'."""
     from spacepose.cli import main
-    from spacepose.core.sim.targets import load_mesh
+    from spacepose.core.sim.mesh_files import load_mesh
 
     good = tmp_path / "box.obj"
     good.write_text(_BOX)

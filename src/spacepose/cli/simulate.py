@@ -133,7 +133,7 @@ def _check_not_a_folder(model: Path) -> None:
     FileFormatError
         ``model`` is a folder; the message names its mesh files, if it holds any.
     """
-    from spacepose.core.sim.targets import MESH_SUFFIXES
+    from spacepose.core.sim.mesh_files import MESH_SUFFIXES
     from spacepose.errors import FileFormatError
 
     if not model.is_dir():

@@ -1,6 +1,7 @@
 """The simulator (methods.md §3): targets, range sensors and the lab and orbit scenarios."""
 
 from spacepose.core.sim.grid import grid_scenario
+from spacepose.core.sim.mesh_files import load_mesh
 from spacepose.core.sim.scenarios import (
     TRUTH_COLUMNS,
     Frame,
@@ -18,7 +19,6 @@ from spacepose.core.sim.targets import (
     Rectangle,
     Target,
     lab_target,
-    load_mesh,
     orbit_target,
     sample_surface,
     symmetric_orbit_target,

@@ -41,6 +41,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig, validate_config
 from spacepose.core.crlb import CramerRaoBound, crlb
 from spacepose.core.sim.lab_scene import MotionProfile, lab_background, lab_poses, sized_target
+from spacepose.core.sim.mesh_files import load_mesh
 from spacepose.core.sim.orbit_truth import (
     EARTH_RADIUS,
     ForceModel,
@@ -54,7 +55,7 @@ from spacepose.core.sim.orbit_truth import (
 from spacepose.core.sim.process_noise import model_defect
 from spacepose.core.sim.random_targets import generated_seed, random_spacecraft
 from spacepose.core.sim.sensors import SENSOR_PRESETS, SensorConfig, scan, sensor_config
-from spacepose.core.sim.targets import Target, lab_target, load_mesh, orbit_target, sample_surface
+from spacepose.core.sim.targets import Target, lab_target, orbit_target, sample_surface
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import ConfigError
 

@@ -1,0 +1,148 @@
+"""Mesh files as simulator targets: read, checked, scaled and centred (methods.md §3.3).
+
+trimesh reads the formats; what it lets through or reports in its own terms (a face on a vertex
+the file does not hold, corners of NaN, triangles without area, a text file named .ply) is
+named here, with the file, before anything is rendered.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from numpy.typing import NDArray
+
+from spacepose.core.sim.targets import Target
+from spacepose.errors import FileFormatError, InputError
+
+MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
+
+
+def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Target:
+    """Read a mesh file (OBJ/STL/PLY/GLB/OFF) as a target.
+
+    Parameters
+    ----------
+    path
+        Mesh file; a multi-part scene is flattened into one mesh.
+    scale
+        Factor applied to the file's coordinates (e.g. 0.001 for millimetres).
+    center
+        Move the bounding-box centre to the model-frame origin, so the target sits where the
+        scenario puts the target frame.
+
+    Raises
+    ------
+    FileFormatError
+        Missing file, unknown extension, unreadable content, a vertex of NaN or inf, or no
+        triangles (none at all, or none of non-zero area).
+    InputError
+        A scale that is not a positive finite number.
+    """
+    path = Path(path)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise FileFormatError(
+            f"unknown mesh extension {path.suffix!r}; use one of {', '.join(MESH_SUFFIXES)}", path
+        )
+    if not path.is_file():
+        raise FileFormatError("no such mesh file", path)
+    if not (np.isfinite(scale) and scale > 0):
+        raise InputError(f"mesh scale must be a positive number, got {scale}", path)
+    try:
+        # Unprocessed first: processing drops the faces on a NaN or inf vertex without a word
+        # (a box with one such corner lost 4 of its 12 triangles; one of a single triangle was
+        # "no triangles").
+        raw = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for bad files; report them alike
+        problem = _obj_face_problem(path) or _not_ply(path) or f"cannot read mesh: {exc}"
+        raise FileFormatError(problem, path) from None
+    if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
+        raise FileFormatError("the file holds no triangles", path)
+    faces, vertices = np.asarray(raw.faces), np.asarray(raw.vertices)
+    # A face on a vertex the file does not hold ended in numpy's "index 8 is out of bounds for
+    # axis 0 with size 4", naming neither the face nor the vertex count.
+    outside = (faces < 0) | (faces >= len(vertices))
+    if outside.any():
+        k = int(np.flatnonzero(outside.any(axis=1))[0])
+        raise FileFormatError(
+            f"face {k + 1} of {len(faces)} refers to vertex index {faces[k][outside[k]][0]}, but "
+            f"the file has {len(vertices)} vertices (indices 0 to {len(vertices) - 1})",
+            path,
+        )
+    bad = np.count_nonzero(~np.isfinite(vertices[faces]).all(axis=(1, 2)))
+    if bad:
+        raise FileFormatError(
+            f"{bad} of {len(faces)} triangles have a corner of NaN or inf coordinates, and "
+            "would be left out",
+            path,
+        )
+    if not _has_area(vertices[faces]):
+        # Rendered, such a mesh failed at frame 0 as "the sensor sees nothing (target 1.23 m
+        # away ...)", which sent the user to the range and the scale, not the file.
+        raise FileFormatError(
+            f"all {len(faces)} triangles have zero area: no surface to render", path
+        )
+    # Processed once, here: the file is read once.
+    mesh = trimesh.Trimesh(vertices * scale, faces, process=True)
+    if center:
+        mesh.apply_translation(-mesh.bounds.mean(axis=0))
+    return Target(path.stem, mesh)
+
+
+def _has_area(triangles: NDArray[np.float64]) -> bool:
+    """Whether any of the (F, 3, 3) triangles has an area, beyond rounding, for its size: a
+    sliver of corners on one line has a cross product of rounding error, not exactly zero."""
+    edges = triangles[:, 1:] - triangles[:, :1]
+    # Scaled by the largest coordinate difference: squares of 1e200 would overflow.
+    size = np.abs(edges).max(axis=(1, 2))
+    unit = edges / np.where(size > 0, size, 1.0)[:, None, None]
+    doubled = np.linalg.norm(np.cross(unit[:, 0], unit[:, 1]), axis=1)
+    return bool(np.any((size > 0) & (doubled > 1e-12)))
+
+
+def _not_ply(path: Path) -> str | None:
+    """Why a .ply file is no PLY at all (trimesh said "list index out of range" of a text file
+    so named), or None."""
+    if path.suffix.lower() != ".ply":
+        return None
+    try:
+        with path.open("rb") as fh:
+            head = fh.read(4)
+    except OSError:
+        return None  # unreadable: trimesh's own error stands, as for an OBJ
+    if head.rstrip(b"\r\n") == b"ply":
+        return None
+    return f"not a PLY file: it begins with {head!r}, not the line 'ply'"
+
+
+def _obj_face_problem(path: Path) -> str | None:
+    """The first face of an OBJ file on a vertex the file does not hold, in words, or None.
+
+    trimesh fails on such a face with numpy's "index 9 is out of bounds for axis 0 with size 4".
+    """
+    if path.suffix.lower() != ".obj":
+        return None
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return None
+    vertices = faces = 0
+    for number, line in enumerate(lines, start=1):
+        fields = line.split()
+        if fields and fields[0] == "v":
+            vertices += 1
+        elif fields and fields[0] == "f":
+            faces += 1
+            for corner in fields[1:]:
+                try:
+                    index = int(corner.split("/")[0])
+                except ValueError:
+                    continue
+                # OBJ counts vertices from 1; a negative index counts back from the last so far.
+                if not (1 <= index <= vertices or -vertices <= index <= -1):
+                    return (
+                        f"face {faces} (line {number}) refers to vertex {index}, but the file "
+                        f"has {vertices} vertices before it (OBJ numbers them from 1)"
+                    )
+    return None
