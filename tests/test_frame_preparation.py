@@ -218,3 +218,24 @@ def test_a_frame_with_nothing_where_the_target_is_predicted_is_refused_by_name()
         frames.prepare(elsewhere, np.eye(4))
     again = frames.prepare(pts, np.eye(4))
     np.testing.assert_array_equal(again.cloud.points, first.cloud.points)
+
+
+def test_an_earth_far_behind_the_target_leaves_the_track_as_it_was():
+    """The lab mock-up at 1.2 m with a renderer's Earth 400 km behind it in 40 % of the view:
+    every frame was lost ("cells of 0.0101 m are too many to number ... 1.04e+06 m"); now the
+    poses and statuses are those of the frames without it, to the bit."""
+    from test_segmentation import earth_behind
+
+    config = grid_scenario(target=mesh_path("lab"), range_m=1.2, frames=4)
+    frames = [simulate(config).frame(k) for k in range(4)]
+    rng = np.random.default_rng(0)
+    alone, with_earth = Tracker(TrackerConfig(), workers=2), Tracker(TrackerConfig(), workers=2)
+    for frame in frames:
+        pts = frame.cloud.points
+        earth = earth_behind(pts, 0.4, rng)
+        assert len(earth) > 0.3 * len(pts)
+        seen = PointCloud(np.r_[pts, earth])
+        got = with_earth.track_frame(seen, frame.timestamp)
+        want = alone.track_frame(frame.cloud, frame.timestamp)
+        assert got.status == want.status != "lost"
+        np.testing.assert_array_equal(got.T_sensor_target, want.T_sensor_target)

@@ -168,3 +168,37 @@ def test_a_return_is_any_point_with_a_nonzero_coordinate():
     np.testing.assert_array_equal(returns(pts), [False, False, True, True, True])
     with pytest.raises(InputError, match="non-finite"):
         returns(np.array([[np.nan, 0.0, 0.0]]))
+
+
+def earth_behind(near: np.ndarray, share: float, rng: np.random.Generator) -> np.ndarray:
+    """Returns of an Earth 400-1,200 km away filling the lower ``share`` of a 60° × 45° view,
+    around the directions ``near`` (N, 3) covers, as a renderer's depth gives them."""
+    u, v = np.meshgrid(np.linspace(-0.58, 0.58, 160), np.linspace(-0.41, 0.41, 113))
+    rays = np.c_[u.ravel(), v.ravel(), np.ones(u.size)]
+    rays = rays[rays[:, 1] > 0.41 * (1.0 - 2.0 * share)]
+    from scipy.spatial import cKDTree
+
+    gap, _ = cKDTree(near[:, :2] / near[:, 2:]).query(rays[:, :2])
+    rays = rays[gap > 0.015]
+    return rays * (4e5 * (1.0 + 2.0 * rays[:, 1:2] / 0.41) + rng.normal(0, 0.5, (len(rays), 1)))
+
+
+def test_returns_far_beyond_the_frame_are_out_of_reach_and_of_the_object():
+    """A renderer's Earth 400 km behind a target 3 m away: a grid of the target's cells could
+    not number cells out to it, and the nearest object ended in "cells ... too many to number"
+    (every frame lost). The far returns are out of reach and never the object; the near ones
+    split as without them. A room seen from 0.3 to 6 m keeps every return."""
+    from spacepose.core.segmentation import within_reach
+
+    rng = np.random.default_rng(5)
+    target = _view(3.0, 0.3, 0.3, 0.002, rng)
+    wall = _view(5.0, 1.0, 0.8, 0.002, rng)
+    near = np.r_[target, wall]
+    earth = earth_behind(near, 0.4, rng)
+    pts = np.r_[near, earth]
+    np.testing.assert_array_equal(within_reach(pts), np.arange(len(pts)) < len(near))
+    mask = nearest_object(pts, 0.002 * 5.0)
+    np.testing.assert_array_equal(mask[: len(near)], nearest_object(near, 0.002 * 5.0))
+    assert mask[: len(target)].all() and not mask[len(target) :].any()
+    room = np.r_[_view(0.3, 0.1, 0.1, 0.002, rng), _view(6.0, 3.0, 1.5, 0.002, rng)]
+    assert within_reach(room, workers=2).all()

@@ -33,7 +33,7 @@ from spacepose.core.segmentation import (
     crop_sphere,
     nearest_object,
     region_of,
-    returns,
+    within_reach,
 )
 from spacepose.core.target_cut import cut_to_target
 from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
@@ -331,8 +331,8 @@ class FramePreparer:
         points or the sphere to crop them to (:meth:`_isolate`): the steps a frame needs when a
         predicted sphere alone does not say which points are the target's."""
         # No-returns written as points at the sensor would be a dense object there, and set
-        # the spacing and scale.
-        valid = returns(pc, self.workers)
+        # the spacing and scale; returns far beyond the frame's surfaces are no target either.
+        valid = within_reach(pc, self.workers)
         if not valid.all():
             pc = pc.select(np.flatnonzero(valid))
         if self.config.use_background_removal:

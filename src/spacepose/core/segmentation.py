@@ -48,6 +48,12 @@ _CROP_CHUNK = 65536
 _CELL_SPACINGS = 4.0
 # Fewest points of a cell that is surface, not flying pixels.
 _MIN_CELL_POINTS = 3
+# Returns farther than this many times the frame's median range take no part in the clusters: a
+# sensor samples them that many times more sparsely, and a cell of four median spacings holds
+# three points of a surface facing it only out to about 2.3 times the median range, so they form
+# no surface at this scale; and a grid fine enough for the near surfaces cannot number cells out
+# to them (a rendered Earth 400 km behind a mock-up 1.2 m away).
+_FARTHEST_RANGES = 100.0
 # A cluster holding less than this share of the frame's points and of its cells (of the
 # object's cells, for a part of it) is debris or flying pixels.
 _MIN_SHARE = 0.02
@@ -91,6 +97,26 @@ def returns(points: PointCloud | ArrayLike, workers: int = 1) -> NDArray[np.bool
     return out
 
 
+def within_reach(points: PointCloud | ArrayLike, workers: int = 1) -> NDArray[np.bool_]:
+    """(N,) the returns (:func:`returns`) no farther than a hundred times the median range of
+    the frame's returns (:data:`_FARTHEST_RANGES`), on ``workers`` threads (-1: all cores).
+
+    The rest (a rendered Earth 400 km behind a mock-up 1.2 m away) is no surface at the
+    frame's scale, and grids sized for its near surfaces cannot number cells out to it.
+    """
+    pts = np.ascontiguousarray(as_points(points))
+    valid = returns(pts, workers)
+    if not valid.any():
+        return valid
+    ranges = np.sqrt(np.einsum("ij,ij->i", pts, pts))
+    seen = ranges[valid]
+    # The median only when some return could lie beyond it (rarely: a 1280×720 frame's median
+    # costs 10 ms, its extremes 1 ms).
+    if seen.max() <= _FARTHEST_RANGES * seen.min():
+        return valid
+    return valid & (ranges <= _FARTHEST_RANGES * np.median(seen))
+
+
 @numba.njit(cache=True, parallel=True)
 def _returns_kernel(pts, out):
     for i in numba.prange(len(pts)):
@@ -99,7 +125,8 @@ def _returns_kernel(pts, out):
 
 def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
     """(N,) mask of the points of the nearest object of a frame (see the module docstring);
-    points at the sensor's origin (no returns, :func:`returns`) are never in it.
+    points at the sensor's origin or far beyond the frame's surfaces (:func:`within_reach`) are
+    never in it.
 
     Parameters
     ----------
@@ -109,7 +136,7 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
         Median point spacing (m), :func:`spacepose.core.scale.point_spacing`.
     """
     pts = as_points(points)
-    valid = returns(pts)
+    valid = within_reach(pts)
     if not valid.all():
         mask = np.zeros(len(pts), dtype=bool)
         if valid.any():
