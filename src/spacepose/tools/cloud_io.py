@@ -5,40 +5,37 @@ The format is chosen by the file extension. Each reader returns a
 ``source`` is the file name; each failure raises :class:`~spacepose.errors.FileFormatError` (or
 :class:`~spacepose.errors.InputError` for data that parse but are unusable, e.g. only NaN rows),
 always naming the file.
+
+The formats themselves are read and written by :mod:`spacepose.tools.ply_pcd_io`,
+:mod:`spacepose.tools.text_cloud_io` and :mod:`spacepose.tools.npy_io`; here are the checks
+every format shares: infinite coordinates, normals of zero or other than unit length, and
+coordinates in another unit than metres (:func:`warn_if_not_metres`, :func:`warn_if_too_near`).
 """
 
 from __future__ import annotations
 
-import io
-import re
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
-from typing import BinaryIO
 
 import numpy as np
-import plyfile
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, check_scale
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
-from spacepose.tools.npy_io import as_float64, read_npy, read_npz, write_npy, write_npz
+from spacepose.tools.npy_io import read_npy, read_npz, write_npy, write_npz
 from spacepose.tools.outputs import check_writable
-from spacepose.tools.pcd_io import read_pcd_table, write_pcd
+from spacepose.tools.ply_pcd_io import DIGITS, read_pcd_cloud, read_ply, write_pcd_cloud, write_ply
+from spacepose.tools.text_cloud_io import read_text_cloud, write_text_cloud
 from spacepose.tools.text_io import not_a_file
 
-_XYZ = ("x", "y", "z")
-_PLY_NORMALS = ("nx", "ny", "nz")
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
-_PCD_NORMALS = ("normal_x", "normal_y", "normal_z")
 _TEXT_SUFFIXES = (".xyz", ".txt", ".csv")
 # Widest scene (m) a cloud in millimetres can span: 100 km, past any ToF camera or LiDAR.
 _FARTHEST_M = 1e5
 # Narrowest span (m) a cloud of a surface can have: a micrometre, a thousandth of the finest
 # range resolution of any ToF camera or LiDAR; points closer together are one return.
 _NARROWEST_M = 1e-6
-# Significant digits that round-trip a value of the given precision through text.
-_DIGITS = {"float32": 9, "float64": 17}
 # No sensor ranges nearer (m): returns closer than this in the median are a unit error.
 NEAREST_RANGE_M = 0.02
 # Returns whose median range is compared with it: about this many, evenly strided.
@@ -271,7 +268,7 @@ def write_cloud(
     The path written. The same data always give the same bytes.
     """
     path = Path(path)
-    if dtype not in _DIGITS:
+    if dtype not in DIGITS:
         raise InputError(f"dtype must be 'float32' or 'float64', got {dtype!r}", path)
     writer = _WRITERS.get(path.suffix.lower())
     if writer is None:
@@ -303,417 +300,18 @@ def write_cloud(
     return path
 
 
-# --------------------------------------------------------------------------------------------
-# PLY
-
-
-def _read_ply(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    try:
-        with path.open("rb") as fh:
-            header = plyfile.PlyData._parse_header(fh)
-            body_bytes = path.stat().st_size - fh.tell()
-            _check_ply_counts(header, body_bytes)
-            _check_ply_rest(header, fh, body_bytes)
-            fh.seek(0)
-            # plyfile reads an ASCII body through a text wrapper it leaves open on the file,
-            # which warns when collected: it gets the bytes instead (an ASCII cloud is small).
-            source = io.BytesIO(fh.read()) if header.text else fh
-            ply = plyfile.PlyData.read(source, mmap=False)
-    except plyfile.PlyParseError as exc:
-        raise FileFormatError(f"bad or truncated PLY: {exc}", path) from None
-    except UnicodeDecodeError:
-        raise FileFormatError("not a PLY file: its header is not ASCII text", path) from None
-    except (OSError, ValueError) as exc:
-        raise FileFormatError(f"cannot read PLY: {exc}", path) from None
-    if "vertex" not in ply:
-        raise FileFormatError("PLY has no 'vertex' element", path)
-    data = ply["vertex"].data
-    names = data.dtype.names or ()
-    return _columns(data, names, _XYZ, _PLY_NORMALS, path, "PLY vertex")
-
-
-def _check_ply_counts(header: plyfile.PlyData, body_bytes: int) -> None:
-    """Refuse a header whose element counts the body cannot hold, before anything is
-    allocated: a corrupt count of 10¹² vertices would otherwise ask for terabytes.
-
-    Each row takes at least its fixed-size properties' bytes (a list's count) in binary, and a
-    character and a separator per property in ASCII.
-
-    Raises
-    ------
-    plyfile.PlyParseError
-        A negative count, or rows promised beyond what ``body_bytes`` can hold.
-    """
-    for element in header.elements:
-        if element.count < 0:
-            raise plyfile.PlyParseError(
-                f"the header counts {element.count:,} '{element.name}' rows: a count is >= 0"
-            )
-        if header.text:
-            row = 2 * len(element.properties)
-        else:
-            row = sum(
-                np.dtype(getattr(p, "len_dtype", None) or p.val_dtype).itemsize
-                for p in element.properties
-            )
-        if element.count * row > body_bytes:
-            raise plyfile.PlyParseError(
-                f"the header promises {element.count:,} '{element.name}' rows, more than the "
-                f"file's {body_bytes:,} bytes of data can hold"
-            )
-
-
-def _check_ply_rest(header: plyfile.PlyData, fh: BinaryIO, body_bytes: int) -> None:
-    """Refuse a body holding whole rows beyond the header's counts: read by the counts, they
-    would be dropped without a word (a count written before the last rows were).
-
-    Binary bodies of fixed-size rows are measured by their size (less than a row of trailing
-    bytes is let through); ASCII bodies (``fh`` at the body) by their non-blank lines.
-
-    Raises
-    ------
-    plyfile.PlyParseError
-        Rows beyond the header's counts.
-    """
-    counts = sum(element.count for element in header.elements)
-    if header.text:
-        rows = sum(1 for line in fh if line.strip())
-        if rows > counts:
-            raise plyfile.PlyParseError(
-                f"the file holds {rows:,} rows but its header counts {counts:,}: the rest "
-                "would be dropped"
-            )
-        return
-    if not header.elements or any(
-        hasattr(p, "len_dtype") for e in header.elements for p in e.properties
-    ):
-        return  # rows of lists vary in size
-    sizes = [sum(np.dtype(p.val_dtype).itemsize for p in e.properties) for e in header.elements]
-    extra = body_bytes - sum(e.count * n for e, n in zip(header.elements, sizes, strict=True))
-    if sizes[-1] and extra >= sizes[-1]:
-        raise plyfile.PlyParseError(
-            f"the file holds {extra:,} bytes of data beyond its header's counts (at least "
-            f"{extra // sizes[-1]:,} more rows): they would be dropped"
-        )
-
-
-def _write_ply(
-    path: Path,
-    points: NDArray[np.float64],
-    normals: NDArray[np.float64] | None,
-    binary: bool,
-    dtype: np.dtype,
-) -> None:
-    names = _XYZ if normals is None else _XYZ + _PLY_NORMALS
-    values = points if normals is None else np.hstack([points, normals])
-    # plyfile writes no timestamp or comment, so the bytes depend on the data only.
-    element = plyfile.PlyElement.describe(_structured(values, names, dtype), "vertex")
-    plyfile.PlyData([element], text=not binary, byte_order="<").write(str(path))
-
-
-# --------------------------------------------------------------------------------------------
-# PCD (Point Cloud Library v0.7): the header checks live in pcd_io
-
-
-def _read_pcd(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    table = read_pcd_table(path)
-    return _columns(table, tuple(table), _XYZ, _PCD_NORMALS, path, "PCD")
-
-
-def _write_pcd(
-    path: Path,
-    points: NDArray[np.float64],
-    normals: NDArray[np.float64] | None,
-    binary: bool,
-    dtype: np.dtype,
-) -> None:
-    names = _XYZ if normals is None else _XYZ + _PCD_NORMALS
-    values = points if normals is None else np.hstack([points, normals])
-    write_pcd(path, values, names, binary, f"%.{_DIGITS[dtype.name]}g", dtype)
-
-
-# --------------------------------------------------------------------------------------------
-# Plain text and numpy
-
-
-def _read_text(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    try:
-        # utf-8-sig drops a byte-order mark, which would otherwise hide the first row's number.
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        byte = exc.object[exc.start]
-        raise FileFormatError(
-            f"not UTF-8 text (byte 0x{byte:02x} at offset {exc.start}): binary content, or "
-            "text in another encoding",
-            path,
-        ) from None
-    lines = text.splitlines()
-    first = next(
-        (i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")), None
-    )
-    if first is None:
-        raise FileFormatError("no point rows in text file", path)
-    delimiter = "," if "," in lines[first] else None
-    # ';' too: a row of "0.1;0.2;0.3" is a row with the wrong separator, not a header.
-    head = lines[first].replace(",", " ").replace(";", " ").split()
-    # A header line names its columns ("x,y,z", CloudCompare's "//X,Y,Z"); a row with a number
-    # in it is a row, however malformed its first field ("0x1 2 3" was taken for a header).
-    header = not any(_is_number(token) for token in head)
-    if header:
-        _check_header(head, first + 1, path)
-    skip = first + 1 if header else 0
-    try:
-        with warnings.catch_warnings():
-            # A header without rows: numpy warns naming its buffer; the error below names the file.
-            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
-            table = np.loadtxt(
-                io.StringIO(text), delimiter=delimiter, comments="#", skiprows=skip, ndmin=2
-            )
-    except ValueError:
-        raise FileFormatError(_first_bad_line(lines[skip:], skip, delimiter), path) from None
-    if table.shape[0] == 0:
-        raise FileFormatError("no point rows in text file", path)
-    if header:
-        return _named_columns(table, head, path)
-    if table.shape[1] not in (3, 6):
-        raise FileFormatError(
-            f"expected 3 (x y z) or 6 (x y z nx ny nz) columns, got {table.shape[1]}", path
-        )
-    if table.shape[1] == 6 and _colours(table[:, 3:]):
-        # x y z r g b is as common a layout as x y z nx ny nz: its colours were read as
-        # normals "not of unit length" and used as the surface's directions.
-        raise FileFormatError(
-            "columns 4-6 look like colours (none negative or above 255, not unit vectors, "
-            "pointing every way), not normals nx ny nz: name the columns in a header line "
-            "(x y z r g b, or x y z nx ny nz), or write x y z alone",
-            path,
-        )
-    return table[:, :3], (table[:, 3:] if table.shape[1] == 6 else None)
-
-
-def _colours(values: NDArray[np.float64]) -> bool:
-    """Whether three columns (N, 3) read as normals are colours: no component negative and
-    none above 255, most rows not of unit length, and pointing many ways. A curved surface's
-    normals point into every octant somewhere; a plane's (long normals of one plate) all one
-    way, and those are read as their directions."""
-    if not (np.all(values >= 0.0) and np.all(values <= 255.0)):
-        return False
-    lengths = np.linalg.norm(values, axis=1)
-    if np.mean(np.abs(lengths - 1.0) > 1e-3) <= 0.5:
-        return False
-    some = lengths > 0  # black is a colour, and no direction
-    if not some.any():
-        return False  # all zero: no direction, and no colour either (normals left unfilled)
-    directions = values[some] / lengths[some, None]
-    mean = directions.mean(axis=0)
-    if not np.any(mean):
-        return False
-    apart = directions @ (mean / np.linalg.norm(mean)) < np.cos(np.radians(10.0))
-    return bool(np.mean(apart) > 0.1)
-
-
-def _check_header(head: list[str], line: int, path: Path) -> None:
-    """Refuse a first line with no number that names none of x, y, z as a header.
-
-    Such a line is a bad row, not a header: taken for one and skipped, the error pointed at
-    the next line (every value quoted, ``"0.1","0.2","0.3"``; C's hexadecimal floats). A
-    header naming some of x, y, z is left to :func:`_named_columns`.
-
-    Raises
-    ------
-    FileFormatError
-        ``line N: not numbers, and as a header it does not name x, y and z columns: [...]``.
-    """
-    names = [token.strip("/\"'").lower() for token in head]
-    if set(_XYZ) & set(names):
-        return
-    hint = ""
-    if all(_is_number(name) for name in names):
-        hint = " (quoted numbers? write them without quotes)"
-    elif all(_is_hex_float(token) for token in head):
-        hint = " (hexadecimal floats? write them in decimal)"
-    raise FileFormatError(
-        f"line {line}: not numbers, and as a header it does not name x, y and z columns: "
-        f"{head}{hint}",
-        path,
-    )
-
-
-def _is_hex_float(token: str) -> bool:
-    """Whether ``token`` is a float as ``float.hex()`` writes it (``0x1.8p+0``); a bare ``a``
-    is a column's name, though ``float.fromhex`` reads it as 10."""
-    if not token.lstrip("+-").lower().startswith("0x"):
-        return False
-    try:
-        float.fromhex(token)
-    except ValueError:
-        return False
-    return True
-
-
-def _named_columns(
-    table: NDArray[np.float64], header: list[str], path: Path
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """The x y z (and nx ny nz, when all three are named) columns a header line names, in
-    whatever order and among whatever other columns (intensity, ring) it lists.
-
-    Raises
-    ------
-    FileFormatError
-        The header does not name x, y and z, names one of them (or a normal) twice, or names
-        a different number of columns than the rows hold.
-    """
-    names = [token.strip("/\"'").lower() for token in header]
-    if len(names) != table.shape[1]:
-        raise FileFormatError(
-            f"the header names {len(names)} columns {header}, the rows hold {table.shape[1]}", path
-        )
-    if not set(_XYZ) <= set(names):
-        raise FileFormatError(f"the header {header} does not name x, y and z columns", path)
-    twice = sorted({n for n in names if names.count(n) > 1} & {*_XYZ, *_PLY_NORMALS, *_PCD_NORMALS})
-    if twice:  # which of the two is the coordinate? Taking the first would be a guess.
-        raise FileFormatError(f"the header {header} names {', '.join(twice)} twice", path)
-    xyz = table[:, [names.index(c) for c in _XYZ]]
-    for normal_names in (_PLY_NORMALS, _PCD_NORMALS):
-        if set(normal_names) <= set(names):
-            return xyz, table[:, [names.index(c) for c in normal_names]]
-    for normal_names in (_PLY_NORMALS, _PCD_NORMALS):
-        _warn_part_of_normals(names, normal_names, path)
-    return xyz, None
-
-
-def _warn_part_of_normals(names: Sequence[str], normal_names: tuple[str, ...], path: Path) -> None:
-    """Warn, naming ``path``, of a file naming some of the three normal components but not
-    all: the normals it meant to give were dropped without a word (the points read alone)."""
-    given = [n for n in normal_names if n in names]
-    if given and len(given) < len(normal_names):
-        missing = [n for n in normal_names if n not in names]
-        problem = (
-            f"normals read as absent: {', '.join(given)} without {', '.join(missing)} (a "
-            "normal needs all three)"
-        )
-        warnings.warn(SpaceposeWarning(problem, path), stacklevel=5)
-
-
-def _first_bad_line(lines: list[str], offset: int, delimiter: str | None) -> str:
-    """Describe the first row that breaks a numeric table (only called once parsing failed)."""
-    width = None
-    for i, line in enumerate(lines, start=offset + 1):
-        data = line.split("#", 1)[0]
-        # A European locale's export: decimal commas, fields apart by ';' or blanks. Read by
-        # the comma, "0,5 1,2" is 0 | 5 1 | 2, which said only "cannot parse".
-        if ";" in data:
-            return (
-                f"line {i}: fields separated by ';' ({data.strip()[:40]!r}): separate them by "
-                "blanks or commas, with decimal points"
-            )
-        if delimiter is not None and len(data.split()) > 1 and re.search(r"\d,\d", data):
-            return (
-                f"line {i}: commas and blanks both in {data.strip()[:40]!r}: decimal commas? "
-                "write decimal points"
-            )
-        if delimiter is not None and data.strip() and "" in [f.strip() for f in data.split(",")]:
-            return f"line {i}: an empty field between commas (a trailing or doubled ',')"
-        row = data.replace(",", " ").split()
-        if not row:
-            continue
-        # Python's float reads "1_000"; the table's parser does not.
-        if not all(_is_number(t) and "_" not in t for t in row):
-            return f"line {i}: not a number in {row}"
-        if width is not None and len(row) != width:
-            return f"line {i}: {len(row)} columns where earlier rows have {width}"
-        width = len(row)
-    return "cannot parse text point file"
-
-
-def _write_text(
-    path: Path,
-    points: NDArray[np.float64],
-    normals: NDArray[np.float64] | None,
-    binary: bool,
-    dtype: np.dtype,
-) -> None:
-    values = points if normals is None else np.hstack([points, normals])
-    csv = path.suffix.lower() == ".csv"
-    names = _XYZ if normals is None else _XYZ + _PLY_NORMALS
-    np.savetxt(
-        path,
-        values.astype(dtype),
-        fmt=f"%.{_DIGITS[dtype.name]}g",
-        delimiter="," if csv else " ",
-        header=",".join(names) if csv else "",
-        comments="",
-    )
-
-
-# --------------------------------------------------------------------------------------------
-# Helpers
-
-
-def _structured(values: NDArray[np.float64], names: tuple[str, ...], dtype: np.dtype) -> np.ndarray:
-    out = np.empty(len(values), dtype=[(n, dtype.newbyteorder("<")) for n in names])
-    for j, name in enumerate(names):
-        out[name] = values[:, j]
-    return out
-
-
-def _columns(
-    data: np.ndarray | dict[str, NDArray[np.float64]],
-    names: tuple[str, ...],
-    xyz: tuple[str, ...],
-    normal_names: tuple[str, ...],
-    path: Path,
-    what: str,
-) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """Stack the x/y/z (and, when all present, normal) columns of a record table."""
-    if not all(n in names for n in xyz):
-        raise FileFormatError(f"{what} has no x/y/z properties (found {list(names)})", path)
-    points = np.column_stack([_scalar_column(data, n, path, what) for n in xyz])
-    normals = None
-    if all(n in names for n in normal_names):
-        normals = np.column_stack([_scalar_column(data, n, path, what) for n in normal_names])
-    else:
-        _warn_part_of_normals(names, normal_names, path)
-    return points, normals
-
-
-def _scalar_column(
-    data: np.ndarray | dict[str, NDArray[np.float64]], name: str, path: Path, what: str
-) -> NDArray[np.float64]:
-    """One property as an (N,) float64 column; a list property (one array per point) is refused."""
-    try:
-        # Signalling-NaN bit patterns (a file of the other byte order) are NaN rows, dropped and
-        # counted with the cloud, and its span is warned about.
-        column = as_float64(data[name])
-    except (TypeError, ValueError):
-        column = None
-    if column is None or column.ndim != 1:
-        raise FileFormatError(
-            f"{what} property {name!r} is not one number per point (a list property?)", path
-        )
-    return column
-
-
-def _is_number(token: str) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
-
-
 Reader = Callable[[Path], tuple[NDArray[np.float64], NDArray[np.float64] | None]]
 Writer = Callable[[Path, NDArray[np.float64], NDArray[np.float64] | None, bool, np.dtype], None]
 
 _READERS: dict[str, Reader] = {
-    ".ply": _read_ply,
-    ".pcd": _read_pcd,
+    ".ply": read_ply,
+    ".pcd": read_pcd_cloud,
     ".npy": read_npy,
     ".npz": read_npz,
-} | dict.fromkeys(_TEXT_SUFFIXES, _read_text)
+} | dict.fromkeys(_TEXT_SUFFIXES, read_text_cloud)
 _WRITERS: dict[str, Writer] = {
-    ".ply": _write_ply,
-    ".pcd": _write_pcd,
+    ".ply": write_ply,
+    ".pcd": write_pcd_cloud,
     ".npy": write_npy,
     ".npz": write_npz,
-} | dict.fromkeys(_TEXT_SUFFIXES, _write_text)
+} | dict.fromkeys(_TEXT_SUFFIXES, write_text_cloud)
