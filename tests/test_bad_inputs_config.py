@@ -24,7 +24,7 @@ from spacepose.core.planes import PlaneConfig
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.errors import ConfigError, FileFormatError, SpaceposeWarning
 from spacepose.tools.catalogue import load_catalogue, parse_catalogue
-from spacepose.tools.navigation_io import prior_quaternion
+from spacepose.tools.navigation_config_io import prior_quaternion
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run
 from spacepose.tools.tracking_io import tracker_config
@@ -460,7 +460,7 @@ def test_a_boolean_for_a_number_is_refused_in_an_init_transform_and_a_scenario(t
     one radian a second. Both are refused, naming the file."""
     from spacepose.core.nav_start import scenario_geometry
     from spacepose.errors import InputError
-    from spacepose.tools.register import read_transform
+    from spacepose.tools.register_io import read_transform
 
     init = tmp_path / "init.json"
     rows = np.eye(4).tolist()

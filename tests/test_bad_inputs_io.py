@@ -24,7 +24,7 @@ from spacepose.errors import (
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import read_depth_cloud
 from spacepose.tools.outputs import check_writable
-from spacepose.tools.register import register_files
+from spacepose.tools.register_io import register_files
 from spacepose.tools.tracking_io import track_folder
 
 
@@ -256,7 +256,7 @@ def test_repeated_timestamps_and_corrupt_translations_are_refused(tmp_path):
     (tmp_path / "timestamps.txt").write_text("0.0\n0.1\n0.1\n0.2\n")
     with pytest.raises(InputError, match=r"must increase: frame 2 repeats 0.1"):
         read_timestamps(tmp_path / "timestamps.txt", 4)
-    from spacepose.tools.depth_io import read_tum_depth_list
+    from spacepose.tools.depth_folder import read_tum_depth_list
 
     (tmp_path / "depth.txt").write_text("0.0 a.png\n0.1 b.png\n0.1 c.png\n")
     with pytest.raises(InputError, match=r"depth\.txt: timestamps must increase: frame 2 repeats"):
@@ -508,7 +508,7 @@ def test_frames_named_without_padding_come_in_the_numbers_order(tmp_path):
     """frame0, frame5, frame10, frame15 sorted as text would track 0, 10, 15, 5: a jump back
     the motion model takes for a turn. Numbers by value; a fraction's digits as text, so that
     TUM-style times keep their order (1.25 before 1.5)."""
-    from spacepose.tools.depth_io import frame_entries
+    from spacepose.tools.depth_folder import frame_entries
 
     names = ["frame10.ply", "frame5.ply", "frame15.ply", "frame0.ply", ".frame1.ply", "notes.md"]
     names += ["frame05.ply", "frame5b.ply"]  # equal numbers: by text; a name that goes on

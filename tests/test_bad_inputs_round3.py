@@ -14,9 +14,9 @@ from spacepose.cli import main
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import load_catalogue
 from spacepose.tools.cloud_io import read_cloud, write_cloud
-from spacepose.tools.depth_io import read_tum_depth_list
+from spacepose.tools.depth_folder import read_tum_depth_list
 from spacepose.tools.frames import open_frames, read_frame_cloud, read_timestamps
-from spacepose.tools.register import read_transform
+from spacepose.tools.register_io import read_transform
 from spacepose.tools.runs import read_run
 from spacepose.tools.text_io import timing_problem
 

@@ -13,7 +13,8 @@ from spacepose.cli import main
 from spacepose.core.depth import DepthCamera
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud, write_cloud
-from spacepose.tools.depth_io import read_depth_image, read_tum_depth_list, write_depth_image
+from spacepose.tools.depth_folder import read_tum_depth_list
+from spacepose.tools.depth_io import read_depth_image, write_depth_image
 from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.runs import read_run
 from test_bag_io import IMAGE, INFO, PC2, ROS2, _camera_info, _image, _pointcloud2, _write

@@ -19,7 +19,8 @@ from spacepose.errors import ConfigError, FileFormatError, InputError, Spacepose
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.depth_io import write_depth_image
 from spacepose.tools.evaluation import compare_trajectory_files
-from spacepose.tools.register import RegisterConfig, register_files
+from spacepose.tools.register import RegisterConfig
+from spacepose.tools.register_io import register_files
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run
 from spacepose.tools.trajectory_io import write_kitti, write_tum

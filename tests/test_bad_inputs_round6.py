@@ -20,10 +20,11 @@ from spacepose.errors import ConfigError, FileFormatError, InputError, Spacepose
 from spacepose.tools import experiments
 from spacepose.tools.campaign_spec import load_campaign_config
 from spacepose.tools.cloud_io import read_cloud, write_cloud
-from spacepose.tools.depth_io import read_intrinsics
 from spacepose.tools.evaluation import compare_trajectory_files
-from spacepose.tools.navigation_io import load_navigation_config, navigate_run
-from spacepose.tools.register import read_transform
+from spacepose.tools.intrinsics_io import read_intrinsics
+from spacepose.tools.navigation_config_io import load_navigation_config
+from spacepose.tools.navigation_io import navigate_run
+from spacepose.tools.register_io import read_transform
 from spacepose.tools.tracking_io import check_output
 from test_bad_inputs_round4 import _cli_error, _cloud_folder, _depth_folder, _refused
 from test_bad_inputs_round5 import noisy_pair

@@ -17,7 +17,7 @@ from spacepose.core.depth import DepthCamera, distort, pixel_rays, undistort
 from spacepose.core.sim.mesh_files import load_mesh
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
-from spacepose.tools.navigation_io import prior_quaternion
+from spacepose.tools.navigation_config_io import prior_quaternion
 from spacepose.tools.trajectory_io import write_tum
 
 _WIDE = DepthCamera(fx=500.0, fy=500.0, cx=2.0, cy=2.0, k1=0.1)

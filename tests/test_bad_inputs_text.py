@@ -16,7 +16,7 @@ from spacepose.cli import main
 from spacepose.errors import FileFormatError, InputError
 from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.frames import open_frames, read_timestamps
-from spacepose.tools.register import read_transform
+from spacepose.tools.register_io import read_transform
 from spacepose.tools.tracking_io import track_folder
 from spacepose.tools.trajectory_io import read_trajectory, read_tum
 
@@ -99,7 +99,7 @@ def _config_readers():
     from spacepose.core.config import load_config
     from spacepose.core.tracker_config import TrackerConfig
     from spacepose.tools.catalogue import load_catalogue
-    from spacepose.tools.depth_io import read_intrinsics
+    from spacepose.tools.intrinsics_io import read_intrinsics
 
     return {
         "tracker.yaml": lambda p: load_config(TrackerConfig, p),

@@ -1,4 +1,4 @@
-"""Depth image folders as tracking input (tools/frames.py with tools/depth_io.py).
+"""Depth image folders as tracking input (tools/frames.py with tools/depth_folder.py).
 
 A simulated lab run is rendered into 16-bit PNG depth maps (0.1 mm units); the equivalent point
 cloud folder holds, as float64 .npy, the points of the same quantised depths back-projected here
@@ -264,7 +264,7 @@ def test_register_takes_depth_images(sim, camera, tmp_path, capsys):
 
     from spacepose.core import se3
     from spacepose.tools.depth_io import read_depth_cloud
-    from spacepose.tools.register import register_files
+    from spacepose.tools.register_io import register_files
 
     paths = []
     for k in (0, 3):

@@ -15,7 +15,8 @@ from spacepose.core.depth import DepthCamera, render_depth
 from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.depth_io import read_depth_image, write_depth_image
-from spacepose.tools.navigation_io import SCENARIO_KEYS, navigate_run
+from spacepose.tools.navigation_config_io import SCENARIO_KEYS
+from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.runs import write_run
 
 FRAMES = 6

@@ -619,7 +619,7 @@ def test_a_scenario_of_the_wrong_shapes_says_which_key() -> None:
 
 def test_a_config_files_prior_is_checked_naming_the_file(tmp_path) -> None:
     from spacepose.errors import ConfigError
-    from spacepose.tools.navigation_io import load_navigation_config
+    from spacepose.tools.navigation_config_io import load_navigation_config
 
     path = tmp_path / "nav.yaml"
     path.write_text("prior_q_I_B: [0, 0, 0, 0]\n")

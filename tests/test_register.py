@@ -15,13 +15,8 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.errors import SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.register import (
-    RegisterConfig,
-    cloud_scale,
-    gate_schedule,
-    read_transform,
-    register,
-)
+from spacepose.tools.register import RegisterConfig, cloud_scale, gate_schedule, register
+from spacepose.tools.register_io import read_transform
 
 PAIR = Path(__file__).resolve().parents[1] / "data" / "real" / "small_gicp"
 

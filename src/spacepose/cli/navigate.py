@@ -51,7 +51,8 @@ def navigate(
     ),
 ) -> None:
     """Estimate ρ, ρ̇, attitude, rate, inertia ratios and CoM offset for every frame of RUN."""
-    from spacepose.tools.navigation_io import load_navigation_config, navigate_run, output_paths
+    from spacepose.tools.navigation_config_io import load_navigation_config
+    from spacepose.tools.navigation_io import navigate_run, output_paths
     from spacepose.tools.outputs import check_spares_inputs
 
     if measurements not in ("rectangles", "registration", "both"):
@@ -94,7 +95,7 @@ def navigate(
 def _quaternion(text: str) -> tuple[float, ...]:
     """``qx,qy,qz,qw`` as four floats of a rotation; ConfigError otherwise."""
     from spacepose.errors import ConfigError
-    from spacepose.tools.navigation_io import prior_quaternion
+    from spacepose.tools.navigation_config_io import prior_quaternion
 
     try:
         q = tuple(float(v) for v in text.replace(" ", ",").split(",") if v)

@@ -37,7 +37,8 @@ def register(
 ) -> None:
     """Register SOURCE onto TARGET; print T_target_source, fitness, RMSE, covariance, time."""
     from spacepose.core.config import validate_config
-    from spacepose.tools.register import RegisterConfig, register_files
+    from spacepose.tools.register import RegisterConfig
+    from spacepose.tools.register_io import register_files
 
     config = validate_config(
         RegisterConfig,

@@ -35,8 +35,9 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera, matrix_fields
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools.cloud_io import warn_if_not_metres
-from spacepose.tools.depth_io import check_camera, depth_cloud
+from spacepose.tools.depth_io import depth_cloud
 from spacepose.tools.frames import FrameInput, warn_if_kilometres
+from spacepose.tools.intrinsics_io import check_camera
 from spacepose.tools.npy_io import as_float64
 from spacepose.tools.ros_depth import (
     COMPRESSED_IMAGE,

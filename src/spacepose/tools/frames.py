@@ -3,7 +3,7 @@ ROS bag (their outputs: :mod:`spacepose.tools.tracking_io`).
 
 :func:`open_frames` recognises, in this order: a ROS 1 / ROS 2 bag
 (:mod:`spacepose.tools.bag_io`); a run folder (written by ``spacepose simulate``, recognised by
-its ``scenario.json``); a depth image folder (:mod:`spacepose.tools.depth_io`: it holds an
+its ``scenario.json``); a depth image folder (:mod:`spacepose.tools.depth_folder`: it holds an
 intrinsics file or TUM RGB-D's ``depth.txt``, or an intrinsics file is given); any other folder
 is read as one point cloud file per frame (``.ply``, ``.pcd``, ``.xyz``, ``.txt``, ``.csv``,
 ``.npy``, ``.npz``). Files are sorted by name, with timestamps from ``timestamps.txt`` (one
@@ -30,8 +30,8 @@ from numpy.typing import NDArray
 from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera
 from spacepose.errors import InputError, SpaceposeWarning
-from spacepose.tools import depth_io
-from spacepose.tools.cloud_io import read_cloud, warn_if_too_near
+from spacepose.tools import depth_folder, depth_io, intrinsics_io
+from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_cloud, warn_if_too_near
 from spacepose.tools.text_io import check_timing, read_text
 
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
@@ -173,7 +173,7 @@ def open_frames(
         number per frame.
     ConfigError
         The intrinsics file is invalid, or its principal point lies outside the images or its
-        lens distortion folds them (:func:`~spacepose.tools.depth_io.check_camera`).
+        lens distortion folds them (:func:`~spacepose.tools.intrinsics_io.check_camera`).
     """
     from spacepose.tools.bag_io import is_bag, open_bag  # bag_io builds on this module
 
@@ -184,10 +184,10 @@ def open_frames(
         # Refused before the file is read: a wrong file given (a .ply) was reported as a
         # config "not UTF-8", about a file the run would never have read.
         raise InputError(_RUN_INTRINSICS, root)
-    camera = None if intrinsics is None else depth_io.read_intrinsics(intrinsics)
+    camera = None if intrinsics is None else intrinsics_io.read_intrinsics(intrinsics)
     if is_bag(root):
         if camera is not None:  # sized by the file; else checked at each image's size
-            depth_io.check_camera(camera, intrinsics)
+            intrinsics_io.check_camera(camera, intrinsics)
         return open_bag(root, topic, camera)
     if topic is not None:
         raise InputError(f"--topic {topic} applies to a ROS bag, and this is not one", root)
@@ -205,16 +205,16 @@ def open_frames(
             "or give the frames/ folder itself",
             root,
         )
-    if camera is not None or depth_io.is_depth_folder(root):
+    if camera is not None or depth_folder.is_depth_folder(root):
         _check_holds_depth_images(root, given=camera is not None)
-        return _open_depth_folder(root, *depth_io.folder_camera(root, intrinsics, camera))
+        return _open_depth_folder(root, *depth_folder.folder_camera(root, intrinsics, camera))
     stamps = _timestamps_path(root)
     paths = tuple(
         p
-        for p in depth_io.frame_entries(root, CLOUD_SUFFIXES)
+        for p in depth_folder.frame_entries(root, CLOUD_SUFFIXES)
         if p != stamps and not p.name.endswith(_OWN_TABLES)
     )
-    if not paths and depth_io.frame_entries(root, depth_io.DEPTH_SUFFIXES):
+    if not paths and depth_folder.frame_entries(root, DEPTH_SUFFIXES):
         # Images without intrinsics: say what is missing, not that there is nothing.
         return _open_depth_folder(root, None)
     if not paths:
@@ -240,20 +240,20 @@ def _check_holds_depth_images(root: Path, given: bool) -> None:
         The folder holds no depth image and some point cloud files.
     """
     # TUM RGB-D's depth.txt lists images in a subfolder: the list decides, not the files here.
-    if (root / depth_io.TUM_DEPTH_LIST).is_file() or depth_io.frame_entries(
-        root, depth_io.FOLDER_DEPTH_SUFFIXES
+    if (root / depth_folder.TUM_DEPTH_LIST).is_file() or depth_folder.frame_entries(
+        root, depth_folder.FOLDER_DEPTH_SUFFIXES
     ):
         return
     # Text files beside depth images are lists (TUM's rgb.txt), not clouds.
-    clouds = depth_io.frame_entries(root, (".ply", ".pcd", ".npz", ".xyz", ".csv"))
+    clouds = depth_folder.frame_entries(root, (".ply", ".pcd", ".npz", ".xyz", ".csv"))
     if not clouds:
         return
     names = ", ".join(p.name for p in clouds[:2]) + (", ..." if len(clouds) > 2 else "")
     if given:
         why, remedy = "intrinsics apply to depth images", "leave out --intrinsics"
     else:
-        found = depth_io.find_intrinsics(root)
-        name = found.name if found is not None else depth_io.INTRINSICS_FILES[0]
+        found = intrinsics_io.find_intrinsics(root)
+        name = found.name if found is not None else intrinsics_io.INTRINSICS_FILES[0]
         why = f"its {name} makes it a folder of depth images"
         remedy = f"move {name} out"
     raise InputError(f"{why}, and its frames are point clouds ({names}): {remedy}", root)
@@ -272,7 +272,10 @@ def input_files(path: str | Path, frames: Frames) -> list[Path]:
         return [root]
     files = [*getattr(frames, "paths", ()), *([frames.model_path] if frames.model_path else [])]
     names = (SCENARIO, GROUNDTRUTH, TRUTH, MODEL_CLOUD, "model.obj")
-    files += [root / name for name in (*names, depth_io.TUM_DEPTH_LIST, *depth_io.INTRINSICS_FILES)]
+    files += [
+        root / name
+        for name in (*names, depth_folder.TUM_DEPTH_LIST, *intrinsics_io.INTRINSICS_FILES)
+    ]
     files.append(_timestamps_path(root))
     if not hasattr(frames, "paths"):  # a bag folder: its metadata and storage files
         files += [p for p in root.iterdir() if p.is_file()]
@@ -309,30 +312,30 @@ def _open_depth_folder(
     root: Path, camera: DepthCamera | None, source: Path | None = None
 ) -> FrameSequence:
     """Depth images (sorted, or listed by ``depth.txt``) back-projected with ``camera``, read
-    from ``source`` (see :func:`~spacepose.tools.depth_io.folder_camera`), checked at their size
-    (:func:`~spacepose.tools.depth_io.check_camera`)."""
+    from ``source`` (see :func:`~spacepose.tools.depth_folder.folder_camera`), checked at their
+    size (:func:`~spacepose.tools.intrinsics_io.check_camera`)."""
     if camera is None:
         raise InputError(
-            f"depth images need intrinsics: put {depth_io.INTRINSICS_FILES[0]} (fx, fy, cx, "
+            f"depth images need intrinsics: put {intrinsics_io.INTRINSICS_FILES[0]} (fx, fy, cx, "
             "cy, depth_scale) in the folder or give --intrinsics",
             root,
         )
-    if (root / depth_io.TUM_DEPTH_LIST).is_file():
+    if (root / depth_folder.TUM_DEPTH_LIST).is_file():
         stamps = _timestamps_path(root)
         if stamps.exists():
             # Each times the frames: the list won and timestamps.txt was left without a word.
             raise InputError(
-                f"holds {depth_io.TUM_DEPTH_LIST} and {stamps.name}, and each times the frames: "
-                "keep one",
+                f"holds {depth_folder.TUM_DEPTH_LIST} and {stamps.name}, and each times the "
+                "frames: keep one",
                 root,
             )
-        paths, timestamps = depth_io.read_tum_depth_list(root / depth_io.TUM_DEPTH_LIST)
+        paths, timestamps = depth_folder.read_tum_depth_list(root / depth_folder.TUM_DEPTH_LIST)
     else:
-        paths = depth_io.depth_files(root)
+        paths = depth_folder.depth_files(root)
         timestamps = _folder_timestamps(root, len(paths))
     # Cloud-only formats: text files beside depth images are lists (TUM's rgb.txt), and a
     # .npy may be a depth map.
-    clouds = depth_io.frame_entries(root, (".ply", ".pcd", ".npz"))
+    clouds = depth_folder.frame_entries(root, (".ply", ".pcd", ".npz"))
     if clouds:  # read as depth images, the folder's cloud files are no frames
         names = ", ".join(p.name for p in clouds[:3]) + (", ..." if len(clouds) > 3 else "")
         warnings.warn(
@@ -344,7 +347,7 @@ def _open_depth_folder(
             stacklevel=3,
         )
     camera = _sized(camera, paths)
-    depth_io.check_camera(camera, source)
+    intrinsics_io.check_camera(camera, source)
     loader = partial(depth_io.read_depth_cloud, camera=camera)
     return FrameSequence(paths, timestamps, loader=loader)
 

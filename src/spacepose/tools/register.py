@@ -23,12 +23,10 @@ The same call must work on a 1 m ToF frame (millimetre spacing) and on a 50 m ou
 
 from __future__ import annotations
 
-import json
 import math
 import time
 import warnings
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -38,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.config import StageConfig, holds_boolean, load_structured, parse_problem
+from spacepose.core.config import StageConfig
 from spacepose.core.degeneracy import Degeneracy, surface_degeneracy
 from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.gicp_covariances import compute_covariances
@@ -49,23 +47,7 @@ from spacepose.core.ransac import global_registration
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.robust import RobustKernelName
 from spacepose.core.voxel import voxel_cells
-from spacepose.errors import (
-    ConfigError,
-    FileFormatError,
-    InputError,
-    RegistrationError,
-    SpaceposeWarning,
-)
-from spacepose.tools.cloud_io import read_cloud
-from spacepose.tools.depth_io import (
-    DEPTH_SUFFIXES,
-    folder_camera,
-    read_depth_cloud,
-    read_intrinsics,
-)
-from spacepose.tools.outputs import check_spares_inputs, check_writable
-from spacepose.tools.text_io import read_text
-from spacepose.tools.trajectory_io import nearest_rotations
+from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 
 Method = Literal["point_to_plane", "point_to_point", "gicp"]
 # Points whose nearest-neighbour distance samples the spacing (seeded subsample).
@@ -77,9 +59,6 @@ _RMSE_TOLERANCE = 1e-4
 # Two clouds this many times apart in radius and in spacing alike are in different units
 # (millimetres and metres are 1000 apart; two views of one scene differ by a few times).
 _UNIT_FACTOR = 200.0
-# Below this share of the source within the last gate a fit is more likely wrong than partial:
-# the real LiDAR pair's scans overlap at 0.90, a 90° local minimum of a cloud on itself 0.39.
-_LOW_FITNESS = 0.5
 
 
 class RegisterConfig(StageConfig):
@@ -424,121 +403,3 @@ def _stage(gate: float, last: bool, config: RegisterConfig) -> dict:
         "max_correspondence_distance": gate,
         "robust_kernel": config.robust_kernel if last else "none",
     }
-
-
-def read_transform(path: str | Path) -> NDArray[np.float64]:
-    """A 4×4 transform from a text file (16 numbers), or a JSON file (``.json``, any case, or
-    any name whose text opens with ``{`` or ``[``) holding the matrix (4 rows, or 16 numbers)
-    or a mapping with ``T_target_source`` (e.g. an earlier ``--out``)."""
-    path = Path(path)
-    text = read_text(path, "the transform")
-    expected = "expected 16 numbers (a 4x4 matrix) or JSON with T_target_source"
-    try:
-        # register's own --out is JSON whatever its name (result.txt): told by its first
-        # character, it was "expected ... JSON with T_target_source" though it held one.
-        if path.suffix.lower() == ".json" or text.lstrip()[:1] in ("{", "["):
-            data = load_structured(text, "json")
-            # A bare matrix is the transform as the key's is: refused, it was "expected" the
-            # 4x4 matrix it held.
-            values = data["T_target_source"] if isinstance(data, dict) else data
-        else:
-            values = text.split()
-        if holds_boolean(values):  # numpy would read true as 1
-            raise ValueError("a yes/no where a number goes")
-        T = np.asarray(values, dtype=np.float64).reshape(4, 4)
-    except json.JSONDecodeError as exc:  # where the JSON breaks, not only what was expected
-        raise FileFormatError(f"{expected}: not valid JSON: {parse_problem(exc)}", path) from None
-    except (ValueError, KeyError, TypeError):
-        raise FileFormatError(expected, path) from None
-    if np.isfinite(T).all():
-        # Written by hand to 4 decimals (0.8660 for cos 30°) a rotation is off orthonormal by
-        # ~1e-4, beyond as_transform's 1e-6: read as the rotation it rounds, as KITTI files are.
-        T[:3, :3] = nearest_rotations(T[None, :3, :3])[0]
-    try:
-        return se3.as_transform(T, "init transform")
-    except InputError as exc:
-        raise InputError(str(exc), path) from None
-
-
-def register_files(
-    source_path: str | Path,
-    target_path: str | Path,
-    init_path: str | Path | None = None,
-    config: RegisterConfig = RegisterConfig(),
-    out: str | Path | None = None,
-    workers: int = -1,
-    intrinsics: str | Path | None = None,
-) -> RegisterResult:
-    """Read two cloud files, :func:`register` them and optionally write the JSON summary.
-
-    A depth image (16-bit PNG or TIFF) is read through ``intrinsics`` (or the
-    ``intrinsics.yaml`` / ``.json`` beside it) into the camera's sensor frame; ``intrinsics``
-    given for two point clouds, or beside an image's own intrinsics file that differs, is
-    refused (InputError), not ignored.
-    """
-    depth_inputs = [
-        p for p in (source_path, target_path) if Path(p).suffix.lower() in DEPTH_SUFFIXES
-    ]
-    if intrinsics is not None and not depth_inputs:
-        # Ignored, they would let the user believe the clouds were read through them.
-        raise InputError(
-            f"intrinsics apply to depth images ({', '.join(DEPTH_SUFFIXES)}), and neither "
-            f"{Path(source_path).name} nor {Path(target_path).name} is one: leave out --intrinsics",
-            intrinsics,
-        )
-    if out is not None:
-        check_writable(out)
-        given = (source_path, target_path, init_path, intrinsics)
-        check_spares_inputs([out], [p for p in given if p is not None])
-    source = _read_input(source_path, intrinsics)
-    target = _read_input(target_path, intrinsics)
-    init = None if init_path is None else read_transform(init_path)
-    pair = f"{source_path} onto {target_path}"
-    try:
-        outcome = register(source, target, init, config, workers)
-    except RegistrationError as exc:  # say which pair failed
-        raise RegistrationError(f"{pair}: {exc}") from None
-    except InputError as exc:
-        if exc.source is not None:  # one cloud's own problem, already named
-            raise
-        # The pair's geometry (two lines, two planes sliding in each other): name both files.
-        raise type(exc)(exc.reason, pair) from None
-    if outcome.degeneracy.degenerate:
-        warnings.warn(SpaceposeWarning(outcome.degeneracy.summary(), pair), stacklevel=2)
-    if outcome.result.fitness < _LOW_FITNESS:  # its σ describes the fit, not whether it is right
-        warnings.warn(
-            SpaceposeWarning(
-                f"only {100 * outcome.result.fitness:.0f} % of the source lies within "
-                f"{outcome.gates[-1]:.3g} m of the target: a local minimum, or clouds that "
-                "overlap little? (the covariance assumes the fit is the right one)",
-                pair,
-            ),
-            stacklevel=2,
-        )
-    if out is not None:
-        summary = {"source": str(source_path), "target": str(target_path), **outcome.to_dict()}
-        summary["config"] = config.model_dump(mode="json")
-        Path(out).parent.mkdir(parents=True, exist_ok=True)
-        Path(out).write_text(json.dumps(summary, indent=2) + "\n")
-    return outcome
-
-
-def _read_input(path: str | Path, intrinsics: str | Path | None) -> PointCloud:
-    """A cloud file, or a depth image with its camera's intrinsics.
-
-    Raises
-    ------
-    InputError
-        A depth image without intrinsics, or ``intrinsics`` given that differ from the
-        intrinsics file beside it (:func:`~spacepose.tools.depth_io.folder_camera`).
-    """
-    path = Path(path)
-    if path.suffix.lower() not in DEPTH_SUFFIXES:
-        return read_cloud(path)
-    given = None if intrinsics is None else read_intrinsics(intrinsics)
-    # As for a depth folder: intrinsics given beside the image's own file that differ are
-    # refused (the given file won without a word, the image's own calibration ignored).
-    camera, _ = folder_camera(path.parent, intrinsics, given)
-    if camera is None:
-        raise InputError("a depth image needs --intrinsics (or intrinsics.yaml beside it)", path)
-    return read_depth_cloud(path, camera)
