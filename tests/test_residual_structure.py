@@ -70,3 +70,20 @@ def test_bad_inputs_raise() -> None:
     bad[3, 1] = np.nan
     with pytest.raises(InputError, match="finite"):
         residual_structure(bad, np.zeros(len(points)), 0.05)
+
+
+def test_a_spread_floor_divides_cell_means_by_it_and_leaves_noise_above_it() -> None:
+    """Residuals with a fixed bias ±b per half and no noise (a renderer's depth): their spread
+    is the MAD's, 1.4826 b, so a cell of 25 pairs has z² = 25 / 1.4826², over χ²₁'s median
+    (0.455): 25. Floored at 5 b, z² = 25 b² / (5 b)² = 1. Noisy residuals of a spread above the
+    floor give the same value to the bit as without it."""
+    points = _plane(100, 0.01)
+    b = 1e-5
+    r = np.where(points[:, 0] < 0.5, b, -b)
+    assert residual_structure(points, r, 0.05) == pytest.approx(25.0 / 1.4826**2 / 0.454936)
+    floored = residual_structure(points, r, 0.05, min_sigma=5.0 * b)
+    assert floored == pytest.approx(1.0 / 0.454936, rel=1e-6)
+    noisy = np.random.default_rng(4).normal(0.0, 0.002, len(points)) + r
+    assert residual_structure(points, noisy, 0.05, 0.001) == residual_structure(points, noisy, 0.05)
+    with pytest.raises(InputError, match="min_sigma"):
+        residual_structure(points, noisy, 0.05, -1.0)

@@ -29,7 +29,7 @@ from spacepose.core.part_influence import PartInfluence, part_influence
 from spacepose.core.pose_covariance import isotropic_about, plane_covariance
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.residual_noise import ResidualNoise, point_to_plane_sigma
-from spacepose.core.residual_structure import residual_structure
+from spacepose.core.residual_structure import SAMPLING_SPREAD_VOXELS, residual_structure
 from spacepose.core.tracker_config import StageLengths, pairwise_kind
 from spacepose.errors import SpaceposeError
 
@@ -221,8 +221,7 @@ class FrameRegistrar:
                 pairs = self._final_pairs(prepared, tgt, res, matches)
         structure = None
         if pairs is not None:
-            cell = STRUCTURE_CELL_GATES * self.noise.gate
-            structure = residual_structure(pairs.points, pairs.residuals, cell)
+            structure = self._structure(pairs)
         if measure:
             # Residuals correlated over the surface carry less information than their count
             # says: the variance of their cell means over white noise's (the design effect)
@@ -235,6 +234,7 @@ class FrameRegistrar:
             self.noise.gate,
             self.workers,
             matches,
+            self._sampling_spread,
         )
         cov = self.covariance_scale * self._design * cov + self._floor(prepared, res)
         influence = None
@@ -262,8 +262,21 @@ class FrameRegistrar:
         tgt = self.as_target(ref.registration_target)
         res, matches = self._pairwise(prepared, tgt, init_T_ref_k)
         pairs = self._final_pairs(prepared, tgt, res, matches)
+        return self._structure(pairs), res.fitness
+
+    def _structure(self, pairs: _FinalPairs) -> float | None:
+        """:func:`~spacepose.core.residual_structure.residual_structure` of a registration's
+        final pairs, in cells of :data:`STRUCTURE_CELL_GATES` fine gates, the spread floored
+        at the sampling's own."""
         cell = STRUCTURE_CELL_GATES * self.noise.gate
-        return residual_structure(pairs.points, pairs.residuals, cell), res.fitness
+        return residual_structure(pairs.points, pairs.residuals, cell, self._sampling_spread)
+
+    @property
+    def _sampling_spread(self) -> float:
+        """The spread (m) of the residuals sampling the surface leaves without noise, the floor
+        of σ in a registration's covariance and structure
+        (:data:`~spacepose.core.residual_structure.SAMPLING_SPREAD_VOXELS` of the voxel)."""
+        return SAMPLING_SPREAD_VOXELS * self.lengths.voxel
 
     def _final_pairs(
         self,

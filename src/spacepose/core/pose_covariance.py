@@ -25,6 +25,7 @@ def plane_covariance(
     max_distance: float,
     workers: int = -1,
     correspondences: Correspondences | None = None,
+    min_sigma: float = 0.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Covariance of a registration from its point-to-plane residuals at the solution.
 
@@ -34,7 +35,9 @@ def plane_covariance(
 
     ``correspondences`` are the matches at ``T_target_source`` when the registration already
     has them (:func:`~spacepose.core.icp.icp_correspondences`; its point-to-plane sums are used
-    as they are); otherwise they are searched within ``max_distance``.
+    as they are); otherwise they are searched within ``max_distance``. ``min_sigma`` (m) floors
+    σ: the spread sampling a surface leaves without noise (a renderer's depth), which no
+    residual of a noise-free frame falls below.
 
     Returns
     -------
@@ -68,6 +71,7 @@ def plane_covariance(
         raise RegistrationError(f"{n_matches} correspondences are too few for a covariance")
     if sigma2 is None:
         sigma2 = sse / (n_matches - 6)
+    sigma2 = max(sigma2, min_sigma**2)
     H_inv = np.linalg.pinv(H, hermitian=True)
     return sigma2 * H_inv, -H_inv @ g
 

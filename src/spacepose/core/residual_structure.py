@@ -27,6 +27,14 @@ from spacepose.errors import InputError
 
 # A cell's mean is tested only when it holds this many pairs (a z-score of fewer is noise).
 MIN_CELL_PAIRS = 4
+# Floor of the residuals' spread, in voxels. Registering voxel centroids onto another view's
+# surface leaves residuals of the sampling's own, alike in both samplings of a frame (a grid
+# moved half a voxel keeps them): without noise (a renderer's depth) they spread 0.002-0.018 of
+# the voxel and their cell means up to 0.013, which over white noise's σ / √n made every frame's
+# structure 20-340 ("part of the cloud fits another motion") and its covariance 5-18 times wider.
+# Every sensor profile of the robustness grid leaves 0.13-0.21 of the voxel the spacing gives,
+# and is never floored.
+SAMPLING_SPREAD_VOXELS = 0.05
 # MAD to σ of a normal distribution.
 _MAD_TO_SIGMA = 1.4826
 # Median of a χ² with one degree of freedom: a white cell's z² has it.
@@ -34,7 +42,10 @@ _CHI2_1_MEDIAN = 0.454936
 
 
 def residual_structure(
-    points: NDArray[np.float64], residuals: NDArray[np.float64], cell: float
+    points: NDArray[np.float64],
+    residuals: NDArray[np.float64],
+    cell: float,
+    min_sigma: float = 0.0,
 ) -> float | None:
     """Median squared z-score of the cell means of registration residuals, over white noise's.
 
@@ -46,12 +57,17 @@ def residual_structure(
         (M,) signed point-to-plane residuals of those pairs (m).
     cell
         Edge of the cubic cells (m).
+    min_sigma
+        Floor of the residuals' spread (m): what sampling the surface leaves without noise
+        (:data:`SAMPLING_SPREAD_VOXELS` of the voxel, the tracker's), below which cell means
+        are the sampling's own, not a second motion's.
 
     Returns
     -------
     float or None
         The median over the cells holding at least :data:`MIN_CELL_PAIRS` pairs of
-        ``z² = (Σ r)² / (n σ²)``, σ the residuals' robust spread (1.4826 · MAD), divided by the
+        ``z² = (Σ r)² / (n σ²)``, σ the residuals' robust spread (1.4826 · MAD, at least
+        ``min_sigma``), divided by the
         median of a χ² with one degree of freedom (0.455): 1 for white residuals. None when no
         cell holds that many pairs, or the residuals have no spread.
 
@@ -72,9 +88,12 @@ def residual_structure(
         raise InputError("residual structure needs finite points and residuals")
     if not np.isfinite(cell) or cell <= 0:
         raise InputError(f"residual structure cell must be a positive length, got {cell}")
+    if not (np.isfinite(min_sigma) and min_sigma >= 0):
+        raise InputError(f"residual structure min_sigma must be a length >= 0, got {min_sigma}")
     if len(residuals) < MIN_CELL_PAIRS:
         return None
     sigma = _MAD_TO_SIGMA * float(np.median(np.abs(residuals - np.median(residuals))))
+    sigma = max(sigma, min_sigma)
     if not sigma > 0:
         return None
     _, index = voxel_cells(points, cell)
