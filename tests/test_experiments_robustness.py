@@ -257,6 +257,21 @@ def test_a_run_the_tracker_fails_on_is_a_row_with_its_error(monkeypatch) -> None
     assert cell_table([record])[0]["errors"] == [record["error"]]
 
 
+def test_a_noise_free_cell_is_scored_without_a_cramer_rao_bound() -> None:
+    """Noise 0 (a renderer's depth) has no Cramér–Rao bound, and the grid ended in its
+    ConfigError ("a noise-free frame ... has no Cramér-Rao bound"). Its frames are scored, the
+    bound NaN (the criterion fails: no estimator reaches a bound of zero), the `ok` frames
+    within 3σ of the truth."""
+    from spacepose.tools.experiments.robustness import run_cell
+
+    record = run_cell(Cell(target="lab", range=1.2, noise=0.0, seed=0), 6, workers=2)
+    metrics = record["metrics"]
+    assert "error" not in record and metrics["tracked_share"] == 1.0
+    assert math.isnan(metrics["crlb_t_mm"]) and math.isnan(metrics["error_over_crlb"])
+    assert metrics["ok"] >= 2 and metrics["false_ok"] == 0 and metrics["coverage_3sigma"] == 1.0
+    assert metrics["err_t_mm"] < 0.1
+
+
 def test_a_cells_coverage_is_pooled_over_the_ok_frames_of_its_seeds() -> None:
     """A seed without an ``ok`` frame has no coverage and leaves the cell's as the others give
     it (it used to make the 5-seed mean NaN, failed as if frames lay outside 3σ); the others

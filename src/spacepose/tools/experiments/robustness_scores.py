@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 from spacepose.core import se3
 from spacepose.core.sim.scenarios import Frame
 from spacepose.core.track_result import TrackResult
+from spacepose.errors import ConfigError
 
 #: A frame is tracked when its target points lie within this share of the range, RMS.
 TRACKED_RANGE_FRACTION = 0.01
@@ -74,7 +75,7 @@ class FrameTruth:
         (N, 3) the frame's non-flying target points, sensor frame of frame k, m.
     crlb
         (6, 6) frame-to-frame Cramér–Rao bound of the frame, twist (ω, v) about the sensor
-        origin, rad and m.
+        origin, rad and m; NaN for a frame without noise (a render), which has none.
     """
 
     T_true_k0: NDArray[np.float64]
@@ -84,10 +85,12 @@ class FrameTruth:
     @classmethod
     def from_frame(cls, frame: Frame, T_sensor_target_0: NDArray[np.float64]) -> FrameTruth:
         keep = frame.on_target & ~frame.flying
+        try:
+            bound = frame.crlb(frame_to_frame=True).covariance
+        except ConfigError:  # noise 0: no bound, and the frame is still scored
+            bound = np.full((6, 6), np.nan)
         return cls(
-            frame.T_sensor_target @ se3.invert(T_sensor_target_0),
-            frame.cloud.points[keep],
-            frame.crlb(frame_to_frame=True).covariance,
+            frame.T_sensor_target @ se3.invert(T_sensor_target_0), frame.cloud.points[keep], bound
         )
 
 
