@@ -417,15 +417,15 @@ def _damaged_tiff(path: Path, at: int, new: bytes, replace: int = 0) -> Path:
 def test_a_tiff_that_lost_its_size_is_one_error_naming_the_file(tmp_path, capsys):
     """A byte slipped into a TIFF's tags ended in Pillow's TypeError traceback ("Missing
     dimensions"), after a dozen bare 'UserWarning: Tag data larger than file' lines."""
-    folder = _depth_folder(tmp_path / "depth")
+    folder = _depth_folder(tmp_path / "depth", frames=0)
     bad = _damaged_tiff(folder / "000000.tif", 118, b"*")
-    (folder / "000000.png").unlink()
+    good = _damaged_tiff(folder / "000001.tif", 0, b"")  # undamaged: one format per folder
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no Pillow warning escapes
         frames = list(open_frames(folder))
     assert frames[0].cloud is None and frames[1].cloud is not None
     assert frames[0].error == f"{bad}: cannot decode the image: Missing dimensions"
-    assert main(["register", str(bad), str(folder / "000001.png")]) == 1
+    assert main(["register", str(bad), str(good)]) == 1
     assert _cli_error(capsys) == f"error: {frames[0].error}"
 
 

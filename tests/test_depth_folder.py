@@ -32,9 +32,28 @@ def test_tum_depth_list(tmp_path):
 
 
 def test_depth_files_sorted(tmp_path):
-    for name in ("b.png", "a.tif", "c.TIFF", "notes.txt"):
+    for name in ("b.tif", "a.tif", "c.TIFF", "notes.txt"):
         (tmp_path / name).write_bytes(b"")
-    assert [p.name for p in depth_files(tmp_path)] == ["a.tif", "b.png", "c.TIFF"]
+    assert [p.name for p in depth_files(tmp_path)] == ["a.tif", "b.tif", "c.TIFF"]
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="no depth images"):
         depth_files(tmp_path / "empty")
+
+
+def test_a_folder_of_mixed_depth_formats_is_refused_by_its_counts(tmp_path):
+    """One depth_scale reads a folder's every image: a renderer's EXR in metres beside 16-bit
+    PNGs in millimetres (depth_scale 0.001) came out a thousand times too near. ``.tif`` and
+    ``.tiff`` are one format."""
+    from spacepose.tools.depth_io import write_depth_image
+
+    depth = np.full((4, 5), 1.2)
+    for name in ("000000.png", "000001.png", "000002.exr"):
+        write_depth_image(tmp_path / name, depth)
+    with pytest.raises(InputError, match=r"mixes depth formats \(2 \.png, 1 \.exr\)") as err:
+        depth_files(tmp_path)
+    assert str(tmp_path) in str(err.value)
+    tiffs = tmp_path / "tiffs"
+    tiffs.mkdir()
+    for name in ("000000.tif", "000001.tiff"):
+        write_depth_image(tiffs / name, depth)
+    assert [p.name for p in depth_files(tiffs)] == ["000000.tif", "000001.tiff"]

@@ -9,6 +9,7 @@ relative to the folder).
 from __future__ import annotations
 
 import re
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,8 @@ from spacepose.tools.text_io import check_timing, read_text
 
 # A depth folder's frames may also be NumPy arrays; elsewhere a ``.npy`` is a point cloud.
 FOLDER_DEPTH_SUFFIXES: tuple[str, ...] = (*DEPTH_SUFFIXES, ".npy")
+# Suffixes of one format: a folder's images are all of one.
+_FORMATS = {".tif": ".tiff"}
 TUM_DEPTH_LIST = "depth.txt"
 
 
@@ -133,14 +136,24 @@ def depth_files(root: str | Path) -> tuple[Path, ...]:
     Raises
     ------
     InputError
-        The folder holds no image with a suffix of :data:`FOLDER_DEPTH_SUFFIXES`, or its
-        first ``.npy`` is an (N, 3) or (N, 6) point array.
+        The folder holds no image with a suffix of :data:`FOLDER_DEPTH_SUFFIXES`, images of
+        more than one format, or its first ``.npy`` is an (N, 3) or (N, 6) point array.
     """
     root = Path(root)
     paths = frame_entries(root, FOLDER_DEPTH_SUFFIXES)
     if not paths:
         raise InputError(
             f"no depth images ({', '.join(FOLDER_DEPTH_SUFFIXES)}) in the folder", root
+        )
+    formats = Counter(_FORMATS.get(p.suffix.lower(), p.suffix.lower()) for p in paths)
+    if len(formats) > 1:
+        # One depth_scale reads every image: a renderer's EXR in metres beside 16-bit PNGs in
+        # millimetres came out a thousand times too near, frame for frame.
+        listed = ", ".join(f"{n} {suffix}" for suffix, n in formats.most_common())
+        raise InputError(
+            f"the folder mixes depth formats ({listed}), which one camera's depth_scale cannot "
+            "all read: keep the frames of one format",
+            root,
         )
     arrays = [p for p in paths if p.suffix.lower() == ".npy"]
     shape = npy_shape(arrays[0]) if arrays else None
