@@ -1,4 +1,5 @@
-"""Range-camera artefacts for the simulator (methods.md §3): flying pixels and multipath.
+"""Range-camera artefacts for the simulator (methods.md §3): flying pixels, multipath and noise
+shared between neighbouring pixels.
 
 Both work on the organised image of true ranges a sensor sees before noise (row-major, one entry
 per pixel, ``inf`` where a pixel has no return).
@@ -19,6 +20,11 @@ per pixel, ``inf`` where a pixel has no return).
   ``CREASE_GAP_PIXELS`` pixel footprints (``r / f``), so a surface seen past an occluding edge
   (a depth step) is not a crease. Every return at 3D distance ``d`` from the nearest crease point
   reads ``bias·exp(−d / length)`` longer.
+- **Spatially correlated noise.** Many depth cameras filter their depth maps before output
+  (bilateral or median filters, phase unwrapping over a neighbourhood), so neighbouring pixels'
+  errors are shared: :func:`correlated_noise` draws the pixels' standard normal noise as white
+  noise smoothed by a Gaussian of ``correlation_px`` pixels (standard deviation), rescaled to
+  unit variance per pixel; each return's noise is then ``σ`` times its pixel's value.
 """
 
 from __future__ import annotations
@@ -186,3 +192,22 @@ def multipath_excess(
     d, _ = cKDTree(crease_points).query(points[near], distance_upper_bound=reach)
     excess[near] = np.where(np.isfinite(d), bias * np.exp(-d / length), 0.0)
     return excess
+
+
+def correlated_noise(
+    shape: tuple[int, int], correlation_px: float, rng: np.random.Generator
+) -> NDArray[np.float64]:
+    """(H·W,) standard normal noise per pixel (row-major), shared between neighbours over a
+    Gaussian of ``correlation_px`` pixels (standard deviation; 0: white).
+
+    The white image is smoothed and divided by the kernel's root sum of squares, so that every
+    pixel's variance is 1 away from the border (reflected there).
+    """
+    white = rng.standard_normal(shape)
+    if correlation_px <= 0:
+        return white.ravel()
+    impulse = np.zeros((int(8 * correlation_px) + 1,) * 2)
+    impulse[len(impulse) // 2, len(impulse) // 2] = 1.0
+    kernel = ndimage.gaussian_filter(impulse, correlation_px, mode="constant")
+    smooth = ndimage.gaussian_filter(white, correlation_px, mode="reflect")
+    return (smooth / np.sqrt(np.sum(kernel**2))).ravel()

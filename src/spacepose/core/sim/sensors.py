@@ -33,7 +33,12 @@ from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from spacepose.core.config import StageConfig, validate_config
 from spacepose.core.crlb import range_sigma_along_normal
-from spacepose.core.sim.artefacts import concave_creases, flying_pixels, multipath_excess
+from spacepose.core.sim.artefacts import (
+    concave_creases,
+    correlated_noise,
+    flying_pixels,
+    multipath_excess,
+)
 from spacepose.errors import ConfigError
 
 SensorModel = Literal["tof", "flash-lidar", "gaussian"]
@@ -84,6 +89,13 @@ class SensorConfig(StageConfig):
     )
     flying_tail: float = Field(
         0.0, ge=0, description="Largest range excess of a flying pixel at a bare silhouette, m."
+    )
+    noise_correlation_px: float = Field(
+        0.0,
+        ge=0,
+        le=50,
+        description="Range noise shared over a Gaussian of this many pixels "
+        "(a camera's spatial filter); 0: white per pixel.",
     )
 
     @model_validator(mode="after")
@@ -395,7 +407,9 @@ def scan(
             points += sigma[:, None] * rng.standard_normal((len(idx), 3))
         sigma_normal = sigma
     else:
-        if noisy:
+        if noisy and config.noise_correlation_px > 0:
+            r = r + sigma * correlated_noise(shape, config.noise_correlation_px, rng)[idx]
+        elif noisy:
             r = r + sigma * rng.standard_normal(len(idx))
         points = d * r[:, None]
         sigma_normal = range_sigma_along_normal(sigma, d, n) if len(idx) else np.zeros(0)
