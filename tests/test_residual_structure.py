@@ -87,3 +87,31 @@ def test_a_spread_floor_divides_cell_means_by_it_and_leaves_noise_above_it() -> 
     assert residual_structure(points, noisy, 0.05, 0.001) == residual_structure(points, noisy, 0.05)
     with pytest.raises(InputError, match="min_sigma"):
         residual_structure(points, noisy, 0.05, -1.0)
+
+
+def test_shared_structure_tells_a_biased_part_from_noise_shared_between_neighbours() -> None:
+    """Two halves biased by ±b: neighbouring cells share the offset, and the median of their
+    z-scores' products is about the cells' z² (the within statistic; 12.3 and 11.8 here).
+    White noise: about 0. Noise smoothed over one 5 mm pair spacing (a camera's spatial
+    filter) raises each 5 cm cell's z² eleven times but leaves neighbouring cells nearly
+    independent (shared −0.6): that is no second motion."""
+    from scipy import ndimage
+
+    from spacepose.core.residual_structure import Structure, shared_structure, structure_of
+
+    rng = np.random.default_rng(6)
+    points = _plane(200, 0.005)  # 40,000 pairs, 1 m square, cells of 100 pairs
+    b, sigma = 0.0005, 0.002
+    biased = rng.normal(0.0, sigma, len(points)) + np.where(points[:, 0] < 0.5, b, -b)
+    both = structure_of(points, biased, 0.05)
+    assert both.within > 5.0 and both.shared > 0.7 * both.within
+    assert shared_structure(points, biased, 0.05) == both.shared
+    white = shared_structure(points, rng.normal(0.0, sigma, len(points)), 0.05)
+    assert abs(white) < 0.3
+    smooth = ndimage.gaussian_filter(rng.normal(0.0, 1.0, (200, 200)), 1.0).ravel()
+    filtered = structure_of(points, sigma * smooth / smooth.std(), 0.05)
+    assert filtered.within > 5.0 and abs(filtered.shared) < 1.0
+    assert not filtered.shows_another_motion(5.0, 1.0)
+    assert both.shows_another_motion(5.0, 1.0)
+    assert Structure(6.0, None).shows_another_motion(5.0, 1.0)  # no neighbours: within alone
+    assert not Structure(6.0, 0.5).shows_another_motion(5.0, 1.0)

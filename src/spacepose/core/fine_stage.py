@@ -371,7 +371,8 @@ class FineStage:
         ``ok`` at 8-11 σ."""
         if self.support is None:
             return prepared, checked
-        bound = health_bounds(self._context(), False).ok_structure
+        bounds = health_bounds(self._context(), False)
+        bound = (bounds.ok_structure, bounds.ok_shared_structure)
         look = self.support.look(prepared, checked, bound, timestamp, reach)
         if look.found is None:
             return prepared, look.checked

@@ -29,7 +29,7 @@ from spacepose.core.part_influence import PartInfluence, part_influence
 from spacepose.core.pose_covariance import isotropic_about, plane_covariance
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.residual_noise import ResidualNoise, point_to_plane_sigma
-from spacepose.core.residual_structure import SAMPLING_SPREAD_VOXELS, residual_structure
+from spacepose.core.residual_structure import SAMPLING_SPREAD_VOXELS, Structure, structure_of
 from spacepose.core.tracker_config import StageLengths, pairwise_kind
 from spacepose.errors import SpaceposeError
 
@@ -60,7 +60,7 @@ class PairRegistration:
     step
         (6,) the point-to-plane Gauss-Newton step from the result (same frame).
     structure
-        :func:`~spacepose.core.residual_structure.residual_structure` of its final pairs, when
+        :func:`~spacepose.core.residual_structure.structure_of` its final pairs, when
         measured.
     influence
         :func:`~spacepose.core.part_influence.part_influence` of its final pairs, when measured.
@@ -69,7 +69,7 @@ class PairRegistration:
     result: RegistrationResult
     covariance: NDArray[np.float64]
     step: NDArray[np.float64]
-    structure: float | None = None
+    structure: Structure | None = None
     influence: PartInfluence | None = None
 
 
@@ -226,7 +226,7 @@ class FrameRegistrar:
             # Residuals correlated over the surface carry less information than their count
             # says: the variance of their cell means over white noise's (the design effect)
             # scales this frame's covariances, onto every reference.
-            self._design = 1.0 if structure is None else max(1.0, structure)
+            self._design = 1.0 if structure is None else max(1.0, structure.within)
         cov, step = plane_covariance(
             res.T_target_source,
             prepared.cloud.points,
@@ -253,8 +253,8 @@ class FrameRegistrar:
 
     def structure_onto(
         self, prepared: PreparedCloud, ref: Keyframe, T_init_sensor_target: NDArray[np.float64]
-    ) -> tuple[float | None, float]:
-        """:func:`~spacepose.core.residual_structure.residual_structure` of the frame registered
+    ) -> tuple[Structure | None, float]:
+        """:func:`~spacepose.core.residual_structure.structure_of` the frame registered
         onto ``ref`` with one motion from ``T_init_sensor_target``, at the fine gate, and that
         registration's fitness; the measured noise and the frame's design effect are left as
         they are."""
@@ -264,12 +264,12 @@ class FrameRegistrar:
         pairs = self._final_pairs(prepared, tgt, res, matches)
         return self._structure(pairs), res.fitness
 
-    def _structure(self, pairs: _FinalPairs) -> float | None:
-        """:func:`~spacepose.core.residual_structure.residual_structure` of a registration's
+    def _structure(self, pairs: _FinalPairs) -> Structure | None:
+        """:func:`~spacepose.core.residual_structure.structure_of` a registration's
         final pairs, in cells of :data:`STRUCTURE_CELL_GATES` fine gates, the spread floored
         at the sampling's own."""
         cell = STRUCTURE_CELL_GATES * self.noise.gate
-        return residual_structure(pairs.points, pairs.residuals, cell, self._sampling_spread)
+        return structure_of(pairs.points, pairs.residuals, cell, self._sampling_spread)
 
     @property
     def _sampling_spread(self) -> float:

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
 from spacepose.core.part_influence import PartInfluence
+from spacepose.core.residual_structure import Structure
 from spacepose.core.tracker_config import HealthConfig
 
 Status = Literal["ok", "degraded", "lost"]
@@ -56,6 +57,7 @@ class HealthBounds:
     ok_step_translation: float
     ok_step_rotation_deg: float
     ok_structure: float
+    ok_shared_structure: float | None
     max_motion_translation: float
     max_motion_rotation_deg: float
 
@@ -101,6 +103,7 @@ class HealthBounds:
             ok_step_translation=config.ok_step_translation * voxel,
             ok_step_rotation_deg=deg_at_radius(config.ok_step_rotation),
             ok_structure=config.ok_structure,
+            ok_shared_structure=config.ok_shared_structure,
             max_motion_translation=config.max_motion * radius,
             max_motion_rotation_deg=math.degrees(config.max_motion),
         )
@@ -169,7 +172,7 @@ def assess_health(
     velocity_known: bool = True,
     surface_step: tuple[float, float] = (0.0, 0.0),
     model_reference: bool = False,
-    structure: float | None = None,
+    structure: Structure | None = None,
     influence: PartInfluence | None = None,
 ) -> tuple[Status, tuple[str, ...]]:
     """Status and reasons of one registered frame.
@@ -196,8 +199,8 @@ def assess_health(
         The frame was registered onto a model: its fit to the model confirms it (two views of
         one sensor share a sampling and its noise; a model shares neither).
     structure
-        :func:`~spacepose.core.residual_structure.residual_structure` of the registration
-        (None: not measured; the tracker measures it onto keyframes only).
+        :func:`~spacepose.core.residual_structure.structure_of` the registration (None: not
+        measured; the tracker measures it onto keyframes only).
     influence
         :func:`~spacepose.core.part_influence.part_influence` of the registration (None: not
         measured; likewise onto keyframes only).
@@ -229,9 +232,11 @@ def assess_health(
         lost.append(msg)
     elif st > b.ok_step_translation or sr > b.ok_step_rotation_deg:
         weak.append(msg)
-    if structure is not None and structure > b.ok_structure:
+    if structure is not None and structure.shows_another_motion(
+        b.ok_structure, b.ok_shared_structure
+    ):
         weak.append(
-            f"residual structure {structure:.1f} > {b.ok_structure:g}: part of the cloud "
+            f"residual structure {structure.within:.1f} > {b.ok_structure:g}: part of the cloud "
             "fits another motion"
         )
     if influence is not None and influence.excessive:

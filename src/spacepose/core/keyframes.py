@@ -24,6 +24,7 @@ from spacepose.core.health import pose_disagreement
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.part_influence import PartInfluence
 from spacepose.core.registration import RegistrationResult
+from spacepose.core.residual_structure import Structure
 from spacepose.core.scale import rms_radius
 from spacepose.core.tracker_config import KeyframeConfig
 
@@ -147,8 +148,8 @@ class FineEstimate:
         1-σ (rad, m) of the keyframe chain's drift up to this frame, and the (6, 6)
         covariance it adds to ``covariance`` (None: none).
     structure
-        :func:`~spacepose.core.residual_structure.residual_structure` of the registration onto
-        the latest reference (None: not measured).
+        :func:`~spacepose.core.residual_structure.structure_of` the registration onto the
+        latest reference (None: not measured).
     influence
         :func:`~spacepose.core.part_influence.part_influence` of that registration (None: not
         measured).
@@ -170,7 +171,7 @@ class FineEstimate:
     window_poses: tuple[tuple[Keyframe, NDArray[np.float64], NDArray[np.float64]], ...] = ()
     bias: tuple[float, float] = (0.0, 0.0)
     drift: NDArray[np.float64] | None = None
-    structure: float | None = None
+    structure: Structure | None = None
     influence: PartInfluence | None = None
     degeneracy: Degeneracy | None = None
     held: bool = False

@@ -19,6 +19,8 @@ wall-and-table frames that were ok while wrong have a median of 10 at 0.5-3 m.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -39,6 +41,11 @@ SAMPLING_SPREAD_VOXELS = 0.05
 _MAD_TO_SIGMA = 1.4826
 # Median of a χ² with one degree of freedom: a white cell's z² has it.
 _CHI2_1_MEDIAN = 0.454936
+# Offsets of the 13 neighbouring cells after a cell (the other 13 are the same pairs, seen from
+# the other cell).
+_FORWARD_NEIGHBOURS = [
+    (i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)
+]
 
 
 def residual_structure(
@@ -77,6 +84,111 @@ def residual_structure(
         Shapes that do not match, values that are not finite, or a cell that is not a
         positive length.
     """
+    found = structure_of(points, residuals, cell, min_sigma)
+    return None if found is None else found.within
+
+
+def shared_structure(
+    points: NDArray[np.float64],
+    residuals: NDArray[np.float64],
+    cell: float,
+    min_sigma: float = 0.0,
+) -> float | None:
+    """Whether neighbouring cells share their residuals' offset: the median over every pair of
+    tested cells that touch (26-neighbours) of the product of their z-scores, over χ²₁'s
+    median (the cells and z-scores of :func:`residual_structure`).
+
+    A second motion biases a whole part, and the cells of it agree: each product is about the
+    part's ``z²``. Noise shared only between nearby pixels (a camera's spatial filter) inflates
+    each cell's z² (:func:`residual_structure`: 4-15 at 1.2 m for a Gaussian of 2-4 pixels) but
+    leaves neighbouring cells nearly independent, their products' median near 0, as white
+    noise's is.
+
+    Returns
+    -------
+    float or None
+        The statistic (about 0 without a shared offset; negative when neighbours disagree);
+        None when no two tested cells touch, or as :func:`residual_structure`.
+
+    Raises
+    ------
+    InputError
+        As :func:`residual_structure`.
+    """
+    found = structure_of(points, residuals, cell, min_sigma)
+    return None if found is None else found.shared
+
+
+@dataclass(frozen=True)
+class Structure:
+    """A registration's residual structure, both statistics over the same cells.
+
+    Attributes
+    ----------
+    within
+        :func:`residual_structure`: how much more each cell's mean varies than white noise's
+        (1 for white residuals); the design effect of the pairs' covariance.
+    shared
+        :func:`shared_structure`: how much neighbouring cells share their offsets (about 0
+        without a shared offset); None when no two tested cells touch.
+    """
+
+    within: float
+    shared: float | None
+
+    def shows_another_motion(self, bound: float, shared_bound: float | None = None) -> bool:
+        """Cells whose means stray beyond ``bound`` (:attr:`within`), and, with a
+        ``shared_bound``, neighbours that share their offsets beyond it (:attr:`shared`, when
+        any touch): a second motion biases whole parts, a camera's spatially filtered noise
+        only nearby pixels."""
+        if self.within <= bound:
+            return False
+        return shared_bound is None or self.shared is None or self.shared > shared_bound
+
+
+def structure_of(
+    points: NDArray[np.float64],
+    residuals: NDArray[np.float64],
+    cell: float,
+    min_sigma: float = 0.0,
+) -> Structure | None:
+    """Both statistics of :func:`residual_structure` and :func:`shared_structure` from one
+    pass over the cells (same parameters); None when no cell is tested or the residuals have
+    no spread.
+
+    Raises
+    ------
+    InputError
+        As :func:`residual_structure`.
+    """
+    scores = _cell_scores(points, residuals, cell, min_sigma)
+    if scores is None:
+        return None
+    ijk, sums, counts, sigma = scores
+    within = float(np.median(sums**2 / (counts * sigma**2))) / _CHI2_1_MEDIAN
+    z = sums / (np.sqrt(counts) * sigma)
+    low = ijk.min(axis=0) - 1
+    dims = ijk.max(axis=0) - low + 2
+    keys = ((ijk[:, 0] - low[0]) * dims[1] + ijk[:, 1] - low[1]) * dims[2] + ijk[:, 2] - low[2]
+    order = np.argsort(keys)
+    sorted_keys = keys[order]
+    products = []
+    for offset in _FORWARD_NEIGHBOURS:
+        other = keys + (offset[0] * dims[1] + offset[1]) * dims[2] + offset[2]
+        at = np.minimum(np.searchsorted(sorted_keys, other), len(keys) - 1)
+        found = sorted_keys[at] == other
+        products.append(z[found] * z[order[at[found]]])
+    pairs = np.concatenate(products)
+    shared = float(np.median(pairs)) / _CHI2_1_MEDIAN if len(pairs) else None
+    return Structure(within, shared)
+
+
+def _cell_scores(
+    points: NDArray[np.float64], residuals: NDArray[np.float64], cell: float, min_sigma: float
+) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64], float] | None:
+    """The tested cells' integer coordinates (C, 3), their residuals' sums (C,) and counts
+    (C,), and the residuals' spread σ (m), after the inputs are checked; None when no cell is
+    tested or the residuals have no spread."""
     points = np.asarray(points, dtype=np.float64)
     residuals = np.asarray(residuals, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or residuals.shape != (len(points),):
@@ -96,11 +208,12 @@ def residual_structure(
     sigma = max(sigma, min_sigma)
     if not sigma > 0:
         return None
-    _, index = voxel_cells(points, cell)
+    centroids, index = voxel_cells(points, cell)
     counts = np.bincount(index)
     sums = np.bincount(index, weights=residuals)
     tested = counts >= MIN_CELL_PAIRS
     if not tested.any():
         return None
-    z2 = sums[tested] ** 2 / (counts[tested] * sigma**2)
-    return float(np.median(z2)) / _CHI2_1_MEDIAN
+    # A cell's centroid lies inside it: its floor is the cell's index.
+    ijk = np.floor(centroids[tested] / cell).astype(np.int64)
+    return ijk, sums[tested], counts[tested], sigma

@@ -110,14 +110,16 @@ class SupportSeparation:
         self,
         prepared: PreparedCloud,
         checked: Checked,
-        bound: float,
+        bound: tuple[float, float | None],
         timestamp: float,
         reach: float,
     ) -> Look:
         """Model-free, one frame's look for a support: on the schedule of :meth:`due` and on a
         frame after one that parted (:meth:`parted`), a split tried (:meth:`split`) when the
         frame's residuals against the first keyframe or its own reference carry structure
-        above ``bound``, or a part pulls its pose.
+        above ``bound`` (the health check's bounds of the structure and of its shared part,
+        :meth:`~spacepose.core.residual_structure.Structure.shows_another_motion`), or a part
+        pulls its pose.
 
         A scheduled look without those signs, from the second on, tries a support standing
         still (its motion held at the identity, :func:`~spacepose.core.bodies.split_motion`),
@@ -133,7 +135,8 @@ class SupportSeparation:
         parted = self.parted(prepared, estimate, bound, timestamp)
         if parted is not None and estimate.reference is not self.first:
             checked = _parted(checked, parted, bound)
-        structured = estimate.structure is not None and estimate.structure > bound
+        structure = estimate.structure
+        structured = structure is not None and structure.shows_another_motion(*bound)
         pulled = estimate.influence is not None and estimate.influence.excessive
         if parted is None and not (due and (structured or pulled)):
             if not due:
@@ -149,10 +152,14 @@ class SupportSeparation:
         return Look(checked, self.split(prepared, estimate, timestamp, reach))
 
     def parted(
-        self, prepared: PreparedCloud, estimate: FineEstimate, bound: float, timestamp: float
+        self,
+        prepared: PreparedCloud,
+        estimate: FineEstimate,
+        bound: tuple[float, float | None],
+        timestamp: float,
     ) -> float | None:
-        """The frame's residual structure against the first keyframe when it is above
-        ``bound`` (the health check's), else None.
+        """The frame's residual structure against the first keyframe when it shows another
+        motion by ``bound`` (the health check's, :meth:`look`), else None.
 
         Measured on the looks' schedule (:meth:`due`) and on each frame after one above the
         bound, until the support is split off (not on every frame: a frame of one body may
@@ -181,9 +188,11 @@ class SupportSeparation:
         # motion (lab mock-up tumbling 10° a frame, alone: structure 6.2-17 at fitness
         # 0.63-0.40, frames 8-10; the wall-and-table frames above the bound fit it 0.71-0.93).
         self._parting = (
-            structure is not None and structure > bound and fitness >= self.stale_fitness
+            structure is not None
+            and structure.shows_another_motion(*bound)
+            and fitness >= self.stale_fitness
         )
-        return structure if self._parting else None
+        return structure.within if self._parting else None
 
     def split(
         self,
@@ -330,11 +339,11 @@ class SupportSeparation:
         return subset(prepared, keep), body
 
 
-def _parted(checked: Checked, structure: float, bound: float) -> Checked:
+def _parted(checked: Checked, structure: float, bound: tuple[float, float | None]) -> Checked:
     """The frame degraded: against the first keyframe its residuals carry structure."""
     estimate, status, reasons = checked
     reason = (
-        f"residual structure {structure:.1f} > {bound:g} against the first keyframe: part of "
-        "the cloud moves otherwise"
+        f"residual structure {structure:.1f} > {bound[0]:g} against the first keyframe: part "
+        "of the cloud moves otherwise"
     )
     return estimate, "degraded" if status == "ok" else status, (*reasons, reason)

@@ -164,7 +164,7 @@ def accepted_result(
         reference_index=estimate.reference.index,
         coarse=coarse,
         keyframe=keyframe,
-        structure=float("nan") if estimate.structure is None else estimate.structure,
+        structure=float("nan") if estimate.structure is None else estimate.structure.within,
     )
 
 

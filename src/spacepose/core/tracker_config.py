@@ -142,6 +142,16 @@ class HealthConfig(StageConfig):
         sensor's own bias (the flash LiDAR's edge pixels). Set on simulated sensors: the real
         LiDAR pair of data/real gives 5.8-9.3 at its ICP optimum, so raise it for a real
         scanner whose errors are correlated over the surface.
+    ok_shared_structure
+        None (the default): off. Else a structure above ``ok_structure`` counts only where
+        neighbouring cells share their offsets beyond this
+        (:func:`~spacepose.core.residual_structure.shared_structure`, about 0 for white
+        noise): a second motion biases whole parts, while a camera that filters its depth
+        shares noise between nearby pixels only, which raised the lab frames' structure to
+        4-15 at 1.2 m (a Gaussian of 2-4 pixels) with its shared part at most 1.1; 1 is the
+        value for such a camera. Off by default: on the robustness grid's wall-and-table cells
+        (seed 0) a bound of 1 let 40 more frames be ``ok`` while off by more than 5 σ
+        (docs/methods.md §5.3).
     ok_influence
         Largest shift of the pose, in σ of its own covariance, when one part of the surface
         (a cube of the object's RMS radius) is left out of the registration onto the latest
@@ -176,6 +186,7 @@ class HealthConfig(StageConfig):
     ok_step_translation: PositiveFloat = 0.083
     ok_step_rotation: PositiveFloat = 0.073
     ok_structure: float = Field(5.0, gt=1)
+    ok_shared_structure: PositiveFloat | None = None
     ok_influence: PositiveFloat = 3.0
     max_motion: PositiveFloat = 0.5
     model_error_sigmas: PositiveFloat = 3.0
