@@ -13,7 +13,8 @@ import pytest
 from spacepose.cli import main
 from spacepose.core import se3
 from spacepose.core.clusters import main_cluster_group
-from spacepose.core.depth import DepthCamera, distort, pixel_rays, undistort
+from spacepose.core.depth import DepthCamera, pixel_rays
+from spacepose.core.lens import distort, undistort
 from spacepose.core.sim.mesh_files import load_mesh
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning

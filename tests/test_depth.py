@@ -1,4 +1,4 @@
-"""The depth camera model (core/depth.py): distortion inverse, back-projection, z-buffering."""
+"""The depth camera model (core/depth.py): back-projection, z-buffering."""
 
 from __future__ import annotations
 
@@ -9,11 +9,10 @@ from spacepose.core.depth import (
     DepthCamera,
     backproject,
     depth_to_cloud,
-    distort,
     pixel_rays,
     render_depth,
-    undistort,
 )
+from spacepose.core.lens import distort
 from spacepose.errors import InputError
 
 PINHOLE = DepthCamera(fx=500.0, fy=480.0, cx=79.5, cy=59.5, depth_scale=0.001)
@@ -25,16 +24,6 @@ WIDE = PINHOLE.model_copy(
     update={"k1": -0.28, "k2": 0.09, "k3": -0.012, "k4": 0.05, "k5": 0.01, "k6": 0.002}
     | {"p1": 1.2e-3, "p2": -8e-4}
 )
-
-
-def test_undistort_inverts_the_forward_model():
-    rng = np.random.default_rng(7)
-    x, y = rng.uniform(-0.25, 0.25, (2, 5000))
-    xd, yd = distort(WIDE, x, y)
-    assert np.max(np.hypot(xd - x, yd - y)) > 1e-3  # the distortion is not negligible
-    xu, yu = undistort(WIDE, xd, yd)
-    np.testing.assert_allclose(xu, x, atol=1e-13)
-    np.testing.assert_allclose(yu, y, atol=1e-13)
 
 
 def test_pixel_rays_project_back_onto_their_pixels():
@@ -145,15 +134,3 @@ def test_render_then_backproject_round_trip_with_distortion():
     organised = backproject(image, WIDE.model_copy(update={"depth_scale": 1.0}))
     np.testing.assert_allclose(organised.points[v, u], points, atol=1e-12)
     assert organised.valid.sum() == 300
-
-
-def test_a_camera_matrix_with_nan_or_the_wrong_size_says_which():
-    """'needs 9 finite numbers, got 9' named the count, not the NaN."""
-    from spacepose.core.depth import matrix_fields
-    from spacepose.errors import InputError
-
-    K = [[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]
-    with pytest.raises(InputError, match="holds non-finite numbers"):
-        matrix_fields([[np.nan, 0, 320], *K[1:]], [0, 0, 0, 0])
-    with pytest.raises(InputError, match="needs 9 numbers, got 8"):
-        matrix_fields(np.ravel(K)[:8], [0, 0, 0, 0])

@@ -17,13 +17,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.config import read_mapping, validate_config
-from spacepose.core.depth import (
-    DepthCamera,
-    check_distortion_model,
-    distort,
-    matrix_fields,
-    pixel_rays,
-)
+from spacepose.core.depth import DepthCamera, pixel_rays
+from spacepose.core.lens import check_distortion_model, distort, matrix_fields
 from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 
 INTRINSICS_FILES: tuple[str, ...] = ("intrinsics.yaml", "intrinsics.yml", "intrinsics.json")
@@ -108,8 +103,8 @@ def _ros_fields(data: dict) -> dict:
 
 def _flat_fields(data: dict) -> dict:
     """Our layout with ROS's ``distortion_model`` beside it: the model our ``k1``..``k6``,
-    ``p1``, ``p2`` are (:data:`~spacepose.core.depth.DISTORTION_MODELS`), or any model with no
-    coefficient given (as :func:`~spacepose.core.depth.matrix_fields` takes it)."""
+    ``p1``, ``p2`` are (:data:`~spacepose.core.lens.DISTORTION_MODELS`), or any model with no
+    coefficient given (as :func:`~spacepose.core.lens.matrix_fields` takes it)."""
     rest = dict(data)
     model = rest.pop("distortion_model")
     check_distortion_model(model, any(rest.get(n) for n in _ROS_GIVES[4:]))
