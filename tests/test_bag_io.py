@@ -18,8 +18,10 @@ from spacepose.cli import main
 from spacepose.core.depth import DepthCamera, render_depth
 from spacepose.core.sim import scenario_config, simulate
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
-from spacepose.tools.bag_io import camera_from_info, open_bag, pointcloud2_points
+from spacepose.tools.bag_camera import camera_from_info
+from spacepose.tools.bag_io import open_bag
 from spacepose.tools.intrinsics_io import read_intrinsics
+from spacepose.tools.ros_pointcloud import pointcloud2_points
 from spacepose.tools.tracking_io import track_folder, tracker_config
 from spacepose.tools.trajectory_io import read_tum
 

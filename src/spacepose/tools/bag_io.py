@@ -3,16 +3,18 @@
 A bag is a ``.bag`` file (ROS 1) or a ROS 2 bag folder (``metadata.yaml`` with its ``.db3`` or
 ``.mcap`` file; the storage file itself is accepted too). One topic gives the frames:
 
-- ``sensor_msgs/PointCloud2``: the ``x``, ``y``, ``z`` fields, at any offset, of any numeric
-  datatype, either byte order, with row padding; NaN points (``is_dense`` false) are dropped;
+- ``sensor_msgs/PointCloud2`` (:mod:`spacepose.tools.ros_pointcloud`): the ``x``, ``y``, ``z``
+  fields, at any offset, of any numeric datatype, either byte order, with row padding; NaN
+  points (``is_dense`` false) are dropped;
 - ``sensor_msgs/Image`` depth (``16UC1``/``mono16`` in millimetres, ``32FC1`` in metres) or
   ``sensor_msgs/CompressedImage`` depth (:mod:`spacepose.tools.ros_depth`), back-projected with
   the intrinsics of the bag's ``sensor_msgs/CameraInfo`` (the topic beside the raw image's,
-  else the bag's only one; its first message) or of an intrinsics file. A compressed topic
-  whose first message is no depth map (a JPEG colour stream) is no frame topic.
+  else the bag's only one; its first message: :mod:`spacepose.tools.bag_camera`) or of an
+  intrinsics file. A compressed topic whose first message is no depth map (a JPEG colour
+  stream) is no frame topic.
 
 A frame's time is its header stamp (seconds), or the bag's record time when the topic's first
-messages are all stamped zero (a driver that leaves stamps unset).
+messages are all stamped zero (a driver that leaves stamps unset: :mod:`spacepose.tools.bag_clock`).
 A message that cannot be decoded becomes a frame without a cloud and the reason why; so does
 every message from a corrupt stretch of the bag on (a chunk that does not decompress ends what
 can be read), with a NaN time.
@@ -28,34 +30,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-
 from spacepose.core.cloud import PointCloud
-from spacepose.core.depth import DepthCamera, matrix_fields
-from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
+from spacepose.core.depth import DepthCamera
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
+from spacepose.tools.bag_camera import bag_camera
+from spacepose.tools.bag_clock import stamp_seconds, topic_clock
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.depth_io import depth_cloud
 from spacepose.tools.frames import FrameInput, warn_if_kilometres
-from spacepose.tools.intrinsics_io import check_camera
-from spacepose.tools.npy_io import as_float64
-from spacepose.tools.ros_depth import (
-    COMPRESSED_IMAGE,
-    IMAGE,
-    depth_values,
-    is_depth_format,
-    raw_topic,
-)
+from spacepose.tools.ros_depth import COMPRESSED_IMAGE, IMAGE, depth_values, is_depth_format
+from spacepose.tools.ros_pointcloud import POINTCLOUD2, pointcloud2_points
 
-POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
-CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 BAG_SUFFIXES: tuple[str, ...] = (".bag", ".db3", ".mcap")
 # The first line of every ROS 1 bag (format 2.0, the only one rosbags reads).
 _ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
-# A header stamp of zero is unset, not the clock's start, on a clock that reads past a day.
-_UNSET_STAMP_CLOCK = 86_400.0
-# sensor_msgs/PointField datatypes -> numpy kinds (byte order added per message).
-_POINTFIELD_DTYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 
 
 def is_bag(path: str | Path) -> bool:
@@ -112,94 +100,6 @@ def _open_reader(path: Path) -> Iterator[Any]:
         reader.close()
 
 
-def stamp_seconds(msg: Any, record_time_ns: int, clock: float | None = 0.0) -> float:
-    """The header stamp of ``msg`` in seconds; the record time when its topic's stamps are
-    unset (``clock`` None: :func:`_topic_clock`).
-
-    Raises
-    ------
-    InputError
-        A ``nanosec`` of a second or more: no valid ROS time (a driver writing the whole
-        time in nanoseconds there), which moved the frame up to 4 s on without a word; a stamp
-        of zero on a clock that reads past a day (``clock``): unset, and it put the frame 1.7e9
-        s before the next without a word.
-    """
-    stamp = msg.header.stamp
-    if clock is None:
-        return record_time_ns * 1e-9
-    if stamp.nanosec >= 1_000_000_000:
-        raise InputError(
-            f"header stamp nanosec {stamp.nanosec} is a second or more: not a ROS time "
-            "(nanosec counts within the second)"
-        )
-    if stamp.sec == 0 and stamp.nanosec == 0 and clock > _UNSET_STAMP_CLOCK:
-        raise InputError(f"header stamp 0 on a clock that reads {clock:.10g} s: unset")
-    return stamp.sec + stamp.nanosec * 1e-9
-
-
-def pointcloud2_points(msg: Any) -> NDArray[np.float64]:
-    """The (N, 3) ``x, y, z`` of a ``sensor_msgs/PointCloud2`` as float64 (NaN rows kept).
-
-    Raises
-    ------
-    FileFormatError
-        No ``x``/``y``/``z`` field or one named twice, an unknown datatype, or less data than the
-        header says.
-    """
-    fields = {f.name: f for f in msg.fields}
-    missing = [name for name in "xyz" if name not in fields]
-    if missing:
-        raise FileFormatError(f"PointCloud2 without field(s) {', '.join(missing)}")
-    twice = [name for name in "xyz" if sum(f.name == name for f in msg.fields) > 1]
-    if twice:
-        raise FileFormatError(f"PointCloud2 names field {twice[0]} twice")
-    order = ">" if msg.is_bigendian else "<"
-    names, formats, offsets = [], [], []
-    for name in "xyz":
-        kind = _POINTFIELD_DTYPES.get(fields[name].datatype)
-        if kind is None:
-            raise FileFormatError(f"PointCloud2 field {name}: unknown datatype")
-        names.append(name)
-        formats.append(order + kind)
-        offsets.append(fields[name].offset)
-    if any(
-        o + np.dtype(f).itemsize > msg.point_step for o, f in zip(offsets, formats, strict=True)
-    ):
-        raise FileFormatError(f"PointCloud2 fields reach past point_step {msg.point_step}")
-    point = np.dtype(
-        {"names": names, "formats": formats, "offsets": offsets, "itemsize": msg.point_step}
-    )
-    rows, width, row_step = msg.height, msg.width, msg.row_step
-    data = np.asarray(msg.data, dtype=np.uint8)
-    if row_step < width * msg.point_step or data.size < rows * row_step:
-        raise FileFormatError(
-            f"PointCloud2 holds {data.size} bytes for {rows}x{width} points of "
-            f"{msg.point_step} bytes (row_step {row_step})"
-        )
-    table = data[: rows * row_step].reshape(rows, row_step)[:, : width * msg.point_step]
-    records = np.ascontiguousarray(table).view(point).reshape(-1)
-    return np.column_stack([as_float64(records[n]) for n in names])
-
-
-def camera_from_info(msg: Any, depth_scale: float) -> DepthCamera:
-    """A :class:`DepthCamera` from a ``sensor_msgs/CameraInfo`` (ROS 1 ``K``/``D`` or ROS 2
-    ``k``/``d``; ``plumb_bob`` or ``rational_polynomial`` distortion).
-
-    Raises
-    ------
-    FileFormatError
-        Another distortion model with non-zero coefficients, or a zero focal length.
-    """
-    K = msg.k if hasattr(msg, "k") else msg.K
-    D = msg.d if hasattr(msg, "d") else msg.D
-    try:
-        fields = matrix_fields(K, D, msg.distortion_model)
-    except InputError as exc:
-        raise FileFormatError(f"CameraInfo: {exc}") from None
-    size = {"width": msg.width or None, "height": msg.height or None}
-    return DepthCamera(depth_scale=depth_scale, **fields, **size)
-
-
 @dataclass(frozen=True)
 class BagFrames:
     """The frames of one bag topic (read lazily, in record order).
@@ -217,7 +117,8 @@ class BagFrames:
         Intrinsics for a depth Image topic (None for PointCloud2).
     clock
         The largest of the topic's first header stamps (s); None when they are all zero, and
-        the frame times are then the record times (:func:`_topic_clock`).
+        the frame times are then the record times
+        (:func:`~spacepose.tools.bag_clock.topic_clock`).
     """
 
     path: Path
@@ -377,30 +278,9 @@ def open_bag(
                 path,
             )
         if candidates[topic] != POINTCLOUD2 and camera is None:
-            camera = _bag_camera(reader, topic, path)
-        clock = _topic_clock(reader, connections)
+            camera = bag_camera(reader, topic, path)
+        clock = topic_clock(reader, connections)
     return BagFrames(path, topic, candidates[topic], count, camera, clock=clock)
-
-
-def _topic_clock(reader: Any, connections: list[Any], first: int = 3) -> float | None:
-    """The largest header stamp (s) of a topic's ``first`` messages, or None when they are all
-    stamped zero (a driver that leaves stamps unset: the record times are the frame times); 0
-    when none of them is readable (each frame then says why). Decided once per topic: a
-    simulation's clock starting at 0 stamps its first frame 0, and that frame taken at its
-    record time (the wall clock, 1.7e9 s) left every later frame "not after" it, lost."""
-    stamps = []
-    try:
-        for _, (conn, _, raw) in zip(range(first), reader.messages(connections), strict=False):
-            try:
-                stamp = reader.deserialize(raw, conn.msgtype).header.stamp
-            except Exception:  # whatever rosbags meets: the frame itself will say why
-                continue
-            stamps.append(stamp.sec + stamp.nanosec * 1e-9)
-    except Exception:  # a corrupt chunk: the frames will say so
-        return 0.0
-    if stamps and max(stamps) == 0.0:
-        return None
-    return max(stamps, default=0.0)
 
 
 def _not_depth(reader: Any, topics: list[str]) -> dict[str, str]:
@@ -417,38 +297,3 @@ def _not_depth(reader: Any, topics: list[str]) -> dict[str, str]:
                 found[topic] = form
             break
     return found
-
-
-def _bag_camera(reader: Any, image_topic: str, path: Path) -> DepthCamera:
-    """The first CameraInfo beside ``image_topic`` (same namespace; a compressed topic's raw
-    image's), else the bag's only one."""
-    infos = [c for c in reader.connections if c.msgtype == CAMERA_INFO]
-    namespace = raw_topic(image_topic).rsplit("/", 1)[0]
-    beside = [c for c in infos if c.topic.rsplit("/", 1)[0] == namespace]
-    chosen = beside or infos
-    if not beside and len({c.topic for c in infos}) == 1:
-        # The bag's only CameraInfo may be another camera's (a RealSense bag with the colour
-        # camera's alone): used, and said.
-        warnings.warn(
-            SpaceposeWarning(
-                f"no CameraInfo beside {raw_topic(image_topic)}; using {infos[0].topic} (give "
-                "--intrinsics if that is another camera's)",
-                path,
-            ),
-            stacklevel=3,
-        )
-    if len({c.topic for c in chosen}) != 1:
-        found = ", ".join(sorted({c.topic for c in infos})) or "none"
-        raise InputError(
-            f"cannot tell the CameraInfo of {image_topic} (CameraInfo topics: {found}); "
-            "give an intrinsics file",
-            path,
-        )
-    for conn, _, raw in reader.messages(chosen):
-        try:
-            camera = camera_from_info(reader.deserialize(raw, conn.msgtype), depth_scale=1.0)
-        except SpaceposeError as exc:  # say which bag and topic hold the bad CameraInfo
-            raise InputError(f"CameraInfo on {conn.topic}: {exc}", path) from None
-        check_camera(camera, f"{path}: CameraInfo on {conn.topic}")
-        return camera
-    raise InputError(f"CameraInfo topic {chosen[0].topic} has no message", path)
