@@ -2,19 +2,18 @@
 
 from spacepose.core.sim.grid import grid_scenario
 from spacepose.core.sim.mesh_files import load_mesh
+from spacepose.core.sim.orbit_truth import mean_motion
 from spacepose.core.sim.scenarios import (
     TRUTH_COLUMNS,
-    Frame,
     LabConfig,
     OrbitConfig,
-    Simulation,
-    mean_motion,
     scenario_config,
     simulate,
     simulate_lab,
     simulate_orbit,
 )
 from spacepose.core.sim.sensors import SENSOR_PRESETS, SensorConfig, sensor_config
+from spacepose.core.sim.simulation import Frame, Simulation
 from spacepose.core.sim.targets import (
     Rectangle,
     Target,

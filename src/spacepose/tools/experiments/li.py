@@ -31,8 +31,9 @@ from numpy.typing import NDArray
 from spacepose.core.cloud_quality import normal_consistency
 from spacepose.core.mls import MLSConfig, mpp_mls
 from spacepose.core.normals import NormalsConfig, estimate_normals
-from spacepose.core.sim.scenarios import LabConfig, Simulation, simulate_lab
+from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.sim.sensors import sensor_config
+from spacepose.core.sim.simulation import Simulation
 from spacepose.core.tracker import Tracker, TrackerConfig
 from spacepose.tools import plots
 from spacepose.tools.experiments import ExperimentOptions, register

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from spacepose.core.metrics import error_table, pose_errors
-from spacepose.core.sim.scenarios import Simulation
 from spacepose.core.sim.sensors import sensor_config
+from spacepose.core.sim.simulation import Simulation
 from spacepose.core.tracker import TrackerConfig, track_sequence
 from spacepose.tools import plots
 from spacepose.tools.experiments import ExperimentOptions, register

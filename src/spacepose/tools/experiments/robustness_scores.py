@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core import se3
-from spacepose.core.sim.scenarios import Frame
+from spacepose.core.sim.simulation import Frame
 from spacepose.core.track_result import TrackResult
 from spacepose.errors import ConfigError
 

@@ -38,7 +38,8 @@ from spacepose.core.lost_in_space import with_sensor_fov
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.nav_state import INERTIA, N_FIXED, NavState, k_from_params, params_from_k
 from spacepose.core.navigation import NavigationConfig, RelativeNavigator
-from spacepose.core.sim.scenarios import OrbitConfig, Simulation, simulate_orbit
+from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
+from spacepose.core.sim.simulation import Simulation
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register
 from spacepose.tools.plots import error_with_envelope, figure_png
