@@ -29,12 +29,8 @@ from spacepose.core.ransac import (
 from spacepose.core.ransac_scoring import coverage_counts
 from spacepose.core.sim import lab_target, sample_surface, scenario_config, simulate
 from spacepose.errors import ConfigError, InputError, RegistrationError
-from spacepose.tools.experiments.li_global import (
-    GlobalExperimentConfig,
-    ours_global,
-    pose_error,
-    random_poses,
-)
+from spacepose.tools.experiments.li_global import pose_error, random_poses
+from spacepose.tools.experiments.li_global_pipelines import GlobalExperimentConfig, ours_global
 
 VOXEL = 0.015  # point spacing of the lab-model samples (m)
 
