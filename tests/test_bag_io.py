@@ -653,3 +653,31 @@ def test_a_zero_stamp_on_a_wall_clock_is_unset_and_a_left_out_topic_named(lab, t
     assert main(["track", str(bag), "--out", str(tmp_path / "e.tum")]) == 1
     err = capsys.readouterr().err
     assert "; /cam/color/compressed left out: its first message's format 'rgb8; jpeg" in err, err
+
+
+def test_a_damaged_camera_info_chunk_is_one_error_naming_the_bag(lab, tmp_path, capsys):
+    """A ROS 1 bag of depth images whose CameraInfo sits in a damaged bz2 chunk: rosbags'
+    reader raised OSError('Invalid data stream') out of the bag's opening, a traceback naming
+    neither the bag nor the topic. Now one line names the bag."""
+    camera = lab["camera"]
+    path = tmp_path / "run.bag"
+    writer = Writer1(path)
+    writer.set_compression(Writer1.CompressionFormat.BZ2)
+    writer.chunk_threshold = 1  # one message a chunk
+    with writer:
+        info = writer.add_connection("/cam/camera_info", INFO, typestore=ROS1)
+        image = writer.add_connection("/cam/depth", IMAGE, typestore=ROS1)
+        writer.write(info, 10**9, ROS1.serialize_ros1(_camera_info(ROS1, camera, True), INFO))
+        for k in range(3):
+            millimetres = np.full((camera.height, camera.width), 1200, dtype=np.uint16)
+            msg = ROS1.serialize_ros1(_image(ROS1, k, millimetres), IMAGE)
+            writer.write(image, 10**9 + (k + 1) * 10**8, msg)
+    data = bytearray(path.read_bytes())
+    first = next(i for i in range(len(data)) if data.startswith(b"BZh", i))
+    data[first + 10 : first + 200] = bytes(190)
+    path.write_bytes(bytes(data))
+    with pytest.raises(FileFormatError, match="cannot read the bag's messages") as err:
+        open_bag(path)
+    assert str(path) in str(err.value)
+    assert main(["track", str(path), "--out", str(tmp_path / "est.tum")]) == 1
+    assert capsys.readouterr().err.strip().startswith(f"error: {path}: cannot read the bag's")

@@ -16,6 +16,7 @@ from typing import Any
 from spacepose.core.depth import DepthCamera
 from spacepose.core.lens import matrix_fields
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
+from spacepose.tools.bag_messages import bag_messages
 from spacepose.tools.intrinsics_io import check_camera
 from spacepose.tools.ros_depth import raw_topic
 
@@ -91,7 +92,7 @@ def bag_camera(reader: Any, image_topic: str, path: Path) -> DepthCamera:
             "give an intrinsics file",
             path,
         )
-    for conn, _, raw in reader.messages(chosen):
+    for conn, _, raw in bag_messages(reader, chosen, path):
         try:
             camera = camera_from_info(reader.deserialize(raw, conn.msgtype), depth_scale=1.0)
         except SpaceposeError as exc:  # say which bag and topic hold the bad CameraInfo

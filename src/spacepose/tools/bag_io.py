@@ -35,6 +35,7 @@ from spacepose.core.depth import DepthCamera
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.bag_camera import bag_camera
 from spacepose.tools.bag_clock import stamp_seconds, topic_clock
+from spacepose.tools.bag_messages import bag_messages
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.depth_io import depth_cloud
 from spacepose.tools.frames import FrameInput, warn_if_kilometres
@@ -267,7 +268,7 @@ def open_bag(
         connections = [c for c in reader.connections if c.topic == topic]
         count = sum(c.msgcount for c in connections)
         if count <= 0:  # a metadata.yaml may count none (a crashed recording): count them
-            count = sum(1 for _ in reader.messages(connections))
+            count = sum(1 for _ in bag_messages(reader, connections, path))
         if count == 0:  # a topic declared but never published
             raise InputError(f"no messages on {topic}: the bag holds no frame", path)
         if candidates[topic] == POINTCLOUD2 and camera is not None:
@@ -288,12 +289,11 @@ def _not_depth(reader: Any, topics: list[str]) -> dict[str, str]:
     found = {}
     for topic in topics:
         connections = [c for c in reader.connections if c.topic == topic]
-        for conn, _, raw in reader.messages(connections):
-            try:
-                form = reader.deserialize(raw, conn.msgtype).format
-            except Exception:  # whatever rosbags meets: the frames will say why
-                break
-            if not is_depth_format(form):
-                found[topic] = form
-            break
+        try:
+            first = next(iter(reader.messages(connections)), None)
+            form = None if first is None else reader.deserialize(first[2], first[0].msgtype).format
+        except Exception:  # a damaged message or chunk: the topic's frames will say why
+            continue
+        if form is not None and not is_depth_format(form):
+            found[topic] = form
     return found
