@@ -500,3 +500,12 @@ def test_an_orbit_model_in_millimetres_is_named_as_such(tmp_path) -> None:
     config = OrbitConfig(frames=2, model=str(tmp_path / "box_mm.obj"))
     with pytest.raises(ConfigError, match=r"\(866 m from its centre\); a model in millimetres\?"):
         simulate_orbit(config)
+
+
+@pytest.mark.parametrize("config", [None, {"frames": 3}, "lab"])
+def test_simulate_refuses_what_is_no_scenario_config(config) -> None:
+    """None, a dict or a name ran the default orbit run (600 frames) without a word."""
+    from spacepose.core.sim import simulate
+
+    with pytest.raises(ConfigError, match="needs a LabConfig or an OrbitConfig"):
+        simulate(config)

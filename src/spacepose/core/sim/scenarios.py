@@ -310,5 +310,18 @@ def scenario_config(
 
 
 def simulate(config: LabConfig | OrbitConfig) -> Simulation:
-    """Build the run described by ``config`` (a :class:`LabConfig` or :class:`OrbitConfig`)."""
-    return simulate_lab(config) if isinstance(config, LabConfig) else simulate_orbit(config)
+    """Build the run described by ``config`` (a :class:`LabConfig` or :class:`OrbitConfig`).
+
+    Raises
+    ------
+    ConfigError
+        ``config`` is neither (None or a dict ran the default orbit run without a word).
+    """
+    if isinstance(config, LabConfig):
+        return simulate_lab(config)
+    if isinstance(config, OrbitConfig):
+        return simulate_orbit(config)
+    raise ConfigError(
+        f"simulate needs a LabConfig or an OrbitConfig (scenario_config builds one), got "
+        f"{type(config).__name__}"
+    )
