@@ -352,3 +352,21 @@ def test_a_navigation_scored_on_less_than_the_run_is_warned_about(tmp_path: Path
     err = capsys.readouterr().err
     assert f"warning: {nav}: 4 rows for the run's 10 frames: scored over those rows only" in err
     assert f"warning: {nav}: row 3 holds NaN though its status is update (1 such rows" in err
+
+
+def test_figures_at_the_root_are_headed_by_its_name_and_a_bench_output_shown_once(
+    tmp_path: Path,
+) -> None:
+    """Figures at the top of the reported folder were headed "." (the folder relative to
+    itself), and a bench output beside them was dumped as JSON there as well as tabled in the
+    benchmark section."""
+    root = tmp_path / "campaign_7"
+    root.mkdir()
+    mpimg.imsave(root / "curve.png", np.zeros((4, 4)))
+    bench = {"stages": {"icp": {"median_ms": 12.5, "min_ms": 11.0, "max_ms": 14.0}}}
+    (root / "bench_w2.json").write_text(json.dumps(bench))
+    (root / "table.json").write_text(json.dumps({"cells": 3}))
+    page = build_report(root, tmp_path / "r.html").read_text()
+    assert "<h3>campaign_7</h3>" in page and "<h3>.</h3>" not in page
+    assert page.count("median_ms") == 0 and page.count("12.5") == 1
+    assert "cells" in page

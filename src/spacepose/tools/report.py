@@ -52,8 +52,13 @@ def _experiments_section(root: Path, skipped: Skipped) -> str:
     for folder in sorted({p.parent for p in root.rglob("*.png")}):
         if (folder / "scenario.json").exists():
             continue
-        parts.append(f"<h3>{html.escape(str(folder.relative_to(root)) or folder.name)}</h3>")
-        for table_path in sorted(folder.glob("*.json")):
+        # The root itself is "." relative to itself: its own name heads its figures.
+        heading = folder.name if folder == root else str(folder.relative_to(root))
+        parts.append(f"<h3>{html.escape(heading)}</h3>")
+        # A bench output is the benchmark section's table, not a JSON dump here as well.
+        for table_path in sorted(
+            p for p in folder.glob("*.json") if not p.name.startswith("bench")
+        ):
             text = skipped.guard(table_path, lambda p=table_path: _short_json(p))
             if text:
                 parts.append(f"<pre class='muted'>{html.escape(text)}</pre>")
