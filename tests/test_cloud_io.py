@@ -344,8 +344,9 @@ def test_bad_npy_shape(tmp_path: Path) -> None:
 
 def test_bad_write_arguments(tmp_path: Path, cloud: PointCloud) -> None:
     path = tmp_path / "x.ply"
-    with _raises_naming(path, "dtype must be", InputError):
-        write_cloud(path, cloud, dtype="float16")
+    for bad in ("float16", np.float16, np.dtype("int32"), "f8", object(), None, ["float32"]):
+        with _raises_naming(path, "dtype must be", InputError):
+            write_cloud(path, cloud, dtype=bad)
     with _raises_naming(path, r"must be \(N, 3\) or \(N, 6\)", InputError):
         write_cloud(path, np.zeros((3, 4)))
     assert not path.exists()
@@ -599,3 +600,12 @@ def test_rows_with_an_infinite_coordinate_are_dropped_with_a_warning(tmp_path) -
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert len(read_cloud(path)) == 3
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.dtype("float64"), np.float64])
+def test_numpys_own_dtypes_name_the_same_precision(tmp_path: Path, cloud: PointCloud, dtype):
+    """``np.float32`` or ``np.dtype("float64")`` were refused ("dtype must be 'float32' or
+    'float64', got dtype('float64')"); they write the same bytes as the names."""
+    ours = write_cloud(tmp_path / "ours.ply", cloud, dtype=dtype)
+    named = write_cloud(tmp_path / "named.ply", cloud, dtype=np.dtype(dtype).name)
+    assert ours.read_bytes() == named.read_bytes()

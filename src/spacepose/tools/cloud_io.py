@@ -245,7 +245,7 @@ def write_cloud(
     cloud: PointCloud | ArrayLike,
     *,
     binary: bool = True,
-    dtype: str = "float32",
+    dtype: str | np.dtype | type = "float32",
 ) -> Path:
     """Write a point cloud, choosing the format by extension (see :func:`read_cloud`).
 
@@ -260,16 +260,21 @@ def write_cloud(
     binary
         Binary encoding for PLY (little-endian) and PCD; ignored by the other formats.
     dtype
-        ``"float32"`` or ``"float64"``: the stored precision (text formats print enough digits
-        to round-trip it).
+        ``"float32"`` or ``"float64"`` (or numpy's ``np.float32``, ``np.dtype("float64")``):
+        the stored precision (text formats print enough digits to round-trip it).
 
     Returns
     -------
     The path written. The same data always give the same bytes.
     """
     path = Path(path)
-    if dtype not in DIGITS:
+    # numpy's own spellings (np.float32, np.dtype("float64")) name the same precision.
+    named = dtype
+    if isinstance(dtype, np.dtype) or (isinstance(dtype, type) and issubclass(dtype, np.generic)):
+        named = np.dtype(dtype).name
+    if not isinstance(named, str) or named not in DIGITS:
         raise InputError(f"dtype must be 'float32' or 'float64', got {dtype!r}", path)
+    dtype = named
     writer = _WRITERS.get(path.suffix.lower())
     if writer is None:
         raise FileFormatError(
