@@ -9,6 +9,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from spacepose.core import se3
+from spacepose.core.se3 import check_real
 from spacepose.errors import InputError
 
 #: A cloud is suspected to be in millimetres when it spans more than this many "metres" (bounding
@@ -62,7 +63,7 @@ class PointCloud:
         normals = self.normals
         if normals is not None:
             normals = _as_rows(normals, 3, "normals", self.source)
-        sigma = None if self.sigma is None else np.asarray(self.sigma, dtype=np.float64).reshape(-1)
+        sigma = None if self.sigma is None else _as_sigma(self.sigma, self.source)
         if normals is not None and len(normals) != n:
             raise InputError(f"{len(normals)} normals for {n} points", self.source)
         if sigma is not None and len(sigma) != n:
@@ -136,6 +137,15 @@ class PointCloud:
         return PointCloud(self.points, normals, self.sigma, source=self.source)
 
 
+def _as_sigma(values: ArrayLike, source: str | None) -> NDArray[np.float64]:
+    """Per-point σ as a flat float64 array (text ended in numpy's ValueError)."""
+    check_real(values, "sigma", source)
+    try:
+        return np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"sigma are not numeric: {exc}", source) from None
+
+
 def _check_directions(normals: NDArray[np.float64], source: str | None) -> None:
     """Refuse normals of zero length: they give no direction, and a point-to-plane residual
     weighed by one is zero whatever the pose (a NaN row is dropped with its point instead)."""
@@ -164,6 +174,7 @@ def _check_sigma(sigma: NDArray[np.float64], source: str | None) -> None:
 
 
 def _as_rows(values: ArrayLike, width: int, name: str, source: str | None) -> NDArray[np.float64]:
+    check_real(values, name, source)
     try:
         arr = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError) as exc:

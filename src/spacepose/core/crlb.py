@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import as_points
+from spacepose.core.se3 import real_array
 from spacepose.errors import InputError
 
 #: Eigenvalues of J below ``RANK_RTOL × max eigenvalue`` count as unobservable directions.
@@ -90,14 +91,24 @@ def fisher_point_to_plane(
             f"normals must be unit vectors: {len(off)} of {len(n)} are not (first at row "
             f"{off[0]}, length {length[off[0]]:.6g})"
         )
-    s = np.asarray(sigma, dtype=np.float64)
+    s = real_array(sigma, "sigma")
     s = np.full(len(p), float(s)) if s.ndim == 0 else s
     if s.shape != (len(p),):
         raise InputError(f"sigma must be a scalar or have shape ({len(p)},), got {s.shape}")
     if not np.all(np.isfinite(s) & (s > 0)):
         raise InputError("sigma must be finite and > 0 for every point")
     h = np.hstack([np.cross(p, n), n])
-    return np.einsum("ni,nj->ij", h / s[:, None] ** 2, h)
+    with np.errstate(over="ignore", divide="ignore", under="ignore", invalid="ignore"):
+        J = np.einsum("ni,nj->ij", h / s[:, None] ** 2, h)
+        squares = s**2
+    if not (np.isfinite(J).all() and np.all((squares > 0) & np.isfinite(squares))):
+        # 1e-300 m made J infinite (numpy's "Eigenvalues did not converge" followed); 1e300 m
+        # left no information at all, with numpy's overflow warning.
+        raise InputError(
+            f"sigma from {s.min():.3g} to {s.max():.3g} m: its inverse square, or the "
+            "information, leaves float64's range (wrong units?)"
+        )
+    return J
 
 
 @dataclass(frozen=True, eq=False)

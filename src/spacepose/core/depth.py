@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 
 from spacepose.core.cloud import PointCloud, as_points
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.lens import distort, undistort
 from spacepose.errors import InputError
 
@@ -97,6 +97,7 @@ def pixel_rays(camera: DepthCamera, height: int, width: int) -> NDArray[np.float
         ``height`` or ``width`` is not a whole number >= 1 (0 gave numpy's "mean of empty
         slice" warnings, 2.5 rays of a 3-pixel row), or most pixels cannot be undistorted.
     """
+    camera = stage_config(camera, DepthCamera, "camera")
     height = _whole("pixel_rays: height", height, 1)
     width = _whole("pixel_rays: width", width, 1)
     return _pixel_rays(camera, height, width)
@@ -185,6 +186,7 @@ def backproject(depth: ArrayLike, camera: DepthCamera, source: str | None = None
         ``depth`` is not 2-D, its size differs from the camera's ``width``/``height``, or the
         principal point lies outside it.
     """
+    camera = stage_config(camera, DepthCamera, "camera")
     values = np.asarray(depth)
     if values.ndim != 2 or not (
         np.issubdtype(values.dtype, np.integer) or np.issubdtype(values.dtype, np.floating)
@@ -261,6 +263,7 @@ def render_depth(
         Points not a finite (N, 3) array, or ``height`` / ``width`` not a whole number >= 1
         (-1 ended in numpy's 'negative dimensions', 60.5 in a TypeError, 0 gave an empty image).
     """
+    camera = stage_config(camera, DepthCamera, "camera")
     height = _whole("height", height, 1)
     width = _whole("width", width, 1)
     pts = as_points(points)

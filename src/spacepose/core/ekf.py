@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from spacepose.core import dynamics, se3
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.nav_state import (
     ATT,
     CHASER,
@@ -47,6 +47,7 @@ from spacepose.core.nav_state import (
     finite,
     k_from_params,
     params_from_k,
+    seconds,
 )
 from spacepose.errors import InputError
 
@@ -120,19 +121,29 @@ class RelativeNavEKF:
         initial: NavState,
         config: EKFConfig | None = None,
     ) -> None:
-        self.config = config or EKFConfig()
-        self.n = float(mean_motion)
-        R = np.asarray(R_O_C, dtype=np.float64)
-        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6):
+        self.config = EKFConfig() if config is None else stage_config(config, EKFConfig)
+        self.n = seconds(mean_motion, "mean_motion")
+        if self.n < 0:
+            raise InputError(f"mean_motion must be >= 0 rad/s, got {self.n}")
+        R = se3.real_array(R_O_C, "R_O_C")
+        # A reflection passed RᵀR = I and ended in scipy's "non-positive determinant".
+        if (
+            R.shape != (3, 3)
+            or not np.all(np.isfinite(R))
+            or not np.allclose(R.T @ R, np.eye(3), atol=1e-6)
+            or np.linalg.det(R) < 0
+        ):
             raise InputError(f"R_O_C must be a 3x3 rotation matrix, got shape {R.shape}")
+        if not isinstance(initial, NavState):
+            raise InputError(f"initial must be a NavState, got {type(initial).__name__}")
         self.R_C_O = R.T
-        self.t = float(initial.t)
-        self.rho = np.array(initial.rho, dtype=np.float64)
-        self.v = np.array(initial.v, dtype=np.float64)
-        self.q = Rotation.from_quat(initial.q_I_B).as_quat()
-        self.w = np.array(initial.omega_B, dtype=np.float64)
+        self.t = seconds(initial.t, "initial.t")
+        self.rho = finite(initial.rho, (3,), "initial.rho").copy()
+        self.v = finite(initial.v, (3,), "initial.v").copy()
+        self.q = Rotation.from_quat(_quaternion(initial.q_I_B, "initial.q_I_B")).as_quat()
+        self.w = finite(initial.omega_B, (3,), "initial.omega_B").copy()
         self.p = params_from_k(initial.k)
-        self.com = np.array(initial.com, dtype=np.float64)
+        self.com = finite(initial.com, (3,), "initial.com").copy()
         self.features: dict[str, NDArray[np.float64]] = {}
         self._feature_index: dict[str, int] = {}
         c = self.config
@@ -257,7 +268,7 @@ class RelativeNavEKF:
 
     def predict(self, t: float) -> None:
         """Propagate the nominal state (RK4) and the covariance (Φ P Φᵀ + Q) to time ``t``."""
-        dt = float(t) - self.t
+        dt = seconds(t, "t") - self.t
         if dt < 0:
             raise InputError(f"cannot predict backwards from t={self.t} to t={t}")
         if dt == 0:
@@ -328,9 +339,13 @@ class RelativeNavEKF:
         Whether the measurement passed the gate and was used.
         """
         c_C = finite(c_C, (3,), "centroid")
+        # A NaN centre passed the gate (NaN > bound is false) and turned the state into NaN.
+        d_Bp = finite(d_Bp, (3,), "catalogue centre d_Bp")
+        if not isinstance(feature_id, str):
+            raise InputError(f"feature_id must be a rectangle's name, got {feature_id!r}")
         i = self.add_feature(feature_id)
         R_O_B = self.R_O_B()
-        r_B = np.asarray(d_Bp, dtype=np.float64) + self.features[feature_id] - self.com
+        r_B = d_Bp + self.features[feature_id] - self.com
         z_hat = self.R_C_O @ (self.rho + R_O_B @ r_B)
         H = np.zeros((3, self.dim))
         A = self.R_C_O @ R_O_B
@@ -348,7 +363,7 @@ class RelativeNavEKF:
 
         ``cov`` (3, 3) is the covariance of that rotation vector, in B (rad²).
         """
-        q = finite(q_I_B_meas, (4,), "attitude quaternion")
+        q = _quaternion(q_I_B_meas, "attitude quaternion")
         r = (Rotation.from_quat(self.q).inv() * Rotation.from_quat(q)).as_rotvec()
         H = np.zeros((3, self.dim))
         H[:, ATT] = np.eye(3)
@@ -427,6 +442,16 @@ class RelativeNavEKF:
         self.com = self.com + dx[COM]
         for fid, i in self._feature_index.items():
             self.features[fid] = self.features[fid] + dx[i : i + 3]
+
+
+def _quaternion(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    """A finite (4,) quaternion of finite, non-zero norm (scipy's "zero norm" error otherwise)."""
+    q = finite(values, (4,), name)
+    with np.errstate(over="ignore"):
+        norm = float(np.linalg.norm(q))
+    if not (0.0 < norm < np.inf):
+        raise InputError(f"{name} must have a finite, non-zero norm, got {q}")
+    return q
 
 
 def _cov(values: ArrayLike, m: int) -> NDArray[np.float64]:

@@ -48,7 +48,7 @@ from scipy.stats import chi2
 
 from spacepose.core import dynamics
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.ekf import RelativeNavEKF
 from spacepose.core.frame_check import HELD
 from spacepose.core.innovation_scale import InnovationScale
@@ -56,9 +56,9 @@ from spacepose.core.model_free_start import model_free_start
 from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.nav_result import NavRow
 from spacepose.core.nav_start import start_filter
-from spacepose.core.nav_state import NavState
-from spacepose.core.navigation import RelativeNavigator
-from spacepose.core.rectangles import CatalogueEntry
+from spacepose.core.nav_state import NavState, seconds
+from spacepose.core.navigation import RelativeNavigator, frame_pairs, orbit_geometry
+from spacepose.core.rectangles import CatalogueEntry, catalogue_entries
 from spacepose.core.track_result import TrackResult
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig
@@ -202,9 +202,9 @@ class FusedNavigator:
         config: FusionConfig | None = None,
         model: PointCloud | None = None,
     ) -> None:
-        self.config = c = config or FusionConfig()
-        self.n = float(mean_motion)
-        self.R_O_C = np.asarray(R_O_C, dtype=np.float64)
+        self.config = c = FusionConfig() if config is None else stage_config(config, FusionConfig)
+        self.n, self.R_O_C = orbit_geometry(mean_motion, R_O_C)
+        catalogue = catalogue_entries(catalogue)
         uses_rectangles = c.measurements in ("rectangles", "both")
         if uses_rectangles and len(catalogue) == 0:
             raise ConfigError(
@@ -242,6 +242,7 @@ class FusedNavigator:
 
     def step(self, t: float, cloud: PointCloud | None) -> FusedRow:
         """Process one frame taken at ``t`` (s since the epoch where I and O coincide)."""
+        t = seconds(t, "frame time t")
         row = None
         if self.rectangles is not None:
             row = self.rectangles.step(t, cloud)
@@ -307,7 +308,7 @@ class FusedNavigator:
 
     def run(self, frames: Iterable[tuple[float, PointCloud | None]]) -> list[FusedRow]:
         """:meth:`step` over ``(t, cloud)`` pairs in time order; one row per frame."""
-        return [self.step(t, cloud) for t, cloud in frames]
+        return [self.step(t, cloud) for t, cloud in frame_pairs(frames)]
 
     def _start(self, t: float, T_sensor_model: np.ndarray) -> bool:
         """Start the filter from a registration pose (the rectangles' navigator if there is one)."""

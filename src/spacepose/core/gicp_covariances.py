@@ -18,6 +18,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.icp import as_registration_cloud
 from spacepose.core.neighbors import knn
 from spacepose.core.normals import neighbourhood_normals
+from spacepose.core.se3 import real_array
 from spacepose.errors import InputError
 
 
@@ -63,7 +64,7 @@ def check_covariances(C: ArrayLike | None, n: int, name: str) -> NDArray[np.floa
     """
     if C is None:
         return None
-    C = np.asarray(C, dtype=np.float64)
+    C = real_array(C, name)
     if C.shape != (n, 3, 3) or not np.all(np.isfinite(C)):
         raise InputError(f"{name} must be finite with shape ({n}, 3, 3), got {C.shape}")
     return C

@@ -32,6 +32,7 @@ from spacepose.core.icp import ICPConfig, as_registration_cloud, icp
 from spacepose.core.motion import rigid
 from spacepose.core.normals import estimate_normals
 from spacepose.core.registration import RegistrationResult
+from spacepose.errors import InputError
 
 
 class JICPConfig(StageConfig):
@@ -94,8 +95,22 @@ def average_three_covariance(
     ``¼ (C_kj + C_ki + Ad C_ji Adᵀ)`` with ``Ad`` the adjoint of ``T_ki T_ji⁻¹``: the indirect
     estimate's error is ``δ_ki − Ad δ_ji`` and the midpoint halves the sum of the two errors.
     """
-    Ad = se3.adjoint(np.asarray(T_ki) @ se3.invert(T_ji))
-    return 0.25 * (np.asarray(cov_kj) + np.asarray(cov_ki) + Ad @ np.asarray(cov_ji) @ Ad.T)
+    T_ki, T_ji = se3.as_transform(T_ki, "T_ki"), se3.as_transform(T_ji, "T_ji")
+    C_kj, C_ki, C_ji = (
+        _covariance6(c, name)
+        for c, name in ((cov_kj, "cov_kj"), (cov_ki, "cov_ki"), (cov_ji, "cov_ji"))
+    )
+    Ad = se3.adjoint(T_ki @ se3.invert(T_ji))
+    return 0.25 * (C_kj + C_ki + Ad @ C_ji @ Ad.T)
+
+
+def _covariance6(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    """A finite (6, 6) covariance (a 5×5 one ended in numpy's broadcast error, text in a
+    UFuncTypeError, NaN in a NaN covariance)."""
+    C = se3.real_array(values, name)
+    if C.shape != (6, 6) or not np.isfinite(C).all():
+        raise InputError(f"{name} must be a finite 6x6 covariance, got shape {C.shape}")
+    return C
 
 
 @dataclass(frozen=True)

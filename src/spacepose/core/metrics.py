@@ -20,6 +20,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
+from spacepose.core.cloud import MAX_ABS_COORDINATE
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError
 
@@ -67,6 +68,8 @@ def _pose_stacks(
         that is not a rigid transform (a scaled or reflected rotation would give errors of a
         transform that is not a pose).
     """
+    se3.check_real(T_est, "estimated poses")
+    se3.check_real(T_gt, "true poses")
     try:
         est = np.asarray(T_est, dtype=np.float64)
         gt = np.asarray(T_gt, dtype=np.float64)
@@ -81,6 +84,13 @@ def _pose_stacks(
     for name, T in (("estimated", est), ("true", gt)):
         if not np.isfinite(T).all():
             raise InputError(f"{name} poses have non-finite entries")
+        # As a Trajectory refuses them: the squared errors overflowed to inf and NaN.
+        far = np.abs(T[:, :3, 3]).max(axis=1) > MAX_ABS_COORDINATE
+        if far.any():
+            raise InputError(
+                f"{name} pose {int(np.argmax(far))} has a translation beyond "
+                f"{MAX_ABS_COORDINATE:.0e} m"
+            )
         off = se3.non_rigid(T)
         if off.any():
             raise InputError(f"{name} pose {int(np.argmax(off))} is not a rigid transform")
@@ -121,8 +131,10 @@ def associate(
         raise InputError(f"timestamps must be 1-D, got {t_est.shape} and {t_gt.shape}")
     if not (np.isfinite(t_est).all() and np.isfinite(t_gt).all()):
         raise InputError("timestamps must be finite")
-    if not tolerance >= 0:
-        raise InputError(f"tolerance must be a number of seconds >= 0, got {tolerance}")
+    number = isinstance(tolerance, int | float | np.integer | np.floating)
+    if isinstance(tolerance, bool) or not number or not tolerance >= 0:
+        # Text or None ended in a TypeError of the comparison.
+        raise InputError(f"tolerance must be a number of seconds >= 0, got {tolerance!r}")
     order = np.argsort(t_gt, kind="stable")
     sorted_gt = t_gt[order]
     right = np.clip(np.searchsorted(sorted_gt, t_est), 0, len(sorted_gt) - 1)
@@ -247,6 +259,9 @@ def evaluate(
     InputError
         If an estimate has no matching ground truth, or the lengths differ for ``"index"``.
     """
+    for name, traj in (("est", est), ("gt", gt)):
+        if not isinstance(traj, Trajectory):
+            raise InputError(f"{name} must be a Trajectory, got {type(traj).__name__}")
     if align_by == "timestamp":
         i_est, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
     elif align_by == "index":

@@ -30,11 +30,13 @@ densities Qc (17, 17).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from spacepose.core import se3
 from spacepose.errors import InputError
 
 # Error-state slices of the fixed part; rectangle location errors follow from index 17.
@@ -136,7 +138,22 @@ def discretise(
 def finite(values: ArrayLike, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
     """``values`` as a float array, checked to have ``shape`` and finite entries (InputError
     naming them ``name`` otherwise)."""
-    arr = np.asarray(values, dtype=np.float64)
+    arr = se3.real_array(values, name)
     if arr.shape != shape or not np.all(np.isfinite(arr)):
         raise InputError(f"{name} must be finite with shape {shape}, got {arr.shape}")
     return arr
+
+
+def seconds(value: object, name: str) -> float:
+    """``value`` as a finite float, or an InputError naming ``name`` (a time or a rate: text, a
+    yes/no or an array ended in a TypeError or passed as a number; NaN in "state6 has
+    non-finite entries")."""
+    try:
+        if isinstance(value, bool | np.bool_ | str | bytes) or np.ndim(value) != 0:
+            raise TypeError
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        number = math.nan
+    if not math.isfinite(number):
+        raise InputError(f"{name} must be a finite number, got {value!r:.60}")
+    return number

@@ -24,7 +24,7 @@ a filter's initial state in :mod:`spacepose.core.nav_start`.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,7 +38,8 @@ from spacepose.core.attitude_fix import (
     consistent_rectangles,
     explained_rectangles,
 )
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_cloud
+from spacepose.core.config import stage_config
 from spacepose.core.ekf import RelativeNavEKF
 from spacepose.core.innovation_scale import InnovationScale
 from spacepose.core.lost_in_space import (
@@ -57,10 +58,17 @@ from spacepose.core.nav_measurements import (
     pixel_area_weights,
 )
 from spacepose.core.nav_result import Candidate, NavRow
-from spacepose.core.nav_start import start_filter
+from spacepose.core.nav_start import scenario_geometry, start_filter
+from spacepose.core.nav_state import seconds
 from spacepose.core.rectangle_measurement import RectangleMeasurement
 from spacepose.core.rectangle_search import measure_planes
-from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, candidates, recognise
+from spacepose.core.rectangles import (
+    CatalogueEntry,
+    RectangleConfig,
+    candidates,
+    catalogue_entries,
+    recognise,
+)
 from spacepose.errors import InputError
 
 __all__ = [
@@ -117,13 +125,15 @@ class RelativeNavigator:
         config: NavigationConfig | None = None,
         model: PointCloud | None = None,
     ) -> None:
+        catalogue = catalogue_entries(catalogue)
         if len(catalogue) == 0:
             raise InputError("the rectangle catalogue is empty: nothing to navigate on")
         self.catalogue = {e.name: e for e in catalogue}
-        self.config = config or NavigationConfig()
-        self.n = float(mean_motion)
-        self.R_O_C = np.asarray(R_O_C, dtype=np.float64)
-        self.model = None if model is None else ModelSurface.from_cloud(model)
+        self.config = (
+            NavigationConfig() if config is None else stage_config(config, NavigationConfig)
+        )
+        self.n, self.R_O_C = orbit_geometry(mean_motion, R_O_C)
+        self.model = None if model is None else ModelSurface.from_cloud(as_cloud(model, "model"))
         self.tracks: list[_Track] = []
         self._confident = False
         self._steps = 0  # frames seen, to pair a face's innovations in consecutive frames
@@ -147,6 +157,8 @@ class RelativeNavigator:
 
         A frame without data (``cloud`` None) is a prediction-only step, never dropped.
         """
+        t = seconds(t, "frame time t")
+        cloud = None if cloud is None else as_cloud(cloud, "frame")
         for track in self.tracks:
             track.ekf.predict(t)
         rects = [] if cloud is None else self.rectangles(cloud)
@@ -176,7 +188,7 @@ class RelativeNavigator:
 
     def run(self, frames: Iterable[tuple[float, PointCloud | None]]) -> list[NavRow]:
         """:meth:`step` over ``(t, cloud)`` pairs in time order; one row per frame."""
-        return [self.step(t, cloud) for t, cloud in frames]
+        return [self.step(t, cloud) for t, cloud in frame_pairs(frames)]
 
     def rectangles(self, cloud: PointCloud) -> Rects:
         """Whole rectangles of a frame (sensor frame) with the catalogue faces of their size.
@@ -334,6 +346,26 @@ def _same_pose(T: NDArray[np.float64], U: NDArray[np.float64], same_pose_deg: fl
     to the filters' accuracy: every candidate fits the same points)."""
     angle = Rotation.from_matrix(T[:3, :3] @ U[:3, :3].T).magnitude()
     return bool(np.rad2deg(angle) < same_pose_deg)
+
+
+def orbit_geometry(mean_motion: float, R_O_C: ArrayLike) -> tuple[float, NDArray[np.float64]]:
+    """Mean motion n (rad/s) and ``R_O_C`` (3, 3) checked as a scenario file's are
+    (:func:`~spacepose.core.nav_start.scenario_geometry`): text ended in numpy's ValueError, a
+    NaN rate in "SVD did not converge", a reflection in scipy's, a negative rate navigated."""
+    return scenario_geometry({"mean_motion": mean_motion, "R_O_C": R_O_C}, source=None)
+
+
+def frame_pairs(frames: Iterable[tuple[float, PointCloud | None]]) -> Iterator[tuple]:
+    """``(t, cloud)`` pairs of ``frames``, each checked to be a pair (None, or a bare cloud,
+    ended in a TypeError)."""
+    try:
+        items = iter(frames)
+    except TypeError:
+        raise InputError(f"frames must be (t, cloud) pairs, got {type(frames).__name__}") from None
+    for k, item in enumerate(items):
+        if not isinstance(item, tuple | list) or len(item) != 2:
+            raise InputError(f"frame {k} must be a (t, cloud) pair, got {type(item).__name__}")
+        yield item[0], item[1]
 
 
 def navigate(

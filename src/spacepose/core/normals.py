@@ -339,6 +339,11 @@ def estimate_normals(
     pts = cloud.points
     if len(pts) < 3:
         raise InputError(f"normal estimation needs at least 3 points, got {len(pts)}", cloud.source)
+    if tree is not None and not isinstance(tree, SearchIndex):
+        raise InputError(
+            f"tree must be a cKDTree or VoxelIndex of the cloud, got {type(tree).__name__}",
+            cloud.source,
+        )
     if tree is not None and tree.n != len(pts):
         raise InputError(f"the tree holds {tree.n} points, the cloud {len(pts)}", cloud.source)
     if on_a_line(pts):

@@ -38,6 +38,8 @@ from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.ransac_scoring import coverage_counts, evaluate_alignment, squared_residuals
 from spacepose.core.registration import RegistrationResult, kabsch
 from spacepose.core.scale import rms_radius
+from spacepose.core.se3 import check_real
+from spacepose.core.threads import thread_count
 from spacepose.errors import InputError, RegistrationError
 
 
@@ -124,6 +126,8 @@ def match_features(
         raise InputError(
             f"source and target features differ in dimension: {src.shape[1]} vs {tgt.shape[1]}"
         )
+    if workers != -1:
+        workers = thread_count(workers)  # scipy overflowed on a count past a C long
     _, forward = cKDTree(tgt).query(src, k=1, workers=workers)
     pairs = np.column_stack([np.arange(len(src)), forward])
     if mutual:
@@ -413,7 +417,11 @@ def _subsample(rng: np.random.Generator, n: int, m: int) -> NDArray[np.intp]:
 
 
 def _as_features(values: ArrayLike, name: str) -> NDArray[np.float64]:
-    arr = np.asarray(values, dtype=np.float64)
+    check_real(values, name)
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} are not numeric: {exc}") from None
     if arr.ndim != 2 or arr.shape[0] == 0 or arr.shape[1] == 0:
         raise InputError(f"{name} must be a non-empty (N, D) array, got shape {arr.shape}")
     if not np.all(np.isfinite(arr)):

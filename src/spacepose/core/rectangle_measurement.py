@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.moments import distribution, is_collinear, no_plane, normalised_weights
+from spacepose.core.se3 import real_array
 
 __all__ = ["RectangleMeasurement", "distribution", "fill_ratio", "measure_rectangle"]
 
@@ -115,7 +116,7 @@ def measure_rectangle(
     DegenerateGeometryError
         Collinear or coincident points (no plane, so no normal).
     """
-    pts = np.asarray(points, dtype=np.float64)
+    pts = real_array(points, "points")  # text ended in numpy's ValueError
     w = None if weights is None else normalised_weights(weights, len(pts))
     centroid, eigenvalues, V = distribution(pts, w)
     if is_collinear(eigenvalues):

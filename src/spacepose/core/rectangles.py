@@ -37,7 +37,7 @@ All vectors are in the frame of the points (the sensor frame), in metres.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -45,19 +45,29 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    ValidationError,
     ValidationInfo,
     field_validator,
     model_validator,
 )
 
-from spacepose.core.config import StageConfig, holds_text, refuse_boolean
+from spacepose.core.config import (
+    StageConfig,
+    config_error,
+    holds_text,
+    refuse_boolean,
+    stage_config,
+)
 from spacepose.core.rectangle_measurement import RectangleMeasurement, fill_ratio
+from spacepose.core.se3 import real_array
+from spacepose.errors import InputError
 
 __all__ = [
     "UNIFORM_KURTOSIS",
     "CatalogueEntry",
     "RectangleConfig",
     "candidates",
+    "catalogue_entries",
     "recognise",
     "rejection_reason",
     "side_tolerance",
@@ -93,6 +103,14 @@ class CatalogueEntry(BaseModel):
     ]
     a: float = Field(gt=0)
     b: float = Field(gt=0)
+
+    def __init__(self, /, **data: Any) -> None:
+        # As a StageConfig: pydantic's multi-line ValidationError escaped from ``CatalogueEntry(
+        # a=2, b=1, ...)`` (parse_catalogue validates a file's entries with model_validate).
+        try:
+            super().__init__(**data)
+        except ValidationError as exc:
+            raise config_error(type(self), exc) from None
 
     @field_validator("*", mode="before")
     @classmethod
@@ -232,6 +250,41 @@ def _shape_problem(m: RectangleMeasurement, config: RectangleConfig) -> str | No
     return None
 
 
+def catalogue_entries(catalogue: Sequence[CatalogueEntry]) -> list[CatalogueEntry]:
+    """The catalogue as a list of :class:`CatalogueEntry` (None, text or dicts ended in a
+    TypeError or AttributeError)."""
+    try:
+        if isinstance(catalogue, str | bytes | dict):
+            raise TypeError
+        entries = list(catalogue)
+    except TypeError:
+        raise InputError(
+            f"the catalogue must be a list of CatalogueEntry, got {type(catalogue).__name__}"
+        ) from None
+    wrong = [e for e in entries if not isinstance(e, CatalogueEntry)]
+    if wrong:
+        raise InputError(
+            f"the catalogue must be a list of CatalogueEntry, got a {type(wrong[0]).__name__} "
+            "(tools.catalogue.parse_catalogue reads one from a file's data)"
+        )
+    return entries
+
+
+def _checked(
+    measurement: RectangleMeasurement,
+    catalogue: Sequence[CatalogueEntry],
+    config: RectangleConfig,
+) -> tuple[list[CatalogueEntry], RectangleConfig]:
+    """The catalogue as a list and the config, checked with the measurement (text, None or
+    dicts ended in an AttributeError, or in None, "not recognised", without a word)."""
+    if not isinstance(measurement, RectangleMeasurement):
+        raise InputError(
+            f"measurement must be a RectangleMeasurement (measure_rectangle), got "
+            f"{type(measurement).__name__}"
+        )
+    return catalogue_entries(catalogue), stage_config(config, RectangleConfig)
+
+
 def candidates(
     measurement: RectangleMeasurement,
     catalogue: Sequence[CatalogueEntry],
@@ -243,6 +296,7 @@ def candidates(
     within :func:`side_tolerance`. Several entries come back for faces of equal size, such as
     the opposite faces of a box.
     """
+    catalogue, config = _checked(measurement, catalogue, config)
     if _shape_problem(measurement, config) is not None:
         return []
     scored = []
@@ -261,6 +315,13 @@ def _decide(
     predicted_R_sensor_model: ArrayLike | None,
 ) -> tuple[CatalogueEntry | None, str | None]:
     """The recognised entry, or None and the reason."""
+    catalogue, config = _checked(m, catalogue, config)
+    if predicted_R_sensor_model is not None:
+        R = real_array(predicted_R_sensor_model, "predicted_R_sensor_model")
+        if R.shape != (3, 3) or not np.isfinite(R).all():
+            raise InputError(
+                f"predicted_R_sensor_model must be a finite 3x3 rotation, got shape {R.shape}"
+            )
     problem = _shape_problem(m, config)
     if problem is not None:
         return None, problem

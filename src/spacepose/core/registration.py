@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from spacepose.core.se3 import real_array
 from spacepose.errors import DegenerateGeometryError, InputError
 
 
@@ -84,8 +85,8 @@ def kabsch(
     DegenerateGeometryError
         When a (single, unbatched) set of pairs is collinear, so the rotation is undetermined.
     """
-    src = np.asarray(source, dtype=np.float64)
-    dst = np.asarray(target, dtype=np.float64)
+    src = real_array(source, "kabsch: the source points")
+    dst = real_array(target, "kabsch: the target points")
     if src.shape != dst.shape or src.ndim < 2 or src.shape[-1] != 3:
         raise InputError(f"kabsch needs matching (..., M, 3) arrays, got {src.shape}, {dst.shape}")
     if src.shape[-2] < 3:
@@ -136,6 +137,11 @@ def _pair_weights(weights: ArrayLike, shape: tuple[int, ...]) -> NDArray[np.floa
         raise InputError("kabsch: the weights have non-finite entries (NaN or inf)")
     if (w < 0).any():
         raise InputError(f"kabsch: weights must be >= 0, got {float(w.min()):.6g}")
-    if (w.sum(axis=-1) <= 0).any():
+    with np.errstate(over="ignore"):
+        total = w.sum(axis=-1)
+    if (total <= 0).any():
         raise InputError("kabsch: the weights of a set of pairs are all zero")
+    if not np.isfinite(total).all():
+        # Their sum overflowed to inf: numpy's "SVD did not converge" followed.
+        raise InputError("kabsch: the weights of a set of pairs sum past float64's range")
     return w

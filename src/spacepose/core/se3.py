@@ -27,6 +27,30 @@ _LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 _ONES3 = np.ones(3)
 
 
+def check_real(values: object, name: str, source: str | None = None) -> None:
+    """Refuse an array of complex numbers, booleans or text where real numbers go: numpy casts
+    them to float64 silently (a complex one with only a warning, dropping its imaginary parts),
+    so a mask or a wrong array passed by mistake became coordinates."""
+    kind = values.dtype.kind if isinstance(values, np.ndarray | np.generic) else None
+    if kind in _NOT_REAL:
+        raise InputError(f"{name} must be real numbers, got an array of {_NOT_REAL[kind]}", source)
+
+
+_NOT_REAL = {"c": "complex numbers", "b": "booleans", "U": "text", "S": "bytes"}
+
+
+def real_array(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    """``values`` as a float64 array; text, complex numbers or booleans are an InputError
+    (numpy's ValueError named neither, and :func:`check_real`)."""
+    check_real(values, name)
+    if isinstance(values, str | bytes | bool):  # numpy reads "0.5" as 0.5 and True as 1
+        raise InputError(f"{name} must be numbers, got {values!r:.60}")
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be numbers, got {values!r:.60}") from None
+
+
 def as_transform(T: ArrayLike, name: str = "transform") -> NDArray[np.float64]:
     """Validate and return ``T`` as a 4×4 float64 homogeneous transform.
 
@@ -36,6 +60,7 @@ def as_transform(T: ArrayLike, name: str = "transform") -> NDArray[np.float64]:
         If the shape is not 4×4, an entry is not finite, the last row is not (0, 0, 0, 1) or the
         rotation block is not orthonormal with determinant +1 (tolerance 1e-6).
     """
+    check_real(T, name)
     try:
         T = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError):
@@ -80,8 +105,8 @@ def make_transform(R: ArrayLike | Rotation, t: ArrayLike) -> NDArray[np.float64]
     InputError
         ``R`` is not 3×3 (a 4×4 transform, a stack of rotations) or ``t`` is not 3 numbers.
     """
-    R = R.as_matrix() if isinstance(R, Rotation) else np.asarray(R, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
+    R = R.as_matrix() if isinstance(R, Rotation) else real_array(R, "make_transform: R")
+    t = real_array(t, "make_transform: t")
     if R.shape != (3, 3):
         raise InputError(f"make_transform: R must be a 3x3 rotation matrix, got shape {R.shape}")
     if t.size != 3:
@@ -100,7 +125,7 @@ def invert(T: ArrayLike) -> NDArray[np.float64]:
     InputError
         ``T`` is not (..., 4, 4) (a 3×3 rotation ended in numpy's IndexError).
     """
-    T = np.asarray(T, dtype=np.float64)
+    T = real_array(T, "invert: T")
     if T.shape[-2:] != (4, 4):
         raise InputError(f"invert needs a 4x4 transform (or a stack of them), got shape {T.shape}")
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
@@ -121,7 +146,7 @@ def compose(*transforms: ArrayLike) -> NDArray[np.float64]:
     """
     out = np.eye(4)
     for k, T in enumerate(transforms):
-        T = np.asarray(T, dtype=np.float64)
+        T = real_array(T, f"compose: transform {k}")
         if T.shape != (4, 4):
             raise InputError(f"compose: transform {k} must be 4x4, got shape {T.shape}")
         out = out @ T
@@ -153,8 +178,8 @@ def _pair(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """A 4×4 transform and (..., 3) rows as float64 arrays; shape errors as InputError (numpy's
     matmul error named neither, and a 3×3 matrix passed silently)."""
-    T = np.asarray(T, dtype=np.float64)
-    rows = np.asarray(rows, dtype=np.float64)
+    T = real_array(T, "T_a_b")
+    rows = real_array(rows, name)
     if T.shape != (4, 4):
         raise InputError(f"T_a_b must be a 4x4 transform, got shape {T.shape}")
     if rows.ndim < 1 or rows.shape[-1] != 3:
@@ -164,7 +189,9 @@ def _pair(
 
 def skew(v: ArrayLike) -> NDArray[np.float64]:
     """Cross-product matrices (..., 3) -> (..., 3, 3), with ``skew(a) @ b = a × b``."""
-    v = np.asarray(v, dtype=np.float64)
+    v = real_array(v, "skew: v")
+    if v.ndim < 1 or v.shape[-1] != 3:
+        raise InputError(f"skew needs vectors of 3 numbers (..., 3), got shape {v.shape}")
     out = np.zeros((*v.shape[:-1], 3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
@@ -191,6 +218,7 @@ def exp(xi: ArrayLike) -> NDArray[np.float64]:
     InputError
         ``xi`` is not 6 numbers, or holds NaN or inf (a NaN transform was returned).
     """
+    check_real(xi, "a twist")
     try:
         xi = np.asarray(xi, dtype=np.float64).reshape(6)
     except (TypeError, ValueError):
@@ -231,7 +259,7 @@ def log(T: ArrayLike) -> NDArray[np.float64]:
     InputError
         ``T`` is not 4×4, or holds NaN or inf (a NaN twist was returned).
     """
-    T = np.asarray(T, dtype=np.float64)
+    T = real_array(T, "log: T")
     if T.shape != (4, 4):
         raise InputError(f"log needs a 4x4 transform, got shape {T.shape}")
     R = T[:3, :3]
@@ -280,11 +308,22 @@ def geodesic_mean(
     The transform minimising the weighted sum of squared twist distances (Gauss-Newton on the
     left-perturbation tangent space, started at the first transform).
     """
-    Ts = np.asarray(transforms, dtype=np.float64)
+    Ts = real_array(transforms, "geodesic_mean: transforms")
     if Ts.ndim != 3 or Ts.shape[1:] != (4, 4) or len(Ts) == 0:
         raise InputError(f"geodesic_mean needs a non-empty (M, 4, 4) stack, got {Ts.shape}")
-    w = np.ones(len(Ts)) if weights is None else np.asarray(weights, dtype=np.float64)
-    if w.shape != (len(Ts),) or not np.all(np.isfinite(w)) or np.any(w < 0) or w.sum() <= 0:
+    if not np.isfinite(Ts).all():
+        raise InputError("geodesic_mean: the transforms have non-finite entries (NaN or inf)")
+    bad = np.flatnonzero(non_rigid(Ts))
+    if len(bad):
+        # A scale or shear was averaged as if it were a turn: a non-rigid "mean" came back.
+        raise InputError(f"geodesic_mean: transform {bad[0]} is not rigid (see as_transform)")
+    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int | np.integer):
+        raise InputError(f"geodesic_mean: max_iterations must be a count, got {max_iterations!r}")
+    w = np.ones(len(Ts)) if weights is None else real_array(weights, "geodesic_mean weights")
+    # A sum that overflows to inf made every normalised weight 0: the first transform came back.
+    with np.errstate(over="ignore"):
+        total = w.sum() if w.shape == (len(Ts),) else 0.0
+    if not (np.all(np.isfinite(w)) and np.all(w >= 0) and 0 < total < math.inf):
         raise InputError(
             "geodesic_mean weights must be finite, non-negative, one per transform, not all 0"
         )
@@ -307,7 +346,7 @@ def adjoint(T: ArrayLike) -> NDArray[np.float64]:
     InputError
         ``T`` is not 4×4 (a 3×3 rotation ended in numpy's IndexError).
     """
-    T = np.asarray(T, dtype=np.float64)
+    T = real_array(T, "adjoint: T")
     if T.shape != (4, 4):
         raise InputError(f"adjoint needs a 4x4 transform, got shape {T.shape}")
     R, t = T[:3, :3], T[:3, 3]

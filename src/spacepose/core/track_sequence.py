@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from spacepose.core.cloud import PointCloud
+from spacepose.core.se3 import real_array
 from spacepose.core.track_result import TrackingOutput
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
@@ -36,7 +37,15 @@ def track_sequence(
     # Imported here: core.tracker imports this module to offer track_sequence beside Tracker.
     from spacepose.core.tracker import Tracker
 
-    stamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    stamps = real_array(timestamps, "timestamps").reshape(-1)
+    one_array = isinstance(clouds, np.ndarray) and clouds.ndim != 3
+    if clouds is None or isinstance(clouds, str | bytes) or one_array:
+        # None ended in a TypeError; text was iterated as one lost frame per character; one
+        # (N, 3) array as N frames of one row each.
+        raise InputError(
+            f"clouds must be a list of clouds (one per frame), got {type(clouds).__name__} "
+            f"of shape {np.shape(clouds)}"
+        )
     clouds = list(clouds)
     if not clouds or len(clouds) != len(stamps):
         raise InputError(f"{len(clouds)} clouds for {len(stamps)} timestamps; need one each (>0)")

@@ -39,6 +39,8 @@ class Trajectory:
     source: str | None = None
 
     def __post_init__(self) -> None:
+        se3.check_real(self.timestamps, "timestamps", self.source)
+        se3.check_real(self.poses, "poses", self.source)
         try:
             t = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
             T = np.asarray(self.poses, dtype=np.float64)

@@ -83,6 +83,9 @@ def cell_keys(
 
 def _cell_size(cell_size: object) -> float:
     """A cell edge as a positive finite float (m)."""
+    # float() took "0.02" and True (a 1 m cell) without a word.
+    if isinstance(cell_size, bool | str | bytes):
+        raise InputError(f"cell size must be a number of metres, got {cell_size!r}")
     try:
         h = float(cell_size)  # type: ignore[arg-type]
     except (TypeError, ValueError):
@@ -302,7 +305,10 @@ def voxel_downsample(
         raise InputError(f"stray_share must lie in [0, 1), got {stray_share}", cloud.source)
     # A PointCloud's points are finite (N, 3) float64 already.
     pts = np.ascontiguousarray(cloud.points, dtype=np.float64)
-    grid = _ORIGIN if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+    try:
+        grid = _ORIGIN if origin is None else np.asarray(origin, dtype=np.float64).reshape(3)
+    except (TypeError, ValueError):  # text, or not 3 numbers: numpy's ValueError
+        grid = np.full(3, np.nan)
     if not np.all(np.isfinite(grid)):
         raise InputError(f"origin must be 3 finite numbers, got {origin!r}", cloud.source)
     centroids, sigma, _, _, occupancy = _cell_sums(pts, voxel_size, cloud.sigma, grid)

@@ -22,12 +22,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, check_scale
+from spacepose.core.se3 import check_real
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.npy_io import read_npy, read_npz, write_npy, write_npz
 from spacepose.tools.outputs import check_writable
 from spacepose.tools.ply_pcd_io import DIGITS, read_pcd_cloud, read_ply, write_pcd_cloud, write_ply
 from spacepose.tools.text_cloud_io import read_text_cloud, write_text_cloud
-from spacepose.tools.text_io import not_a_file
+from spacepose.tools.text_io import as_path, not_a_file
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
 _TEXT_SUFFIXES = (".xyz", ".txt", ".csv")
@@ -85,7 +86,7 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     InputError
         The file holds no finite point.
     """
-    path = Path(path)
+    path = as_path(path)
     if path.is_dir():
         raise FileFormatError("a folder, not a point cloud file", path)
     reader = _READERS.get(path.suffix.lower())
@@ -106,8 +107,10 @@ def read_cloud(path: str | Path, *, scale: float = 1.0) -> PointCloud:
     problem = not_a_file(path)
     if problem is not None:
         raise FileFormatError(problem, path)
-    if not (np.isfinite(scale) and scale > 0):
-        raise InputError(f"scale must be a positive number, got {scale}", path)
+    # Text or None ended in numpy's TypeError, and True read as a scale of 1.
+    number = isinstance(scale, int | float | np.integer | np.floating)
+    if isinstance(scale, bool) or not number or not (np.isfinite(scale) and scale > 0):
+        raise InputError(f"scale must be a positive number, got {scale!r}", path)
     try:
         points, normals = reader(path)
     except OSError as exc:  # refused by the system: this file fails (a frame is lost), not the run
@@ -267,7 +270,9 @@ def write_cloud(
     -------
     The path written. The same data always give the same bytes.
     """
-    path = Path(path)
+    path = as_path(path)
+    if not isinstance(binary, bool | np.bool_):
+        raise InputError(f"binary must be True or False, got {binary!r}", path)
     # numpy's own spellings (np.float32, np.dtype("float64")) name the same precision.
     named = dtype
     if isinstance(dtype, np.dtype) or (isinstance(dtype, type) and issubclass(dtype, np.generic)):
@@ -283,7 +288,11 @@ def write_cloud(
             path,
         )
     if not isinstance(cloud, PointCloud):
-        arr = np.asarray(cloud, dtype=np.float64)
+        check_real(cloud, "cloud", str(path))
+        try:
+            arr = np.asarray(cloud, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"cloud is not numeric: {exc}", path) from None
         if arr.ndim != 2 or arr.shape[1] not in (3, 6):
             raise InputError(f"cloud array must be (N, 3) or (N, 6), got {arr.shape}", path)
         cloud = PointCloud(arr[:, :3], arr[:, 3:] if arr.shape[1] == 6 else None, source=str(path))

@@ -27,6 +27,7 @@ from spacepose.core import se3
 from spacepose.core.metrics import TIMESTAMP_TOLERANCE, ErrorTable, associate, evaluate
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import InputError, SpaceposeWarning
+from spacepose.tools.text_io import as_path
 from spacepose.tools.trajectory_io import read_trajectory, trajectory_format
 
 # A pose counts as the identity (a model-free track's first pose) within this much rotation
@@ -129,7 +130,7 @@ def compare_trajectory_files(
         poses whose distances (from the origin, or rebased from the first) differ by a unit's
         factor (mm against m).
     """
-    est_path, gt_path = Path(est_path), Path(gt_path)
+    est_path, gt_path = as_path(est_path, "est_path"), as_path(gt_path, "gt_path")
     est, gt = read_trajectory(est_path), read_trajectory(gt_path)
     if gt_sensor_poses:
         gt = Trajectory(gt.timestamps, se3.invert(gt.poses), gt.source)

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.degeneracy import Degeneracy, surface_degeneracy
 from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.gicp_covariances import compute_covariances
@@ -263,6 +263,7 @@ def register(
     ConfigError
         An initial guess given with ``config.global_registration`` (which starts from none).
     """
+    config = stage_config(config, RegisterConfig)
     if config.global_registration and init_T_target_source is not None:
         # The global stage starts from no pose: the given one was replaced without a word.
         raise ConfigError(

@@ -9,6 +9,7 @@ rise and to be seconds (:func:`timing_problem`, :func:`check_timing`).
 
 from __future__ import annotations
 
+import os
 import warnings
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from spacepose.core.config import not_a_file, not_text
 from spacepose.core.motion import order_problem
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 
-__all__ = ["check_timing", "not_a_file", "read_text", "timing_problem"]
+__all__ = ["as_path", "check_timing", "not_a_file", "read_text", "timing_problem"]
 
 # Latest time read as seconds since the Unix epoch: 1e11 s is the year 5138, so a larger time
 # counts milliseconds, microseconds or nanoseconds (1.7e12, 1.7e15, 1.7e18 in 2024).
@@ -37,6 +38,13 @@ _SLOWEST_STEP_S = 10.0
 _NARROWEST_STEP_S = 1e-4
 _MS_CLOCK_STEPS = (10.0, 1000.0)
 _UNIT = "(times are seconds; milliseconds, microseconds or nanoseconds given?)"
+
+
+def as_path(path: str | Path, what: str = "path") -> Path:
+    """``path`` as a Path; None, a number or another object ended in pathlib's TypeError."""
+    if not isinstance(path, str | os.PathLike):
+        raise InputError(f"{what} must be a file name (str or Path), got {path!r:.60}")
+    return Path(path)
 
 
 def read_text(path: str | Path, what: str) -> str:

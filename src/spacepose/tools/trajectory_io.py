@@ -19,7 +19,7 @@ from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import warn_not_unit
 from spacepose.tools.outputs import check_writable
-from spacepose.tools.text_io import read_text
+from spacepose.tools.text_io import as_path, read_text
 
 # Largest |‖q‖ − 1| of a quaternion read without a warning.
 _QUATERNION_TOLERANCE = 1e-3
@@ -104,7 +104,7 @@ def read_tum(path: str | Path) -> Trajectory:
         Missing file, wrong number of columns, non-numeric or non-finite value, or zero
         quaternion; the message names the file and line.
     """
-    path = Path(path)
+    path = as_path(path)
     rows, lines = _read_rows(path, _TUM_COLUMNS, "TUM")
     quat = rows[:, 4:8]
     # Lengths of rows scaled by their largest component: the square of a component of 1e200
@@ -142,7 +142,9 @@ def tum_lines(traj: Trajectory) -> str:
 
 def write_tum(path: str | Path, traj: Trajectory) -> Path:
     """Write ``traj`` as a TUM file (see :func:`tum_lines`); returns the path."""
-    path = Path(path)
+    path = as_path(path)
+    if not isinstance(traj, Trajectory):
+        raise InputError(f"traj must be a Trajectory, got {type(traj).__name__}", path)
     check_writable(path)  # a folder by that name ended in a bare IsADirectoryError
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(tum_lines(traj))
@@ -172,7 +174,7 @@ def read_kitti(path: str | Path, timestamps: ArrayLike | None = None) -> Traject
         Rotation blocks off orthonormal by more than 1e-4 (rounded to 4 decimals) and up to
         1e-3, read as their nearest rotations; the message names the first one's line.
     """
-    path = Path(path)
+    path = as_path(path)
     rows, lines = _read_rows(path, _KITTI_COLUMNS, "KITTI")
     poses = np.zeros((len(rows), 4, 4))
     poses[:, :3, :] = rows.reshape(-1, 3, 4)
@@ -225,7 +227,9 @@ def _off_orthonormal(R: NDArray[np.float64]) -> NDArray[np.float64]:
 
 def write_kitti(path: str | Path, traj: Trajectory) -> Path:
     """Write ``traj`` as a KITTI pose file (timestamps are not stored); returns the path."""
-    path = Path(path)
+    path = as_path(path)
+    if not isinstance(traj, Trajectory):
+        raise InputError(f"traj must be a Trajectory, got {type(traj).__name__}", path)
     check_writable(path)  # a folder by that name ended in a bare IsADirectoryError
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savetxt(path, traj.poses[:, :3, :].reshape(-1, 12), fmt=_FMT)
@@ -247,7 +251,7 @@ def trajectory_format(path: str | Path) -> str:
     FileFormatError
         Another number of values.
     """
-    path = Path(path)
+    path = as_path(path)
     suffix = path.suffix.lower()
     if suffix in (".tum", ".kitti"):
         return suffix[1:]
