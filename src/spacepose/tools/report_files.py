@@ -135,8 +135,8 @@ def read_csv(path: Path, required: Sequence[str] = ()) -> dict[str, list[str]]:
     return {k: [row[i] for _, row in lines[1:]] for i, k in enumerate(header)}
 
 
-def scenario_name(run: Path) -> str | None:
-    """The ``scenario`` entry of a run's scenario.json (``lab``, ``orbit``), if any.
+def read_scenario(run: Path) -> dict:
+    """A run's scenario.json.
 
     Raises
     ------
@@ -146,7 +146,13 @@ def scenario_name(run: Path) -> str | None:
     scenario = read_json(run / "scenario.json")
     if not isinstance(scenario, dict):
         raise FileFormatError("scenario.json must hold a mapping", run / "scenario.json")
-    return scenario.get("scenario")
+    return scenario
+
+
+def scenario_name(run: Path) -> str | None:
+    """The ``scenario`` entry of a run's scenario.json (``lab``, ``orbit``), if any (raises as
+    :func:`read_scenario`)."""
+    return read_scenario(run).get("scenario")
 
 
 def own_files(run: Path, pattern: str) -> list[Path]:

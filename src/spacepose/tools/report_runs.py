@@ -36,7 +36,7 @@ from spacepose.tools.evaluation import (
     starts_at_identity,
     without_lost_frames,
 )
-from spacepose.tools.report_files import Skipped, own_files, read_csv, read_json
+from spacepose.tools.report_files import Skipped, own_files, read_csv, read_scenario
 from spacepose.tools.report_html import html_figure, html_table, shown
 from spacepose.tools.runs import GROUNDTRUTH, TRUTH, read_truth
 from spacepose.tools.trajectory_io import read_tum
@@ -62,9 +62,7 @@ def scenario_section(run: Path) -> str:
     FileFormatError
         scenario.json is not valid JSON or not a mapping.
     """
-    scenario = read_json(run / "scenario.json")
-    if not isinstance(scenario, dict):
-        raise FileFormatError("scenario.json must hold a mapping", run / "scenario.json")
+    scenario = read_scenario(run)
     rows = []
     for key, value in sorted(scenario.items()):
         text = json.dumps(value)
