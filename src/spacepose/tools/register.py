@@ -32,10 +32,9 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
-from scipy.spatial import cKDTree
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud, as_cloud
+from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.degeneracy import Degeneracy, surface_degeneracy
 from spacepose.core.gicp import GICPConfig, gicp
@@ -46,12 +45,11 @@ from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.ransac import global_registration
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.robust import RobustKernelName
+from spacepose.core.scale import point_spacing
 from spacepose.core.voxel import voxel_cells
 from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 
 Method = Literal["point_to_plane", "point_to_point", "gicp"]
-# Points whose nearest-neighbour distance samples the spacing (seeded subsample).
-_SPACING_SAMPLES = 2000
 # Stopping tolerances in voxels (the library defaults are metres tuned at the lab's 6 mm
 # voxels: GICP stops below a 10 µm step, ICP below a 1 µm RMSE change).
 _TRANSLATION_TOLERANCE = 1e-3
@@ -183,17 +181,19 @@ class RegisterResult:
         return out
 
 
-def cloud_scale(points: ArrayLike, seed: int = 0) -> CloudScale:
-    """Median point spacing and robust radius of an (N, 3) cloud (N >= 2), metres."""
-    pts = np.asarray(points, dtype=np.float64)
+def cloud_scale(cloud: PointCloud | ArrayLike, seed: int = 0) -> CloudScale:
+    """Median point spacing (:func:`~spacepose.core.scale.point_spacing`) and robust radius of
+    an (N, 3) cloud (N >= 2), metres; an error names the cloud's source."""
+    source = cloud.source if isinstance(cloud, PointCloud) else None
+    pts = as_points(cloud)
     if len(pts) < 2:
-        raise InputError(f"a cloud needs at least 2 points for its spacing, got {len(pts)}")
-    rng = np.random.default_rng(seed)
-    sample = pts[rng.choice(len(pts), min(len(pts), _SPACING_SAMPLES), replace=False)]
-    # An unbalanced tree builds in about half the time; it is queried only 2000 times.
-    d, _ = cKDTree(pts, balanced_tree=False, compact_nodes=False).query(sample, k=2)
+        raise InputError(f"a cloud needs at least 2 points for its spacing, got {len(pts)}", source)
+    try:
+        spacing = point_spacing(pts, seed=seed)
+    except InputError as exc:
+        raise InputError(str(exc), source) from None
     radius = np.percentile(np.linalg.norm(pts - np.median(pts, axis=0), axis=1), 90)
-    return CloudScale(float(np.median(d[:, 1])), float(radius))
+    return CloudScale(spacing, float(radius))
 
 
 def derived_voxel(scales: list[CloudScale], config: RegisterConfig) -> float:
@@ -279,7 +279,7 @@ def register(
     for cloud in (source, target):
         if len(cloud) < 3:
             raise InputError(f"{len(cloud)} point(s): a rigid fit needs 3", cloud.source)
-    scales = [cloud_scale(c.points, config.seed) for c in (source, target)]
+    scales = [cloud_scale(c, config.seed) for c in (source, target)]
     _warn_if_units_differ(scales, source, target)
     voxel = config.voxel_size or derived_voxel(scales, config)
     for cloud, scale in zip((source, target), scales, strict=True):
