@@ -182,16 +182,17 @@ class RegisterResult:
 
 
 def cloud_scale(cloud: PointCloud | ArrayLike, seed: int = 0) -> CloudScale:
-    """Median point spacing (:func:`~spacepose.core.scale.point_spacing`) and robust radius of
-    an (N, 3) cloud (N >= 2), metres; an error names the cloud's source."""
-    source = cloud.source if isinstance(cloud, PointCloud) else None
+    """Median point spacing (:func:`~spacepose.core.scale.point_spacing`; 0 when every point
+    coincides, which the voxel and the rigid fit then refuse by name) and robust radius of an
+    (N, 3) cloud (N >= 2), metres."""
     pts = as_points(cloud)
     if len(pts) < 2:
+        source = cloud.source if isinstance(cloud, PointCloud) else None
         raise InputError(f"a cloud needs at least 2 points for its spacing, got {len(pts)}", source)
     try:
         spacing = point_spacing(pts, seed=seed)
-    except InputError as exc:
-        raise InputError(str(exc), source) from None
+    except InputError:  # the points' one place: no spacing
+        spacing = 0.0
     radius = np.percentile(np.linalg.norm(pts - np.median(pts, axis=0), axis=1), 90)
     return CloudScale(spacing, float(radius))
 
