@@ -76,3 +76,43 @@ def test_a_frame_the_tracker_cannot_use_is_said_on_stderr(hubble_run, tmp_path, 
     assert main(args) == 0
     err = capsys.readouterr().err
     assert f"warning: {out.with_suffix('.health.csv')}: frame 3 navigated as empty: unusable" in err
+
+
+def test_the_poses_sigma_factor_is_measured_on_the_run(hubble_run, tmp_path, monkeypatch):
+    """A run folder holds its mesh and sensor: the navigation measures the poses' σ factor by
+    the bootstrap and writes it in the effective config; with another model, or the bootstrap
+    off, the configured factor stays. (Batches of 2 frames, 2 needed: the run has 8.)"""
+    import json
+
+    from spacepose.core.fused_navigation import FusionConfig
+    from spacepose.tools import pose_bootstrap_run
+    from spacepose.tools.navigation_io import navigate_run
+
+    monkeypatch.setattr(pose_bootstrap_run, "BATCH_FRAMES", 2)
+    monkeypatch.setattr(pose_bootstrap_run, "MIN_BATCHES", 2)
+
+    def scale(out: Path, **options) -> float:
+        navigate_run(hubble_run, out, measurements="registration", **options)
+        return json.loads(out.with_suffix(".config.json").read_text())["pose_sigma_scale"]
+
+    default = FusionConfig().pose_sigma_scale
+    measured = scale(tmp_path / "a" / "nav.csv")
+    assert measured >= 1.0 and measured != default
+    assert scale(tmp_path / "b" / "nav.csv", model=hubble_run / "model.ply") == default
+    off = FusionConfig(bootstrap_poses=False)
+    assert scale(tmp_path / "c" / "nav.csv", fusion=off) == default
+    # A run whose mesh cannot be read navigates with the configured factor, and says why.
+    import shutil
+    import warnings
+
+    from spacepose.errors import SpaceposeWarning
+
+    broken = shutil.copytree(hubble_run, tmp_path / "broken")
+    (broken / "model.obj").write_text("v 0 0 nan\n")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        navigate_run(broken, tmp_path / "d" / "nav.csv", measurements="registration")
+    said = [str(w.message) for w in caught if issubclass(w.category, SpaceposeWarning)]
+    assert any("model.obj" in m and "not measured" in m for m in said), said
+    config = json.loads((tmp_path / "d" / "nav.config.json").read_text())
+    assert config["pose_sigma_scale"] == default

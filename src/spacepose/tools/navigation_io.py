@@ -34,6 +34,7 @@ from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.frames import Frames, input_files, open_frames
 from spacepose.tools.navigation_config_io import read_scenario, scenario_model, with_run_settings
 from spacepose.tools.outputs import check_spares_inputs, check_writable
+from spacepose.tools.pose_bootstrap_run import bootstrapped_fusion, run_mesh_and_sensor
 from spacepose.tools.tracking_io import check_not_a_frame, open_table, write_health_csv
 
 
@@ -156,6 +157,8 @@ def navigate_run(
     catalogue = []
     if measurements != "registration" or description.get("rectangles"):
         catalogue = parse_catalogue(description, cfg.rectangle, source)
+    # The run's own model and scenario: its mesh then is the model's (a bootstrap may render it).
+    own_model = model is None and scenario is None
     if model is not None:
         model = read_cloud(model)
     else:
@@ -172,6 +175,12 @@ def navigate_run(
         fusion = (fusion or FusionConfig()).model_copy(
             update={"measurements": measurements, "navigation": cfg}
         )
+        run = run_mesh_and_sensor(input_dir, description) if own_model else None
+        if run is not None and model is not None:
+            with warnings.catch_warnings():  # the navigating pass warns of each frame's problem
+                warnings.simplefilter("ignore")
+                again = ((f.timestamp, f.cloud) for f in frames)
+                fusion, _ = bootstrapped_fusion(again, *run, model, fusion)
         rows, tracks = _navigate_fused(pairs, catalogue, n, R_O_C, fusion, model, unreadable)
         health_csv = write_health_csv(out.with_suffix(".health.csv"), tracks)
         config_json = dump_config(fusion, out.with_suffix(".config.json"))

@@ -47,6 +47,7 @@ from spacepose.tools.experiments.yu_nav import (
     record_filter,
     score,
 )
+from spacepose.tools.pose_bootstrap_run import bootstrapped_fusion
 
 _MODELS = Path(__file__).resolve().parents[4] / "data" / "models"
 # Target name -> (mesh file or None for the default target, scale, measurement kinds).
@@ -156,7 +157,8 @@ def navigate_fused_with_truth(
     Returns the dict :func:`yu_nav.score` reads (``t``, ``errors``, ``sigmas``, ``nees``,
     ``status``, ``n_rect``, ``truth``, ``ekf``, coarse poses all NaN) plus ``tracker_error``
     (N, 6) and ``tracker_sigma`` (N, 6) about the target origin, ``tracker_nees`` (N,),
-    ``seeded`` and ``gated`` (N,) booleans.
+    ``seeded`` and ``gated`` (N,) booleans, the ``pose_sigma_scale`` the navigation used and
+    its bootstrap's measurement (``pose_noise``, None when there was none).
     """
     sim = simulate_orbit(config)
     scenario = sim.scenario()
@@ -164,7 +166,12 @@ def navigate_fused_with_truth(
     nav_cfg = navigation_config(scenario, fusion.navigation)
     fusion = fusion.model_copy(update={"navigation": nav_cfg})
     catalogue = parse_catalogue(scenario, nav_cfg.rectangle) if scenario["rectangles"] else []
-    nav = FusedNavigator(catalogue, n, R_O_C, fusion, None if model_free else sim.model_cloud())
+    model = None if model_free else sim.model_cloud()
+    noise = None
+    if model is not None:
+        pairs = ((f.timestamp, f.cloud) for f in sim.frames())
+        fusion, noise = bootstrapped_fusion(pairs, sim.target, sim.sensor, model, fusion)
+    nav = FusedNavigator(catalogue, n, R_O_C, fusion, model)
     truth_rows = sim.truth
     N = len(sim)
     out = nav_record(sim) | {
@@ -200,6 +207,8 @@ def navigate_fused_with_truth(
             record_filter(out, k, ekf, truth_rows[k])
     out["ekf"] = nav.ekf
     out["truth"] = truth_rows
+    out["pose_sigma_scale"] = fusion.pose_sigma_scale
+    out["pose_noise"] = None if noise is None else noise.to_dict()
     return out
 
 
@@ -251,6 +260,7 @@ def _fused_score(result: dict[str, Any]) -> dict[str, Any]:
         "frames_tracked": int(tracked.sum()),
         "frames_seeded": int(result["seeded"].sum()),
         "frames_gated": int(result["gated"].sum()),
+        "pose_sigma_scale": result["pose_sigma_scale"],
         "tracker_nees_median": float(np.median(ne[tracked])) if tracked.any() else float("nan"),
         "tracker_nees_inside_95": float(np.mean((ne[tracked] >= lo) & (ne[tracked] <= hi)))
         if tracked.any()

@@ -1,0 +1,165 @@
+"""How far a tracker's pose covariance is from its errors over a run (docs/methods.md §2.4).
+
+A filter fed registration poses assumes each pose's error is white with the tracker's
+covariance. A tracker's errors are not white: on some targets they hold a bias over tens of
+frames (the Hubble kit at 25 m: 0.3–0.9 σ over whole 50-frame blocks), on others they are white
+and the covariance is cautious. A filter averages its poses over many frames, so what matters
+is the variance of an error averaged over a window, not of one frame's: for whitened errors
+``w_k = L_k⁻¹ e_k`` (``C_k = L_k L_kᵀ``) cut into batches of ``B`` frames, ``B · mean(w̄²)``
+per axis is 1 for white errors that the covariance describes, below 1 for a cautious one, and
+grows with ``B`` when the errors are correlated or biased (the batch-means estimate of the
+long-run variance). Its largest axis, at least 1, is the factor the covariance needs in
+variance: :func:`pose_noise_scale`.
+
+The errors need a truth; :mod:`spacepose.core.pose_bootstrap` makes one by rendering the
+target at the tracker's own poses and tracking the renders (a parametric bootstrap).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import se3
+from spacepose.errors import InputError
+
+# Frames a filter's poses are averaged over, as a batch: the orbit run's filter follows its
+# attitude and centre of mass over hundreds of 1-s frames; 50 frames is where the Hubble kit's
+# bias shows (docs/results.md, "A bootstrap of the poses' error").
+BATCH_FRAMES = 50
+# An error this many times the median squared whitened error is a gross failure (a twin, a
+# slide), not noise: a filter's gate rejects such a pose, and its restart undoes a start on one.
+GROSS_FACTOR = 100.0
+# Batches a factor needs: each axis's ratio from k batches spreads as χ²ₖ/k (±0.7 at 4).
+MIN_BATCHES = 4
+
+
+@dataclass(frozen=True)
+class PoseNoiseScale:
+    """The factor a tracker's pose covariance needs over a run.
+
+    Attributes
+    ----------
+    scale
+        Factor on σ (the covariance times its square), at least 1.
+    batch_ratios
+        (6,) ``B · mean(w̄²)`` per axis of the whitened errors (rotation x, y, z, then
+        translation, the covariance's order).
+    frames
+        Frames with an error, in whole batches.
+    batch
+        Frames per batch ``B``.
+    gross
+        Frames left out as gross failures (:data:`GROSS_FACTOR`).
+    """
+
+    scale: float
+    batch_ratios: NDArray[np.float64]
+    frames: int
+    batch: int
+    gross: int = 0
+
+    def to_dict(self) -> dict:
+        return {
+            "scale": self.scale,
+            "batch_ratios": self.batch_ratios.tolist(),
+            "frames": self.frames,
+            "batch": self.batch,
+            "gross": self.gross,
+        }
+
+
+def whitened_errors(
+    T_est: ArrayLike, covariances: ArrayLike, T_ref: ArrayLike
+) -> NDArray[np.float64]:
+    """Each pose's error whitened by its covariance, ``L⁻¹ [log(T_est T_ref⁻¹)]``.
+
+    Parameters
+    ----------
+    T_est, T_ref
+        (N, 4, 4) estimated and reference poses (``T_sensor_target``).
+    covariances
+        (N, 6, 6) covariances of ``T_est`` (left perturbation, rotation first).
+
+    Returns
+    -------
+    (N, 6) whitened errors; NaN rows where a pose or covariance is not finite or the covariance
+    not positive definite.
+    """
+    T_est, T_ref = np.asarray(T_est, dtype=np.float64), np.asarray(T_ref, dtype=np.float64)
+    C = np.asarray(covariances, dtype=np.float64)
+    n = len(T_est)
+    if T_est.shape != (n, 4, 4) or T_ref.shape != (n, 4, 4) or C.shape != (n, 6, 6):
+        raise InputError(
+            f"poses must be (N, 4, 4) and covariances (N, 6, 6) alike, got {T_est.shape}, "
+            f"{T_ref.shape} and {C.shape}"
+        )
+    out = np.full((n, 6), np.nan)
+    for k in range(n):
+        if not (np.isfinite(T_est[k]).all() and np.isfinite(T_ref[k]).all()):
+            continue
+        try:
+            L = np.linalg.cholesky(C[k])
+        except np.linalg.LinAlgError:  # NaN or not positive definite
+            continue
+        D = T_est[k] @ se3.invert(T_ref[k])
+        e = np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]]
+        out[k] = np.linalg.solve(L, e)
+    return out
+
+
+def batch_ratios(
+    whitened: ArrayLike, batch: int = BATCH_FRAMES, min_batches: int = 1
+) -> tuple[NDArray, int]:
+    """``B · mean over batches of (batch mean)²`` per axis, and the frames it used.
+
+    Rows with NaN are left out before batching (the frames a tracker did not call ``ok``);
+    the remainder after the last whole batch is dropped.
+
+    Raises
+    ------
+    InputError
+        ``batch`` not a whole number >= 1, or fewer finite rows than ``min_batches`` batches.
+    """
+    w = np.asarray(whitened, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != 6:
+        raise InputError(f"whitened errors must be (N, 6), got {w.shape}")
+    if isinstance(batch, bool) or not isinstance(batch, int | np.integer) or batch < 1:
+        raise InputError(f"batch must be a whole number >= 1, got {batch!r}")
+    w = w[np.isfinite(w).all(axis=1)]
+    count = len(w) // batch
+    if count < max(min_batches, 1):
+        raise InputError(
+            f"{len(w)} frames with an error: {max(min_batches, 1)} batches need "
+            f"{max(min_batches, 1) * batch}"
+        )
+    means = w[: count * batch].reshape(count, batch, 6).mean(axis=1)
+    return batch * np.mean(means**2, axis=0), count * batch
+
+
+def pose_noise_scale(
+    whitened: ArrayLike, batch: int = BATCH_FRAMES, min_batches: int = MIN_BATCHES
+) -> PoseNoiseScale:
+    """The factor on σ that makes a run's poses as uncertain as their errors averaged over
+    ``batch`` frames: ``sqrt(max(1, largest batch ratio))`` (see the module docstring), from
+    at least ``min_batches`` batches.
+
+    The largest of six noisy ratios leans high: white errors that their covariance describes
+    give 1.6–1.8 in variance from 12 batches (a factor of about 1.3), a cautious side. Errors
+    above :data:`GROSS_FACTOR` times the median squared error are left out first.
+    """
+    w = np.array(whitened, dtype=np.float64)
+    if w.ndim != 2 or w.shape[1] != 6:
+        raise InputError(f"whitened errors must be (N, 6), got {w.shape}")
+    squared = np.sum(w**2, axis=1)
+    finite = np.isfinite(squared)
+    gross = np.zeros(len(w), dtype=bool)
+    if finite.any():
+        gross[finite] = squared[finite] > GROSS_FACTOR * np.median(squared[finite])
+    w[gross] = np.nan
+    ratios, frames = batch_ratios(w, batch, min_batches)
+    scale = float(np.sqrt(max(1.0, ratios.max())))
+    return PoseNoiseScale(scale, ratios, frames, int(batch), int(gross.sum()))

@@ -1,0 +1,129 @@
+"""The poses' σ factor: batch means of whitened errors against closed forms, and the bootstrap."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from spacepose.core import se3
+from spacepose.core.pose_noise import batch_ratios, pose_noise_scale, whitened_errors
+from spacepose.errors import InputError
+
+
+def _poses(errors: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
+    """Poses whose left error ``log(T T_ref⁻¹)`` is ``errors`` (rotation vector, translation)."""
+    out = np.empty_like(T_ref)
+    for k, e in enumerate(errors):
+        D = se3.make_transform(Rotation.from_rotvec(e[:3]).as_matrix(), e[3:])
+        out[k] = D @ T_ref[k]
+    return out
+
+
+def test_whitened_errors_are_the_errors_over_their_sigma():
+    rng = np.random.default_rng(0)
+    n = 20
+    T_ref = np.stack(
+        [
+            se3.make_transform(Rotation.random(random_state=k).as_matrix(), [0, 0, 25.0])
+            for k in range(n)
+        ]
+    )
+    sigma = np.array([1e-3, 2e-3, 5e-4, 3e-3, 1e-3, 4e-3])
+    errors = rng.normal(0.0, 1.0, (n, 6)) * sigma
+    C = np.tile(np.diag(sigma**2), (n, 1, 1))
+    C[3] = -C[3]  # not positive definite: no whitened error
+    w = whitened_errors(_poses(errors, T_ref), C, T_ref)
+    expected = errors / sigma
+    expected[3] = np.nan
+    np.testing.assert_allclose(w, expected, rtol=1e-6, atol=1e-9)
+    with pytest.raises(InputError, match="alike"):
+        whitened_errors(T_ref, C[:-1], T_ref)
+
+
+def test_batch_ratios_match_the_long_run_variance():
+    """White unit errors: 1 per axis. AR(1) errors of unit variance and lag-1 correlation ρ:
+    the long-run variance (1 + ρ) / (1 − ρ), less its finite-batch shortfall
+    2ρ(1 − ρᴮ) / (B(1 − ρ)²). A bias b on white errors: 1 + B b²."""
+    rng = np.random.default_rng(1)
+    n, batch = 200_000, 50
+    # 4,000 batches: each ratio spreads as χ²₄₀₀₀/4000 (σ 0.022; the bias case σ 0.07, the
+    # AR(1) case 0.11): the bounds are 4-5 σ.
+    white, frames = batch_ratios(rng.normal(size=(n, 6)), batch)
+    assert frames == n
+    np.testing.assert_allclose(white, 1.0, atol=0.1)
+
+    rho = 0.7
+    x = np.empty((n, 6))
+    x[0] = rng.normal(size=6)
+    innovations = rng.normal(scale=np.sqrt(1 - rho**2), size=(n, 6))
+    for k in range(1, n):
+        x[k] = rho * x[k - 1] + innovations[k]
+    expected = (1 + rho) / (1 - rho) - 2 * rho * (1 - rho**batch) / (batch * (1 - rho) ** 2)
+    np.testing.assert_allclose(batch_ratios(x, batch)[0], expected, rtol=0.1)
+
+    b = np.array([0.0, 0.1, 0.2, 0.0, 0.3, 0.0])
+    biased = rng.normal(size=(n, 6)) + b
+    np.testing.assert_allclose(batch_ratios(biased, batch)[0], 1 + batch * b**2, atol=0.3)
+
+
+def test_the_scale_is_the_largest_ratio_and_never_below_one():
+    rng = np.random.default_rng(2)
+    cautious = 0.5 * rng.normal(size=(2_000, 6))
+    assert pose_noise_scale(cautious).scale == 1.0
+    biased = rng.normal(size=(2_000, 6))
+    biased[:, 4] += 0.4  # 1 + 50·0.16 = 9 in variance on one axis
+    noise = pose_noise_scale(biased)
+    assert noise.scale == pytest.approx(np.sqrt(noise.batch_ratios.max()))
+    assert 2.6 < noise.scale < 3.4 and int(np.argmax(noise.batch_ratios)) == 4
+    # Lost frames (NaN rows) are left out; too few for 4 batches is refused.
+    gaps = biased.copy()
+    gaps[::3] = np.nan
+    assert pose_noise_scale(gaps).frames == 1300
+    with pytest.raises(InputError, match="4 batches need 200"):
+        pose_noise_scale(biased[:199])
+    with pytest.raises(InputError, match="whole number"):
+        batch_ratios(biased, 0)
+
+
+def test_the_bootstrap_at_the_true_poses_with_the_runs_seed_is_the_run():
+    """Rendered at a run's true poses with the run's seed, the bootstrap's frames are the run's
+    own, so its factor is the one the run's errors against the truth give."""
+    from spacepose.core.pose_bootstrap import bootstrap_pose_noise
+    from spacepose.core.sim import OrbitConfig, simulate_orbit
+    from spacepose.core.tracker import Tracker, TrackerConfig
+
+    sim = simulate_orbit(OrbitConfig(frames=45, seed=3))
+    model = sim.model_cloud()
+    tracker = Tracker(TrackerConfig(), model)
+    n = len(sim)
+    T_est, C = np.full((n, 4, 4), np.nan), np.full((n, 6, 6), np.nan)
+    for k, frame in enumerate(sim.frames()):
+        result = tracker.track_frame(frame.cloud, frame.timestamp)
+        if result.status == "ok":
+            T_est[k], C[k] = result.T_sensor_target, result.covariance
+    run = pose_noise_scale(whitened_errors(T_est, C, sim.T_sensor_target), batch=10)
+    boot = bootstrap_pose_noise(
+        sim.target, sim.sensor, sim.timestamps, sim.T_sensor_target, model, seed=3, batch=10
+    )
+    assert boot.frames == run.frames == 40
+    np.testing.assert_array_equal(boot.batch_ratios, run.batch_ratios)
+    assert boot.scale == run.scale >= 1.0
+    # Another seed: other noise, the same kind of errors.
+    other = bootstrap_pose_noise(
+        sim.target, sim.sensor, sim.timestamps, sim.T_sensor_target, model, seed=4, batch=10
+    )
+    assert not np.array_equal(other.batch_ratios, run.batch_ratios)
+    assert 1.0 <= other.scale < 4.0
+
+
+def test_gross_failures_are_left_out_not_averaged():
+    """A tracker that held a half-turned twin for 30 frames: errors of thousands of σ. They are
+    what a filter's gate rejects, not noise: left out, the factor is the healthy frames'."""
+    rng = np.random.default_rng(3)
+    w = rng.normal(size=(600, 6))
+    healthy = pose_noise_scale(w)
+    w[100:130] = 3e3
+    failed = pose_noise_scale(w)
+    assert failed.gross == 30 and healthy.gross == 0
+    assert failed.frames == 550 and failed.scale == pytest.approx(healthy.scale, rel=0.25)
