@@ -37,6 +37,20 @@ def test_spacing_ignores_duplicates_when_most_points_are_doubled():
         point_spacing(np.zeros((1, 3)))
 
 
+def test_spacing_is_the_median_nearest_distance_of_scipys_tree():
+    """Against scipy's balanced tree (each sampled point's nearest other point), on a target
+    before a sparse far cluster, where a grid index is slow and a tree is not."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(4)
+    pts = np.r_[
+        rng.normal(0, 0.3, (6000, 3)) + [0, 0, 2], rng.normal(0, 1e4, (500, 3)) + [0, 0, 4e5]
+    ]
+    query = pts[np.sort(np.random.default_rng(0).choice(len(pts), 2000, replace=False))]
+    expected = np.median(cKDTree(pts).query(query, k=2)[0][:, 1])
+    assert point_spacing(pts) == expected
+
+
 def test_voxel_keeps_about_the_requested_points():
     # A 0.3 m square sampled every 1 mm (90,000 points): for 2,500 points the voxel is
     # sqrt(0.09 / 2500) = 6 mm, and a 6 mm grid on the plane has 50 × 50 cells.
