@@ -127,3 +127,15 @@ def test_gross_failures_are_left_out_not_averaged():
     failed = pose_noise_scale(w)
     assert failed.gross == 30 and healthy.gross == 0
     assert failed.frames == 550 and failed.scale == pytest.approx(healthy.scale, rel=0.25)
+
+
+def test_bad_inputs_are_the_packages_errors():
+    """Text, a flag or a zero where numbers and counts go: one InputError naming the argument,
+    not numpy's ValueError (before) or a silent batch count of 1 (``True``)."""
+    with pytest.raises(InputError, match="poses are not numbers"):
+        whitened_errors("a", np.eye(6)[None], np.eye(4)[None])
+    with pytest.raises(InputError, match="whitened errors are not numbers"):
+        pose_noise_scale("abc")
+    for bad in (True, 0, 1.5):
+        with pytest.raises(InputError, match="min_batches must be a whole number"):
+            pose_noise_scale(np.ones((300, 6)), 50, bad)

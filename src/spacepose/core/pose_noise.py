@@ -89,8 +89,8 @@ def whitened_errors(
     (N, 6) whitened errors; NaN rows where a pose or covariance is not finite or the covariance
     not positive definite.
     """
-    T_est, T_ref = np.asarray(T_est, dtype=np.float64), np.asarray(T_ref, dtype=np.float64)
-    C = np.asarray(covariances, dtype=np.float64)
+    T_est, T_ref = _numbers(T_est, "poses"), _numbers(T_ref, "reference poses")
+    C = _numbers(covariances, "covariances")
     n = len(T_est)
     if T_est.shape != (n, 4, 4) or T_ref.shape != (n, 4, 4) or C.shape != (n, 6, 6):
         raise InputError(
@@ -122,19 +122,16 @@ def batch_ratios(
     Raises
     ------
     InputError
-        ``batch`` not a whole number >= 1, or fewer finite rows than ``min_batches`` batches.
+        Not numbers in (N, 6), ``batch`` or ``min_batches`` not a whole number >= 1, or fewer
+        finite rows than ``min_batches`` batches.
     """
-    w = np.asarray(whitened, dtype=np.float64)
-    if w.ndim != 2 or w.shape[1] != 6:
-        raise InputError(f"whitened errors must be (N, 6), got {w.shape}")
-    if isinstance(batch, bool) or not isinstance(batch, int | np.integer) or batch < 1:
-        raise InputError(f"batch must be a whole number >= 1, got {batch!r}")
+    w = _error_rows(whitened)
+    batch, min_batches = _count("batch", batch), _count("min_batches", min_batches)
     w = w[np.isfinite(w).all(axis=1)]
     count = len(w) // batch
-    if count < max(min_batches, 1):
+    if count < min_batches:
         raise InputError(
-            f"{len(w)} frames with an error: {max(min_batches, 1)} batches need "
-            f"{max(min_batches, 1) * batch}"
+            f"{len(w)} frames with an error: {min_batches} batches need {min_batches * batch}"
         )
     means = w[: count * batch].reshape(count, batch, 6).mean(axis=1)
     return batch * np.mean(means**2, axis=0), count * batch
@@ -151,9 +148,7 @@ def pose_noise_scale(
     give 1.6–1.8 in variance from 12 batches (a factor of about 1.3), a cautious side. Errors
     above :data:`GROSS_FACTOR` times the median squared error are left out first.
     """
-    w = np.array(whitened, dtype=np.float64)
-    if w.ndim != 2 or w.shape[1] != 6:
-        raise InputError(f"whitened errors must be (N, 6), got {w.shape}")
+    w = _error_rows(whitened).copy()
     squared = np.sum(w**2, axis=1)
     finite = np.isfinite(squared)
     gross = np.zeros(len(w), dtype=bool)
@@ -163,3 +158,24 @@ def pose_noise_scale(
     ratios, frames = batch_ratios(w, batch, min_batches)
     scale = float(np.sqrt(max(1.0, ratios.max())))
     return PoseNoiseScale(scale, ratios, frames, int(batch), int(gross.sum()))
+
+
+def _numbers(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    """``values`` as a float64 array, or the package's error naming them (not numpy's)."""
+    try:
+        return np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} are not numbers: {exc}") from None
+
+
+def _error_rows(whitened: ArrayLike) -> NDArray[np.float64]:
+    w = _numbers(whitened, "whitened errors")
+    if w.ndim != 2 or w.shape[1] != 6:
+        raise InputError(f"whitened errors must be (N, 6), got {w.shape}")
+    return w
+
+
+def _count(name: str, value: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise InputError(f"{name} must be a whole number >= 1, got {value!r}")
+    return int(value)
