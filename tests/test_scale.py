@@ -43,9 +43,9 @@ def test_spacing_is_the_median_nearest_distance_of_scipys_tree():
     from scipy.spatial import cKDTree
 
     rng = np.random.default_rng(4)
-    pts = np.r_[
-        rng.normal(0, 0.3, (6000, 3)) + [0, 0, 2], rng.normal(0, 1e4, (500, 3)) + [0, 0, 4e5]
-    ]
+    near = rng.normal(0, 0.3, (6000, 3)) + np.array([0, 0, 2.0])
+    far = rng.normal(0, 1e4, (500, 3)) + np.array([0, 0, 4e5])
+    pts = np.r_[near, far]
     query = pts[np.sort(np.random.default_rng(0).choice(len(pts), 2000, replace=False))]
     expected = np.median(cKDTree(pts).query(query, k=2)[0][:, 1])
     assert point_spacing(pts) == expected
