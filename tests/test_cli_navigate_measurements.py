@@ -98,9 +98,18 @@ def test_the_poses_sigma_factor_is_measured_on_the_run(hubble_run, tmp_path, mon
     default = FusionConfig().pose_sigma_scale
     measured = scale(tmp_path / "a" / "nav.csv")
     assert measured >= 1.0 and measured != default
+    # Beside it, what was measured: the factor is the largest axis's batch ratio's root.
+    noise = json.loads((tmp_path / "a" / "nav.pose_noise.json").read_text())
+    assert noise["scale"] == measured
+    assert measured == pytest.approx(np.sqrt(max(1.0, max(noise["batch_ratios"]))))
+    assert len(noise["batch_ratios"]) == len(noise["axes"]) == 6 and noise["batch"] == 2
+    assert noise["frames"] % 2 == 0 and 4 <= noise["frames"] <= 8
     assert scale(tmp_path / "b" / "nav.csv", model=hubble_run / "model.ply") == default
     off = FusionConfig(bootstrap_poses=False)
-    assert scale(tmp_path / "c" / "nav.csv", fusion=off) == default
+    # An earlier run's measurement in the same place is removed, not left to mislead.
+    stale = tmp_path / "a" / "nav.pose_noise.json"
+    assert scale(tmp_path / "a" / "nav.csv", fusion=off) == default
+    assert not stale.exists()
     # A run whose mesh cannot be read navigates with the configured factor, and says why.
     import shutil
     import warnings

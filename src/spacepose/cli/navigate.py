@@ -86,6 +86,8 @@ def navigate(
             markup=False,
         )
     health = "" if summary.health_csv is None else f"; tracker health -> {summary.health_csv}"
+    if summary.pose_noise_json is not None:
+        health += f"; poses' σ factor measured -> {summary.pose_noise_json}"
     console.print(
         f"{summary.frames} frames ({summary.navigated} navigated) -> {summary.nav_csv}; "
         f"config -> {summary.config_json}{health}"

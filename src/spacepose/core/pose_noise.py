@@ -35,6 +35,9 @@ BATCH_FRAMES = 50
 GROSS_FACTOR = 100.0
 # Batches a factor needs: each axis's ratio from k batches spreads as χ²ₖ/k (±0.7 at 4).
 MIN_BATCHES = 4
+# The order of a pose covariance's axes (left perturbation about the sensor's origin, in the
+# sensor frame): rotation, then translation.
+POSE_NOISE_AXES = ("rotation x", "rotation y", "rotation z", "x", "y", "z")
 
 
 @dataclass(frozen=True)

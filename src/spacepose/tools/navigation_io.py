@@ -13,6 +13,7 @@ one line saying why.
 from __future__ import annotations
 
 import csv
+import json
 import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -28,6 +29,7 @@ from spacepose.core.moments import distribution, is_collinear, no_plane
 from spacepose.core.nav_result import NavRow, nav_table
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.navigation import NavigationConfig, navigate
+from spacepose.core.pose_noise import POSE_NOISE_AXES, PoseNoiseScale
 from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_cloud
@@ -50,6 +52,7 @@ class NavigationSummary:
     ambiguous: int = 0
     candidates_csv: Path | None = None
     health_csv: Path | None = None
+    pose_noise_json: Path | None = None
 
 
 def write_nav_csv(path: str | Path, rows: Sequence[NavRow]) -> Path:
@@ -167,7 +170,7 @@ def navigate_run(
     unreadable: dict[int, str] = {}
     pairs = _readable_pairs(frames, unreadable, planes=measurements != "registration")
     tracks: list[Any] = []
-    health_csv = None
+    health_csv = pose_noise_json = None
     if measurements == "rectangles":
         rows = navigate(pairs, catalogue, n, R_O_C, cfg, model)
         config_json = dump_config(cfg, out.with_suffix(".config.json"))
@@ -176,14 +179,16 @@ def navigate_run(
             update={"measurements": measurements, "navigation": cfg}
         )
         run = run_mesh_and_sensor(input_dir, description) if own_model else None
+        noise = None
         if run is not None and model is not None:
             with warnings.catch_warnings():  # the navigating pass warns of each frame's problem
                 warnings.simplefilter("ignore")
                 again = ((f.timestamp, f.cloud) for f in frames)
-                fusion, _ = bootstrapped_fusion(again, *run, model, fusion)
+                fusion, noise = bootstrapped_fusion(again, *run, model, fusion)
         rows, tracks = _navigate_fused(pairs, catalogue, n, R_O_C, fusion, model, unreadable)
         health_csv = write_health_csv(out.with_suffix(".health.csv"), tracks)
         config_json = dump_config(fusion, out.with_suffix(".config.json"))
+        pose_noise_json = _write_pose_noise(out, noise)
         _warn_unusable_frames(tracks, unreadable, health_csv)
     nav_csv = write_nav_csv(out, rows)
     navigated = sum(r.state is not None for r in rows)
@@ -204,6 +209,7 @@ def navigate_run(
         ambiguous,
         candidates_csv,
         health_csv,
+        pose_noise_json,
     )
 
 
@@ -277,12 +283,26 @@ def _write_candidates(out: Path, rows: Sequence[NavRow], ambiguous: bool) -> Pat
     return None
 
 
+def _write_pose_noise(out: Path, noise: PoseNoiseScale | None) -> Path | None:
+    """The bootstrap's measurement of the poses' σ factor beside ``out`` (``.pose_noise.json``:
+    the factor, each axis's batch ratio, the frames and batches), or None, and an earlier run's
+    file removed, when it was not measured."""
+    path = out.with_suffix(".pose_noise.json")
+    if noise is None:
+        path.unlink(missing_ok=True)
+        return None
+    text = json.dumps(noise.to_dict() | {"axes": list(POSE_NOISE_AXES)}, indent=2)
+    path.write_text(text + "\n", encoding="utf-8")
+    return path
+
+
 def output_paths(out: str | Path, measurements: Measurements = "rectangles") -> tuple[Path, ...]:
     """What :func:`navigate_run` may write for ``out`` (NAV.csv): ``out`` and its
-    ``.config.json`` and ``.candidates.csv``, and with registration poses its ``.health.csv``."""
+    ``.config.json`` and ``.candidates.csv``, and with registration poses its ``.health.csv``
+    and ``.pose_noise.json``."""
     out = Path(out)
     companions = [".config.json", ".candidates.csv"]
-    companions += [".health.csv"] if measurements != "rectangles" else []
+    companions += [".health.csv", ".pose_noise.json"] if measurements != "rectangles" else []
     return (out, *(out.with_suffix(c) for c in companions))
 
 
