@@ -43,6 +43,8 @@ def test_quick_fusion_writes_its_table(tmp_path):
         # 30 s in: attitude within 1°, the tracker's poses mostly inside the gate.
         assert max(s["attitude_rms_deg"]["mean"]) < 1.0
         assert s["gate_rejections"]["mean"] <= 8
+        # 30 frames fill no 4 batches of 50: the bootstrap says so, and the factor stays 3.
+        assert [(t["pose_noise"], t["pose_sigma_scale"]) for t in run["per_seed"]] == [(None, 3.0)]
 
 
 def test_fusion_plan_names_generated_targets():

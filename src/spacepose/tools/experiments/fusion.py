@@ -251,7 +251,7 @@ def _fused_score(result: dict[str, Any]) -> dict[str, Any]:
     """:func:`yu_nav.score` (second half) plus the tracker's consistency over every frame it
     tracked: median NEES (6 dof), share inside the 95 % χ²(6) bounds, share of frames with each
     axis (rx, ry, rz in rad; tx, ty, tz about the target origin) within 3σ, RMS error / mean σ
-    per axis, and the frames seeded and gated."""
+    per axis, the frames seeded and gated, and the bootstrap's ``pose_noise`` (a dict, or None)."""
     table = score(result)  # its coarse rectangle poses are all NaN here (no ablation)
     e, s, ne = result["tracker_error"], result["tracker_sigma"], result["tracker_nees"]
     tracked = np.isfinite(ne) & np.all(np.isfinite(e), axis=1)
@@ -261,6 +261,7 @@ def _fused_score(result: dict[str, Any]) -> dict[str, Any]:
         "frames_seeded": int(result["seeded"].sum()),
         "frames_gated": int(result["gated"].sum()),
         "pose_sigma_scale": result["pose_sigma_scale"],
+        "pose_noise": result["pose_noise"],  # the bootstrap's measurement (None: not measured)
         "tracker_nees_median": float(np.median(ne[tracked])) if tracked.any() else float("nan"),
         "tracker_nees_inside_95": float(np.mean((ne[tracked] >= lo) & (ne[tracked] <= hi)))
         if tracked.any()
