@@ -139,3 +139,12 @@ def test_bad_inputs_are_the_packages_errors():
     for bad in (True, 0, 1.5):
         with pytest.raises(InputError, match="min_batches must be a whole number"):
             pose_noise_scale(np.ones((300, 6)), 50, bad)
+    # The bootstrap's one call, before it renders anything.
+    from spacepose.core.pose_bootstrap import bootstrap_pose_noise
+
+    with pytest.raises(InputError, match="timestamps are not numbers"):
+        bootstrap_pose_noise(None, None, ["a"], np.eye(4)[None], None)
+    with pytest.raises(InputError, match=r"timestamps of shape \(2,\) for poses of shape"):
+        bootstrap_pose_noise(None, None, [0.0, 1.0], np.eye(4)[None], None)
+    with pytest.raises(InputError, match="start covariance must be"):
+        bootstrap_pose_noise(None, None, [0.0], np.eye(4)[None], None, start_covariance=np.eye(3))

@@ -207,14 +207,14 @@ def test_returns_far_beyond_the_frame_are_out_of_reach_and_of_the_object():
 def test_reach_is_numpys_on_any_thread_count():
     """The compiled pass (returns, least and largest range) against numpy: no-returns at the
     sensor mixed in, a far cluster that needs the median, and a frame without any return."""
-    from spacepose.core.segmentation import returns, within_reach
+    from spacepose.core.segmentation import _FARTHEST_RANGES, returns, within_reach
 
     rng = np.random.default_rng(11)
     pts = np.r_[rng.normal([0, 0, 2.0], 0.3, (997, 3)), rng.normal([0, 0, 900.0], 5.0, (30, 3))]
     pts[rng.choice(len(pts), 150, replace=False)] = 0.0
     valid = np.any(pts != 0.0, axis=1)
     ranges = np.linalg.norm(pts, axis=1)
-    expected = valid & (ranges <= 100.0 * np.median(ranges[valid]))
+    expected = valid & (ranges <= _FARTHEST_RANGES * np.median(ranges[valid]))
     assert 0 < (valid & ~expected).sum() <= 30
     for workers in (1, 2, 3):
         np.testing.assert_array_equal(returns(pts, workers), valid)

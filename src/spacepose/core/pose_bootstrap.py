@@ -18,6 +18,7 @@ from spacepose.core.pose_noise import (
     BATCH_FRAMES,
     MIN_BATCHES,
     PoseNoiseScale,
+    as_numbers,
     pose_noise_scale,
     whitened_errors,
 )
@@ -75,13 +76,16 @@ def bootstrap_pose_noise(
     Raises
     ------
     InputError
-        Poses and timestamps of different counts, or fewer ``ok`` renders than
-        ``min_batches`` batches.
+        Poses, timestamps or the start covariance not numbers or of the wrong shapes, or fewer
+        ``ok`` renders than ``min_batches`` batches.
     """
-    t = np.asarray(timestamps, dtype=np.float64)
-    T = np.asarray(T_sensor_target, dtype=np.float64)
-    if T.shape != (len(t), 4, 4):
-        raise InputError(f"{len(t)} timestamps for poses of shape {T.shape}")
+    t = as_numbers(timestamps, "timestamps")
+    T = as_numbers(T_sensor_target, "poses")
+    if t.ndim != 1 or T.shape != (len(t), 4, 4):
+        raise InputError(f"timestamps of shape {t.shape} for poses of shape {T.shape}")
+    start = None if start_covariance is None else as_numbers(start_covariance, "start covariance")
+    if start is not None and start.shape != (6, 6):
+        raise InputError(f"the start covariance must be (6, 6), got {start.shape}")
     sim = Simulation(
         name="bootstrap",
         config=OrbitConfig(frames=max(len(t), 1), seed=seed, sensor=sensor),
@@ -92,7 +96,6 @@ def bootstrap_pose_noise(
     run = Tracker(tracker or TrackerConfig(), model, workers)
     T_est = np.full_like(T, np.nan)
     C = np.full((len(t), 6, 6), np.nan)
-    start = None if start_covariance is None else np.asarray(start_covariance, dtype=np.float64)
     for k in range(len(t)):
         try:
             frame = sim.frame(k)

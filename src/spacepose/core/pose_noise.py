@@ -28,7 +28,7 @@ from spacepose.errors import InputError
 
 # Frames a filter's poses are averaged over, as a batch: the orbit run's filter follows its
 # attitude and centre of mass over hundreds of 1-s frames; 50 frames is where the Hubble kit's
-# bias shows (docs/results.md, "A bootstrap of the poses' error").
+# bias shows (docs/results.md, "A bootstrap of the poses' σ").
 BATCH_FRAMES = 50
 # An error this many times the median squared whitened error is a gross failure (a twin, a
 # slide), not noise: a filter's gate rejects such a pose, and its restart undoes a start on one.
@@ -92,8 +92,8 @@ def whitened_errors(
     (N, 6) whitened errors; NaN rows where a pose or covariance is not finite or the covariance
     not positive definite.
     """
-    T_est, T_ref = _numbers(T_est, "poses"), _numbers(T_ref, "reference poses")
-    C = _numbers(covariances, "covariances")
+    T_est, T_ref = as_numbers(T_est, "poses"), as_numbers(T_ref, "reference poses")
+    C = as_numbers(covariances, "covariances")
     n = len(T_est)
     if T_est.shape != (n, 4, 4) or T_ref.shape != (n, 4, 4) or C.shape != (n, 6, 6):
         raise InputError(
@@ -163,8 +163,9 @@ def pose_noise_scale(
     return PoseNoiseScale(scale, ratios, frames, int(batch), int(gross.sum()))
 
 
-def _numbers(values: ArrayLike, name: str) -> NDArray[np.float64]:
-    """``values`` as a float64 array, or the package's error naming them (not numpy's)."""
+def as_numbers(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    """``values`` as a float64 array, or the package's error naming them (numpy raises a
+    ValueError or TypeError on text)."""
     try:
         return np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -172,7 +173,7 @@ def _numbers(values: ArrayLike, name: str) -> NDArray[np.float64]:
 
 
 def _error_rows(whitened: ArrayLike) -> NDArray[np.float64]:
-    w = _numbers(whitened, "whitened errors")
+    w = as_numbers(whitened, "whitened errors")
     if w.ndim != 2 or w.shape[1] != 6:
         raise InputError(f"whitened errors must be (N, 6), got {w.shape}")
     return w
