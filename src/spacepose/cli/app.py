@@ -58,8 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             result = app(args=argv, prog_name="spacepose", standalone_mode=False)
         except SpaceposeError as exc:
-            print_error(str(exc))
-            return 1
+            return _fail(shown, str(exc))
         except typer.Abort:
             err_console.print("aborted")
             return 130
@@ -70,16 +69,20 @@ def main(argv: list[str] | None = None) -> int:
             return exc.exit_code
         except UsageError as exc:  # unknown option or command, missing argument, bad value
             command = exc.ctx.command_path if exc.ctx is not None else "spacepose"
-            print_error(f"{command}: {exc.format_message()} (see '{command} --help')")
-            return 1
+            return _fail(shown, f"{command}: {exc.format_message()} (see '{command} --help')")
         except typer.TyperException as exc:  # any other click error (e.g. an unreadable file)
-            print_error(exc.format_message())
-            return 1
+            return _fail(shown, exc.format_message())
         except OSError as exc:  # a file the system refused (disk full, a read-only mount)
             where = f"{exc.filename}: " if exc.filename else ""
-            print_error(f"{where}{exc.strerror or exc}")
-            return 1
+            return _fail(shown, f"{where}{exc.strerror or exc}")
     return result if isinstance(result, int) else 0
+
+
+def _fail(shown: _OneLineWarnings, message: str) -> int:
+    """Exit code 1 after the warnings' counts and the error line, the error last."""
+    shown.flush()
+    print_error(message)
+    return 1
 
 
 def print_error(message: str) -> None:
@@ -129,10 +132,15 @@ class _OneLineWarnings:
         if self.repeats[key] <= self.shown:
             _print_warning(text)
 
-    def __exit__(self, *exc_info: object) -> None:
+    def flush(self) -> None:
+        """Print how many more warnings each repeated problem had, once."""
         for (_, what), count in self.repeats.items():
             if count > self.shown:
                 _print_warning(f"{count - self.shown} more with the same warning: {what}")
+        self.repeats.clear()
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.flush()
 
 
 def _problem(reason: str) -> str:

@@ -97,3 +97,6 @@ def track(
     if summary["lost"] == summary["frames"]:
         # Rows were written for every frame, but a run with no pose is a failure to report.
         raise InputError(f"every frame was lost ({summary['first_lost']})", input)
+    if model is None and summary["frames"] > 1 and summary["lost"] == summary["frames"] - 1:
+        # Model-free, the first frame's pose is the identity by definition: nothing was tracked.
+        raise InputError(f"every frame after the first was lost ({summary['first_lost']})", input)

@@ -319,12 +319,13 @@ def load_structured(text: str, kind: str) -> Any:
     Both parsers recurse once per level of nesting, so ``[[[[…`` a few thousand deep ends in a
     RecursionError; it is raised as the parser's own error (``nested too deeply``), which every
     reader already turns into one line naming its file. So is the ValueError of an integer
-    too long for Python's int() (over 4,300 digits).
+    too long for Python's int() (over 4,300 digits), and so are YAML aliases that stand for a
+    structure without end or a hundred times the file's characters in values.
     """
     try:
         if kind == "json":
             return json.loads(text, object_pairs_hook=_unique_pairs(text))
-        return yaml.load(text, Loader=_UniqueKeyLoader)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)
     except RecursionError:
         if kind == "json":
             raise json.JSONDecodeError("nested too deeply", text, 0) from None
@@ -337,6 +338,37 @@ def load_structured(text: str, kind: str) -> Any:
         if kind == "json":
             raise json.JSONDecodeError(what, text, 0) from None
         raise yaml.YAMLError(what) from None
+    # An alias shares its anchor's value, so a few lines can stand for a structure without end
+    # (an anchor inside itself: `a: &a [*a]`) or of 10⁹ values (aliases of aliases), which
+    # every later walk over the values (key checks, validation) would follow for ever.
+    if not _expands_within(data, _VALUES_PER_CHARACTER * len(text) + 1000):
+        raise yaml.YAMLError(
+            "its aliases stand for a structure without end or far larger than the file "
+            "(an anchor used inside itself, or aliases of aliases)"
+        )
+    return data
+
+
+# Values a YAML text may stand for through its aliases, per character: a config written out
+# has fewer than one; a file that reuses a block by alias a few times stays far below this.
+_VALUES_PER_CHARACTER = 100
+
+
+def _expands_within(data: Any, budget: int) -> bool:
+    """Whether ``data``, its shared values counted each time they occur, holds at most
+    ``budget`` values (a cyclic structure holds infinitely many)."""
+    stack, count = [data], 0
+    while stack:
+        item = stack.pop()
+        count += 1
+        if count > budget:
+            return False
+        if isinstance(item, dict):
+            stack.extend(item.keys())
+            stack.extend(item.values())
+        elif isinstance(item, list | tuple):
+            stack.extend(item)
+    return True
 
 
 def parse_structured(text: str, source: str | Path, kind: str | None = None) -> Any:

@@ -147,7 +147,7 @@ def associate(
         first = int(np.argmax(unmatched))
         raise InputError(
             f"{int(unmatched.sum())} of {len(t_est)} estimated timestamps have no ground truth "
-            f"within {tolerance:g} s (first: t = {t_est[first]:.9f}, nearest ground truth "
+            f"within {tolerance:g} s (first: t = {float(t_est[first])!r}, nearest ground truth "
             f"{gap[first]:.3g} s away)"
         )
     return np.arange(len(t_est)), order[nearest]

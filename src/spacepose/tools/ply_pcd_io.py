@@ -61,7 +61,15 @@ def read_ply(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | Non
             # plyfile reads an ASCII body through a text wrapper it leaves open on the file,
             # which warns when collected: it gets the bytes instead (an ASCII cloud is small).
             source = io.BytesIO(fh.read()) if header.text else fh
-            ply = plyfile.PlyData.read(source, mmap=False)
+            with warnings.catch_warnings():
+                # An ASCII value beyond its declared type is cast with numpy's warning alone
+                # (1e300 as a float: inf, and the cloud then read as having no finite point)
+                # or refused with an OverflowError (300 as a uchar).
+                warnings.simplefilter("error", RuntimeWarning)
+                ply = plyfile.PlyData.read(source, mmap=False)
+    except (RuntimeWarning, OverflowError) as exc:
+        problem = f"a value does not fit its declared PLY type ({exc})"
+        raise FileFormatError(problem, path) from None
     except plyfile.PlyParseError as exc:
         raise FileFormatError(f"bad or truncated PLY: {exc}", path) from None
     except UnicodeDecodeError:
