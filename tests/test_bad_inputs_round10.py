@@ -137,3 +137,19 @@ def test_a_model_free_run_with_nothing_after_its_first_frame_exits_1(tmp_path, c
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith(f"error: {tmp_path}: every frame after the first was lost (frame 1")
     assert len(out.read_text().splitlines()) == 4  # the rows are written all the same
+
+
+@pytest.mark.parametrize(
+    ("text", "problem"),
+    [
+        ("1,2,3\n4 5 6\n7,8,9\n", "line 2: fields separated by blanks where the first row's are"),
+        ("1 2 3\n4,5,6\n7 8 9\n", "line 2: fields separated by commas where the first row's are"),
+    ],
+)
+def test_a_text_cloud_mixing_separators_names_the_line(tmp_path, text, problem):
+    """Said only "cannot parse text point file", with no line."""
+    path = tmp_path / "mixed.csv"
+    path.write_text(text)
+    with pytest.raises(FileFormatError) as exc:
+        read_cloud(path)
+    assert str(exc.value).startswith(f"{path}: {problem}")

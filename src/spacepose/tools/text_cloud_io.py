@@ -204,6 +204,11 @@ def _first_bad_line(lines: list[str], offset: int, delimiter: str | None) -> str
             )
         if delimiter is not None and data.strip() and "" in [f.strip() for f in data.split(",")]:
             return f"line {i}: an empty field between commas (a trailing or doubled ',')"
+        # The first row sets the separator for all: "1,2,3" then "4 5 6" read as one field.
+        if delimiter is not None and "," not in data and len(data.split()) > 1:
+            return f"line {i}: fields separated by blanks where the first row's are by commas"
+        if delimiter is None and "," in data:
+            return f"line {i}: fields separated by commas where the first row's are by blanks"
         row = data.replace(",", " ").split()
         if not row:
             continue
