@@ -153,3 +153,107 @@ def test_a_text_cloud_mixing_separators_names_the_line(tmp_path, text, problem):
     with pytest.raises(FileFormatError) as exc:
         read_cloud(path)
     assert str(exc.value).startswith(f"{path}: {problem}")
+
+
+# -- found on the Python API ----------------------------------------------------------------------
+
+
+def _box_surface(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-0.5, 0.5, (n, 3))
+    axis = rng.integers(0, 3, n)
+    p[np.arange(n), axis] = np.sign(rng.uniform(-1, 1, n)) * 0.5
+    return p
+
+
+def test_one_far_stray_does_not_make_a_surface_collinear():
+    """A box and one return 10⁶ m off: its spread along that direction alone made the cloud
+    "collinear" for normals and planes (at 10⁵ m both worked). A line with the stray stays
+    a line."""
+    from spacepose.core.normals import estimate_normals
+    from spacepose.core.planes import extract_planes
+    from spacepose.errors import DegenerateGeometryError
+
+    stray = np.array([[1e6, 1e6, 1e6]])
+    box = np.r_[_box_surface(2000), stray]
+    normals = estimate_normals(box).normals
+    # The box's own normals are its faces': unit vectors along an axis (6 faces, ±).
+    assert np.median(np.abs(normals[:-1]).max(axis=1)) > 0.99
+    assert len(extract_planes(box)) >= 5
+    line = np.r_[np.c_[np.linspace(0, 1, 100), np.zeros((100, 2))], stray]
+    with pytest.raises(DegenerateGeometryError):
+        estimate_normals(line)
+    with pytest.raises(DegenerateGeometryError):
+        extract_planes(line)
+
+
+def test_normals_not_of_unit_length_are_refused():
+    """A PointCloud took them as given: ICP's pose moved by 1.2 mm and its information by a
+    factor of 34 when the normals' lengths ran from 0.1 to 10."""
+    from spacepose.core.cloud import PointCloud
+
+    points = _box_surface(100)
+    normals = np.zeros_like(points)
+    normals[:, 2] = 1.0
+    assert PointCloud(points, normals * (1 + 5e-4)).normals is not None  # float rounding
+    normals[7] *= 10.0
+    with pytest.raises(InputError) as exc:
+        PointCloud(points, normals)
+    assert str(exc.value) == (
+        "normals: 1 of 100 rows are not of unit length (row 7: 10); divide them by their "
+        "lengths, or leave them out"
+    )
+
+
+@pytest.mark.parametrize("register", ["icp", "gicp"])
+def test_a_registration_of_one_repeated_point_is_degenerate_at_once(register):
+    """Every search scanned all the points in one grid cell: 40,000 copies took 2.2 s, two
+    million did not finish."""
+    from spacepose.core.gicp import gicp
+    from spacepose.core.icp import icp
+    from spacepose.errors import DegenerateGeometryError
+
+    function = {"icp": icp, "gicp": gicp}[register]
+    with pytest.raises(DegenerateGeometryError) as exc:
+        function(np.ones((2_000_000, 3)), _box_surface(500), workers=1)
+    assert str(exc.value) == ("all 2000000 points of the source cloud at one place: no rigid fit")
+
+
+@pytest.mark.parametrize(
+    ("T", "problem"),
+    [
+        (np.diag([2.0, 2.0, 2.0, 1.0]), "determinant 8, squared norm 12"),
+        (np.diag([-1.0, 1.0, 1.0, 1.0]), "determinant -1, squared norm 3"),
+        (
+            np.array([[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]),
+            "squared norm 3.25",
+        ),
+    ],
+    ids=["scale", "reflection", "shear"],
+)
+def test_the_log_of_a_transform_that_is_not_rigid_is_refused(T, problem):
+    """A scale or a reflection gave the zero twist, as if no motion."""
+    from spacepose.core import se3
+
+    with pytest.raises(InputError) as exc:
+        se3.log(T)
+    assert str(exc.value).startswith("log: T's rotation block is not a proper rotation")
+    assert problem in str(exc.value)
+    with pytest.raises(InputError, match="make_transform: R is not a proper rotation"):
+        se3.make_transform(T[:3, :3], np.zeros(3))
+    bad_row = np.eye(4)
+    bad_row[3, 0] = 1.0
+    with pytest.raises(InputError, match=r"last row must be \(0, 0, 0, 1\)"):
+        se3.log(bad_row)
+    twist = np.array([0.1, -0.2, 0.3, 1.0, 2.0, -3.0])
+    np.testing.assert_allclose(se3.log(se3.exp(twist)), twist, atol=1e-12)
+
+
+@pytest.mark.parametrize("timestamp", ["2.0", True])
+def test_a_frame_timestamp_given_as_text_or_yes_no_is_refused(timestamp):
+    """track_frame read "2.0" and True as numbers, while track_sequence refused them."""
+    from spacepose.core.tracker import Tracker
+
+    with pytest.raises(InputError) as exc:
+        Tracker().track_frame(_box_surface(500), timestamp)
+    assert str(exc.value) == f"frame timestamp must be a number of seconds, got {timestamp!r}"

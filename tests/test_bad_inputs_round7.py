@@ -178,7 +178,7 @@ def test_global_registration_configs_and_voxel_size_are_checked():
         global_registration(points, points, 0.01, ransac="fast")
     with pytest.raises(InputError) as exc:
         global_registration(points, points, "1cm")
-    assert str(exc.value) == "voxel_size must be a positive number of metres, got 1cm"
+    assert str(exc.value) == "voxel_size must be a positive number of metres, got '1cm'"
 
 
 # -- a run folder with a timestamps.txt -----------------------------------------------------------

@@ -359,6 +359,7 @@ def test_the_same_warning_for_many_files_is_printed_three_times_then_counted(mon
 def test_pointcloud_drops_exactly_the_rows_numpy_finds_non_finite() -> None:
     rng = np.random.default_rng(3)
     pts, normals, sigma = rng.normal(size=(500, 3)), rng.normal(size=(500, 3)), rng.random(500)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     pts[rng.choice(500, 40), rng.integers(0, 3, 40)] = np.nan
     normals[rng.choice(500, 20), rng.integers(0, 3, 20)] = -np.inf
     sigma[rng.choice(500, 10)] = np.inf
@@ -393,7 +394,9 @@ def test_pointcloud_copies_what_the_caller_could_still_write() -> None:
 
 def test_pointcloud_select_by_mask_index_and_negative_index() -> None:
     rng = np.random.default_rng(4)
-    cloud = PointCloud(rng.normal(size=(7, 3)), rng.normal(size=(7, 3)), rng.random(7))
+    normals = rng.normal(size=(7, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cloud = PointCloud(rng.normal(size=(7, 3)), normals, rng.random(7))
     mask = np.array([1, 0, 1, 1, 0, 0, 1], dtype=bool)
     for index, rows in ((mask, [0, 2, 3, 6]), ([6, -7, 2], [6, 0, 2])):
         sub = cloud.select(index)

@@ -148,7 +148,11 @@ def _as_sigma(values: ArrayLike, source: str | None) -> NDArray[np.float64]:
 
 def _check_directions(normals: NDArray[np.float64], source: str | None) -> None:
     """Refuse normals of zero length: they give no direction, and a point-to-plane residual
-    weighed by one is zero whatever the pose (a NaN row is dropped with its point instead)."""
+    weighed by one is zero whatever the pose (a NaN row is dropped with its point instead).
+    Refuse normals not of unit length too: a residual ``n·(p − q)`` scales with the normal,
+    and so did every pose and information matrix fitted on them (a length of 10 weighed its
+    pair a hundred times; the file readers take such normals as their directions, with a
+    warning)."""
     zero = normals[:, 0] == 0.0
     zero &= normals[:, 1] == 0.0
     zero &= normals[:, 2] == 0.0
@@ -157,6 +161,18 @@ def _check_directions(normals: NDArray[np.float64], source: str | None) -> None:
         raise InputError(
             f"normals: {len(rows)} of {len(normals)} rows are (0, 0, 0) (first at row {rows[0]}): "
             "a normal needs a direction; leave the normals out to have them estimated",
+            source,
+        )
+    # Squared length within 2e-3 of 1: a length within 1e-3, as the readers take it.
+    squared = np.einsum("ij,ij->i", normals, normals)
+    # Rows not finite are dropped with their points.
+    off = np.isfinite(squared) & (np.abs(squared - 1.0) > 2e-3)
+    if off.any():
+        rows = np.flatnonzero(off)
+        length = float(np.linalg.norm(normals[rows[0]]))
+        raise InputError(
+            f"normals: {len(rows)} of {len(normals)} rows are not of unit length (row "
+            f"{rows[0]}: {length:.6g}); divide them by their lengths, or leave them out",
             source,
         )
 

@@ -35,12 +35,14 @@ def next_timestamp(timestamp: float, last: float) -> float:
     InputError
         Not a number, not finite, or before ``last``.
     """
+    # Text and yes/no are no times: float() reads "2.0" and True (as track_sequence does not).
+    text = isinstance(timestamp, str | bytes | bool | np.bool_)
     try:
-        t = float(timestamp)
+        t = float("nan" if text else timestamp)
     except (TypeError, ValueError):
-        raise InputError(
-            f"frame timestamp must be a number of seconds, got {timestamp!r}"
-        ) from None
+        text = True
+    if text:
+        raise InputError(f"frame timestamp must be a number of seconds, got {timestamp!r}")
     if not np.isfinite(t) or t < last:
         raise InputError(
             f"frame timestamps must be finite and non-decreasing, got {t} after {last}"

@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.config import StageConfig, stage_config
-from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane
+from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane, on_a_line
 from spacepose.core.ransac import sample_triples
 from spacepose.errors import DegenerateGeometryError, InputError
 
@@ -256,7 +256,7 @@ def ransac_plane(
     """
     pts = as_points(points, min_points=3)
     _check_resolution(pts, config.distance_threshold, getattr(points, "source", None))
-    if is_collinear(distribution(pts)[1]):
+    if on_a_line(pts):
         raise no_plane(pts, getattr(points, "source", None))
     rng = np.random.default_rng(config.seed) if rng is None else rng
     n_hyp = config.max_iterations
@@ -401,14 +401,14 @@ def extract_planes(
     config = stage_config(config, PlaneConfig)
     pts = as_points(cloud_or_points, min_points=3)
     _check_resolution(pts, config.distance_threshold, getattr(cloud_or_points, "source", None))
-    if is_collinear(distribution(pts)[1]):
+    if on_a_line(pts):
         raise no_plane(pts, getattr(cloud_or_points, "source", None))
     rng = np.random.default_rng(config.seed)
     remaining = np.arange(len(pts))
     planes: list[Plane] = []
     while len(planes) < config.max_planes and len(remaining) >= config.min_inliers:
         subset = pts[remaining]
-        if planes and is_collinear(distribution(subset)[1]):
+        if planes and on_a_line(subset):
             break  # the leftover points are a line: nothing planar remains
         plane = ransac_plane(subset, config, rng)
         if plane.n_inliers < config.min_inliers:

@@ -374,7 +374,7 @@ def global_registration(
     # Text or None ended in numpy's "ufunc 'isfinite' not supported" TypeError.
     number = isinstance(voxel_size, (int, float, np.integer, np.floating))
     if isinstance(voxel_size, bool) or not number or not np.isfinite(voxel_size) or voxel_size <= 0:
-        raise InputError(f"voxel_size must be a positive number of metres, got {voxel_size}")
+        raise InputError(f"voxel_size must be a positive number of metres, got {voxel_size!r}")
     # None derives a config; an empty dict was taken for None, and any other dict ended in
     # AttributeError.
     normals = (

@@ -18,7 +18,13 @@ from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.config import stage_config
-from spacepose.core.moments import distribution, is_collinear, no_plane, normalised_weights
+from spacepose.core.moments import (
+    distribution,
+    is_collinear,
+    no_plane,
+    normalised_weights,
+    on_a_line,
+)
 from spacepose.core.planes import Plane, PlaneConfig, dense_support, extract_planes
 from spacepose.core.rectangle_measurement import RectangleMeasurement, measure_rectangle
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, recognise
@@ -141,7 +147,7 @@ def find_rectangles(
     plane_config = stage_config(plane_config, PlaneConfig, "plane_config")
     config = stage_config(config, RectangleConfig)
     pts = as_points(cloud_or_points, min_points=3)
-    if is_collinear(distribution(pts)[1]):
+    if on_a_line(pts):
         raise no_plane(pts, getattr(cloud_or_points, "source", None))
     rms_radius = float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
     if config.sigma >= rms_radius:

@@ -111,10 +111,28 @@ def make_transform(R: ArrayLike | Rotation, t: ArrayLike) -> NDArray[np.float64]
         raise InputError(f"make_transform: R must be a 3x3 rotation matrix, got shape {R.shape}")
     if t.size != 3:
         raise InputError(f"make_transform: t must be 3 numbers (x, y, z), got shape {t.shape}")
+    if not np.isfinite(R).all() or not np.isfinite(t).all():
+        raise InputError("make_transform: R and t must be finite numbers")
+    _check_rotation(R, "make_transform: R")
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = t.reshape(3)
     return T
+
+
+def _check_rotation(R: NDArray[np.float64], name: str) -> None:
+    """Refuse a finite 3×3 ``R`` that is not a proper rotation (a scale, a shear, a reflection),
+    to :func:`as_transform`'s tolerance, in plain floats (~1 µs; :func:`log` runs for every
+    edge of every pose-graph iteration). A matrix of determinant 1 has ``‖R‖²_F ≥ 3``, with
+    equality for rotations alone (its singular values' product is 1)."""
+    a, b, c, d, e, f, g, h, i = R.ravel().tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    frobenius = a * a + b * b + c * c + d * d + e * e + f * f + g * g + h * h + i * i
+    if abs(det - 1.0) > 3e-6 or abs(frobenius - 3.0) > 3e-6:
+        raise InputError(
+            f"{name} is not a proper rotation (determinant {det:.4g}, squared norm "
+            f"{frobenius:.4g}; a rotation has 1 and 3): a scale, a shear or a reflection"
+        )
 
 
 def invert(T: ArrayLike) -> NDArray[np.float64]:
@@ -263,6 +281,10 @@ def log(T: ArrayLike) -> NDArray[np.float64]:
     if T.shape != (4, 4):
         raise InputError(f"log needs a 4x4 transform, got shape {T.shape}")
     R = T[:3, :3]
+    if np.isfinite(T).all():  # non-finite entries are refused below, with their own words
+        _check_rotation(R, "log: T's rotation block")
+        if T[3].tolist() != [0.0, 0.0, 0.0, 1.0]:
+            raise InputError(f"log: T's last row must be (0, 0, 0, 1), got {T[3]}")
     # 2 sin θ · axis from the skew part, cos θ from the trace; atan2 of the two is accurate at
     # every angle, unlike arccos near 0. Near π the skew part vanishes and the axis with it:
     # there scipy's quaternion route takes over. Written out because this runs for every edge

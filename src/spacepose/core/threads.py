@@ -45,7 +45,7 @@ def thread_count(workers: int) -> int:
         return available
     if isinstance(workers, int | np.integer) and not isinstance(workers, bool) and workers >= 1:
         return min(int(workers), available)
-    raise InputError(f"workers must be -1 (all cores) or a positive count, got {workers}")
+    raise InputError(f"workers must be -1 (all cores) or a positive count, got {workers!r}")
 
 
 @contextmanager

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config
 from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
-from spacepose.core.moments import distribution, is_collinear, no_plane
+from spacepose.core.moments import no_plane, on_a_line
 from spacepose.core.nav_result import NavRow, nav_table
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.navigation import NavigationConfig, navigate
@@ -337,7 +337,7 @@ def _no_plane(cloud: PointCloud) -> str | None:
     """Why a frame's points span no plane (fewer than 3, on one line or at one place), or None."""
     if len(cloud) < 3:
         return f"{len(cloud)} point(s): a plane needs 3"
-    if is_collinear(distribution(cloud.points)[1]):
+    if on_a_line(cloud.points):
         return no_plane(cloud.points).reason
     return None
 
