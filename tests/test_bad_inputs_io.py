@@ -365,7 +365,9 @@ def test_timestamps_and_weights_that_are_not_numbers_are_refused():
 
     with pytest.raises(InputError, match="must be finite"):
         associate([0.0, np.nan], [0.0, 1.0])
-    with pytest.raises(InputError, match="must be numbers"):
+    with pytest.raises(
+        InputError, match="estimated timestamps must be real numbers, got an array of text"
+    ):
         associate(["a"], [0.0])
     with pytest.raises(InputError, match="tolerance"):
         associate([0.0], [0.0], tolerance=np.nan)

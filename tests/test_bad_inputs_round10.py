@@ -257,3 +257,83 @@ def test_a_frame_timestamp_given_as_text_or_yes_no_is_refused(timestamp):
     with pytest.raises(InputError) as exc:
         Tracker().track_frame(_box_surface(500), timestamp)
     assert str(exc.value) == f"frame timestamp must be a number of seconds, got {timestamp!r}"
+
+
+@pytest.mark.parametrize(
+    ("values", "kind"),
+    [
+        ([["1", "2", "3"]] * 3, "text"),
+        ([[True, False, True]] * 3, "booleans"),
+        (np.zeros((3, 3), "M8[s]"), "dates"),
+        (np.zeros((3, 3), "m8[s]"), "time spans"),
+        (np.array([[1, "2", 3]] * 3, dtype=object), "text"),
+    ],
+)
+def test_coordinates_that_are_not_real_numbers_are_refused(values, kind):
+    """Lists of text or yes/no, dates and objects holding text were read as coordinates."""
+    from spacepose import PointCloud
+
+    with pytest.raises(InputError) as exc:
+        PointCloud(values)
+    assert str(exc.value) == f"points must be real numbers, got an array of {kind}"
+    with pytest.raises(InputError, match=f"estimated timestamps must be real numbers.*{kind}"):
+        associate(values[0], np.arange(3.0))
+
+
+def test_a_selection_out_of_range_is_an_input_error():
+    """numpy's IndexError before."""
+    from spacepose import PointCloud
+
+    cloud = PointCloud(_box_surface(10))
+    with pytest.raises(InputError) as exc:
+        cloud.select([11])
+    assert (
+        str(exc.value) == "select of 10 points: index 11 is out of bounds for axis 0 with size 10"
+    )
+    with pytest.raises(InputError, match="select of 10 points: boolean index did not match"):
+        cloud.select(np.ones(3, bool))
+
+
+def test_pose_noise_of_overflowing_or_complex_errors_is_refused():
+    """Errors of 1e200σ gave a factor of inf, complex ones were cut to their real parts."""
+    from spacepose.core.pose_noise import pose_noise_scale, whitened_errors
+
+    w = np.random.default_rng(0).normal(size=(300, 6))
+    with pytest.raises(
+        InputError, match=r"^whitened errors up to .*e\+200σ: their squares overflow"
+    ):
+        pose_noise_scale(w * 1e200)
+    with pytest.raises(
+        InputError, match="whitened errors must be real numbers, got an array of complex"
+    ):
+        pose_noise_scale(w.astype(complex))
+    with pytest.raises(InputError, match=r"^poses must be \(N, 4, 4\) .* got \(\), "):
+        whitened_errors(5.0, np.eye(6)[None], np.eye(4)[None])
+    assert pose_noise_scale(w).scale == pytest.approx(1.79, abs=0.01)
+
+
+def test_a_pose_graph_of_bad_arguments_is_an_input_error():
+    """Text poses, a tuple for an edge, no fixed set, a text iteration count and text node
+    numbers ended in numpy's or Python's errors; 0 iterations, a fractional fixed node and an
+    asymmetric information were taken."""
+    from spacepose.core.posegraph import PoseGraphEdge, optimize_pose_graph
+
+    T = np.eye(4)
+    T[0, 3] = 1.0
+    poses, info = np.stack([np.eye(4)] * 2), np.eye(6)
+    edge = PoseGraphEdge(0, 1, T, info)
+    cases = [
+        ({"poses": "abc", "edges": []}, "pose graph poses must be numbers"),
+        ({"edges": None}, "pose graph edges must be a list of PoseGraphEdge, got NoneType"),
+        ({"edges": [(0, 1, T, info)]}, "pose graph edges must be PoseGraphEdge, got tuple"),
+        ({"edges": [edge], "fixed": None}, "pose graph fixed nodes must be whole numbers"),
+        ({"edges": [edge], "fixed": [0.5]}, "pose graph fixed nodes must be whole numbers"),
+        ({"edges": [edge], "max_iterations": 0}, "max_iterations must be a whole number >= 1"),
+        ({"edges": [PoseGraphEdge("0", 1, T, info)]}, "edge nodes must be whole numbers"),
+        ({"edges": [PoseGraphEdge(0, 1, T, np.triu(np.ones((6, 6))) + info)]}, "symmetric"),
+    ]
+    for kwargs, problem in cases:
+        with pytest.raises(InputError, match=problem):
+            optimize_pose_graph(**({"poses": poses} | kwargs))
+    # The same graph, well given: node 1 one metre along x.
+    assert optimize_pose_graph(poses, [edge]).poses[1][0, 3] == pytest.approx(1.0)

@@ -142,7 +142,7 @@ def test_bad_inputs_are_the_packages_errors():
     # The bootstrap's one call, before it renders anything.
     from spacepose.core.pose_bootstrap import bootstrap_pose_noise
 
-    with pytest.raises(InputError, match="timestamps are not numbers"):
+    with pytest.raises(InputError, match="timestamps must be real numbers, got an array of text"):
         bootstrap_pose_noise(None, None, ["a"], np.eye(4)[None], None)
     with pytest.raises(InputError, match=r"timestamps of shape \(2,\) for poses of shape"):
         bootstrap_pose_noise(None, None, [0.0, 1.0], np.eye(4)[None], None)

@@ -111,16 +111,25 @@ class PointCloud:
         return self.normals is not None
 
     def select(self, index: ArrayLike) -> PointCloud:
-        """Subset by integer index or boolean mask; normals and σ follow."""
+        """Subset by integer index or boolean mask; normals and σ follow.
+
+        Raises
+        ------
+        InputError
+            An index out of range, not whole numbers, or a mask of another length (numpy's
+            IndexError before); a selection of no point (an empty cloud).
+        """
         idx = np.asarray(index)
         if idx.dtype == bool and idx.shape == (len(self),):
             idx = np.flatnonzero(idx)
-        return PointCloud(
-            _rows(self.points, idx),
-            None if self.normals is None else _rows(self.normals, idx),
-            None if self.sigma is None else _rows(self.sigma, idx),
-            source=self.source,
-        )
+        try:
+            rows = [
+                None if v is None else _rows(v, idx)
+                for v in (self.points, self.normals, self.sigma)
+            ]
+        except IndexError as exc:
+            raise InputError(f"select of {len(self)} points: {exc}", self.source) from None
+        return PointCloud(*rows, source=self.source)
 
     def transformed(self, T_a_b: ArrayLike) -> PointCloud:
         """The cloud mapped from its frame b into frame a by ``T_a_b`` (normals rotated)."""

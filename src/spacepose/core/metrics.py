@@ -122,6 +122,8 @@ def associate(
         be evaluated, so none is silently skipped), or timestamps that are not finite 1-D
         numbers.
     """
+    se3.check_real(est_timestamps, "estimated timestamps")
+    se3.check_real(gt_timestamps, "ground-truth timestamps")
     try:
         t_est = np.asarray(est_timestamps, dtype=np.float64)
         t_gt = np.asarray(gt_timestamps, dtype=np.float64)

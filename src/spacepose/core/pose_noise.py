@@ -33,6 +33,8 @@ BATCH_FRAMES = 50
 # An error this many times the median squared whitened error is a gross failure (a twin, a
 # slide), not noise: a filter's gate rejects such a pose, and its restart undoes a start on one.
 GROSS_FACTOR = 100.0
+# Largest whitened error whose square, summed over a batch, stays finite in float64.
+_LARGEST_WHITENED = 1e150
 # Batches a factor needs: each axis's ratio from k batches spreads as χ²ₖ/k (±0.7 at 4).
 MIN_BATCHES = 4
 # The order of a pose covariance's axes (left perturbation about the sensor's origin, in the
@@ -94,7 +96,7 @@ def whitened_errors(
     """
     T_est, T_ref = as_numbers(T_est, "poses"), as_numbers(T_ref, "reference poses")
     C = as_numbers(covariances, "covariances")
-    n = len(T_est)
+    n = len(T_est) if T_est.ndim else -1
     if T_est.shape != (n, 4, 4) or T_ref.shape != (n, 4, 4) or C.shape != (n, 6, 6):
         raise InputError(
             f"poses must be (N, 4, 4) and covariances (N, 6, 6) alike, got {T_est.shape}, "
@@ -152,6 +154,11 @@ def pose_noise_scale(
     above :data:`GROSS_FACTOR` times the median squared error are left out first.
     """
     w = _error_rows(whitened).copy()
+    finite_w = w[np.isfinite(w)]
+    if finite_w.size and np.abs(finite_w).max() > _LARGEST_WHITENED:
+        raise InputError(
+            f"whitened errors up to {np.abs(finite_w).max():.3g}σ: their squares overflow"
+        )
     squared = np.sum(w**2, axis=1)
     finite = np.isfinite(squared)
     gross = np.zeros(len(w), dtype=bool)
@@ -166,6 +173,7 @@ def pose_noise_scale(
 def as_numbers(values: ArrayLike, name: str) -> NDArray[np.float64]:
     """``values`` as a float64 array, or the package's error naming them (numpy raises a
     ValueError or TypeError on text)."""
+    se3.check_real(values, name)
     try:
         return np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError) as exc:

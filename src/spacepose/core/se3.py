@@ -31,12 +31,28 @@ def check_real(values: object, name: str, source: str | None = None) -> None:
     """Refuse an array of complex numbers, booleans or text where real numbers go: numpy casts
     them to float64 silently (a complex one with only a warning, dropping its imaginary parts),
     so a mask or a wrong array passed by mistake became coordinates."""
+    if isinstance(values, list | tuple):
+        # A list's items too: float64 reads "1" and True as numbers.
+        try:
+            values = np.asarray(values)
+        except (TypeError, ValueError):  # ragged: the conversion to float64 says so
+            return
     kind = values.dtype.kind if isinstance(values, np.ndarray | np.generic) else None
+    if kind == "O" and any(isinstance(v, _NOT_NUMBERS) for v in np.ravel(values)):
+        kind = "U"
     if kind in _NOT_REAL:
         raise InputError(f"{name} must be real numbers, got an array of {_NOT_REAL[kind]}", source)
 
 
-_NOT_REAL = {"c": "complex numbers", "b": "booleans", "U": "text", "S": "bytes"}
+_NOT_REAL = {
+    "c": "complex numbers",
+    "b": "booleans",
+    "U": "text",
+    "S": "bytes",
+    "M": "dates",
+    "m": "time spans",
+}
+_NOT_NUMBERS = (str, bytes, bool, np.bool_)
 
 
 def real_array(values: ArrayLike, name: str) -> NDArray[np.float64]:
