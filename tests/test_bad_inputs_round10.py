@@ -337,3 +337,66 @@ def test_a_pose_graph_of_bad_arguments_is_an_input_error():
             optimize_pose_graph(**({"poses": poses} | kwargs))
     # The same graph, well given: node 1 one metre along x.
     assert optimize_pose_graph(poses, [edge]).poses[1][0, 3] == pytest.approx(1.0)
+
+
+def test_navigation_errors_of_bad_tables_are_input_errors():
+    """A missing time, quaternion or σ column ended in KeyError, lists of text in numpy's
+    errors, a quaternion of zeros in scipy's ValueError and a table that is not one in a
+    TypeError."""
+    from spacepose.core.metrics import NAV_GROUPS, navigation_errors
+
+    state = [c for _, cols, _, _ in NAV_GROUPS for c in cols]
+    truth = {c: np.zeros(3) for c in ["t", "qx", "qy", "qz", *state]} | {"qw": np.ones(3)}
+    nav = truth | {f"sig_{c}": np.ones(3) for c in state}
+    nav |= {f"sig_att_{a}": np.ones(3) for a in "xyz"}
+    assert np.allclose(navigation_errors(nav, truth).groups["attitude"][2], 0.0)
+    without = {k: v for k, v in nav.items() if k != "sig_att_x"}
+    with pytest.raises(InputError, match=r"navigation table lacks columns \['sig_att_x'\]"):
+        navigation_errors(without, truth)
+    with pytest.raises(InputError, match="navigation column qx must be real numbers"):
+        navigation_errors(nav | {"qx": ["a", "b", "c"]}, truth)
+    with pytest.raises(InputError, match="row 1: a quaternion of zeros"):
+        navigation_errors(nav | {"qw": np.array([1.0, 0.0, 1.0])}, truth)
+    with pytest.raises(InputError, match="needs two tables of columns"):
+        navigation_errors(None, truth)
+
+
+@pytest.mark.parametrize(
+    ("settings", "problem"),
+    [
+        ({"max_iterations": 0}, "max_iterations must be a count >= 1, got 0"),
+        ({"max_iterations": -1}, "max_iterations must be a count >= 1, got -1"),
+        ({"tolerance": float("nan")}, "tolerance must be a positive number, got nan"),
+        ({"tolerance": -1.0}, "tolerance must be a positive number, got -1.0"),
+        ({"tolerance": True}, "tolerance must be a positive number, got True"),
+    ],
+)
+def test_a_geodesic_mean_of_bad_settings_is_refused(settings, problem):
+    """0 or -1 iterations returned the first transform as the mean; a NaN or negative
+    tolerance ran every iteration."""
+    from spacepose.core import se3
+
+    with pytest.raises(InputError) as exc:
+        se3.geodesic_mean([np.eye(4), np.eye(4)], **settings)
+    assert str(exc.value) == f"geodesic_mean: {problem}"
+
+
+def test_the_dynamics_helpers_refuse_text_nan_and_a_zero_quaternion():
+    """Text ended in Python's TypeError, NaN came back as a NaN state, a zero quaternion as a
+    NaN attitude, a negative mean motion was taken."""
+    from spacepose.core.dynamics import cw_stm, propagate_attitude
+
+    q, w, inertia = np.array([0.0, 0.0, 0.0, 1.0]), np.array([0.01, 0.02, 0.03]), [3.0, 2.0, 1.0]
+    with pytest.raises(InputError, match="dt must be a number, got 'a'"):
+        propagate_attitude(q, w, inertia, "a")
+    with pytest.raises(InputError, match="dt must be finite, got nan"):
+        propagate_attitude(q, w, inertia, np.nan)
+    with pytest.raises(InputError, match=r"substeps must be a whole number >= 1, got 1\.5"):
+        propagate_attitude(q, w, inertia, 1.0, 1.5)
+    with pytest.raises(InputError, match="a quaternion of zeros"):
+        propagate_attitude(np.zeros(4), w, inertia, 1.0)
+    with pytest.raises(InputError, match=r"n \(mean motion\) must be >= 0 rad/s, got -1.0"):
+        cw_stm(-1.0, 1.0)
+    with pytest.raises(InputError, match="t must be finite, got inf"):
+        cw_stm(1e-3, np.inf)
+    np.testing.assert_array_equal(cw_stm(1e-3, 0.0), np.eye(6))

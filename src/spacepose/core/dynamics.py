@@ -15,22 +15,37 @@ Frames and conventions (shared with the simulator)
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from spacepose.core import se3
 from spacepose.errors import InputError
 
 
 def _vector(values: ArrayLike, size: int, name: str) -> NDArray[np.float64]:
-    arr = np.asarray(values, dtype=np.float64)
+    arr = se3.real_array(values, name)
     if arr.shape != (size,):
         raise InputError(f"{name} must have shape ({size},), got {arr.shape}")
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name} has non-finite entries")
     return arr
+
+
+def _number(value: float, name: str) -> float:
+    """A finite real number (not text, not a yes/no) as a float, or the package's error."""
+    if isinstance(value, str | bytes | bool | np.bool_):
+        raise InputError(f"{name} must be a number, got {value!r}")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r:.60}") from None
+    if not math.isfinite(number):
+        raise InputError(f"{name} must be finite, got {number}")
+    return number
 
 
 def cw_matrix(n: float) -> NDArray[np.float64]:
@@ -60,6 +75,9 @@ def cw_stm(n: float, t: float) -> NDArray[np.float64]:
     The classical closed-form solution (Clohessy & Wiltshire 1960) in the Hill frame, rotated
     into O. For ``n == 0`` it is the free-flight matrix.
     """
+    n, t = _number(n, "n (mean motion)"), _number(t, "t")
+    if n < 0.0:
+        raise InputError(f"n (mean motion) must be >= 0 rad/s, got {n}")
     if n == 0.0:
         phi = np.eye(6)
         phi[:3, 3:] = t * np.eye(3)
@@ -176,8 +194,11 @@ def propagate_attitude_k(
     q = _vector(q_I_B_xyzw, 4, "q_I_B_xyzw")
     w = _vector(omega_B, 3, "omega_B")
     k = _vector(k, 3, "k")
-    if substeps < 1:
-        raise InputError(f"substeps must be >= 1, got {substeps}")
+    if isinstance(substeps, bool) or not isinstance(substeps, int | np.integer) or substeps < 1:
+        raise InputError(f"substeps must be a whole number >= 1, got {substeps!r}")
+    dt = _number(dt, "dt")
+    if not q.any():
+        raise InputError("q_I_B_xyzw is a quaternion of zeros: no attitude")
 
     def f(x: NDArray[np.float64]) -> NDArray[np.float64]:
         wx, wy, wz = x[4:]

@@ -12,6 +12,7 @@ Two error definitions are used on purpose (methods.md §0):
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -331,13 +332,27 @@ def navigation_errors(
     truth
         Column name -> (M,) values with the truth.csv columns; the first min(N, M) rows pair.
     """
-    missing = [c for _, cols, _, _ in NAV_GROUPS for c in cols if c not in nav or c not in truth]
+    if not (isinstance(nav, Mapping) and isinstance(truth, Mapping)):
+        raise InputError(
+            "navigation_errors needs two tables of columns (name -> values), got "
+            f"{type(nav).__name__} and {type(truth).__name__}"
+        )
+    quaternion = ["t", "qx", "qy", "qz", "qw"]
+    state = [c for _, cols, _, _ in NAV_GROUPS for c in cols]
+    sigmas = [f"sig_{c}" for c in state] + [f"sig_att_{a}" for a in "xyz"]
+    missing = [c for c in quaternion + state + sigmas if c not in nav]
+    missing += [f"truth {c}" for c in quaternion + state if c not in truth]
     if missing:
         raise InputError(f"navigation table lacks columns {missing}")
+    nav = {c: _column(nav[c], c) for c in quaternion + state + sigmas}
+    truth = {c: _column(truth[c], f"truth {c}") for c in quaternion + state}
     n = min(len(nav["t"]), len(truth["t"]))
     q_est = np.stack([nav[c][:n] for c in ("qx", "qy", "qz", "qw")], axis=1)
     q_true = np.stack([truth[c][:n] for c in ("qx", "qy", "qz", "qw")], axis=1)
     started = np.all(np.isfinite(q_est), axis=1)
+    zero = started & (~np.any(q_est, axis=1) | ~np.any(q_true, axis=1))
+    if zero.any():
+        raise InputError(f"navigation table row {int(np.argmax(zero))}: a quaternion of zeros")
     att = np.full((n, 3), np.nan)
     att[started] = (
         Rotation.from_quat(q_est[started]).inv() * Rotation.from_quat(q_true[started])
@@ -355,3 +370,15 @@ def navigation_errors(
         sig = np.stack([scale * nav[f"sig_{c}"][:n] for c in cols], axis=1)
         groups[name] = (unit, cols, err, sig)
     return NavigationErrors(np.asarray(nav["t"][:n], dtype=np.float64), groups)
+
+
+def _column(values: ArrayLike, name: str) -> NDArray[np.float64]:
+    """A table's column as (N,) float64, or the package's error naming it."""
+    se3.check_real(values, f"navigation column {name}")
+    try:
+        column = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"navigation column {name} must be numbers") from None
+    if column.ndim != 1:
+        raise InputError(f"navigation column {name} must be (N,) values, got shape {column.shape}")
+    return column

@@ -355,8 +355,15 @@ def geodesic_mean(
     if len(bad):
         # A scale or shear was averaged as if it were a turn: a non-rigid "mean" came back.
         raise InputError(f"geodesic_mean: transform {bad[0]} is not rigid (see as_transform)")
-    if isinstance(max_iterations, bool) or not isinstance(max_iterations, int | np.integer):
-        raise InputError(f"geodesic_mean: max_iterations must be a count, got {max_iterations!r}")
+    count = not isinstance(max_iterations, bool) and isinstance(max_iterations, int | np.integer)
+    if not count or max_iterations < 1:
+        raise InputError(
+            f"geodesic_mean: max_iterations must be a count >= 1, got {max_iterations!r}"
+        )
+    real = isinstance(tolerance, int | float | np.floating) and not isinstance(tolerance, bool)
+    if not (real and tolerance > 0):
+        # NaN never stops the iteration and a negative one never either: 50 steps for nothing.
+        raise InputError(f"geodesic_mean: tolerance must be a positive number, got {tolerance!r}")
     w = np.ones(len(Ts)) if weights is None else real_array(weights, "geodesic_mean weights")
     # A sum that overflows to inf made every normalised weight 0: the first transform came back.
     with np.errstate(over="ignore"):
