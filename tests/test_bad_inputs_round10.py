@@ -400,3 +400,22 @@ def test_the_dynamics_helpers_refuse_text_nan_and_a_zero_quaternion():
     with pytest.raises(InputError, match="t must be finite, got inf"):
         cw_stm(1e-3, np.inf)
     np.testing.assert_array_equal(cw_stm(1e-3, 0.0), np.eye(6))
+
+
+def test_the_cramer_rao_bound_refuses_a_bad_rtol_and_a_negative_sigma():
+    """A NaN rtol gave a zero covariance of rank 0, text a TypeError; a negative range σ came
+    back as a negative σ along the normal."""
+    from spacepose.core.crlb import crlb, range_sigma_along_normal
+
+    points = _box_surface(300)
+    normals = np.zeros_like(points)
+    face = np.argmax(np.abs(points), axis=1)
+    normals[np.arange(len(points)), face] = np.sign(points[np.arange(len(points)), face])
+    for rtol in (float("nan"), -1.0, "a"):
+        with pytest.raises(InputError, match=r"crlb: rtol must be a number in \[0, 1\)"):
+            crlb(points, normals, 0.001, rtol=rtol)
+    assert crlb(points, normals, 0.001).rank == 6
+    with pytest.raises(InputError, match="sigma_r must be finite and >= 0"):
+        range_sigma_along_normal(-1.0, points, normals)
+    along = range_sigma_along_normal(0.01, points, normals)
+    assert np.all((along >= 0) & (along <= 0.01))

@@ -51,7 +51,12 @@ def range_sigma_along_normal(
     if np.any(r_len == 0) or np.any(n_len == 0):
         raise InputError("rays and normals must be non-zero vectors")
     cos = np.abs(np.einsum("ij,ij->i", r, n)) / (r_len * n_len)
-    return np.asarray(sigma_r, dtype=np.float64) * cos
+    sigma = real_array(sigma_r, "sigma_r")
+    if sigma.ndim > 1 or sigma.size not in (1, len(r)):
+        raise InputError(f"sigma_r must be one value or one per ray ({len(r)}), got {sigma.shape}")
+    if not (np.isfinite(sigma).all() and (sigma >= 0).all()):
+        raise InputError("sigma_r must be finite and >= 0 (a standard deviation, metres)")
+    return sigma * cos
 
 
 def fisher_point_to_plane(
@@ -165,6 +170,10 @@ def crlb(
     CramerRaoBound; a degenerate geometry is reported (``degenerate``, ``null_directions``),
     not raised.
     """
+    real = isinstance(rtol, int | float | np.floating) and not isinstance(rtol, bool)
+    if not (real and 0.0 <= rtol < 1.0):
+        # NaN kept no eigenvalue (a zero covariance, σ inf, rank 0); text ended in a TypeError.
+        raise InputError(f"crlb: rtol must be a number in [0, 1), got {rtol!r}")
     J = fisher_point_to_plane(points, normals, sigma)
     if frame_to_frame:
         J = 0.5 * J
