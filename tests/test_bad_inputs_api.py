@@ -153,7 +153,7 @@ def test_geodesic_mean_refuses_non_rigid_transforms_and_overflowing_weights() ->
         se3.geodesic_mean(np.stack([I4, shear]))
     with pytest.raises(InputError, match="weights must be finite"):
         se3.geodesic_mean(np.stack([I4, turn]), [1e308, 1e308])
-    with pytest.raises(InputError, match="max_iterations must be a count"):
+    with pytest.raises(InputError, match="max_iterations must be a whole number >= 1"):
         se3.geodesic_mean(np.stack([I4, turn]), max_iterations="5")
 
 

@@ -99,4 +99,8 @@ def track(
         raise InputError(f"every frame was lost ({summary['first_lost']})", input)
     if model is None and summary["frames"] > 1 and summary["lost"] == summary["frames"] - 1:
         # Model-free, the first frame's pose is the identity by definition: nothing was tracked.
-        raise InputError(f"every frame after the first was lost ({summary['first_lost']})", input)
+        raise InputError(
+            f"every frame but the one that sets the target frame was lost "
+            f"({summary['first_lost']})",
+            input,
+        )

@@ -15,7 +15,6 @@ Frames and conventions (shared with the simulator)
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -33,19 +32,6 @@ def _vector(values: ArrayLike, size: int, name: str) -> NDArray[np.float64]:
     if not np.all(np.isfinite(arr)):
         raise InputError(f"{name} has non-finite entries")
     return arr
-
-
-def _number(value: float, name: str) -> float:
-    """A finite real number (not text, not a yes/no) as a float, or the package's error."""
-    if isinstance(value, str | bytes | bool | np.bool_):
-        raise InputError(f"{name} must be a number, got {value!r}")
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name} must be a number, got {value!r:.60}") from None
-    if not math.isfinite(number):
-        raise InputError(f"{name} must be finite, got {number}")
-    return number
 
 
 def cw_matrix(n: float) -> NDArray[np.float64]:
@@ -75,7 +61,7 @@ def cw_stm(n: float, t: float) -> NDArray[np.float64]:
     The classical closed-form solution (Clohessy & Wiltshire 1960) in the Hill frame, rotated
     into O. For ``n == 0`` it is the free-flight matrix.
     """
-    n, t = _number(n, "n (mean motion)"), _number(t, "t")
+    n, t = se3.real_number(n, "n (mean motion)"), se3.real_number(t, "t")
     if n < 0.0:
         raise InputError(f"n (mean motion) must be >= 0 rad/s, got {n}")
     if n == 0.0:
@@ -194,9 +180,8 @@ def propagate_attitude_k(
     q = _vector(q_I_B_xyzw, 4, "q_I_B_xyzw")
     w = _vector(omega_B, 3, "omega_B")
     k = _vector(k, 3, "k")
-    if isinstance(substeps, bool) or not isinstance(substeps, int | np.integer) or substeps < 1:
-        raise InputError(f"substeps must be a whole number >= 1, got {substeps!r}")
-    dt = _number(dt, "dt")
+    substeps = se3.whole_number(substeps, "substeps")
+    dt = se3.real_number(dt, "dt")
     if not q.any():
         raise InputError("q_I_B_xyzw is a quaternion of zeros: no attitude")
 

@@ -36,17 +36,9 @@ def next_timestamp(timestamp: float, last: float) -> float:
         Not a number, not finite, or before ``last``.
     """
     # Text and yes/no are no times: float() reads "2.0" and True (as track_sequence does not).
-    text = isinstance(timestamp, str | bytes | bool | np.bool_)
-    try:
-        t = float("nan" if text else timestamp)
-    except (TypeError, ValueError):
-        text = True
-    if text:
-        raise InputError(f"frame timestamp must be a number of seconds, got {timestamp!r}")
-    if not np.isfinite(t) or t < last:
-        raise InputError(
-            f"frame timestamps must be finite and non-decreasing, got {t} after {last}"
-        )
+    t = se3.real_number(timestamp, "frame timestamp (s)")
+    if t < last:
+        raise InputError(f"frame timestamps must be non-decreasing, got {t} after {last}")
     return t
 
 

@@ -131,7 +131,8 @@ def batch_ratios(
         finite rows than ``min_batches`` batches.
     """
     w = _error_rows(whitened)
-    batch, min_batches = _count("batch", batch), _count("min_batches", min_batches)
+    batch = se3.whole_number(batch, "batch")
+    min_batches = se3.whole_number(min_batches, "min_batches")
     w = w[np.isfinite(w).all(axis=1)]
     count = len(w) // batch
     if count < min_batches:
@@ -185,9 +186,3 @@ def _error_rows(whitened: ArrayLike) -> NDArray[np.float64]:
     if w.ndim != 2 or w.shape[1] != 6:
         raise InputError(f"whitened errors must be (N, 6), got {w.shape}")
     return w
-
-
-def _count(name: str, value: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-        raise InputError(f"{name} must be a whole number >= 1, got {value!r}")
-    return int(value)

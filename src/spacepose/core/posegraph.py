@@ -124,19 +124,16 @@ def optimize_pose_graph(
             f"pose graph tolerance must be a positive number or a (rotation, translation) pair, "
             f"got {tolerance!r}"
         )
-    if not _whole(max_iterations) or max_iterations < 1:
-        raise InputError(
-            f"pose graph max_iterations must be a whole number >= 1, got {max_iterations!r}"
-        )
+    max_iterations = se3.whole_number(max_iterations, "pose graph max_iterations")
     X = se3.real_array(poses, "pose graph poses").copy()
     if X.ndim != 3 or X.shape[1:] != (4, 4) or len(X) == 0:
         raise InputError(f"pose graph poses must be a (W, 4, 4) stack, got shape {X.shape}")
     for n, pose in enumerate(X):
         se3.as_transform(pose, f"pose graph node {n}")
     W = len(X)
-    if isinstance(fixed, str | bytes) or not all(_whole(f) for f in np.atleast_1d(fixed)):
+    if fixed is None or isinstance(fixed, str | bytes):
         raise InputError(f"pose graph fixed nodes must be whole numbers, got {fixed!r}")
-    fixed_set = {int(f) for f in np.atleast_1d(fixed)}
+    fixed_set = {se3.whole_number(f, "pose graph fixed node", 0) for f in np.atleast_1d(fixed)}
     if not fixed_set or not fixed_set <= set(range(W)):
         raise InputError(f"pose graph needs at least one fixed node among 0..{W - 1}, got {fixed}")
     if isinstance(edges, PoseGraphEdge) or not isinstance(edges, Sequence):
@@ -146,8 +143,8 @@ def optimize_pose_graph(
     for e in edges:
         if not isinstance(e, PoseGraphEdge):
             raise InputError(f"pose graph edges must be PoseGraphEdge, got {type(e).__name__}")
-        if not (_whole(e.i) and _whole(e.j)):
-            raise InputError(f"pose graph edge nodes must be whole numbers, got {e.i!r}, {e.j!r}")
+        se3.whole_number(e.i, "pose graph edge node i", 0)
+        se3.whole_number(e.j, "pose graph edge node j", 0)
         if not (0 <= e.i < W and 0 <= e.j < W) or e.i == e.j:
             raise InputError(f"pose graph edge ({e.i}, {e.j}) must join two distinct nodes < {W}")
         se3.as_transform(e.T_j_i, f"pose graph edge ({e.i}, {e.j}) measurement")
@@ -326,8 +323,3 @@ def _near_pi_rotvec(R):
     if s == 0.0:
         return np.zeros(3)
     return xyz * (2.0 * math.atan2(s, q[3]) / s)
-
-
-def _whole(value: object) -> bool:
-    """A whole number (int or numpy integer), not a yes/no."""
-    return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)

@@ -55,6 +55,29 @@ _NOT_REAL = {
 _NOT_NUMBERS = (str, bytes, bool, np.bool_)
 
 
+def whole_number(value: object, name: str, minimum: int = 1) -> int:
+    """``value`` as an int: a whole number (Python or numpy integer, not a yes/no) of at least
+    ``minimum``, or the package's error naming it."""
+    whole = isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+    if not whole or value < minimum:
+        raise InputError(f"{name} must be a whole number >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def real_number(value: object, name: str) -> float:
+    """``value`` as a finite float (not text, not a yes/no), or the package's error naming it
+    (``float`` reads "2.0" and True as numbers)."""
+    if isinstance(value, str | bytes | bool | np.bool_):
+        raise InputError(f"{name} must be a number, got {value!r}")
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r:.60}") from None
+    if not math.isfinite(number):
+        raise InputError(f"{name} must be finite, got {number}")
+    return number
+
+
 def real_array(values: ArrayLike, name: str) -> NDArray[np.float64]:
     """``values`` as a float64 array; text, complex numbers or booleans are an InputError
     (numpy's ValueError named neither, and :func:`check_real`)."""
@@ -137,17 +160,24 @@ def make_transform(R: ArrayLike | Rotation, t: ArrayLike) -> NDArray[np.float64]
 
 
 def _check_rotation(R: NDArray[np.float64], name: str) -> None:
-    """Refuse a finite 3×3 ``R`` that is not a proper rotation (a scale, a shear, a reflection),
-    to :func:`as_transform`'s tolerance, in plain floats (~1 µs; :func:`log` runs for every
-    edge of every pose-graph iteration). A matrix of determinant 1 has ``‖R‖²_F ≥ 3``, with
-    equality for rotations alone (its singular values' product is 1)."""
+    """Refuse a finite 3×3 ``R`` that is not a proper rotation (a scale, a shear, a reflection)
+    to :func:`as_transform`'s tolerances (RᵀR off the identity by at most 1e-6, det > 0), in
+    plain floats: :func:`log` runs for every edge of every pose-graph iteration."""
     a, b, c, d, e, f, g, h, i = R.ravel().tolist()
+    # The entries of RᵀR: the columns' dot products.
+    off = max(
+        abs(a * a + d * d + g * g - 1.0),
+        abs(b * b + e * e + h * h - 1.0),
+        abs(c * c + f * f + i * i - 1.0),
+        abs(a * b + d * e + g * h),
+        abs(a * c + d * f + g * i),
+        abs(b * c + e * f + h * i),
+    )
     det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-    frobenius = a * a + b * b + c * c + d * d + e * e + f * f + g * g + h * h + i * i
-    if abs(det - 1.0) > 3e-6 or abs(frobenius - 3.0) > 3e-6:
+    if off > 1e-6 or det < 0.0:
         raise InputError(
-            f"{name} is not a proper rotation (determinant {det:.4g}, squared norm "
-            f"{frobenius:.4g}; a rotation has 1 and 3): a scale, a shear or a reflection"
+            f"{name} is not a proper rotation (RᵀR off the identity by {off:.2g}, det "
+            f"{det:.4g}; a rotation has 0 and 1): a scale, a shear or a reflection"
         )
 
 
@@ -355,15 +385,10 @@ def geodesic_mean(
     if len(bad):
         # A scale or shear was averaged as if it were a turn: a non-rigid "mean" came back.
         raise InputError(f"geodesic_mean: transform {bad[0]} is not rigid (see as_transform)")
-    count = not isinstance(max_iterations, bool) and isinstance(max_iterations, int | np.integer)
-    if not count or max_iterations < 1:
-        raise InputError(
-            f"geodesic_mean: max_iterations must be a count >= 1, got {max_iterations!r}"
-        )
-    real = isinstance(tolerance, int | float | np.floating) and not isinstance(tolerance, bool)
-    if not (real and tolerance > 0):
-        # NaN never stops the iteration and a negative one never either: 50 steps for nothing.
-        raise InputError(f"geodesic_mean: tolerance must be a positive number, got {tolerance!r}")
+    max_iterations = whole_number(max_iterations, "geodesic_mean: max_iterations")
+    # NaN never stops the iteration and a negative one never either: 50 steps for nothing.
+    if real_number(tolerance, "geodesic_mean: tolerance") <= 0:
+        raise InputError(f"geodesic_mean: tolerance must be positive, got {tolerance!r}")
     w = np.ones(len(Ts)) if weights is None else real_array(weights, "geodesic_mean weights")
     # A sum that overflows to inf made every normalised weight 0: the first transform came back.
     with np.errstate(over="ignore"):
