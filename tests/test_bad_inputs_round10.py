@@ -217,6 +217,21 @@ def test_a_registration_of_one_repeated_point_is_degenerate_at_once(register):
     assert str(exc.value) == ("all 2000000 points of the source cloud at one place: no rigid fit")
 
 
+def test_a_cloud_whose_first_rows_repeat_is_still_registered():
+    """The one-place test reads the first rows first: twenty copies of one point ahead of a
+    surface must not be taken for a cloud at one place."""
+    from spacepose.core import se3
+    from spacepose.core.icp import ICPConfig, icp
+
+    surface = _box_surface(500)
+    T_target_source = se3.exp(np.array([0.0, 0.0, 0.02, 0.003, -0.002, 0.001]))
+    source = se3.transform_points(se3.invert(T_target_source), surface)
+    source = np.vstack([np.repeat(source[:1], 20, axis=0), source])
+    config = ICPConfig(max_correspondence_distance=0.05, max_iterations=60)
+    result = icp(source, surface, config=config, workers=1)
+    assert np.abs(result.T_target_source - T_target_source).max() < 1e-4
+
+
 @pytest.mark.parametrize(
     ("T", "problem"),
     [

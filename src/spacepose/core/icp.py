@@ -20,7 +20,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
 from scipy.spatial import cKDTree
 
@@ -74,7 +74,7 @@ def as_registration_cloud(cloud: PointCloud | ArrayLike, name: str) -> PointClou
     pc = cloud if isinstance(cloud, PointCloud) else PointCloud(cloud, source=name)
     if len(pc) < 3:
         raise InputError(f"{name} cloud needs at least 3 points for a rigid fit, got {len(pc)}")
-    if np.ptp(pc.points, axis=0).max() == 0.0:
+    if _at_one_place(pc.points):
         # No rotation to fit; and every search would scan all the points in one grid cell
         # (40,000 copies of one point took 2.2 s, two million did not finish).
         where = None if pc.source == name else pc.source
@@ -82,6 +82,16 @@ def as_registration_cloud(cloud: PointCloud | ArrayLike, name: str) -> PointClou
             f"all {len(pc)} points of the {name} cloud at one place: no rigid fit", where
         )
     return pc
+
+
+def _at_one_place(points: NDArray[np.float64]) -> bool:
+    """Whether every row of ``points`` (N, 3) equals the first. The first rows decide almost
+    every cloud, so a registration's inputs are not scanned whole (``np.ptp`` over axis 0 took
+    0.5 ms an 18,000-point cloud, 4 ms of a tracking step)."""
+    head = points[:8]
+    if (head != head[0]).any():
+        return False
+    return not (points != points[0]).any()
 
 
 def target_index(target: PointCloud, target_tree: SearchIndex | None) -> SearchIndex:
