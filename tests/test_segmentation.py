@@ -222,3 +222,44 @@ def test_reach_is_numpys_on_any_thread_count():
     near = pts[expected]
     assert within_reach(near, 2).all()
     assert not within_reach(np.zeros((5, 3)), 2).any()
+
+
+def _view_grid(depth, width, height, pitch):
+    """Points of a ``width`` × ``height`` pixel camera of angular ``pitch`` (rad) whose rays meet
+    ``depth(x, y)`` (z, m, on each ray's direction (x, y, 1))."""
+    u = (np.arange(width) - width / 2) * pitch
+    v = (np.arange(height) - height / 2) * pitch
+    X, Y = np.meshgrid(u, v)
+    Z = depth(X, Y)
+    return np.column_stack([X.ravel() * Z.ravel(), Y.ravel() * Z.ravel(), Z.ravel()])
+
+
+@pytest.mark.parametrize("box_m", [2.0, 1.0])
+def test_a_small_target_far_before_a_wall_that_fills_the_view_is_the_object(box_m):
+    """A box at 20 m before a wall at 30 m that fills a 73° view: 0.8 % of the points (box
+    2 m; 1 m: 0.2 %), below the share that makes a cluster real, and the wall was taken for
+    the target (every frame then lost: a plane is degenerate)."""
+    half = box_m / 2 / 20.0  # the box's half-width as a tangent
+
+    def depth(x, y):
+        return np.where((np.abs(x) < half) & (np.abs(y) < half), 20.0, 30.0)
+
+    pts = _view_grid(depth, 320, 240, 0.004)
+    box = pts[:, 2] < 25.0
+    assert 100 <= box.sum() < 0.01 * len(pts)
+    mask = nearest_object(pts, 0.12, min_points=100)
+    np.testing.assert_array_equal(mask, box)
+
+
+def test_a_cluster_before_a_wall_with_fewer_points_than_a_frame_needs_is_not_the_object():
+    """Debris of 49 returns before the wall: too few to track, so the wall stays the object
+    (the rule before backdrops), rather than a frame of 49 points."""
+
+    def depth(x, y):
+        return np.where((np.abs(x) < 0.016) & (np.abs(y) < 0.016), 20.0, 30.0)
+
+    pts = _view_grid(depth, 320, 240, 0.004)
+    debris = pts[:, 2] < 25.0
+    assert debris.sum() == 49
+    mask = nearest_object(pts, 0.12, min_points=100)
+    assert not mask[debris].any() and mask[~debris].all()

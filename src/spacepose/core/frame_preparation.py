@@ -364,7 +364,7 @@ class FramePreparer:
             return pc, None
         if self.region is None or T_predicted is None:
             spacing = point_spacing(pc.points)
-            mask = nearest_object(pc.points, spacing)
+            mask = nearest_object(pc.points, spacing, self.config.health.min_points)
             if mask.sum() < self.config.health.min_points:
                 return pc, None
             if self.region is None:

@@ -144,7 +144,7 @@ def _returns_kernel(pts, out, lo, hi):
                 hi[b] = max(hi[b], r2)
 
 
-def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
+def nearest_object(points: ArrayLike, spacing: float, min_points: int = 1) -> NDArray[np.bool_]:
     """(N,) mask of the points of the nearest object of a frame (see the module docstring);
     points at the sensor's origin or far beyond the frame's surfaces (:func:`within_reach`) are
     never in it.
@@ -155,13 +155,15 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
         (N, 3) points in the sensor frame (m), the sensor at the origin.
     spacing
         Median point spacing (m), :func:`spacepose.core.scale.point_spacing`.
+    min_points
+        Fewest points of an object found before a backdrop (a tracked frame's least).
     """
     pts = as_points(points)
     valid = within_reach(pts)
     if not valid.all():
         mask = np.zeros(len(pts), dtype=bool)
         if valid.any():
-            mask[valid] = nearest_object(pts[valid], spacing)
+            mask[valid] = nearest_object(pts[valid], spacing, min_points)
         return mask
     cell = _CELL_SPACINGS * spacing
     all_centroids, all_of_point = voxel_cells(pts, cell)
@@ -187,11 +189,12 @@ def nearest_object(points: ArrayLike, spacing: float) -> NDArray[np.bool_]:
     real = (counts >= _MIN_SHARE * len(cells)) | (points >= _MIN_SHARE * len(pts))
     real[np.argmax(counts)] = True
     ranges = np.linalg.norm(centroids, axis=1)
-    big = np.flatnonzero(real)
-    median_range = np.array([np.median(ranges[labels == c]) for c in big])
-    keep = labels == big[int(np.argmin(median_range))]
     # Directions in the view (horizontal and vertical angle from the optical axis +z).
     view = np.arctan2(centroids[:, :2], centroids[:, 2:3])
+    chosen = _nearest(np.flatnonzero(real), ranges, labels)
+    if (centroids[:, 2] > 0.0).all():  # a camera's view, with borders
+        chosen = _before_backdrop(chosen, view, ranges, labels, points, cell, min_points)
+    keep = labels == chosen
     nearest = np.full(n_labels, np.inf)
     np.minimum.at(nearest, labels, ranges)
     # Grow the object by the clusters close beside it (parts joined by what the sensor does
@@ -361,6 +364,56 @@ def _keys(
     (the box holds a cell's neighbours too, so neighbours' keys never collide)."""
     c = cells - low
     return (c[:, 0] * span[1] + c[:, 1]) * span[2] + c[:, 2]
+
+
+def _nearest(
+    clusters: NDArray[np.intp], ranges: NDArray[np.float64], labels: NDArray[np.intp]
+) -> int:
+    """The one of ``clusters`` whose cells have the smallest median range."""
+    median_range = [np.median(ranges[labels == c]) for c in clusters]
+    return int(clusters[int(np.argmin(median_range))])
+
+
+def _before_backdrop(
+    chosen: int,
+    view: NDArray[np.float64],
+    ranges: NDArray[np.float64],
+    labels: NDArray[np.intp],
+    points: NDArray[np.intp],
+    cell: float,
+    min_points: int,
+) -> int:
+    """``chosen``, unless it is a backdrop and a cluster lies before it: then the nearest such.
+
+    A backdrop reaches the border of the view on all four sides (within two cells at its
+    nearest range), as a wall behind the target does. The shares that make a cluster real are
+    then of what is not backdrop: a 2 m box at 20 m before a wall at 30 m fills 0.3 % of a
+    640×480 view and 0.3 % of its cells, and the wall was tracked (the surface degenerate on
+    every frame). A cluster before it needs ``min_points`` points, as a tracked frame does,
+    and must lie wholly before the backdrop.
+    """
+    n_labels = len(points)
+    lo = np.full((n_labels, 2), np.inf)
+    hi = np.full((n_labels, 2), -np.inf)
+    np.minimum.at(lo, labels, view)
+    np.maximum.at(hi, labels, view)
+    tol = 2.0 * cell / ranges[labels == chosen].min()
+    edge_lo, edge_hi = view.min(axis=0) + tol, view.max(axis=0) - tol
+    backdrop = np.all((lo <= edge_lo) & (hi >= edge_hi), axis=1)
+    if not backdrop[chosen] or backdrop.all():
+        return chosen
+    counts = np.bincount(labels, minlength=n_labels)
+    rest_cells, rest_points = counts[~backdrop].sum(), points[~backdrop].sum()
+    share = (counts >= _MIN_SHARE * rest_cells) | (points >= _MIN_SHARE * rest_points)
+    before = np.flatnonzero(~backdrop & share & (points >= min_points))
+    if not len(before):
+        return chosen
+    nearest = _nearest(before, ranges, labels)
+    # Seen against the backdrop: wholly before it (beyond its far side less the flying pixels
+    # dense enough to fill a cell, as a background is in the growth below). A room's shell,
+    # whose floor runs under the furniture to the camera, is no backdrop to a chair.
+    far_side = np.quantile(ranges[labels == nearest], 1.0 - _MIN_SHARE)
+    return nearest if ranges[labels == chosen].min() > far_side else chosen
 
 
 def _surrounds(
