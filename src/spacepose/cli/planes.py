@@ -40,7 +40,7 @@ def planes(
     from spacepose.core.rectangle_search import find_rectangles
     from spacepose.core.rectangles import RectangleConfig, candidates
     from spacepose.tools.catalogue import load_catalogue
-    from spacepose.tools.cloud_io import read_cloud
+    from spacepose.tools.cloud_io import read_sensor_cloud
 
     plane_config = validate_config(
         PlaneConfig,
@@ -57,7 +57,7 @@ def planes(
         RectangleConfig, {"sigma": sigma, "focal_px": focal_px}, "command line"
     )
     entries = [] if catalogue is None else load_catalogue(catalogue, rect_config)
-    found = find_rectangles(read_cloud(file), entries, plane_config, rect_config)
+    found = find_rectangles(read_sensor_cloud(file), entries, plane_config, rect_config)
     rows = [
         {
             "centroid": f.measurement.centroid.tolist(),

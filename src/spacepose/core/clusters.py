@@ -34,12 +34,43 @@ def cluster_labels(points: NDArray[np.float64], distance: float) -> NDArray[np.i
         raise InputError(f"cluster_labels: points must have shape (N, 3), got {points.shape}")
     if not np.isfinite(points).all():
         raise InputError("cluster_labels: points have non-finite entries (NaN or inf)")
+    distinct = _distinct_rows(points)
+    if distinct is None:
+        return _linked(points, distance)
+    # Rows repeated exactly (a driver's (0, 0, 0) for every pixel without a return) are one
+    # point: every pair of copies is a link, and 20,000 copies took 9.7 GB to list them.
+    first, inverse = distinct
+    labels = _linked(points[first], distance)[inverse]
+    # Numbered again by each group's lowest point index, as without copies.
+    lowest = np.full(labels.max() + 1, len(points))
+    np.minimum.at(lowest, labels, np.arange(len(points)))
+    rank = np.empty_like(lowest)
+    rank[np.argsort(lowest)] = np.arange(len(lowest))
+    return rank[labels]
+
+
+def _linked(points: NDArray[np.float64], distance: float) -> NDArray[np.intp]:
+    """Connected components (N,) of the links shorter than ``distance``."""
     n = len(points)
     pairs = cKDTree(points).query_pairs(distance, output_type="ndarray")
     graph = coo_matrix(
         (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(n, n)
     )
     return connected_components(graph, directed=False)[1]
+
+
+def _distinct_rows(
+    points: NDArray[np.float64],
+) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
+    """(index of each distinct row, (N,) distinct row of each point) when some rows repeat
+    exactly, else None. A hash of the rows' bits rules out repeats in one sort (about 25 ms for
+    300,000 points, where ``np.unique`` over rows takes 450 ms)."""
+    bits = np.ascontiguousarray(points, dtype=np.float64).view(np.int64)
+    key = np.sort(bits[:, 0] ^ (bits[:, 1] * 1_000_003) ^ (bits[:, 2] * 998_244_353))
+    if not (key[1:] == key[:-1]).any():
+        return None
+    _, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    return first, inverse.ravel()
 
 
 def main_cluster_group(

@@ -19,12 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud, as_points
+from spacepose.core.clusters import cluster_labels
 from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane, on_a_line
 from spacepose.core.ransac import sample_triples
@@ -141,12 +140,7 @@ def largest_component(points: ArrayLike, radius: float) -> NDArray[np.intp]:
 
     Ties go to the group holding the lowest index, so the result is deterministic.
     """
-    pts = np.asarray(points, dtype=np.float64)
-    pairs = cKDTree(pts).query_pairs(radius, output_type="ndarray")
-    graph = coo_matrix(
-        (np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(len(pts),) * 2
-    )
-    _, labels = connected_components(graph, directed=False)
+    labels = cluster_labels(np.asarray(points, dtype=np.float64), radius)
     return np.flatnonzero(labels == np.argmax(np.bincount(labels)))
 
 

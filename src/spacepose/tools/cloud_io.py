@@ -26,7 +26,14 @@ from spacepose.core.se3 import check_real
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.npy_io import read_npy, read_npz, write_npy, write_npz
 from spacepose.tools.outputs import check_writable
-from spacepose.tools.ply_pcd_io import DIGITS, read_pcd_cloud, read_ply, write_pcd_cloud, write_ply
+from spacepose.tools.ply_pcd_io import (
+    DIGITS,
+    ply_has_faces,
+    read_pcd_cloud,
+    read_ply,
+    write_pcd_cloud,
+    write_ply,
+)
 from spacepose.tools.text_cloud_io import read_text_cloud, write_text_cloud
 from spacepose.tools.text_io import as_path, not_a_file
 
@@ -227,6 +234,53 @@ def warn_if_not_metres(cloud: PointCloud, source: str | Path, remedy: str = _RES
     warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
 
 
+# Surface samples of a mesh given as a model (as many as a simulated run's model.ply holds).
+MODEL_SAMPLES = 20_000
+
+
+def read_model(path: str | Path) -> PointCloud:
+    """A reference model for ``track``/``navigate --model``: a point cloud file
+    (:func:`read_cloud`), or a mesh (OBJ, STL, GLB, glTF, OFF, or a PLY with faces) sampled on
+    its surface with outward normals (:data:`MODEL_SAMPLES` points, seed 0), in the file's own
+    frame. A mesh PLY used to be read as its vertices alone, without a word: a box is eight
+    corners, and every frame was lost ("the model has 21 points at the frame's voxel")."""
+    from spacepose.core.sim.mesh_files import MESH_SUFFIXES, load_mesh
+    from spacepose.core.sim.targets import sample_surface
+
+    path = as_path(path)
+    suffix = path.suffix.lower()
+    mesh = suffix in MESH_SUFFIXES and (suffix != ".ply" or ply_has_faces(path))
+    if not mesh:
+        return read_cloud(path)
+    model = sample_surface(load_mesh(path, center=False), MODEL_SAMPLES, seed=0)
+    warn_if_not_metres(model, path)
+    return model
+
+
+def read_sensor_cloud(path: str | Path) -> PointCloud:
+    """:func:`read_cloud` of a cloud in a sensor's frame, without the rows a driver writes at
+    the sensor's origin for a pixel or beam with no return (an organised ToF frame holds one
+    for every dark pixel): taken as points, 300,000 of them at one place took ``planes`` 161 s
+    and gave every length a zero point spacing. A single row at the origin stays (a model's
+    vertex may lie there); two or more go, with one warning saying how many."""
+    cloud = read_cloud(path)
+    at_origin = ~cloud.points.any(axis=1)
+    count = int(at_origin.sum())
+    if count < 2:
+        return cloud
+    if count == len(cloud):
+        raise InputError(f"all {count} points lie at the sensor's origin: no return", path)
+    warnings.warn(
+        SpaceposeWarning(
+            f"{count} of {len(cloud)} points lie at the sensor's origin (0, 0, 0), a driver's "
+            "mark of no return: left out",
+            path,
+        ),
+        stacklevel=2,
+    )
+    return cloud.select(np.flatnonzero(~at_origin))
+
+
 def warn_if_too_near(cloud: PointCloud, source: str | Path, problem: str) -> None:
     """Warn (:class:`SpaceposeWarning`, naming ``source``) when a sensor-frame cloud's returns
     lie nearer the sensor than any sensor ranges (:data:`NEAREST_RANGE_M`, median): a scene
@@ -237,7 +291,12 @@ def warn_if_too_near(cloud: PointCloud, source: str | Path, problem: str) -> Non
     32 ms, of this sample 0.1 ms.
     """
     sample = cloud.points[:: max(1, len(cloud) // _RANGE_SAMPLE)]
-    nearest = float(np.median(np.linalg.norm(sample, axis=1)))
+    ranges = np.linalg.norm(sample, axis=1)
+    # Rows at the sensor's origin are no returns (dropped before tracking), not near ones.
+    ranges = ranges[ranges > 0.0]
+    if not len(ranges):
+        return
+    nearest = float(np.median(ranges))
     if nearest < NEAREST_RANGE_M:
         where = f"the returns lie {1e3 * nearest:.3g} mm from the sensor (median), nearer than"
         warnings.warn(SpaceposeWarning(f"{where} any {problem}", source), stacklevel=3)

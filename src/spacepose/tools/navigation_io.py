@@ -32,7 +32,7 @@ from spacepose.core.navigation import NavigationConfig, navigate
 from spacepose.core.pose_noise import POSE_NOISE_AXES, PoseNoiseScale
 from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
-from spacepose.tools.cloud_io import read_cloud
+from spacepose.tools.cloud_io import read_model
 from spacepose.tools.frames import Frames, input_files, open_frames
 from spacepose.tools.navigation_config_io import read_scenario, scenario_model, with_run_settings
 from spacepose.tools.outputs import check_spares_inputs, check_writable
@@ -163,7 +163,7 @@ def navigate_run(
     # The run's own model and scenario: its mesh then is the model's (a bootstrap may render it).
     own_model = model is None and scenario is None
     if model is not None:
-        model = read_cloud(model)
+        model = read_model(model)
     else:
         model = scenario_model(input_dir, scenario, description)
     cfg = with_run_settings(cfg, description, source, prior_q_I_B, debug_prior_from_truth)

@@ -83,6 +83,17 @@ def read_ply(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | Non
     return _columns(data, names, XYZ, PLY_NORMALS, path, "PLY vertex")
 
 
+def ply_has_faces(path: Path) -> bool:
+    """Whether a PLY file's header declares a non-empty ``face`` element (a mesh, not a
+    cloud); False for a file whose header does not parse (:func:`read_ply` says why)."""
+    try:
+        with path.open("rb") as fh:
+            header = plyfile.PlyData._parse_header(fh)
+    except (plyfile.PlyParseError, UnicodeDecodeError, OSError, ValueError):
+        return False
+    return any(e.name == "face" and e.count > 0 for e in header.elements)
+
+
 def _check_ply_counts(header: plyfile.PlyData, body_bytes: int) -> None:
     """Refuse a header whose element counts the body cannot hold, before anything is
     allocated: a corrupt count of 10¹² vertices would otherwise ask for terabytes.

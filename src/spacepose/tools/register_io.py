@@ -19,7 +19,7 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import holds_boolean, load_structured, parse_problem
 from spacepose.errors import FileFormatError, InputError, RegistrationError, SpaceposeWarning
-from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_cloud
+from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_sensor_cloud
 from spacepose.tools.depth_folder import folder_camera
 from spacepose.tools.depth_io import read_depth_cloud
 from spacepose.tools.intrinsics_io import read_intrinsics
@@ -141,7 +141,7 @@ def _read_input(path: str | Path, intrinsics: str | Path | None) -> PointCloud:
     """
     path = Path(path)
     if path.suffix.lower() not in DEPTH_SUFFIXES:
-        return read_cloud(path)
+        return read_sensor_cloud(path)
     given = None if intrinsics is None else read_intrinsics(intrinsics)
     # As for a depth folder: intrinsics given beside the image's own file that differ are
     # refused (the given file won without a word, the image's own calibration ignored).
