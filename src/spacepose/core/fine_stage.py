@@ -122,6 +122,9 @@ class FineStage:
             tracking_model = self.model is not None and prediction is not None
             if tracking_model:
                 ref = self.frames.visible_model(self.sensor_model, T_init)
+            elif not self.model_based:
+                self.window.confirm(lambda kf: self._fitness_onto(prepared, kf, T_init, wide_gate))
+                ref = self.reference()
             T_init = self.registrar.approach(prepared, ref, T_init, wide_gate)
             estimate = self._fine(prepared, ref, T_init, tracking_model)
             if self._probed(prediction):
@@ -136,6 +139,16 @@ class FineStage:
         except SpaceposeError as exc:
             return None, "lost", (f"fine registration failed: {exc}",)
         return (estimate, *self.check(estimate, prepared, prediction))
+
+    def _fitness_onto(
+        self, prepared: PreparedCloud, kf: Keyframe, T_init: NDArray[np.float64], wide_gate: float
+    ) -> float:
+        """The frame's fitness registered onto ``kf`` from ``T_init`` (0 when it fails)."""
+        try:
+            T = self.registrar.approach(prepared, kf, T_init, wide_gate)
+            return self.registrar.register(prepared, kf, T, measure=False).result.fitness
+        except SpaceposeError:
+            return 0.0
 
     def _fine(
         self,

@@ -33,6 +33,10 @@ class KeyframeWindow:
         # unobserved: its pose, carried by the motion model, may have slid, and so may every
         # pose predicted from it.
         self._slid = False
+        # The latest frame fitted its keyframe below the stale fitness.
+        self._stale = False
+        # The window before a provisional keyframe, until the next frame confirms it.
+        self._provisional: tuple[list[Keyframe], bool] | None = None
 
     def __bool__(self) -> bool:
         return bool(self.keyframes)
@@ -56,7 +60,20 @@ class KeyframeWindow:
     def restart(self, first: Keyframe) -> None:
         """Only ``first`` is kept (a new start, or the first keyframe cut to the target)."""
         self.keyframes = [first]
-        self._slid = False
+        self._slid = self._stale = False
+        self._provisional = None
+
+    def confirm(self, fitness_onto: Callable[[Keyframe], float]) -> None:
+        """Settle a provisional keyframe on the frame after it: kept when that frame fits it
+        at least as well (``fitness_onto``, a keyframe -> the frame's fitness registered onto
+        it) as the keyframe before it, else dropped with the window as it was before. A view
+        turning away fits its newest keyframe best; after a glitch the scene is back in the
+        older one's view."""
+        if self._provisional is None:
+            return
+        before, self._provisional = self._provisional, None
+        if fitness_onto(self.latest) < fitness_onto(before[0][-1]):
+            self.restore(before)
 
     def snapshot(self) -> tuple[list[Keyframe], bool]:
         """The window's state, for :meth:`restore` after a trial restart."""
@@ -112,10 +129,18 @@ class KeyframeWindow:
         self._slid = status != "ok" and (
             self._slid or any(r.startswith(CONDITION) for r in reasons)
         )
+        stale = estimate.result.fitness < self.config.keyframe.stale_fitness
+        sudden, self._stale = stale and not self._stale, stale
         if not self.li and not needs_keyframe(
             estimate, prepared, self.config.keyframe, radius, not trusted
         ):
             return False
+        # A degraded frame that fits the window poorly right after one that fitted it may be a
+        # view turning away, or a glitch: a torn readout (the image shifted 40 px), a flipped
+        # or phase-wrapped frame. Its keyframe is provisional until the next frame says which
+        # (:meth:`confirm`): promoted for good, a torn lab frame held the 12 frames after it
+        # 40 mm off, `ok` at 7-13σ, and a wrapped one left every later frame lost.
+        self._provisional = self.snapshot() if sudden and not trusted and not self.li else None
         # The keyframe keeps the noise covariance; its drift is carried apart.
         kf = Keyframe(
             index,
