@@ -180,3 +180,19 @@ def test_a_cloud_ply_given_as_the_model_is_read_as_a_cloud(tmp_path):
     points = np.random.default_rng(2).normal(size=(500, 3))
     path = write_cloud(tmp_path / "cloud.ply", points)
     np.testing.assert_allclose(read_model(path).points, points, atol=1e-6)
+
+
+def test_frames_in_opengls_convention_are_warned_about(tmp_path, capsys):
+    """Rendered frames looking along -z tracked without a word in that frame, 84° off the
+    camera's; frames as a camera gives them say nothing."""
+    from spacepose.tools.cloud_io import write_cloud
+
+    sim = simulate(scenario_config("lab", frames=3))
+    for name, flip in (("opencv", 1.0), ("opengl", -1.0)):
+        folder = tmp_path / name
+        for k in range(3):
+            points = sim.frame(k).cloud.points * np.array([1.0, flip, flip])
+            write_cloud(folder / f"{k:06d}.ply", points)
+        assert main(["track", str(folder), "--out", str(tmp_path / f"{name}.tum")]) == 0
+        err = capsys.readouterr().err
+        assert ("nearly all returns lie behind the sensor (z <= 0)" in err) == (flip < 0)

@@ -97,8 +97,26 @@ _RECORDINGS = {
 def warn_if_kilometres(cloud: PointCloud, source: str | Path) -> None:
     """Warn (naming ``source``) when a sensor-frame cloud's points lie nearer the sensor than
     any sensor ranges (:func:`~spacepose.tools.cloud_io.warn_if_too_near`): coordinates in
-    kilometres, read as metres."""
+    kilometres, read as metres; or when nearly all of them lie behind its image plane
+    (:func:`warn_if_behind`)."""
     warn_if_too_near(cloud, source, "sensor ranges: coordinates in kilometres? they are metres")
+    warn_if_behind(cloud, source)
+
+
+def warn_if_behind(cloud: PointCloud, source: str | Path) -> None:
+    """Warn (naming ``source``) when 90 % or more of a sensor-frame cloud's returns lie at
+    z <= 0: spacepose's sensor looks along +z (x right, y down, as OpenCV). Frames rendered in
+    OpenGL's convention (looking along -z) tracked without a word, in that frame: 84° off
+    the camera's. A strided sample, as for the ranges."""
+    sample = cloud.points[:: max(1, len(cloud) // 4096)]
+    sample = sample[sample.any(axis=1)]  # rows at the origin are no returns
+    if len(sample) and np.mean(sample[:, 2] <= 0.0) >= 0.9:
+        problem = (
+            "nearly all returns lie behind the sensor (z <= 0); its frame looks along +z (x "
+            "right, y down, as OpenCV): a cloud in another convention (OpenGL looks along -z) "
+            "is tracked in that frame"
+        )
+        warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
 
 
 class Frames(Protocol):
