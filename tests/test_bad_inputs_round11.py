@@ -196,3 +196,46 @@ def test_frames_in_opengls_convention_are_warned_about(tmp_path, capsys):
         assert main(["track", str(folder), "--out", str(tmp_path / f"{name}.tum")]) == 0
         err = capsys.readouterr().err
         assert ("nearly all returns lie behind the sensor (z <= 0)" in err) == (flip < 0)
+
+
+# -- An Earth that fills nearly the whole view ---------------------------------------------------
+
+
+def _satellite_before_earth(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A 1 m plate 8 m away (2,500 returns), an Earth 400-1,200 km away in the rest of a 60° ×
+    45° view of 400 × 300 pixels (98 % of the returns) and 200 flying pixels between the two,
+    as a renderer that mixes depths at the silhouette gives them. Returns (points, plate)."""
+    u, v = np.meshgrid(np.linspace(-0.0625, 0.0625, 50), np.linspace(-0.0625, 0.0625, 50))
+    plate = np.c_[u.ravel(), v.ravel(), np.ones(u.size)] * 8.0
+    u, v = np.meshgrid(np.linspace(-0.58, 0.58, 400), np.linspace(-0.41, 0.41, 300))
+    rays = np.c_[u.ravel(), v.ravel(), np.ones(u.size)]
+    rays = rays[(np.abs(rays[:, 0]) > 0.0625) | (np.abs(rays[:, 1]) > 0.0625)]
+    earth = rays * (4e5 + 8e5 * (rays[:, 1:2] + 0.41) / 0.82 + rng.normal(0, 0.5, (len(rays), 1)))
+    flying = plate[rng.choice(len(plate), 200)] / 8.0 * rng.uniform(8.0, 3e5, (200, 1))
+    points = np.vstack([plate, flying, earth])
+    return points, np.arange(len(points)) < len(plate)
+
+
+def test_an_earth_holding_nearly_every_return_is_out_of_reach():
+    """The median range was the Earth's, so nothing was out of reach: a satellite 8 m before an
+    Earth in 99 % of the view lost 12 of 30 frames ("cells ... too many to number")."""
+    from spacepose.core.segmentation import within_reach
+
+    points, plate = _satellite_before_earth(np.random.default_rng(4))
+    assert (np.linalg.norm(points, axis=1) > 1e5).mean() > 0.9
+    kept = within_reach(points)
+    assert kept[plate].all()
+    assert not kept[np.linalg.norm(points, axis=1) > 4e5].any()
+
+
+def test_an_earth_holding_nearly_every_return_does_not_read_as_millimetres():
+    """Its spacing was the median spacing: "coordinates look like millimetres ... check
+    depth_scale" for frames in metres."""
+    from spacepose.tools.cloud_io import warn_if_not_metres
+
+    points, _ = _satellite_before_earth(np.random.default_rng(4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        warn_if_not_metres(PointCloud(points), "earth.npy")
+    with pytest.warns(SpaceposeWarning, match="look like millimetres"):
+        warn_if_not_metres(PointCloud(points[:2500] * 1e3), "mm.npy")

@@ -221,6 +221,13 @@ def warn_if_not_metres(cloud: PointCloud, source: str | Path, remedy: str = _RES
         return
     if not check.millimetres:
         return
+    from spacepose.core.segmentation import within_reach
+
+    near = within_reach(cloud.points)
+    if not near.all() and near.sum() > 1 and not check_scale(cloud.points[near]).millimetres:
+        # A far background (a rendered Earth in 99 % of the view) set the spacing; the near
+        # surfaces are in metres.
+        return
     if check.extent * 1e-3 > _FARTHEST_M:
         problem = (
             f"coordinates span {check.extent:.3g} m, beyond any sensor's reach even read "
