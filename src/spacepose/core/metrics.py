@@ -248,8 +248,9 @@ def evaluate(
     est, gt
         Estimated and true poses of the same frames (e.g. ``T_sensor_target``).
     rebase_first
-        Express both trajectories relative to their first associated pose (methods.md §0,
-        model-free tracking), so a constant offset of the whole estimate is not counted.
+        Express both trajectories relative to their first associated pose, the earliest in
+        time (methods.md §0, model-free tracking), so a constant offset of the whole estimate
+        is not counted.
     align_by
         ``"timestamp"``: pair each estimate with the ground truth within ``tolerance`` seconds
         (ground truth may have extra frames); ``"index"``: pair pose k with pose k (the two must
@@ -278,8 +279,11 @@ def evaluate(
         raise InputError(f"align_by must be 'timestamp' or 'index', got {align_by!r}")
     T_est, T_gt = est.poses[i_est], gt.poses[i_gt]
     if rebase_first:
-        T_est = T_est @ se3.invert(T_est[0])
-        T_gt = T_gt @ se3.invert(T_gt[0])
+        # The earliest pair, not the first row: a file written in another order (rows in
+        # reverse) was rebased on its last pose without a word.
+        first = int(np.argmin(est.timestamps[i_est])) if align_by == "timestamp" else 0
+        T_est = T_est @ se3.invert(T_est[first])
+        T_gt = T_gt @ se3.invert(T_gt[first])
     return error_table(T_est, T_gt)
 
 
