@@ -259,3 +259,19 @@ def test_an_estimate_written_in_reverse_order_is_rebased_on_its_earliest_pose():
         backwards.ate_translation_rmse, in_order.ate_translation_rmse, rtol=1e-9
     )
     np.testing.assert_allclose(backwards.ate_rotation_rmse, in_order.ate_rotation_rmse, rtol=1e-9)
+
+
+def test_a_model_in_centimetres_is_warned_about(tmp_path, capsys):
+    """Every frame was lost ("RANSAC found no consensus") without a hint; a model in
+    millimetres is warned about when read, one in centimetres was not."""
+    from spacepose.tools.cloud_io import read_cloud
+
+    run = tmp_path / "lab"
+    assert main(["simulate", "lab", "--out", str(run), "--frames", "2"]) == 0
+    model = read_cloud(run / "model.ply")
+    np.save(tmp_path / "cm.npy", np.hstack([model.points * 100.0, model.normals]))
+    capsys.readouterr()
+    for name, path in (("own", run / "model.ply"), ("cm", tmp_path / "cm.npy")):
+        main(["track", str(run), "--model", str(path), "--out", str(tmp_path / f"{name}.tum")])
+        err = capsys.readouterr().err
+        assert ("times the size of the first frame" in err) == (name == "cm")

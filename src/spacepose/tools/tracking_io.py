@@ -17,7 +17,9 @@ from typing import Any, TextIO
 import numpy as np
 from numpy.typing import NDArray
 
+from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, load_config, validate_config
+from spacepose.core.scale import rms_radius
 from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
@@ -178,6 +180,25 @@ class _Row:
     tracked: bool
 
 
+def warn_if_model_in_other_unit(model: PointCloud, first: PointCloud, path: Any) -> None:
+    """Warn (naming ``path``) when the model's RMS radius is five times the first frame's or
+    more (its returns, whatever else they hold: a view sees part of a target, not a fifth of
+    it). A model in centimetres lost every frame ("RANSAC found no consensus") without a hint,
+    where one in millimetres is warned about when read."""
+    seen = first.points[first.points.any(axis=1)]  # rows at the origin are no returns
+    if len(seen) < 2:
+        return
+    model_radius, frame_radius = rms_radius(model.points), rms_radius(seen)
+    if not model_radius >= 5.0 * frame_radius:
+        return
+    problem = (
+        f"the model is {model_radius / frame_radius:.3g} times the size of the first frame "
+        f"(RMS radius {model_radius:.3g} m against {frame_radius:.3g} m): in another unit "
+        "than the frames (centimetres read as metres are 100 times)?"
+    )
+    warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
+
+
 def _write_rows(files: tuple[TextIO, TextIO, TextIO], rows: Sequence[_Row], header: bool) -> None:
     """Append ``rows`` to the trajectory, health and covariance files (the tables' headers
     first when ``header``), flushed."""
@@ -334,6 +355,8 @@ def track_folder(
                 problem = f"frame lost: {result.reasons[0]}"
                 warnings.warn(SpaceposeWarning(problem, frame.source), stacklevel=2)
             else:
+                if model_cloud is not None and frame.cloud is not None and last_time == -np.inf:
+                    warn_if_model_in_other_unit(model_cloud, frame.cloud, model)
                 result = tracker.track_frame(frame.cloud, frame.timestamp)
                 last_time = frame.timestamp
             if frame.error is not None:  # the read error says more than the tracker's "no points"
