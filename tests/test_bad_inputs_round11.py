@@ -219,7 +219,7 @@ def _satellite_before_earth(rng: np.random.Generator) -> tuple[np.ndarray, np.nd
 def test_an_earth_holding_nearly_every_return_is_out_of_reach():
     """The median range was the Earth's, so nothing was out of reach: a satellite 8 m before an
     Earth in 99 % of the view lost 12 of 30 frames ("cells ... too many to number")."""
-    from spacepose.core.segmentation import within_reach
+    from spacepose.core.reach import within_reach
 
     points, plate = _satellite_before_earth(np.random.default_rng(4))
     assert (np.linalg.norm(points, axis=1) > 1e5).mean() > 0.9

@@ -137,8 +137,8 @@ def test_no_returns_at_the_sensor_are_never_the_object():
     "every point is at the same place")."""
     from pathlib import Path
 
+    from spacepose.core.reach import returns
     from spacepose.core.scale import point_spacing
-    from spacepose.core.segmentation import returns
     from spacepose.tools.cloud_io import read_cloud
 
     rng = np.random.default_rng(3)
@@ -159,7 +159,7 @@ def test_no_returns_at_the_sensor_are_never_the_object():
 def test_a_return_is_any_point_with_a_nonzero_coordinate():
     """Only (0, 0, 0), either sign of zero, is no return; a point on an axis is one. A
     non-finite point is an input error, not a missing return."""
-    from spacepose.core.segmentation import returns
+    from spacepose.core.reach import returns
     from spacepose.errors import InputError
 
     pts = np.array(
@@ -188,7 +188,7 @@ def test_returns_far_beyond_the_frame_are_out_of_reach_and_of_the_object():
     not number cells out to it, and the nearest object ended in "cells ... too many to number"
     (every frame lost). The far returns are out of reach and never the object; the near ones
     split as without them. A room seen from 0.3 to 6 m keeps every return."""
-    from spacepose.core.segmentation import within_reach
+    from spacepose.core.reach import within_reach
 
     rng = np.random.default_rng(5)
     target = _view(3.0, 0.3, 0.3, 0.002, rng)
@@ -207,7 +207,7 @@ def test_returns_far_beyond_the_frame_are_out_of_reach_and_of_the_object():
 def test_reach_is_numpys_on_any_thread_count():
     """The compiled pass (returns, least and largest range) against numpy: no-returns at the
     sensor mixed in, a far cluster that needs the median, and a frame without any return."""
-    from spacepose.core.segmentation import _FARTHEST_RANGES, returns, within_reach
+    from spacepose.core.reach import _FARTHEST_RANGES, returns, within_reach
 
     rng = np.random.default_rng(11)
     pts = np.r_[rng.normal([0, 0, 2.0], 0.3, (997, 3)), rng.normal([0, 0, 900.0], 5.0, (30, 3))]

@@ -26,15 +26,10 @@ from spacepose.core.moments import on_a_line
 from spacepose.core.motion import Prediction
 from spacepose.core.neighbors import knn
 from spacepose.core.normals import estimate_normals, plane_offsets
+from spacepose.core.reach import within_reach
 from spacepose.core.scale import DataScale, derive_scale, point_spacing
 from spacepose.core.scene_motion import SceneTest
-from spacepose.core.segmentation import (
-    TargetRegion,
-    crop_sphere,
-    nearest_object,
-    region_of,
-    within_reach,
-)
+from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_object, region_of
 from spacepose.core.target_cut import cut_to_target
 from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
 from spacepose.core.voxel import voxel_cells, voxel_downsample

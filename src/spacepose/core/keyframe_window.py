@@ -136,10 +136,10 @@ class KeyframeWindow:
         ):
             return False
         # A degraded frame that fits the window poorly right after one that fitted it may be a
-        # view turning away, or a glitch: a torn readout (the image shifted 40 px), a flipped
-        # or phase-wrapped frame. Its keyframe is provisional until the next frame says which
-        # (:meth:`confirm`): promoted for good, a torn lab frame held the 12 frames after it
-        # 40 mm off, `ok` at 7-13σ, and a wrapped one left every later frame lost.
+        # view turning away, or a glitch of the sensor (a torn readout: the image shifted
+        # 40 px). Its keyframe is provisional until the next frame says which (:meth:`confirm`):
+        # promoted for good, a torn lab frame held the 12 frames after it 40 mm off, `ok` at
+        # 7-13σ.
         self._provisional = self.snapshot() if sudden and not trusted and not self.li else None
         # The keyframe keeps the noise covariance; its drift is carried apart.
         kf = Keyframe(

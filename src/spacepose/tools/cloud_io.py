@@ -221,7 +221,7 @@ def warn_if_not_metres(cloud: PointCloud, source: str | Path, remedy: str = _RES
         return
     if not check.millimetres:
         return
-    from spacepose.core.segmentation import within_reach
+    from spacepose.core.reach import within_reach
 
     near = within_reach(cloud.points)
     if not near.all() and near.sum() > 1 and not check_scale(cloud.points[near]).millimetres:
