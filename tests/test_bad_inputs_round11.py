@@ -275,3 +275,33 @@ def test_a_model_in_centimetres_is_warned_about(tmp_path, capsys):
         main(["track", str(run), "--model", str(path), "--out", str(tmp_path / f"{name}.tum")])
         err = capsys.readouterr().err
         assert ("times the size of the first frame" in err) == (name == "cm")
+
+
+def test_a_grey_and_alpha_png_is_named_as_such(tmp_path):
+    """Pillow decodes a 16-bit grey + alpha PNG as 8-bit RGBA, and the error said "got Pillow
+    mode 'RGBA'" of a file that holds no colour."""
+    import zlib
+
+    from spacepose.errors import FileFormatError
+    from spacepose.tools.depth_io import read_depth_image
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        body = kind + data
+        return len(data).to_bytes(4, "big") + body + zlib.crc32(body).to_bytes(4, "big")
+
+    width, height = 4, 3
+    ihdr = width.to_bytes(4, "big") + height.to_bytes(4, "big") + bytes([16, 4, 0, 0, 0])
+    rows = b"".join(b"\x00" + bytes(4 * width) for _ in range(height))
+    path = tmp_path / "la16.png"
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", ihdr)
+        + chunk(b"IDAT", zlib.compress(rows))
+        + chunk(b"IEND", b"")
+    )
+    with pytest.raises(FileFormatError) as exc:
+        read_depth_image(path)
+    assert str(exc.value).endswith(
+        "a depth map must be one channel of 16-bit integers or 32-bit floats, got a 16-bit "
+        "grey + alpha PNG"
+    )

@@ -108,6 +108,23 @@ def decode_depth_image(data: bytes, source: str) -> NDArray:
     return _image_values(io.BytesIO(data), source)
 
 
+# PNG colour types (the IHDR chunk's byte 25) by name.
+_PNG_COLOURS = {0: "grey", 2: "RGB", 3: "palette", 4: "grey + alpha", 6: "RGBA"}
+
+
+def _png_kind(file: Path | io.BytesIO) -> str | None:
+    """ "a 16-bit grey + alpha PNG" and the like from a PNG's header; None for another file."""
+    if isinstance(file, io.BytesIO):
+        head = file.getvalue()[:26]
+    else:
+        with file.open("rb") as fh:
+            head = fh.read(26)
+    if len(head) < 26 or not head.startswith(b"\x89PNG\r\n\x1a\n") or head[12:16] != b"IHDR":
+        return None
+    article = "an" if head[24] in (8, 11, 18) else "a"
+    return f"{article} {head[24]}-bit {_PNG_COLOURS.get(head[25], 'unknown colour type')} PNG"
+
+
 def _image_values(file: Path | io.BytesIO, source: str | Path) -> NDArray:
     """One decoded depth image, refused unless one page of one 16-bit or float channel."""
     # Pillow warns of what it skips in a damaged file (a line each, naming no file): kept
@@ -120,9 +137,11 @@ def _image_values(file: Path | io.BytesIO, source: str | Path) -> NDArray:
             f"holds {pages} images; a depth map is one (one file a frame)", source
         )
     if mode not in _DEPTH_MODES or values.ndim != 2:
+        # Pillow decodes a 16-bit grey + alpha PNG as 8-bit RGBA: the file's header says what
+        # it holds.
+        got = _png_kind(file) or f"Pillow mode {mode!r}"
         raise FileFormatError(
-            f"a depth map must be one channel of 16-bit integers or 32-bit floats, "
-            f"got Pillow mode {mode!r}",
+            f"a depth map must be one channel of 16-bit integers or 32-bit floats, got {got}",
             source,
         )
     said = list(dict.fromkeys(" ".join(str(w.message).split()) for w in skipped))
