@@ -305,3 +305,13 @@ def test_a_grey_and_alpha_png_is_named_as_such(tmp_path):
         "a depth map must be one channel of 16-bit integers or 32-bit floats, got a 16-bit "
         "grey + alpha PNG"
     )
+
+
+def test_nearest_object_refuses_a_min_points_that_is_no_whole_number():
+    from spacepose.core.segmentation import nearest_object
+    from spacepose.errors import InputError
+
+    points = np.random.default_rng(0).normal(size=(50, 3)) + np.array([0.0, 0.0, 3.0])
+    for bad in ("100", 2.5, 0, True):
+        with pytest.raises(InputError, match="min_points must be a whole number >= 1"):
+            nearest_object(points, 0.1, bad)

@@ -22,6 +22,8 @@ _FARTHEST_RANGES = 100.0
 # Fewest returns of a near group that puts a far one out of reach: as many as a tracked frame
 # needs (the health check's default ``min_points``), not a few stray ones.
 _GAP_RETURNS = 100
+# Returns of the strided sample that splits a frame's ranges in two groups.
+_SPLIT_SAMPLE = 16384
 
 
 def returns(points: PointCloud | ArrayLike, workers: int = 1) -> NDArray[np.bool_]:
@@ -58,9 +60,13 @@ def _before_gap(ranges: NDArray[np.float64]) -> float:
 
     The median alone misses a far background that holds most of the returns: an Earth in 99 %
     of the view behind a satellite 8 m away was the median, and frames were lost ("cells ...
-    too many to number"). Flying pixels between the two leave no empty gap in range.
+    too many to number"). Flying pixels between the two leave no empty gap in range. A near
+    group of well under 1 % of the returns is not split off so (the split of least spread then
+    falls within the far group).
     """
-    logs = np.log10(ranges)
+    # A strided sample finds the split (36 ms on 900,000 returns whole, under 2 ms so); the
+    # near group is counted on all of them.
+    logs = np.log10(ranges[:: max(1, len(ranges) // _SPLIT_SAMPLE)])
     counts, edges = np.histogram(logs, bins=256)
     below = np.cumsum(counts)[:-1]
     above = len(logs) - below
@@ -70,7 +76,7 @@ def _before_gap(ranges: NDArray[np.float64]) -> float:
     k = int(np.argmax(below * above * (mean_above - mean_below) ** 2))
     cut = edges[k + 1]
     near, far = logs[logs <= cut], logs[logs > cut]
-    if len(near) < _GAP_RETURNS or not len(far):
+    if not len(far) or np.count_nonzero(ranges <= 10.0**cut) < _GAP_RETURNS:
         return np.inf
     apart = np.median(far) - np.median(near) > np.log10(_FARTHEST_RANGES)
     return float(10.0**cut) if apart else np.inf

@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.reach import within_reach
+from spacepose.core.se3 import whole_number
 from spacepose.core.threads import numba_threads
 from spacepose.core.voxel import voxel_cells
 from spacepose.errors import InputError
@@ -94,6 +95,7 @@ def nearest_object(points: ArrayLike, spacing: float, min_points: int = 1) -> ND
         Fewest points of an object found before a backdrop (a tracked frame's least).
     """
     pts = as_points(points)
+    min_points = whole_number(min_points, "min_points")
     valid = within_reach(pts)
     if not valid.all():
         mask = np.zeros(len(pts), dtype=bool)
