@@ -48,7 +48,11 @@ def test_a_noisy_plane_onto_itself_is_degenerate_and_says_so(method: str) -> Non
 
 def test_well_conditioned_pairs_are_not_flagged_and_keep_their_covariance() -> None:
     """The real LiDAR pair scores 8.5-8.7 and the lab target 7.1 (the tracker's ok bound is
-    1e3): not flagged, and the covariance is the registration's own, untouched."""
+    1e3): not flagged, and the covariance is the registration's own, never narrower and only
+    as much wider as its cluster-robust form asks (σ 1.8-6.3 times the information's on the
+    real pair; on the lab target the point-to-point information is the wider), not widened
+    along a free direction (a widening adds the radius squared, metres²: σ thousands of times
+    the information's)."""
     from spacepose.core.sim.targets import sample_surface
     from test_icp import asymmetric_target
 
@@ -60,9 +64,9 @@ def test_well_conditioned_pairs_are_not_flagged_and_keep_their_covariance() -> N
         assert not out.degeneracy.degenerate, (method, out.degeneracy.condition)
         assert out.degeneracy.condition < HealthConfig().ok_condition
         own = out.result.covariance(sigma=1.0 if method == "gicp" else None)
-        # Computed about the target's centre and moved back: equal to rounding, not widened
-        # (a widening adds the radius squared, metres², along a free direction).
-        np.testing.assert_allclose(out.covariance, own, rtol=1e-8, atol=1e-15)
+        assert np.linalg.eigvalsh(out.covariance - own).min() > -1e-12 * np.abs(own).max()
+        ratio = np.sqrt(np.diag(out.covariance) / np.diag(own))
+        assert np.all(ratio < 10.0), (method, ratio)
         summary = out.to_dict()
         assert summary["degenerate"] is False and summary["unconstrained"] == []
 

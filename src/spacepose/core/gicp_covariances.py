@@ -54,6 +54,16 @@ def compute_covariances(
     return np.eye(3) - (1.0 - epsilon) * normals[:, :, None] * normals[:, None, :]
 
 
+def plane_normals(C: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 3) unit normals (sign arbitrary) of plane-regularised covariances (N, 3, 3)
+    ``I − (1 − ε) n nᵀ`` with ε < 1: the neighbourhood normals they were made from, without a
+    second neighbour search."""
+    M = np.eye(3) - C  # (1 − ε) n nᵀ: each column is n times a component of n
+    diagonal = np.einsum("nii->ni", M)
+    column = np.take_along_axis(M, np.argmax(diagonal, axis=1)[:, None, None], axis=2)[..., 0]
+    return column / np.linalg.norm(column, axis=1, keepdims=True)
+
+
 def check_covariances(C: ArrayLike | None, n: int, name: str) -> NDArray[np.float64] | None:
     """``C`` as float64 (N, 3, 3) covariances, None when it is None (``name`` for the error).
 

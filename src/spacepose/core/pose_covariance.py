@@ -1,6 +1,6 @@
 """Covariances of registrations (docs/methods.md §5.3, §5.5): σ² H⁻¹ from the point-to-plane
-residuals, an isotropic floor about a point, and a keyframe chain's drift shaped like the
-registration's own uncertainty.
+residuals, its cluster-robust (sandwich) form, an isotropic floor about a point, and a keyframe
+chain's drift shaped like the registration's own uncertainty.
 
 All are (6, 6), left perturbations with the twist ordered (ω, v), about the origin of the frame
 they are expressed in.
@@ -15,7 +15,12 @@ from spacepose.core import se3
 from spacepose.core.correspondences import Correspondences, find_correspondences
 from spacepose.core.icp_systems import point_to_plane_system
 from spacepose.core.keyframes import PreparedCloud
+from spacepose.core.neighbors import SearchIndex
 from spacepose.errors import RegistrationError
+
+# Edge of the cells whose residuals are taken as one correlated group, in voxels: a voxel's
+# centroids in two samplings are biased alike over a few neighbouring cells (an edge, a bend).
+CLUSTER_VOXELS = 3.0
 
 
 def plane_covariance(
@@ -74,6 +79,67 @@ def plane_covariance(
     sigma2 = max(sigma2, min_sigma**2)
     H_inv = np.linalg.pinv(H, hermitian=True)
     return sigma2 * H_inv, -H_inv @ g
+
+
+def clustered_covariance(
+    source_points: NDArray[np.float64],
+    target_points: NDArray[np.float64],
+    target_normals: NDArray[np.float64],
+    tree: SearchIndex,
+    max_distance: float,
+    cell: float,
+    workers: int = -1,
+) -> NDArray[np.float64]:
+    """Cluster-robust covariance of a point-to-plane registration at its solution.
+
+    The information form ``σ² H⁻¹`` holds when every residual is independent with one σ. Two
+    samplings of a surface break both: residuals grow with the leverage of edges and bends,
+    and neighbouring pairs share their bias. The sandwich ``H⁻¹ (Σ_c g_c g_cᵀ) H⁻¹ · G/(G−1)``,
+    with ``g_c = Σ h r`` summed over the pairs of each cubic cell of edge ``cell`` and G the
+    cells, counts both (the cluster-robust variance of least squares; docs/methods.md §1.5).
+
+    Parameters
+    ----------
+    source_points
+        (N, 3) source points already moved into the target frame by the solution.
+    target_points, target_normals
+        (M, 3) target points and unit normals, indexed by ``tree``.
+    max_distance
+        Correspondence gate (m).
+    cell
+        Edge (m) of the residual groups.
+
+    Returns
+    -------
+    (6, 6) covariance of ``T_target_source``, left perturbation in the target frame about its
+    origin, twist (omega, v).
+
+    Raises
+    ------
+    RegistrationError
+        Fewer than 7 correspondences, or pairs in fewer than 7 cells.
+    """
+    s, t, _ = find_correspondences(tree, source_points, max_distance, workers)
+    p, n = source_points[s], target_normals[t]
+    h = np.hstack([np.cross(p, n), n])
+    r = np.einsum("ij,ij->i", p - target_points[t], n)
+    _, group = np.unique(np.floor(p / cell).astype(np.int64), axis=0, return_inverse=True)
+    groups = int(group.max()) + 1 if len(group) else 0
+    if len(s) < 7 or groups < 7:
+        raise RegistrationError(
+            f"{len(s)} correspondences in {groups} cells are too few for a covariance"
+        )
+    g = np.zeros((groups, 6))
+    np.add.at(g, group.ravel(), h * r[:, None])
+    H_inv = np.linalg.pinv(h.T @ h, hermitian=True)
+    return groups / (groups - 1) * (H_inv @ (g.T @ g) @ H_inv)
+
+
+def wider_of(first: NDArray[np.float64], second: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(6, 6) covariance as wide as ``first`` and ``second`` in every direction: ``first``
+    plus the part of ``second − first`` that is positive."""
+    ev, V = np.linalg.eigh(0.5 * ((second - first) + (second - first).T))
+    return first + (V * np.maximum(ev, 0.0)) @ V.T
 
 
 def isotropic_about(point: NDArray[np.float64], sigma: tuple[float, float]) -> NDArray[np.float64]:

@@ -17,8 +17,13 @@ The same call must work on a 1 m ToF frame (millimetre spacing) and on a 50 m ou
 - **stopping**: GICP stops below a step of ``1e-3 v``, ICP below an RMSE change of ``1e-4 v``.
 - **global** (optional): FPFH + RANSAC at the same voxel
   (:func:`~spacepose.core.ransac.global_registration`), then the fine gate alone.
+- **covariance**: the wider, in every direction, of the registration's information form and
+  the cluster-robust form of its point-to-plane residuals in cells of three voxels
+  (:func:`~spacepose.core.pose_covariance.clustered_covariance`, docs/methods.md §1.5).
 - **degeneracy**: directions the surfaces leave free (a plane's in-plane translations and
   normal rotation) are flagged and widened in the covariance (:mod:`spacepose.core.degeneracy`).
+- **frame**: the clouds are downsampled and solved about the target's centroid, so where the
+  world's origin lies changes nothing but rounding.
 """
 
 from __future__ import annotations
@@ -38,16 +43,17 @@ from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.degeneracy import Degeneracy, surface_degeneracy
 from spacepose.core.gicp import GICPConfig, gicp
-from spacepose.core.gicp_covariances import compute_covariances
+from spacepose.core.gicp_covariances import compute_covariances, plane_normals
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.normals import NormalsConfig, estimate_normals
+from spacepose.core.pose_covariance import CLUSTER_VOXELS, clustered_covariance, wider_of
 from spacepose.core.ransac import global_registration
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.robust import RobustKernelName
 from spacepose.core.scale import point_spacing
 from spacepose.core.voxel import voxel_cells
-from spacepose.errors import ConfigError, InputError, SpaceposeWarning
+from spacepose.errors import ConfigError, InputError, RegistrationError, SpaceposeWarning
 
 Method = Literal["point_to_plane", "point_to_point", "gicp"]
 # Stopping tolerances in voxels (the library defaults are metres tuned at the lab's 6 mm
@@ -291,18 +297,14 @@ def register(
                 f"voxel {voxel:.4g} m is wider than the cloud (radius {scale.radius:.4g} m)",
                 cloud.source,
             )
-    downsampled = []
-    for cloud in (source, target):
-        try:
-            downsampled.append(PointCloud(voxel_cells(cloud.points, voxel)[0], source=cloud.source))
-        except InputError as exc:  # a voxel far too fine for the cloud's extent
-            raise InputError(f"voxel {voxel:.4g} m: {exc.reason}", cloud.source) from None
     # Solved about the target's centre: about a far origin (a map in world coordinates, 1 km
     # out) each rotation is a lever arm of that distance, and the normal equations lose the
     # surfaces' information to rounding (their condition passed 10¹⁵ and ICP called them
     # degenerate). ``S`` moves the centre to the origin; every pose and covariance goes back.
+    # The voxel grid is laid there too, so that where the world's origin lies changes no
+    # sample: the same clouds 1,000 km out give the same pose and covariance.
     S = se3.make_transform(np.eye(3), -np.mean(target.points, axis=0))
-    src, tgt = (c.transformed(S) for c in downsampled)
+    src, tgt = (_downsampled(cloud.transformed(S), voxel) for cloud in (source, target))
     T = S @ T @ se3.invert(S)
     for cloud in (src, tgt):
         if len(cloud) < 3:
@@ -318,15 +320,31 @@ def register(
         coarse = global_registration(src, tgt, voxel, workers=workers)
         T, start = coarse.T_target_source, 0.0
     gates = gate_schedule(fine_gate, start)
-    fine = _fine_registration(src, tgt, config, voxel, workers)
+    tree = VoxelIndex(tgt.points)
+    fine, tgt = _fine_registration(src, tgt, tree, config, voxel, workers)
     iterations = 0
     for gate in gates:
         result = fine(T, gate, gate == gates[-1])
         T, iterations = result.T_target_source, iterations + result.iterations
     radius = max(s.radius for s in scales)
     degeneracy = surface_degeneracy(src.points, tgt.points, T, radius, workers=workers)
-    # GICP's information is noise-weighted already; ICP's scales by its residual σ.
+    # GICP's information is noise-weighted already; ICP's scales by its residual σ. Neither
+    # sees residuals correlated over the surface: the cluster-robust form does, and the wider
+    # of the two is kept.
     covariance = result.covariance(sigma=1.0 if config.method == "gicp" else None)
+    try:
+        clustered = clustered_covariance(
+            se3.transform_points(T, src.points),
+            tgt.points,
+            tgt.normals,
+            tree,
+            fine_gate,
+            CLUSTER_VOXELS * voxel,
+            workers,
+        )
+        covariance = wider_of(covariance, clustered)
+    except RegistrationError:  # too few cells to see a correlation: the information alone
+        pass
     if degeneracy.degenerate:  # the registration's own information claims too much there
         covariance = degeneracy.widen(covariance)
     # Back where the clouds were: the covariance moved, not inverted from a moved information
@@ -347,6 +365,14 @@ def register(
     )
 
 
+def _downsampled(cloud: PointCloud, voxel: float) -> PointCloud:
+    """The voxel centroids of ``cloud``, its name kept for the errors."""
+    try:
+        return PointCloud(voxel_cells(cloud.points, voxel)[0], source=cloud.source)
+    except InputError as exc:  # a voxel far too fine for the cloud's extent
+        raise InputError(f"voxel {voxel:.4g} m: {exc.reason}", cloud.source) from None
+
+
 def _moved_back(result: RegistrationResult, S: NDArray[np.float64]) -> RegistrationResult:
     """``result`` of clouds moved by ``S`` (4, 4), for the clouds where they were: the pose
     ``S⁻¹ T S`` and the information of the twist about the original origin."""
@@ -359,11 +385,16 @@ def _moved_back(result: RegistrationResult, S: NDArray[np.float64]) -> Registrat
 
 
 def _fine_registration(
-    src: PointCloud, tgt: PointCloud, config: RegisterConfig, voxel: float, workers: int
+    src: PointCloud,
+    tgt: PointCloud,
+    tree: VoxelIndex,
+    config: RegisterConfig,
+    voxel: float,
+    workers: int,
 ):
-    """A function ``(T, gate) -> RegistrationResult`` that reuses the target's index, normals
-    and both clouds' covariances across the stages."""
-    tree = VoxelIndex(tgt.points)
+    """A function ``(T, gate) -> RegistrationResult`` that reuses the target's index
+    ``tree``, its normals and both clouds' covariances across the stages, and the target with
+    its normals (every method's covariance needs them)."""
     if config.method == "gicp":
         base = GICPConfig(
             max_iterations=config.max_iterations,
@@ -377,9 +408,8 @@ def _fine_registration(
             cfg = base.model_copy(update=_stage(gate, last, config))
             return gicp(src, tgt, T, cfg, workers, Cs, Ct, tree)
 
-        return run_gicp
-    if config.method == "point_to_plane":
-        tgt = estimate_normals(tgt, NormalsConfig(k=20, radius=3.0 * voxel), workers=workers)
+        return run_gicp, tgt.with_normals(plane_normals(Ct))
+    tgt = estimate_normals(tgt, NormalsConfig(k=20, radius=3.0 * voxel), workers=workers)
     base = ICPConfig(
         method=config.method,
         max_iterations=config.max_iterations,
@@ -391,7 +421,7 @@ def _fine_registration(
         cfg = base.model_copy(update=_stage(gate, last, config))
         return icp(src, tgt, T, cfg, workers, tree)
 
-    return run_icp
+    return run_icp, tgt
 
 
 def _stage(gate: float, last: bool, config: RegisterConfig) -> dict:
