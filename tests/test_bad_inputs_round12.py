@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from spacepose.cli import main
 from spacepose.core.cloud import PointCloud
+from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.relocalise import COARSE_POINTS, coarse_features
+from spacepose.core.sim import simulate
+from spacepose.core.sim.grid import grid_scenario
+from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig, stage_lengths
 from spacepose.core.voxel import voxel_downsample
 
@@ -39,3 +44,35 @@ def test_the_coarse_stage_keeps_every_cell_of_a_surface():
     np.testing.assert_array_equal(
         sparse.points, voxel_downsample(surface, lengths.coarse_voxel).points
     )
+
+
+# -- The lab's background removal at another range -----------------------------------------------
+
+
+def test_a_lab_run_moved_behind_its_wall_is_refused_in_one_line(tmp_path, capsys):
+    """``simulate lab --range 3 --background`` kept the wall at 2 m: every frame saw the wall
+    alone, and the tracker was left to call a plane degenerate."""
+    out = tmp_path / "run"
+    args = ["simulate", "lab", "--range", "3", "--background", "--frames", "2", "--out", str(out)]
+    assert main(args) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: the wall at 2 m stands before or through the target (up to ")
+    assert "\n" not in err and not out.exists()
+    assert main([*args[:-2], "--grid", "--out", str(out)]) == 0  # the wall at 5/3 of the range
+
+
+def test_background_removal_in_the_tracker_keeps_a_target_beyond_the_lab_range():
+    """The tracker's background removal gated ranges at 1.8 m, the lab's: every frame of a
+    target at 3 m was lost ("no point within the range gate 0.0..1.8 m")."""
+    assert TrackerConfig().background.range_max is None
+    sim = simulate(grid_scenario(range_m=3.0, clutter="wall-table", frames=1))
+    frame = sim.frame(0)
+    config = TrackerConfig(use_background_removal=True)
+    result = Tracker(config, workers=2).track_frame(frame.cloud, frame.timestamp)
+    assert result.status == "ok", result.reasons
+    # What the frame kept is the target: within its reach of its centre (the wall is not).
+    kept = FramePreparer(config, None, 2).prepare(frame.cloud, None).cloud.points
+    reach = np.linalg.norm(sim.target.mesh.vertices, axis=1).max()
+    centre = sim.T_sensor_target[0][:3, 3]
+    assert len(kept) > 1000
+    assert np.all(np.linalg.norm(kept - centre, axis=1) < reach)

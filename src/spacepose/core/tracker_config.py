@@ -296,7 +296,7 @@ class TrackerConfig(StageConfig):
     floor_translation: float = Field(0.0083, ge=0)
     floor_rotation: float = Field(0.00145, ge=0)
     floor_motion: float = Field(0.01, ge=0)
-    background: BackgroundConfig = BackgroundConfig(range_max=1.8)
+    background: BackgroundConfig = BackgroundConfig()
     mls: MLSConfig = MLSConfig()
     normals: NormalsConfig = NormalsConfig(k=15)
     coarse_normals: NormalsConfig = NormalsConfig(k=30)

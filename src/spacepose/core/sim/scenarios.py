@@ -170,6 +170,7 @@ def simulate_lab(config: LabConfig | None = None) -> Simulation:
     T_sensor_table, T_sensor_target = lab_poses(config)
     background, albedo = (), (config.target_albedo,)
     if config.background:
+        _check_wall(config, target, T_sensor_target)
         background, albedo = lab_background(config, target, T_sensor_table)
     return Simulation(
         name="lab",
@@ -180,6 +181,19 @@ def simulate_lab(config: LabConfig | None = None) -> Simulation:
         background=background,
         albedo=albedo,
     )
+
+
+def _check_wall(config: LabConfig, target: Target, T_sensor_target: NDArray[np.float64]) -> None:
+    """Refuse a wall before or through the target: it would hide it from every frame (a lab
+    run moved to 3 m kept its wall at 2 m, and every frame saw the wall alone)."""
+    reach = float(np.linalg.norm(target.mesh.vertices, axis=1).max())
+    farthest = float(T_sensor_target[:, 2, 3].max()) + reach
+    if config.wall_distance_m <= farthest:
+        raise ConfigError(
+            f"the wall at {config.wall_distance_m:g} m stands before or through the target "
+            f"(up to {farthest:.3g} m from the sensor): it would hide it; place the wall beyond "
+            "it (wall_distance_m; simulate --grid puts it at 5/3 of the range)"
+        )
 
 
 def orbit_mean_motion(config: OrbitConfig) -> float:
