@@ -186,8 +186,9 @@ def simulate_lab(config: LabConfig | None = None) -> Simulation:
 def _check_wall(config: LabConfig, target: Target, T_sensor_target: NDArray[np.float64]) -> None:
     """Refuse a wall before or through the target: it would hide it from every frame (a lab
     run moved to 3 m kept its wall at 2 m, and every frame saw the wall alone)."""
-    reach = float(np.linalg.norm(target.mesh.vertices, axis=1).max())
-    farthest = float(T_sensor_target[:, 2, 3].max()) + reach
+    hull = target.mesh.convex_hull.vertices
+    depths = T_sensor_target[:, 2, :3] @ hull.T + T_sensor_target[:, 2, 3:]
+    farthest = float(depths.max())
     if config.wall_distance_m <= farthest:
         raise ConfigError(
             f"the wall at {config.wall_distance_m:g} m stands before or through the target "
