@@ -2,18 +2,33 @@
 
 from __future__ import annotations
 
+import shutil
+import warnings
+from pathlib import Path
+
 import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
 from spacepose.core.cloud import PointCloud
 from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.keyframes import PreparedCloud
+from spacepose.core.nav_config import NavigationConfig
+from spacepose.core.nav_start import start_filter
+from spacepose.core.nav_state import k_from_params
 from spacepose.core.relocalise import COARSE_POINTS, coarse_features
 from spacepose.core.sim import simulate
 from spacepose.core.sim.grid import grid_scenario
+from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig, stage_lengths
 from spacepose.core.voxel import voxel_downsample
+from spacepose.errors import PredictionGapError, SpaceposeWarning
+from spacepose.tools.cloud_io import read_cloud, write_cloud
+from spacepose.tools.navigation_io import navigate_run
+from spacepose.tools.runs import write_run
 
 # -- A frame of depth noise: the coarse stage describes a bounded number of points ---------------
 
@@ -76,3 +91,98 @@ def test_background_removal_in_the_tracker_keeps_a_target_beyond_the_lab_range()
     centre = sim.T_sensor_target[0][:3, 3]
     assert len(kept) > 1000
     assert np.all(np.linalg.norm(kept - centre, axis=1) < reach)
+
+
+# -- navigate: one bad frame, a long gap, a glitched first frame ---------------------------------
+
+NAV_FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def orbit_run(tmp_path_factory):
+    return write_run(
+        tmp_path_factory.mktemp("orbit") / "run", simulate_orbit(OrbitConfig(frames=NAV_FRAMES))
+    )
+
+
+def _copy_with(run: Path, root: Path, frame: int, change) -> Path:
+    """A copy of ``run`` whose frame ``frame`` has its points replaced by ``change(points)``."""
+    shutil.copytree(run, root)
+    path = sorted((root / "frames").glob("*.ply"))[frame]
+    write_cloud(path, PointCloud(change(read_cloud(path).points)))
+    return root
+
+
+def test_a_frame_with_thousands_of_copies_of_one_point_is_navigated(orbit_run, tmp_path):
+    """A driver marking no return by the sensor's largest range (50 m), 2,000 times in frame 5:
+    the copies made the median spacing of a plane's points 0, and ``navigate`` ended with
+    "distance must be a positive ... got 0.0", writing nothing."""
+    marks = np.tile([0.0, 0.0, 50.0], (2000, 1))
+    run = _copy_with(orbit_run, tmp_path / "run", 5, lambda p: np.vstack([p, marks]))
+    clean = navigate_run(orbit_run, tmp_path / "clean.csv")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        got = navigate_run(run, tmp_path / "nav.csv")
+    assert got.rows[5].n_rect == clean.rows[5].n_rect > 0 and got.rows[5].problem is None
+    assert sum(r.state is not None for r in got.rows) == sum(
+        r.state is not None for r in clean.rows
+    )
+
+
+def test_a_frame_the_plane_search_refuses_is_navigated_as_empty(orbit_run, tmp_path):
+    """One return at 1e30 m in frame 5: the plane search refuses the frame (float64 cannot
+    resolve its inlier threshold there), and that ended the whole run."""
+    run = _copy_with(orbit_run, tmp_path / "run", 5, lambda p: np.vstack([p, [[0, 0, 1e30]]]))
+    with pytest.warns(SpaceposeWarning, match="frame 5: no rectangle measured, its rectangles"):
+        got = navigate_run(run, tmp_path / "nav.csv")
+    assert len(got.rows) == NAV_FRAMES and got.rows[5].n_rect == 0
+    assert got.rows[5].status in ("predict", "ambiguous") and got.rows[6].n_rect > 0
+
+
+def test_a_first_frame_written_twice_is_navigated(orbit_run, tmp_path):
+    """Every point of frame 0 twice: the cold start's spacing was 0, and ``navigate`` said
+    "invalid ICP config: max_correspondence_distance", a config the user never gave."""
+    run = _copy_with(orbit_run, tmp_path / "run", 0, lambda p: np.vstack([p, p]))
+    clean = navigate_run(orbit_run, tmp_path / "clean.csv")
+    got = navigate_run(run, tmp_path / "nav.csv")
+    navigated = [r.state is not None for r in got.rows]
+    assert navigated == [r.state is not None for r in clean.rows] and any(navigated)
+
+
+def test_candidates_started_on_a_displaced_first_frame_give_way_to_a_new_start(orbit_run, tmp_path):
+    """Frame 0 moved 5 m sideways (a glitch): both candidate starts explained nothing of the
+    frames after it, and all 60 frames of the run were ``ambiguous``. They are dropped after
+    ``decide_frames`` (5) such frames and the start is made again."""
+    run = _copy_with(orbit_run, tmp_path / "run", 0, lambda p: p + np.array([5.0, 0.0, 0.0]))
+    clean = navigate_run(orbit_run, tmp_path / "clean.csv")
+    got = navigate_run(run, tmp_path / "nav.csv")
+    # Frames 1-5 explain nothing; started again on frame 5, the new candidates are decided
+    # as on the clean run (4 frames there): frames 9-11 navigated.
+    assert [r.state is not None for r in got.rows] == [False] * 9 + [True] * 3
+    assert got.rows[5].status == "ambiguous" and got.rows[5].candidates[0].explained > 0.9
+    last, reference = got.rows[-1].state, clean.rows[-1].state
+    assert np.linalg.norm(last.rho - reference.rho) < 0.1
+    angle = Rotation.from_quat(last.q_I_B) * Rotation.from_quat(reference.q_I_B).inv()
+    assert np.degrees(angle.magnitude()) < 1.0
+
+
+def test_a_filter_predicts_across_an_eclipse_and_refuses_a_far_longer_gap():
+    """A 3,000 s gap (an eclipse without frames) was ten 300 s RK4 steps of a target turning
+    2.7°/s, and the state overflowed into a NaN traceback. The steps now follow the turn: the
+    rate after the gap is the one scipy's integrator of Euler's equations gives. A gap in which
+    the target turns more than 1,000 rad is refused with a typed error (the navigators start
+    again after it)."""
+    k = k_from_params([(1000.0 - 800.0) / 1200.0, (800.0 - 1200.0) / 1000.0])
+    config = NavigationConfig(init_rate_deg_s=(1.0, -2.0, 1.5), init_k=tuple(k))
+    ekf = start_filter(0.0, np.eye(4), 1.1e-3, np.eye(3), config)
+    w0 = np.radians([1.0, -2.0, 1.5])
+
+    def euler(_, w):
+        return k * np.array([w[1] * w[2], w[2] * w[0], w[0] * w[1]])
+
+    reference = solve_ivp(euler, (0.0, 3000.0), w0, rtol=1e-11, atol=1e-14).y[:, -1]
+    ekf.predict(3000.0)
+    assert np.all(np.isfinite(ekf.P)) and np.all(np.isfinite(ekf.state().rho))
+    np.testing.assert_allclose(ekf.state().omega_B, reference, rtol=0, atol=1e-7)
+    with pytest.raises(PredictionGapError, match="too far to predict across"):
+        ekf.predict(1.0e6)

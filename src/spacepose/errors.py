@@ -45,6 +45,11 @@ class DegenerateGeometryError(InputError):
     """Geometry that does not determine the quantity asked for (collinear points, one plane)."""
 
 
+class PredictionGapError(InputError):
+    """A gap between frames too long for a filter to predict across: its state no longer says
+    where the target is (the navigators start again after it)."""
+
+
 class ConfigError(SpaceposeError, ValueError):
     """An invalid configuration: unknown option, value out of range, unreadable config file."""
 

@@ -24,6 +24,8 @@ are :mod:`spacepose.core.nav_state`'s.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pydantic import Field, ValidationInfo, field_validator
@@ -49,10 +51,15 @@ from spacepose.core.nav_state import (
     params_from_k,
     seconds,
 )
-from spacepose.errors import InputError
+from spacepose.errors import InputError, PredictionGapError
 
 # Largest σ a setting may give: its square, times another's, stays finite in float64.
 _LARGEST_SIGMA = 1e50
+# Largest turn (rad) of the body or the orbit in one RK4 step of a prediction.
+_STEP_RAD = 0.05
+# Largest turn (rad) a prediction is carried over: 160 turns (20,000 steps; a 3,000 s eclipse at
+# the orbit run's 2.7 °/s is 141 rad). Beyond it the state is a guess and costs minutes.
+_LONGEST_TURN_RAD = 1000.0
 
 
 class EKFConfig(StageConfig):
@@ -84,7 +91,9 @@ class EKFConfig(StageConfig):
     gate_probability: float = Field(
         0.9999, gt=0, le=1, description="χ² gate on the innovation; 1 disables gating."
     )
-    substeps: int = Field(10, ge=1, description="RK4 steps per prediction interval.")
+    substeps: int = Field(
+        10, ge=1, description="Fewest RK4 steps per prediction interval (more over long gaps)."
+    )
 
     @field_validator("*", mode="after")
     @classmethod
@@ -274,14 +283,21 @@ class RelativeNavEKF:
         if dt == 0:
             return
         F0 = self._jacobian(self.w, self.p)
-        h = dt / self.config.substeps
+        # Each RK4 step turns the body and the orbit by at most _STEP_RAD: a fixed count over
+        # a 3,000 s gap (an eclipse without frames) was 300 s steps, and the state overflowed.
+        turn = dt * max(float(np.linalg.norm(self.w)), self.n)
+        if turn > _LONGEST_TURN_RAD:
+            raise PredictionGapError(
+                f"a gap of {dt:.6g} s from t={self.t:.6g} s: the target turns {turn:.3g} rad in "
+                f"it, too far to predict across (at most {_LONGEST_TURN_RAD:g})"
+            )
+        steps = max(self.config.substeps, math.ceil(turn / _STEP_RAD))
+        h = dt / steps
         x = np.concatenate([self.rho, self.v])
-        for _ in range(self.config.substeps):
+        for _ in range(steps):
             x = dynamics.rk4_step(lambda s: dynamics.cw_derivative(s, self.n), x, h)
         self.rho, self.v = x[:3], x[3:]
-        self.q, self.w = dynamics.propagate_attitude_k(
-            self.q, self.w, self.k, dt, self.config.substeps
-        )
+        self.q, self.w = dynamics.propagate_attitude_k(self.q, self.w, self.k, dt, steps)
         # Jacobian averaged over the interval.
         F = 0.5 * (F0 + self._jacobian(self.w, self.p))
         Phi, Q = discretise(F, self._process_noise_density(), dt)

@@ -63,7 +63,7 @@ from spacepose.core.rectangles import CatalogueEntry, catalogue_entries
 from spacepose.core.track_result import TrackResult
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig
-from spacepose.errors import ConfigError
+from spacepose.errors import ConfigError, PredictionGapError
 
 __all__ = ["FusedNavigator", "FusedRow", "FusionConfig", "Measurements", "fused_navigate"]
 
@@ -259,7 +259,12 @@ class FusedNavigator:
         if self.rectangles is not None:
             row = self.rectangles.step(t, cloud)
         elif self._ekf is not None:
-            self._ekf.predict(t)
+            try:
+                self._ekf.predict(t)
+            except PredictionGapError as exc:  # the state says nothing after the gap
+                self._ekf = None
+                problem = f"the filter starts again: {exc}"
+                row = NavRow(t, None, None, 0, "waiting", problem=problem)
         if self.tracker is None:
             return FusedRow(row, None, None, float("nan"), False)
         ekf, c = self.ekf, self.config

@@ -41,6 +41,7 @@ from spacepose.core.config import StageConfig, validate_config
 from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.rectangle_measurement import RectangleMeasurement
 from spacepose.core.rectangles import CatalogueEntry
+from spacepose.core.scale import point_spacing
 from spacepose.errors import InputError, RegistrationError
 
 __all__ = [
@@ -149,9 +150,9 @@ def with_sensor_fov(config: LostInSpaceConfig, fov: object, source: str) -> Lost
 
 
 def _spacing(tree: cKDTree) -> float:
-    """Median nearest-neighbour distance (m) of a tree's own points."""
-    d = tree.query(tree.data, k=2)[0][:, 1]
-    return float(np.median(d))
+    """Median nearest-neighbour distance (m) of a tree's own points, to the nearest other
+    place when over half of them are repeated (0 made every gate 0)."""
+    return point_spacing(tree.data, samples=len(tree.data))
 
 
 @dataclass(frozen=True, eq=False)

@@ -70,6 +70,10 @@ class NavRow:
         kept for the ablation of the fix.
     candidates
         The candidate filters' estimates when ``status`` is ``ambiguous``, best first.
+    problem
+        What went wrong in the frame, or None: the plane search refused its points (it is then
+        a prediction-only step), or a gap before it too long to predict across (the filter
+        starts again).
     """
 
     t: float
@@ -80,6 +84,7 @@ class NavRow:
     coarse_T_sensor_model: NDArray[np.float64] | None = None
     raw_T_sensor_model: NDArray[np.float64] | None = None
     candidates: tuple[Candidate, ...] = ()
+    problem: str | None = None
 
     def values(self) -> list[float | int | str]:
         """The row in the order of :data:`NAV_COLUMNS` (NaN before initialisation)."""

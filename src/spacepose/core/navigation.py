@@ -25,7 +25,7 @@ a filter's initial state in :mod:`spacepose.core.nav_start`.
 from __future__ import annotations
 
 from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -69,7 +69,7 @@ from spacepose.core.rectangles import (
     catalogue_entries,
     recognise,
 )
-from spacepose.errors import InputError
+from spacepose.errors import InputError, PredictionGapError, SpaceposeError
 
 __all__ = [
     "NavigationConfig",
@@ -83,6 +83,9 @@ __all__ = [
 
 # Rectangles of a frame: each measurement with the catalogue faces its sides allow.
 Rects = list[tuple[RectangleMeasurement, list[CatalogueEntry]]]
+# Candidates that all explain less than this share of a frame's data, frame after frame, were
+# started on a frame that was not the target's: the start is made again.
+_LOST_SHARE = 0.5
 
 
 @dataclass(eq=False)
@@ -137,6 +140,7 @@ class RelativeNavigator:
         self.tracks: list[_Track] = []
         self._confident = False
         self._steps = 0  # frames seen, to pair a face's innovations in consecutive frames
+        self._unexplained = 0  # consecutive frames no candidate explained half of
 
     @property
     def ekf(self) -> RelativeNavEKF | None:
@@ -155,13 +159,32 @@ class RelativeNavigator:
     def step(self, t: float, cloud: PointCloud | None) -> NavRow:
         """Process one frame taken at time ``t`` (s since the epoch where I and O coincide).
 
-        A frame without data (``cloud`` None) is a prediction-only step, never dropped.
+        A frame without data (``cloud`` None) is a prediction-only step, never dropped; so is
+        one whose points the plane search refuses. After a gap too long to predict across the
+        navigator starts again. Either is said in the row's ``problem``.
         """
         t = seconds(t, "frame time t")
         cloud = None if cloud is None else as_cloud(cloud, "frame")
-        for track in self.tracks:
-            track.ekf.predict(t)
-        rects = [] if cloud is None else self.rectangles(cloud)
+        problems = []
+        try:
+            for track in self.tracks:
+                track.ekf.predict(t)
+        except PredictionGapError as exc:  # the state says nothing after the gap
+            self.tracks, self._confident = [], False
+            problems.append(f"the filter starts again: {exc}")
+        rects: Rects = []
+        if cloud is not None:
+            try:
+                rects = self.rectangles(cloud)
+            except SpaceposeError as exc:  # the plane search refused the points: no data
+                cloud = None
+                problems.append(f"no rectangle measured, its rectangles left out: {exc}")
+        row = self._step(t, cloud, rects)
+        return replace(row, problem="; ".join(problems)) if problems else row
+
+    def _step(self, t: float, cloud: PointCloud | None, rects: Rects) -> NavRow:
+        """:meth:`step` once the filters are predicted to ``t`` and the frame's rectangles
+        measured."""
         if not self.tracks:
             self.tracks = [_Track(self._start_filter(t, T)) for T in self._start(t, cloud, rects)]
             if not self.tracks:
@@ -170,6 +193,8 @@ class RelativeNavigator:
         used = [self._update(track, self._assign(track.ekf, rects)) for track in self.tracks]
         if len(self.tracks) > 1 and cloud is not None:
             used = self._prune(cloud, rects, used)
+            if not self.tracks:  # no candidate explained the last frames: start on this one
+                return self._step(t, cloud, rects)
         lead = self.tracks[0].ekf
         recognised = self._assign(lead, rects)
         coarse = raw = None
@@ -253,7 +278,8 @@ class RelativeNavigator:
 
     def _prune(self, cloud: PointCloud, rects: Rects, used: list[int]) -> list[int]:
         """Score every candidate at its estimate, drop those the data have decided against and
-        those that became the same pose as a better one; the candidates left, best first."""
+        those that became the same pose as a better one; the candidates left, best first (none
+        when no candidate has explained half the data for ``decide_frames`` frames)."""
         c = self.config.lost_in_space
         frame = FrameEvidence.build(cloud.points, rects, self.config.rectangle.sigma)
         poses = [track.ekf.predict_pose() for track in self.tracks]
@@ -261,6 +287,13 @@ class RelativeNavigator:
             poses = [refine_on_model(T, frame, self.model, c) for T in poses]
         scores = np.array([explained_share(T, frame, self.model, c) for T in poses])
         counted = scores.max() >= c.min_explained
+        # A start on a glitched frame (moved metres) leaves candidates that explain nothing
+        # after it: 60 frames stayed ambiguous. As many frames as decide between candidates.
+        lost = scores.max() < _LOST_SHARE
+        self._unexplained = self._unexplained + 1 if lost else 0
+        if self._unexplained >= c.decide_frames:
+            self.tracks, self._unexplained = [], 0
+            return []
         for track, score in zip(self.tracks, scores, strict=True):
             if counted:
                 track.deficits.append(float(scores.max() - score))

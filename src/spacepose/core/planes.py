@@ -188,7 +188,12 @@ def dense_support(
     u = np.cross(n, helper)
     u /= np.linalg.norm(u)
     uv = pts @ np.column_stack([u, np.cross(n, u)])
-    spacing = cKDTree(uv).query(uv, k=k + 1)[0][:, k]
+    # Spacings of the distinct places: copies of one row (a driver's mark written 2,000 times)
+    # are no density, and a median spacing of 0 cut every link.
+    places, place_of = np.unique(uv, axis=0, return_inverse=True)
+    if len(places) <= k:
+        return np.arange(len(pts))
+    spacing = cKDTree(places).query(places, k=k + 1)[0][:, k][place_of.ravel()]
     step = spread * float(np.median(spacing))
     dense = np.flatnonzero(spacing <= step)
     return dense[largest_component(np.column_stack([uv[dense], np.zeros(len(dense))]), step)]

@@ -84,6 +84,10 @@ def measure_planes(
             dense = plane.inliers[dense_support(pts[plane.inliers], plane.normal)]
             if len(dense) >= 3 and not is_collinear(distribution(pts[dense])[1]):
                 support = dense
+        if on_a_line(pts[support]):
+            # Copies of one return (a driver's mark of no return, written 2,000 times) and a
+            # stray or two fit a plane: no face to measure.
+            continue
         w = None if all_weights is None else all_weights[support]
         m = measure_rectangle(pts[support], config.sigma, config.sampling, w)
         out.append(MeasuredPlane(plane, support, m))

@@ -190,6 +190,7 @@ def navigate_run(
         config_json = dump_config(fusion, out.with_suffix(".config.json"))
         pose_noise_json = _write_pose_noise(out, noise)
         _warn_unusable_frames(tracks, unreadable, health_csv)
+    _warn_refused_frames(rows, unreadable)
     nav_csv = write_nav_csv(out, rows)
     navigated = sum(r.state is not None for r in rows)
     ambiguous = sum(r.status == "ambiguous" for r in rows)
@@ -271,6 +272,14 @@ def _warn_unusable_frames(
         if k not in unreadable and unusable:  # said as the rectangles' path says its own
             problem = f"frame {k} navigated as empty: {unusable[0]}"
             warnings.warn(SpaceposeWarning(problem, health_csv), stacklevel=3)
+
+
+def _warn_refused_frames(rows: Sequence[NavRow], unreadable: dict[int, str]) -> None:
+    """Warn of each frame whose points the plane search refused (its rectangles are left out)
+    or before which the filter could not predict (it starts again): each ended the whole run."""
+    for k, row in enumerate(rows):
+        if row.problem is not None and k not in unreadable:
+            warnings.warn(SpaceposeWarning(f"frame {k}: {row.problem}"), stacklevel=3)
 
 
 def _write_candidates(out: Path, rows: Sequence[NavRow], ambiguous: bool) -> Path | None:
