@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import warnings
 from pathlib import Path
@@ -186,3 +187,38 @@ def test_a_filter_predicts_across_an_eclipse_and_refuses_a_far_longer_gap():
     np.testing.assert_allclose(ekf.state().omega_B, reference, rtol=0, atol=1e-7)
     with pytest.raises(PredictionGapError, match="too far to predict across"):
         ekf.predict(1.0e6)
+
+
+# -- evaluate: ground truth at its own rate, and ending before the estimate ----------------------
+
+
+def _tum(path: Path, t: np.ndarray, x: np.ndarray) -> Path:
+    """A TUM file of poses translated by ``x`` (m) along x at times ``t``."""
+    rows = [f"{ti:.6f} {xi:.6f} 0 0 0 0 0 1" for ti, xi in zip(t, x, strict=True)]
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_ground_truth_at_its_own_rate_is_paired_within_max_dt(tmp_path, capsys):
+    """TUM RGB-D's ground truth runs at 100 Hz, its depth frames at 30 Hz: no stamp matched
+    within 1 µs, and ``--gt-sensor-poses`` could score no such recording. ``--max-dt`` pairs
+    each estimate with the nearest ground truth within it (evo's t_max_diff)."""
+    t_gt = 1305031102.0035 + 0.01 * np.arange(300)
+    t_est = 1305031102.011 + (1 / 30) * np.arange(80)
+    gt = _tum(tmp_path / "gt.txt", t_gt, 0.2 * (t_gt - t_gt[0]))  # 0.2 m/s
+    est = _tum(tmp_path / "est.tum", t_est, 0.2 * (t_est - t_gt[0]))
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 1
+    assert "nearest ground truth 0.0025 s away" in capsys.readouterr().err
+    assert main(["evaluate", str(est), str(gt), "--json", "--max-dt", "0.01"]) == 0
+    ate = json.loads(capsys.readouterr().out)["ate_translation_rmse_mm"]
+    assert 0.0 < ate <= 1.0 + 1e-9  # at most 5 ms of 0.2 m/s between paired times
+
+
+def test_a_ground_truth_that_ends_early_scores_the_overlap(tmp_path, capsys):
+    t = np.arange(20.0)
+    gt = _tum(tmp_path / "gt.tum", t[:10], 0.01 * t[:10])
+    est = _tum(tmp_path / "est.tum", t, 0.01 * t + 0.002)
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["n"] == 10
+    assert "10 of 20 estimated poses lie outside gt.tum's times (0..9 s): left out" in out.err

@@ -9,6 +9,7 @@ import typer
 from rich.table import Table
 
 from spacepose.cli.app import app, console
+from spacepose.core.metrics import TIMESTAMP_TOLERANCE
 
 
 @app.command()
@@ -24,17 +25,25 @@ def evaluate(
         help="GT holds the sensor's pose in a world frame (T_world_sensor, as TUM RGB-D's "
         "groundtruth.txt): scored as its inverses, the still scene's pose in the sensor frame.",
     ),
+    max_dt: float = typer.Option(
+        TIMESTAMP_TOLERANCE,
+        "--max-dt",
+        help="Largest time difference (s) of an estimated pose and the ground-truth pose it is "
+        "scored against, the nearest in time (TUM RGB-D's 100 Hz ground truth: 0.01, as evo's "
+        "t_max_diff).",
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON."),
 ) -> None:
     """Per-axis errors (mean and std of |error|, Li's Table 2) and ATE RMSE (as evo_ape).
 
-    Warns when the two files differ in length, when estimates share a ground-truth pose, and
-    when a model-free track (first pose the identity) is compared without --rebase-first.
+    Warns when the two files differ in length, when estimates share a ground-truth pose, when
+    estimates outside the ground truth's times are left out, and when a model-free track (first
+    pose the identity) is compared without --rebase-first.
     """
     from spacepose.tools.evaluation import compare_trajectory_files
 
     result = compare_trajectory_files(
-        est, gt, rebase_first=rebase_first, gt_sensor_poses=gt_sensor_poses
+        est, gt, rebase_first=rebase_first, tolerance=max_dt, gt_sensor_poses=gt_sensor_poses
     )
     table = result.table
     if as_json:

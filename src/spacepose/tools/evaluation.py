@@ -124,7 +124,8 @@ def compare_trajectory_files(
     Warns
     -----
     SpaceposeWarning
-        Lost frames left out (``EST.health.csv`` beside the estimate), different lengths,
+        Lost frames left out (``EST.health.csv`` beside the estimate), estimated poses outside
+        the ground truth's span left out, different lengths,
         repeated pairings, one pose scored rebased (zero by construction), a model-free
         estimate compared as it is, or
         poses whose distances (from the origin, or rebased from the first) differ by a unit's
@@ -139,13 +140,14 @@ def compare_trajectory_files(
     # Counted as read: less the lost frames, "1 poses against 3" read as a file of 1 pose.
     n_read = len(est)
     est, _, lost_note = without_lost_frames(est_path, est)
+    est, outside_note = within_truth_span(est, gt, tolerance, gt_path.name)
     try:
         _, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
         table = evaluate(est, gt, rebase_first=rebase_first, tolerance=tolerance)
     except InputError as exc:
         raise InputError(f"against {gt_path.name}: {exc.reason}", est_path) from None
-    notes = [] if lost_note is None else [lost_note]
-    if n_read != len(gt):
+    notes = [note for note in (lost_note, outside_note) if note is not None]
+    if n_read != len(gt) and outside_note is None:  # the note says what is scored already
         scored = "estimated ones" if len(est) == n_read else "estimated ones not lost"
         notes.append(
             f"{n_read} poses against {len(gt)} in {gt_path.name}: only the {len(est)} "
@@ -241,6 +243,24 @@ def _check_frame_numbers(*files: tuple[Path, Trajectory]) -> None:
             "KITTI, or both as TUM with their times",
             path,
         )
+
+
+def within_truth_span(
+    est: Trajectory, gt: Trajectory, tolerance: float, gt_name: str
+) -> tuple[Trajectory, str | None]:
+    """The poses of ``est`` within ``tolerance`` of the span of the ground truth's times, and
+    a note of how many fell outside (a ground truth that ends before the estimate scores the
+    overlap); all of them, with no note, when none or every one does (nothing to score: the
+    pairing then says why)."""
+    t = est.timestamps
+    inside = (t >= gt.timestamps.min() - tolerance) & (t <= gt.timestamps.max() + tolerance)
+    if inside.all() or not inside.any():
+        return est, None
+    note = (
+        f"{int((~inside).sum())} of {len(t)} estimated poses lie outside {gt_name}'s times "
+        f"({gt.timestamps.min():.6g}..{gt.timestamps.max():.6g} s): left out"
+    )
+    return Trajectory(t[inside], est.poses[inside], est.source), note
 
 
 def without_lost_frames(
