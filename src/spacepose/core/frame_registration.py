@@ -26,12 +26,18 @@ from spacepose.core.icp import ICPConfig, icp, icp_correspondences
 from spacepose.core.keyframes import Keyframe, PreparedCloud
 from spacepose.core.motion import rigid
 from spacepose.core.part_influence import PartInfluence, part_influence
-from spacepose.core.pose_covariance import isotropic_about, plane_covariance
+from spacepose.core.pose_covariance import (
+    CLUSTER_VOXELS,
+    clustered_covariance,
+    isotropic_about,
+    plane_covariance,
+    wider_of,
+)
 from spacepose.core.registration import RegistrationResult
 from spacepose.core.residual_noise import ResidualNoise, point_to_plane_sigma
 from spacepose.core.residual_structure import SAMPLING_SPREAD_VOXELS, Structure, structure_of
 from spacepose.core.tracker_config import StageLengths, pairwise_kind
-from spacepose.errors import SpaceposeError
+from spacepose.errors import RegistrationError, SpaceposeError
 
 # Largest pose-graph update (rad, and voxels for the translation: about 1e-6 m at the lab's 6 mm)
 # at which the keyframe graph and J-ICP stop iterating. Its Gauss-Newton shrinks the update
@@ -236,6 +242,8 @@ class FrameRegistrar:
             matches,
             self._sampling_spread,
         )
+        if ref.index < 0:
+            cov = self._model_covariance(cov, prepared, tgt, res, matches)
         cov = self.covariance_scale * self._design * cov + self._floor(prepared, res)
         influence = None
         if pairs is not None:
@@ -277,6 +285,30 @@ class FrameRegistrar:
         of σ in a registration's covariance and structure
         (:data:`~spacepose.core.residual_structure.SAMPLING_SPREAD_VOXELS` of the voxel)."""
         return SAMPLING_SPREAD_VOXELS * self.lengths.voxel
+
+    def _model_covariance(
+        self,
+        cov: NDArray[np.float64],
+        prepared: PreparedCloud,
+        tgt: PreparedCloud,
+        res: RegistrationResult,
+        matches: Correspondences | None,
+    ) -> NDArray[np.float64]:
+        """``cov`` of a registration onto the model, widened to the cluster-robust form of its
+        residuals where that is wider. No structure is measured against a model (a design
+        effect is for two views of one sensor), yet a frame's residuals against the model's
+        samples are correlated too: on third-party renders of debris and a satellite at 5-15 m,
+        48 runs, the model-based σ was 1.06-1.42 times short (RMS error over σ per axis), 93.5 %
+        of `ok` frames within 3σ and 3 beyond 5σ."""
+        pairs = self._final_pairs(prepared, tgt, res, matches)
+        cell = CLUSTER_VOXELS * self.lengths.voxel
+        try:
+            clustered = clustered_covariance(
+                pairs.points, pairs.normals, pairs.residuals, cell, pairs.weights
+            )
+        except RegistrationError:  # too few cells to see a correlation
+            return cov
+        return wider_of(cov, clustered)
 
     def _final_pairs(
         self,

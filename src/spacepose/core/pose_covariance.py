@@ -15,7 +15,6 @@ from spacepose.core import se3
 from spacepose.core.correspondences import Correspondences, find_correspondences
 from spacepose.core.icp_systems import point_to_plane_system
 from spacepose.core.keyframes import PreparedCloud
-from spacepose.core.neighbors import SearchIndex
 from spacepose.errors import RegistrationError
 
 # Edge of the cells whose residuals are taken as one correlated group, in voxels: a voxel's
@@ -82,32 +81,31 @@ def plane_covariance(
 
 
 def clustered_covariance(
-    source_points: NDArray[np.float64],
-    target_points: NDArray[np.float64],
-    target_normals: NDArray[np.float64],
-    tree: SearchIndex,
-    max_distance: float,
+    points: NDArray[np.float64],
+    normals: NDArray[np.float64],
+    residuals: NDArray[np.float64],
     cell: float,
-    workers: int = -1,
+    weights: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """Cluster-robust covariance of a point-to-plane registration at its solution.
 
     The information form ``σ² H⁻¹`` holds when every residual is independent with one σ. Two
     samplings of a surface break both: residuals grow with the leverage of edges and bends,
     and neighbouring pairs share their bias. The sandwich ``H⁻¹ (Σ_c g_c g_cᵀ) H⁻¹ · G/(G−1)``,
-    with ``g_c = Σ h r`` summed over the pairs of each cubic cell of edge ``cell`` and G the
-    cells, counts both (the cluster-robust variance of least squares; docs/methods.md §1.5).
+    with ``H = Σ w h hᵀ``, ``g_c = Σ w h r`` summed over the pairs of each cubic cell of edge
+    ``cell`` and G the cells, counts both (the cluster-robust variance of least squares;
+    docs/methods.md §1.5).
 
     Parameters
     ----------
-    source_points
-        (N, 3) source points already moved into the target frame by the solution.
-    target_points, target_normals
-        (M, 3) target points and unit normals, indexed by ``tree``.
-    max_distance
-        Correspondence gate (m).
+    points
+        (M, 3) matched source points, moved into the target frame by the solution.
+    normals, residuals
+        (M, 3) their target points' unit normals and (M,) signed point-to-plane residuals (m).
     cell
         Edge (m) of the residual groups.
+    weights
+        (M,) robust kernel weights of the pairs; None: all 1.
 
     Returns
     -------
@@ -117,21 +115,19 @@ def clustered_covariance(
     Raises
     ------
     RegistrationError
-        Fewer than 7 correspondences, or pairs in fewer than 7 cells.
+        Fewer than 7 pairs, or pairs in fewer than 7 cells.
     """
-    s, t, _ = find_correspondences(tree, source_points, max_distance, workers)
-    p, n = source_points[s], target_normals[t]
-    h = np.hstack([np.cross(p, n), n])
-    r = np.einsum("ij,ij->i", p - target_points[t], n)
-    _, group = np.unique(np.floor(p / cell).astype(np.int64), axis=0, return_inverse=True)
+    h = np.hstack([np.cross(points, normals), normals])
+    w = np.ones(len(h)) if weights is None else weights
+    _, group = np.unique(np.floor(points / cell).astype(np.int64), axis=0, return_inverse=True)
     groups = int(group.max()) + 1 if len(group) else 0
-    if len(s) < 7 or groups < 7:
+    if len(h) < 7 or groups < 7:
         raise RegistrationError(
-            f"{len(s)} correspondences in {groups} cells are too few for a covariance"
+            f"{len(h)} correspondences in {groups} cells are too few for a covariance"
         )
     g = np.zeros((groups, 6))
-    np.add.at(g, group.ravel(), h * r[:, None])
-    H_inv = np.linalg.pinv(h.T @ h, hermitian=True)
+    np.add.at(g, group.ravel(), h * (w * residuals)[:, None])
+    H_inv = np.linalg.pinv((h * w[:, None]).T @ h, hermitian=True)
     return groups / (groups - 1) * (H_inv @ (g.T @ g) @ H_inv)
 
 

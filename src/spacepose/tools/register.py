@@ -41,6 +41,7 @@ from pydantic import Field
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud, as_cloud, as_points
 from spacepose.core.config import StageConfig, stage_config
+from spacepose.core.correspondences import find_correspondences
 from spacepose.core.degeneracy import Degeneracy, surface_degeneracy
 from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.gicp_covariances import compute_covariances, plane_normals
@@ -332,15 +333,12 @@ def register(
     # sees residuals correlated over the surface: the cluster-robust form does, and the wider
     # of the two is kept.
     covariance = result.covariance(sigma=1.0 if config.method == "gicp" else None)
+    moved = se3.transform_points(T, src.points)
+    s, t, _ = find_correspondences(tree, moved, fine_gate, workers)
+    residuals = np.einsum("ij,ij->i", moved[s] - tgt.points[t], tgt.normals[t])
     try:
         clustered = clustered_covariance(
-            se3.transform_points(T, src.points),
-            tgt.points,
-            tgt.normals,
-            tree,
-            fine_gate,
-            CLUSTER_VOXELS * voxel,
-            workers,
+            moved[s], tgt.normals[t], residuals, CLUSTER_VOXELS * voxel
         )
         covariance = wider_of(covariance, clustered)
     except RegistrationError:  # too few cells to see a correlation: the information alone
