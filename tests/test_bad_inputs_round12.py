@@ -222,3 +222,18 @@ def test_a_ground_truth_that_ends_early_scores_the_overlap(tmp_path, capsys):
     out = capsys.readouterr()
     assert json.loads(out.out)["n"] == 10
     assert "10 of 20 estimated poses lie outside gt.tum's times (0..9 s): left out" in out.err
+
+
+def test_a_folder_of_frames_without_times_is_warned_about_in_navigate(orbit_run, tmp_path):
+    """Without timestamps.txt frame k is taken at k s: the orbit and the target's turn are then
+    propagated over those times, silently wrong at any other rate."""
+    folder = tmp_path / "frames"
+    shutil.copytree(orbit_run / "frames", folder)
+    scenario, model = orbit_run / "scenario.json", orbit_run / "model.ply"
+    with pytest.warns(SpaceposeWarning, match="no timestamps.txt times the frames: frame k is"):
+        navigate_run(folder, tmp_path / "nav.csv", scenario=scenario, model=model)
+    (folder / "timestamps.txt").write_text("".join(f"{k}.0\n" for k in range(NAV_FRAMES)))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        navigate_run(folder, tmp_path / "nav2.csv", scenario=scenario, model=model)
+    assert not any("timestamps.txt" in str(w.message) for w in caught)

@@ -300,6 +300,19 @@ def input_files(path: str | Path, frames: Frames) -> list[Path]:
     return files
 
 
+def untimed_folder(path: str | Path) -> bool:
+    """Whether ``path`` is a folder of frame files or depth images that does not time them (no
+    ``timestamps.txt``, no TUM ``depth.txt``): its frames are then one second apart."""
+    from spacepose.tools.bag_io import is_bag  # bag_io builds on this module
+
+    root = Path(path)
+    if not root.is_dir() or is_bag(root) or (root / "scenario.json").is_file():
+        return False
+    stamps = _timestamps_path(root)
+    listed = (root / depth_folder.TUM_DEPTH_LIST).is_file()
+    return not (stamps.exists() or stamps.is_symlink() or listed)
+
+
 def _folder_timestamps(root: Path, n_frames: int) -> NDArray[np.float64]:
     """``timestamps.txt`` of a folder when present, else the frame indices."""
     stamps_path = _timestamps_path(root)

@@ -33,7 +33,13 @@ from spacepose.core.pose_noise import POSE_NOISE_AXES, PoseNoiseScale
 from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_model
-from spacepose.tools.frames import Frames, input_files, open_frames
+from spacepose.tools.frames import (
+    TIMESTAMPS_FILE,
+    Frames,
+    input_files,
+    open_frames,
+    untimed_folder,
+)
 from spacepose.tools.navigation_config_io import read_scenario, scenario_model, with_run_settings
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.pose_bootstrap_run import bootstrapped_fusion, run_mesh_and_sensor
@@ -236,6 +242,16 @@ def _open_checked_frames(
     outputs = output_paths(out, measurements)
     check_writable(*outputs)
     frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
+    if untimed_folder(input_dir):
+        # The orbit and the target's turn are propagated over the frames' times.
+        warnings.warn(
+            SpaceposeWarning(
+                f"no {TIMESTAMPS_FILE} times the frames: frame k is taken at k s (1 Hz), and the "
+                "orbit and the target's turn are propagated over those times",
+                input_dir,
+            ),
+            stacklevel=3,
+        )
     given = [p for p in (scenario, model, intrinsics) if p is not None]
     check_spares_inputs(outputs, [*input_files(input_dir, frames), *given])
     # NAV.csv's own suffix is a frame's: only another folder keeps it out of the frames.
