@@ -163,6 +163,16 @@ def navigate_run(
         )
     description, source = read_scenario(input_dir, scenario)
     n, R_O_C = scenario_geometry(description, source)
+    if untimed_folder(input_dir):
+        # The orbit and the target's turn are propagated over the frames' times.
+        warnings.warn(
+            SpaceposeWarning(
+                f"no {TIMESTAMPS_FILE} times the frames: frame k is taken at k s (1 Hz), and the "
+                "orbit and the target's turn are propagated over those times",
+                input_dir,
+            ),
+            stacklevel=2,
+        )
     catalogue = []
     if measurements != "registration" or description.get("rectangles"):
         catalogue = parse_catalogue(description, cfg.rectangle, source)
@@ -242,16 +252,6 @@ def _open_checked_frames(
     outputs = output_paths(out, measurements)
     check_writable(*outputs)
     frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
-    if untimed_folder(input_dir):
-        # The orbit and the target's turn are propagated over the frames' times.
-        warnings.warn(
-            SpaceposeWarning(
-                f"no {TIMESTAMPS_FILE} times the frames: frame k is taken at k s (1 Hz), and the "
-                "orbit and the target's turn are propagated over those times",
-                input_dir,
-            ),
-            stacklevel=3,
-        )
     given = [p for p in (scenario, model, intrinsics) if p is not None]
     check_spares_inputs(outputs, [*input_files(input_dir, frames), *given])
     # NAV.csv's own suffix is a frame's: only another folder keeps it out of the frames.
