@@ -137,6 +137,20 @@ def test_a_lost_frames_prediction_is_not_scored_in_the_report(tmp_path: Path) ->
     assert "icp: 1 frame(s) lost in icp.health.csv left out" in page
 
 
+def test_a_track_in_millimetres_is_noted_in_the_report_as_evaluate_warns(tmp_path: Path) -> None:
+    """A track written in millimetres scored 1,200 mm of ATE in the report without a word,
+    where `evaluate` warns that the two are a unit's factor apart."""
+    _make_run(tmp_path / "demo")
+    tracks = tmp_path / "demo" / "lab" / "tracks"
+    gicp = read_tum(tracks / "gicp.tum")
+    in_mm = gicp.poses.copy()
+    in_mm[:, :3, 3] *= 1e3
+    write_tum(tracks / "gicp.tum", Trajectory(gicp.timestamps, in_mm))
+    page = html.unescape(build_report(tmp_path / "demo").read_text())
+    note = re.search(r"gicp: [^<]*times as far[^<]*are both in metres\?", page)
+    assert note, page[-3000:]
+
+
 def test_report_cli_and_errors(tmp_path: Path, capsys) -> None:
     _make_run(tmp_path / "demo")
     assert main(["report", str(tmp_path / "demo"), "--out", str(tmp_path / "r.html")]) == 0

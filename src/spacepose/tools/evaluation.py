@@ -170,7 +170,7 @@ def compare_trajectory_files(
             "compare with --rebase-first (rebase_first=True)"
         )
     else:
-        notes.extend(_unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name, rebase_first))
+        notes.extend(unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name, rebase_first))
     for note in notes:
         warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
     return TrajectoryComparison(table, n_read, len(gt), rebase_first, tuple(notes))
@@ -338,7 +338,7 @@ def _other_times(rows: list[dict[str, str]], timestamps: np.ndarray) -> tuple[in
     return None if not len(off) else (int(off[0]), float(times[off[0]]))
 
 
-def _unit_mismatch(
+def unit_mismatch(
     est: np.ndarray, gt: np.ndarray, gt_name: str, rebase_first: bool = False
 ) -> list[str]:
     """A note when the paired poses' distances (N, 4, 4 each) differ by a factor a unit would

@@ -34,6 +34,7 @@ from spacepose.tools.evaluation import (
     lone_rebased_pose,
     shared_pairings,
     starts_at_identity,
+    unit_mismatch,
     without_lost_frames,
 )
 from spacepose.tools.report_files import Skipped, own_files, read_csv, read_scenario
@@ -136,7 +137,9 @@ def tracking_section(run: Path, skipped: Skipped) -> str:
         _, i_gt = associate(est.timestamps, gt.timestamps)
         shared = shared_pairings(i_gt)
         alone = lone_rebased_pose(len(scored), rebase)
-        for text in filter(None, (note, shared, alone)):
+        # As `evaluate` warns: a track in millimetres scored its whole distance as error.
+        units = unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name, rebase)
+        for text in filter(None, (note, shared, alone, *units)):
             notes.append(html.escape(f"{shown(path.stem)}: {text}"))
         rows.append(
             (
