@@ -13,6 +13,7 @@ from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 from spacepose.cli import main
+from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.keyframes import PreparedCloud
@@ -26,7 +27,7 @@ from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig, stage_lengths
 from spacepose.core.voxel import voxel_downsample
-from spacepose.errors import PredictionGapError, SpaceposeWarning
+from spacepose.errors import InputError, PredictionGapError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.runs import write_run
@@ -237,3 +238,19 @@ def test_a_folder_of_frames_without_times_is_warned_about_in_navigate(orbit_run,
         warnings.simplefilter("always")
         navigate_run(folder, tmp_path / "nav2.csv", scenario=scenario, model=model)
     assert not any("timestamps.txt" in str(w.message) for w in caught)
+
+
+# -- Rotations written with a few decimals -------------------------------------------------------
+
+
+def test_a_rotation_written_to_five_decimals_is_taken_and_one_further_off_is_named():
+    """R_O_C written to 5 decimals (7e-6 off a rotation) was refused with "must be a 3x3
+    rotation matrix", no size and no tolerance given."""
+    R = Rotation.from_euler("zyx", [30.0, -20.0, 45.0], degrees=True).as_matrix()
+    taken = se3.typed_rotation(np.round(R, 5), "R_O_C")
+    np.testing.assert_allclose(taken.T @ taken, np.eye(3), atol=1e-14)
+    assert np.degrees(Rotation.from_matrix(taken @ R.T).magnitude()) < 1e-3
+    with pytest.raises(InputError, match=r"R_O_C is not a proper rotation: RᵀR off the identity "):
+        se3.typed_rotation(np.round(R, 2), "R_O_C")
+    with pytest.raises(InputError, match=r"det -1 \(a rotation has 1\)"):
+        se3.typed_rotation(np.diag([-1.0, 1.0, 1.0]), "R_O_C")

@@ -415,7 +415,9 @@ def test_plane_config_of_the_navigator() -> None:
 def test_bad_inputs_raise() -> None:
     with pytest.raises(InputError, match="mean_motion"):
         scenario_geometry({"R_O_C": np.eye(3).tolist()}, "x.json")
-    with pytest.raises(InputError, match="R_O_C must be"):
+    with pytest.raises(
+        InputError, match="R_O_C is not a proper rotation: RᵀR off the identity by 3"
+    ):
         scenario_geometry({"mean_motion": 1e-3, "R_O_C": [[1, 0, 0], [0, 1, 0], [0, 0, 2]]})
     with pytest.raises(InputError, match="positive"):
         scenario_geometry({"mean_motion": -1.0, "R_O_C": np.eye(3).tolist()})

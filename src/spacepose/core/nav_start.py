@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from spacepose.core import dynamics
+from spacepose.core import dynamics, se3
 from spacepose.core.config import holds_boolean, holds_text
 from spacepose.core.ekf import RelativeNavEKF
 from spacepose.core.nav_config import NavigationConfig
@@ -76,8 +76,10 @@ def scenario_geometry(
             f"enough (at most {_MAX_MEAN_MOTION} rad/s; rad/s, not rad/min or deg/s?)",
             source,
         )
-    if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-        raise InputError("R_O_C must be a 3x3 rotation matrix", source)
+    try:
+        R = se3.typed_rotation(R, "R_O_C")
+    except InputError as exc:
+        raise InputError(exc.reason, source) from None
     return n, R
 
 

@@ -51,6 +51,7 @@ from pydantic import (
     model_validator,
 )
 
+from spacepose.core import se3
 from spacepose.core.config import (
     StageConfig,
     config_error,
@@ -126,9 +127,10 @@ class CatalogueEntry(BaseModel):
         M = np.asarray(R, dtype=np.float64)
         if not np.all(np.isfinite(M)):
             raise ValueError("R_model_plane has non-finite entries")
-        if not np.allclose(M.T @ M, np.eye(3), atol=1e-6) or np.linalg.det(M) < 0:
-            raise ValueError("R_model_plane is not a proper rotation (orthonormal, det +1)")
-        return R
+        try:
+            return tuple(tuple(row) for row in se3.typed_rotation(M, "R_model_plane").tolist())
+        except InputError as exc:
+            raise ValueError(exc.reason) from None
 
     @model_validator(mode="after")
     def _sides(self) -> CatalogueEntry:

@@ -181,6 +181,35 @@ def _check_rotation(R: NDArray[np.float64], name: str) -> None:
         )
 
 
+# A rotation typed by hand (five decimals) is off a rotation by about 1e-5; this much is 0.006°,
+# under a star tracker's error.
+TYPED_ROTATION_TOLERANCE = 1e-4
+
+
+def typed_rotation(R: ArrayLike, name: str) -> NDArray[np.float64]:
+    """The proper rotation nearest a 3×3 ``R`` written with a few decimals (R_O_C, a
+    catalogue's R_model_plane): RᵀR within ``TYPED_ROTATION_TOLERANCE`` of the identity and
+    det > 0, made orthonormal by SVD. Five decimals were refused as "not a rotation".
+
+    Raises
+    ------
+    InputError
+        Not 3×3, not finite, or further off a rotation (the message gives how far).
+    """
+    M = real_array(R, name)
+    if M.shape != (3, 3) or not np.all(np.isfinite(M)):
+        raise InputError(f"{name} must be a finite 3x3 rotation matrix, got shape {M.shape}")
+    off = float(np.abs(M.T @ M - np.eye(3)).max())
+    det = float(np.linalg.det(M))
+    if off > TYPED_ROTATION_TOLERANCE or det <= 0.0:
+        raise InputError(
+            f"{name} is not a proper rotation: RᵀR off the identity by {off:.2g} (at most "
+            f"{TYPED_ROTATION_TOLERANCE:g}), det {det:.4g} (a rotation has 1)"
+        )
+    U, _, Vt = np.linalg.svd(M)
+    return U @ Vt
+
+
 def invert(T: ArrayLike) -> NDArray[np.float64]:
     """Inverse of a rigid transform, or of a stack (..., 4, 4), without a general inverse.
 
