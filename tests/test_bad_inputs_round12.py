@@ -254,3 +254,18 @@ def test_a_rotation_written_to_five_decimals_is_taken_and_one_further_off_is_nam
         se3.typed_rotation(np.round(R, 2), "R_O_C")
     with pytest.raises(InputError, match=r"det -1 \(a rotation has 1\)"):
         se3.typed_rotation(np.diag([-1.0, 1.0, 1.0]), "R_O_C")
+
+
+def test_a_model_without_normals_navigates_as_the_model_with_them(orbit_run, tmp_path):
+    """``--model`` holding bare points (an .npy of surface samples) was refused by the
+    rectangles' start: "the target model needs surface samples with normals"."""
+    bare = tmp_path / "model.npy"
+    np.save(bare, read_cloud(orbit_run / "model.ply").points)
+    own = navigate_run(orbit_run, tmp_path / "own.csv")
+    got = navigate_run(orbit_run, tmp_path / "bare.csv", model=bare)
+    navigated = [r.state is not None for r in got.rows]
+    assert navigated == [r.state is not None for r in own.rows] and any(navigated)
+    last, reference = got.rows[-1].state, own.rows[-1].state
+    assert np.linalg.norm(last.rho - reference.rho) < 0.01
+    angle = Rotation.from_quat(last.q_I_B) * Rotation.from_quat(reference.q_I_B).inv()
+    assert np.degrees(angle.magnitude()) < 0.1

@@ -110,6 +110,11 @@ def test_equally_good_orders_by_score() -> None:
 
 def test_bad_inputs_raise() -> None:
     with pytest.raises(InputError, match="normals"):
-        ModelSurface.from_cloud(PointCloud(np.random.default_rng(0).normal(size=(10, 3))))
+        ModelSurface.from_cloud(PointCloud(np.zeros((1, 3))))
+    # Bare points get normals turned away from their centroid (a sphere's are radial).
+    sphere = np.random.default_rng(0).normal(size=(2000, 3))
+    sphere /= np.linalg.norm(sphere, axis=1, keepdims=True)
+    surface = ModelSurface.from_cloud(PointCloud(sphere))
+    assert np.einsum("ij,ij->i", surface.normals, sphere).min() > 0.9
     with pytest.raises(InputError, match="at least 2 points"):
         FrameEvidence.build(np.zeros((1, 3)), [], 0.01)

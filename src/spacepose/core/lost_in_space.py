@@ -39,6 +39,7 @@ from spacepose.core.attitude_fix import explained_rectangles
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import StageConfig, validate_config
 from spacepose.core.icp import ICPConfig, icp
+from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.rectangle_measurement import RectangleMeasurement
 from spacepose.core.rectangles import CatalogueEntry
 from spacepose.core.scale import point_spacing
@@ -176,15 +177,20 @@ class ModelSurface:
 
     @classmethod
     def from_cloud(cls, cloud: PointCloud) -> ModelSurface:
-        """From a model cloud with normals (a run's ``model.ply``).
+        """From a model cloud (a run's ``model.ply``); normals estimated when it has none,
+        turned away from its centroid (a bare point cloud as ``--model`` was refused).
 
         Raises
         ------
         InputError
-            The cloud has no normals or fewer than 2 points.
+            Fewer than 2 points (or too few to estimate normals on).
         """
-        if cloud.normals is None or len(cloud) < 2:
+        if len(cloud) < 2:
             raise InputError("the target model needs surface samples with normals", cloud.source)
+        if cloud.normals is None:
+            centroid = cloud.points.mean(axis=0)
+            inward = estimate_normals(cloud, NormalsConfig(), viewpoint=centroid)
+            cloud = inward.with_normals(-inward.normals)
         points = np.array(cloud.points, dtype=np.float64)
         tree = cKDTree(points)
         return cls(points, np.array(cloud.normals, dtype=np.float64), tree, _spacing(tree))
