@@ -269,3 +269,47 @@ def test_a_model_without_normals_navigates_as_the_model_with_them(orbit_run, tmp
     assert np.linalg.norm(last.rho - reference.rho) < 0.01
     angle = Rotation.from_quat(last.q_I_B) * Rotation.from_quat(reference.q_I_B).inv()
     assert np.degrees(angle.magnitude()) < 0.1
+
+
+# -- A body of revolution seen from the side ------------------------------------------------------
+
+
+def _rocket_frames(frames: int) -> list[np.ndarray]:
+    """A rocket body (a 2 m wide, 6 m long cylinder and its nozzle) 5 m before a 320×240
+    camera of 60°, seen from the side, turning 2.5° a frame about its axis; range noise 0.05 %
+    (a third party's render that our simulator did not make)."""
+    import trimesh
+
+    nozzle = trimesh.creation.cone(radius=0.8, height=1.5, sections=96)
+    nozzle.apply_translation([0.0, 0.0, 3.0])
+    rocket = trimesh.util.concatenate(
+        [trimesh.creation.cylinder(radius=1.0, height=6.0, sections=96), nozzle]
+    )
+    focal = 160.0 / np.tan(np.radians(30.0))
+    u, v = np.meshgrid(np.arange(320) - 159.5, np.arange(240) - 119.5)
+    rays = np.column_stack([u.ravel() / focal, v.ravel() / focal, np.ones(u.size)])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    rng = np.random.default_rng(0)
+    out = []
+    for k in range(frames):
+        turn = Rotation.from_euler("y", 90.0, degrees=True) * Rotation.from_euler(
+            "z", 2.5 * k, degrees=True
+        )
+        mesh = rocket.copy().apply_transform(se3.make_transform(turn, [0.0, 0.0, 5.0]))
+        hits, _, _ = mesh.ray.intersects_location(np.zeros_like(rays), rays, multiple_hits=False)
+        out.append(hits * (1.0 + rng.normal(0.0, 0.0005, len(hits)))[:, None])
+    return out
+
+
+def test_a_rocket_body_turning_about_its_axis_is_degraded_not_lost():
+    """Seen from the side a rocket body leaves its turn about its axis free. With little
+    noise the fine registration's condition came out 2.0e4, over the lost bound, and every
+    frame after the first was lost (the command exited 1), though the coarse check had found
+    the free turn and widened the covariance along it."""
+    tracker = Tracker(TrackerConfig(), workers=2)
+    results = [tracker.track_frame(f, float(k)) for k, f in enumerate(_rocket_frames(4))]
+    assert [r.status for r in results[1:]] == ["degraded"] * 3, [r.reasons for r in results]
+    assert all("unconstrained" in r.reasons[-1] for r in results[1:])
+    # The free turn is about the axis, the camera's x: its σ is wide, the depth's is not.
+    sigma = np.sqrt(np.diag(results[-1].covariance))
+    assert np.degrees(sigma[0]) > 10.0 and sigma[5] < 0.01, sigma

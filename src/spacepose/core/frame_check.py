@@ -134,8 +134,10 @@ def check_frame(
         disagreement = pose_disagreement(estimate.T_sensor_target, prediction.T_sensor_target, c)
     bounds = health_bounds(context, model_based)
     condition = normalised_condition(res.information, c_ref, prepared.radius)
-    if estimate.held:
-        # Its weak directions are the prediction's: degraded, not lost.
+    if estimate.held or estimate.degeneracy is not None:
+        # Its weak directions are the prediction's, or widened as the surfaces leave them free
+        # (a cylinder's turn about its axis: a rocket body seen from the side was lost frame
+        # after frame at a condition of 1.9e4): degraded, not lost.
         condition = min(condition, bounds.lost_condition)
     status, reasons = assess_health(
         res.fitness,
