@@ -475,7 +475,7 @@ def test_lengths_follow_the_frames_scale(lab):
     assert big.scale.voxel == pytest.approx(10 * small.scale.voxel, rel=1e-9)
 
 
-def test_condition_number_is_scale_free_and_a_sliding_plane_is_lost():
+def test_condition_number_is_scale_free_and_a_sliding_plane_is_degraded_with_its_slide_free():
     # The same information seen at ten times the scale (lengths × 10: translation information
     # / 100, rotation information unchanged about a point ten times further) keeps its number.
     rng = np.random.default_rng(2)
@@ -500,8 +500,14 @@ def test_condition_number_is_scale_free_and_a_sliding_plane_is_lost():
         for k in range(4)
     ]
     for r in results[1:]:
-        # Measured 1.65e4 (the lab mock-up: 45-100), also after coarse re-initialisation.
-        assert r.status == "lost" and r.reasons[0].startswith("condition"), r.reasons
+        # Its fine condition measured 1.65e4 (the lab mock-up: 45-100), over the lost bound;
+        # the coarse check names the slide and the turn free and widens σ along them, so the
+        # frame is degraded, not lost, its depth and tilts as the registration measured them.
+        assert r.status == "degraded" and r.reasons[0].startswith("condition"), r.reasons
+        assert "translation along" in r.reasons[-1] and "unconstrained" in r.reasons[-1]
+        sigma = np.sqrt(np.diag(r.covariance))
+        assert np.all(sigma[3:5] > 0.1) and np.degrees(sigma[2]) > 10.0, sigma
+        assert sigma[5] < 1e-3 and np.all(np.degrees(sigma[:2]) < 0.5), sigma
 
 
 def test_a_frame_predicted_by_an_untested_motion_model_is_not_ok():

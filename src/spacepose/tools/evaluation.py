@@ -252,6 +252,9 @@ def within_truth_span(
     a note of how many fell outside (a ground truth that ends before the estimate scores the
     overlap); all of them, with no note, when none or every one does (nothing to score: the
     pairing then says why)."""
+    valid = isinstance(tolerance, int | float | np.integer | np.floating)
+    if isinstance(tolerance, bool) or not valid or not tolerance >= 0:
+        return est, None  # the pairing refuses it, saying why
     t = est.timestamps
     inside = (t >= gt.timestamps.min() - tolerance) & (t <= gt.timestamps.max() + tolerance)
     if inside.all() or not inside.any():

@@ -163,16 +163,6 @@ def navigate_run(
         )
     description, source = read_scenario(input_dir, scenario)
     n, R_O_C = scenario_geometry(description, source)
-    if untimed_folder(input_dir):
-        # The orbit and the target's turn are propagated over the frames' times.
-        warnings.warn(
-            SpaceposeWarning(
-                f"no {TIMESTAMPS_FILE} times the frames: frame k is taken at k s (1 Hz), and the "
-                "orbit and the target's turn are propagated over those times",
-                input_dir,
-            ),
-            stacklevel=2,
-        )
     catalogue = []
     if measurements != "registration" or description.get("rectangles"):
         catalogue = parse_catalogue(description, cfg.rectangle, source)
@@ -183,6 +173,16 @@ def navigate_run(
     else:
         model = scenario_model(input_dir, scenario, description)
     cfg = with_run_settings(cfg, description, source, prior_q_I_B, debug_prior_from_truth)
+    if untimed_folder(input_dir):
+        # The orbit and the target's turn are propagated over the frames' times.
+        warnings.warn(
+            SpaceposeWarning(
+                f"no {TIMESTAMPS_FILE} times the frames: frame k is taken at k s (1 Hz), and the "
+                "orbit and the target's turn are propagated over those times",
+                input_dir,
+            ),
+            stacklevel=2,
+        )
     unreadable: dict[int, str] = {}
     pairs = _readable_pairs(frames, unreadable, planes=measurements != "registration")
     tracks: list[Any] = []
