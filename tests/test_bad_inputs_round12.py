@@ -20,6 +20,7 @@ from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.nav_start import start_filter
 from spacepose.core.nav_state import k_from_params
+from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.relocalise import COARSE_POINTS, coarse_features
 from spacepose.core.sim import simulate
 from spacepose.core.sim.grid import grid_scenario
@@ -313,3 +314,14 @@ def test_a_rocket_body_turning_about_its_axis_is_degraded_not_lost():
     # The free turn is about the axis, the camera's x: its σ is wide, the depth's is not.
     sigma = np.sqrt(np.diag(results[-1].covariance))
     assert np.degrees(sigma[0]) > 10.0 and sigma[5] < 0.01, sigma
+
+
+def test_a_normals_radius_under_the_spacing_is_refused():
+    """radius=1e-9 gave every point its line of sight as a normal, without a word."""
+    u, v = np.meshgrid(np.linspace(0.0, 1.0, 30), np.linspace(0.0, 1.0, 30))
+    plane = PointCloud(np.column_stack([u.ravel(), v.ravel(), np.full(u.size, 2.0)]))
+    with pytest.raises(InputError, match="no point has 3 neighbours within the normals' radius"):
+        estimate_normals(plane, NormalsConfig(radius=1e-9))
+    # A radius that reaches some points' neighbours keeps the rest's lines of sight, as before.
+    normals = estimate_normals(plane, NormalsConfig(radius=0.05)).normals
+    np.testing.assert_allclose(np.abs(normals[:, 2]), 1.0, atol=1e-9)

@@ -328,6 +328,8 @@ def estimate_normals(
     ------
     DegenerateGeometryError
         Every point on one line or at one place.
+    InputError
+        No point with 3 neighbours within ``radius`` (every normal would be a line of sight).
 
     Notes
     -----
@@ -362,6 +364,13 @@ def estimate_normals(
     normals = neighbourhood_normals(pts, idx, workers)
     # A k-nearest search always finds k >= 3 neighbours; a radius search may find fewer.
     sparse = None if config.radius is None else (idx >= 0).sum(axis=1) < 3
+    if sparse is not None and sparse.all():
+        # Every normal would be a line of sight, none a surface's (a radius of 1e-9 m).
+        raise InputError(
+            f"no point has 3 neighbours within the normals' radius {config.radius:.3g} m: "
+            "a radius under the point spacing?",
+            cloud.source,
+        )
     if sparse is not None and np.any(sparse):
         sight = _viewpoint(viewpoint) - pts[sparse]
         norm = np.linalg.norm(sight, axis=1, keepdims=True)
