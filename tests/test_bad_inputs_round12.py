@@ -325,3 +325,17 @@ def test_a_normals_radius_under_the_spacing_is_refused():
     # A radius that reaches some points' neighbours keeps the rest's lines of sight, as before.
     normals = estimate_normals(plane, NormalsConfig(radius=0.05)).normals
     np.testing.assert_allclose(np.abs(normals[:, 2]), 1.0, atol=1e-9)
+
+
+def test_a_reading_warning_is_in_the_json_of_evaluate_too(tmp_path, capsys):
+    """Quaternions of length 2 were warned about on stderr while ``--json`` said
+    ``"warnings": []``."""
+    t = np.arange(5.0)
+    gt = _tum(tmp_path / "gt.tum", t, 0.01 * t)
+    est = tmp_path / "est.tum"
+    est.write_text("".join(f"{ti} {0.01 * ti} 0 0 0 0 0 2\n" for ti in t))
+    assert main(["evaluate", str(est), str(gt), "--json"]) == 0
+    out = capsys.readouterr()
+    expected = "5 quaternions are not of unit length (line 1: 2); read as their rotations"
+    assert any(expected in w for w in json.loads(out.out)["warnings"])
+    assert out.err.count(expected) == 1

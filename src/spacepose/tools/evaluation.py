@@ -132,7 +132,12 @@ def compare_trajectory_files(
         factor (mm against m).
     """
     est_path, gt_path = as_path(est_path, "est_path"), as_path(gt_path, "gt_path")
-    est, gt = read_trajectory(est_path), read_trajectory(gt_path)
+    with warnings.catch_warnings(record=True) as read:  # kept for the result too (--json)
+        warnings.simplefilter("always")
+        est, gt = read_trajectory(est_path), read_trajectory(gt_path)
+    for caught in read:
+        warnings.warn_explicit(caught.message, caught.category, caught.filename, caught.lineno)
+    read_notes = [str(caught.message) for caught in read]
     if gt_sensor_poses:
         gt = Trajectory(gt.timestamps, se3.invert(gt.poses), gt.source)
     _check_one_truth_per_time(gt.timestamps, gt_path)
@@ -173,7 +178,7 @@ def compare_trajectory_files(
         notes.extend(unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name, rebase_first))
     for note in notes:
         warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
-    return TrajectoryComparison(table, n_read, len(gt), rebase_first, tuple(notes))
+    return TrajectoryComparison(table, n_read, len(gt), rebase_first, (*read_notes, *notes))
 
 
 def shared_pairings(i_gt: np.ndarray) -> str | None:
