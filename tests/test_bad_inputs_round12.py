@@ -339,3 +339,17 @@ def test_a_reading_warning_is_in_the_json_of_evaluate_too(tmp_path, capsys):
     expected = "5 quaternions are not of unit length (line 1: 2); read as their rotations"
     assert any(expected in w for w in json.loads(out.out)["warnings"])
     assert out.err.count(expected) == 1
+
+
+def test_a_run_folder_of_npy_frames_says_a_run_takes_ply(orbit_run, tmp_path, capsys):
+    """A run whose frames were saved as .npy said "0 frame files in frames/", as if empty."""
+    run = tmp_path / "run"
+    shutil.copytree(orbit_run, run)
+    for path in (run / "frames").glob("*.ply"):
+        np.save(path.with_suffix(".npy"), read_cloud(path).points)
+        path.unlink()
+    assert main(["navigate", str(run), "--out", str(tmp_path / "nav.csv")]) == 1
+    assert capsys.readouterr().err.strip() == (
+        f"error: {run}: 0 frame files in frames/ but {NAV_FRAMES} poses in groundtruth.tum "
+        "(a run's frames are .ply; .npy files are not read)"
+    )

@@ -231,9 +231,13 @@ def read_run(path: str | Path) -> Run:
     frame_paths = _numbered_frames(root)
     _warn_of_timestamps(root)
     if len(frame_paths) != len(groundtruth):
+        other = sorted({p.suffix for p in (root / FRAMES_DIR).glob("[0-9]*") if p.is_file()})
+        other = [x for x in other if x.lower() != ".ply"]
+        # A run's frames are .ply: "0 frame files" alone read as an empty folder.
+        hint = f" (a run's frames are .ply; {', '.join(other)} files are not read)" if other else ""
         raise InputError(
             f"{len(frame_paths)} frame files in {FRAMES_DIR}/ but {len(groundtruth)} poses in "
-            f"{GROUNDTRUTH}",
+            f"{GROUNDTRUTH}{hint}",
             root,
         )
     truth = None
