@@ -37,7 +37,7 @@ from spacepose.errors import SpaceposeError
 # A registered frame: the estimate (None when registration failed), its status and reasons.
 Checked = tuple[FineEstimate | None, Status, tuple[str, ...]]
 # Most points the coarse stage describes. A surface at the coarse voxel holds a few hundred to a
-# few thousand (the lab run: about 1,000); a frame of depth noise filling a volume held 292,000,
+# few thousand (the lab run: about 1,450); a frame of depth noise filling a volume held 292,000,
 # and their FPFH and feature matching took 4.3 s. Beyond it the sparse cloud is thinned evenly.
 COARSE_POINTS = 10_000
 # Fine registration from an initial T_sensor_target, after a first pass at a wide gate (m), and
