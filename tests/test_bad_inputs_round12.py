@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from spacepose.cli import main
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
+from spacepose.core.config import validate_config
 from spacepose.core.frame_preparation import FramePreparer
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.nav_config import NavigationConfig
@@ -28,7 +29,8 @@ from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig, stage_lengths
 from spacepose.core.voxel import voxel_downsample
-from spacepose.errors import InputError, PredictionGapError, SpaceposeWarning
+from spacepose.errors import ConfigError, InputError, PredictionGapError, SpaceposeWarning
+from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.navigation_io import navigate_run
 from spacepose.tools.runs import write_run
@@ -352,4 +354,34 @@ def test_a_run_folder_of_npy_frames_says_a_run_takes_ply(orbit_run, tmp_path, ca
     assert capsys.readouterr().err.strip() == (
         f"error: {run}: 0 frame files in frames/ but {NAV_FRAMES} poses in groundtruth.tum "
         "(a run's frames are .ply; .npy files are not read)"
+    )
+
+
+# -- Config and catalogue messages ---------------------------------------------------------------
+
+
+def test_a_config_of_another_command_is_said_to_be_one(tmp_path, capsys):
+    """A tracker config given to ``navigate --config`` listed its 28 keys one by one, each
+    "Extra inputs are not permitted"."""
+    tracker_config = tmp_path / "tracker.json"
+    tracker_config.write_text(TrackerConfig().model_dump_json())
+    with pytest.raises(ConfigError) as caught:
+        validate_config(NavigationConfig, json.loads(tracker_config.read_text()), tracker_config)
+    assert str(caught.value) == (
+        f"{tracker_config}: none of its keys (method, points_per_frame, voxel_size, "
+        "keyframe_density, ...) is a navigation config's: a config of another command?"
+    )
+    # A config with one key of its own still lists what it does not know.
+    with pytest.raises(ConfigError, match=r"invalid navigation config: method: Extra inputs"):
+        validate_config(NavigationConfig, {"method": "x", "gate": 1, "voxel_size": 1, "ekf": {}})
+
+
+def test_a_catalogue_entrys_own_check_reads_as_its_words(tmp_path):
+    """An entry with a negative side said "<entry>: Value error, invalid catalogue entry: a:
+    Input should be greater than 0"."""
+    entry = {"name": "bus+x", "center": [0, 0, 0], "R_model_plane": np.eye(3).tolist()}
+    with pytest.raises(ConfigError) as caught:
+        parse_catalogue({"rectangles": [{**entry, "a": -1.4, "b": 2.0}]}, source="s.json")
+    assert str(caught.value) == (
+        "s.json: rectangle entry 0 ('bus+x'): a: Input should be greater than 0"
     )

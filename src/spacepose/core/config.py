@@ -47,7 +47,7 @@ class StageConfig(BaseModel):
         try:
             super().__init__(**data)
         except ValidationError as exc:
-            raise config_error(type(self), exc) from None
+            raise config_error(type(self), exc, data=data) from None
 
     @classmethod
     def model_validate(cls, obj: Any, **kwargs: Any) -> StageConfig:  # type: ignore[override]
@@ -55,7 +55,7 @@ class StageConfig(BaseModel):
         try:
             return super().model_validate(obj, **kwargs)
         except ValidationError as exc:
-            raise config_error(cls, exc) from None
+            raise config_error(cls, exc, data=obj) from None
 
 
 C = TypeVar("C", bound=BaseModel)
@@ -136,13 +136,17 @@ def holds_text(value: Any) -> bool:
 
 
 def config_error(
-    model: type[BaseModel], exc: ValidationError, source: str | Path | None = None
+    model: type[BaseModel],
+    exc: ValidationError,
+    source: str | Path | None = None,
+    data: object = None,
 ) -> ConfigError:
     """One-line :class:`ConfigError` listing every field ``exc`` rejects, as ``field: problem``.
 
     A nested StageConfig's own ConfigError (pydantic wraps it as a value error of the outer
     field) is unwrapped, so the line reads ``icp.max_iterations: ...``, not the inner message
-    inside the outer one. The (field, problem) pairs are kept as ``error.problems``.
+    inside the outer one. The (field, problem) pairs are kept as ``error.problems``. When
+    every key of ``data`` (the mapping validated) is unknown, the line says so once.
     """
     problems: list[tuple[str, str]] = []
     for err in exc.errors():
@@ -155,6 +159,17 @@ def config_error(
             problems.append((".".join(loc), err["msg"].removeprefix("Value error, ")))
     where = f"{source}: " if source else ""
     listed = "; ".join(f"{field}: {msg}" if field else msg for field, msg in problems)
+    extra = [field for field, msg in problems if msg == "Extra inputs are not permitted"]
+    keys = {str(k) for k in data} if isinstance(data, dict) else set()
+    if len(extra) >= 3 and keys and keys == set(extra):
+        # Every key unknown (a tracker config given to navigate listed 30 of them, one by one).
+        named = ", ".join(extra[:4]) + (", ..." if len(extra) > 4 else "")
+        error = ConfigError(
+            f"{where}none of its keys ({named}) is a {config_name(model)}'s: a config of "
+            "another command?"
+        )
+        error.problems = problems
+        return error
     error = ConfigError(f"{where}invalid {config_name(model)}: {listed}")
     error.problems = problems
     return error
@@ -180,7 +195,7 @@ def validate_config(model: type[C], data: dict | None, source: str | Path | None
     try:
         return model.model_validate(data or {})
     except ValidationError as exc:
-        raise config_error(model, exc, source) from None
+        raise config_error(model, exc, source, data) from None
     except ConfigError as exc:  # a StageConfig's own error, without the file
         raise ConfigError(f"{source}: {exc}" if source else str(exc)) from None
 

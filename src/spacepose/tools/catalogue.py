@@ -92,10 +92,7 @@ def parse_catalogue(
         try:
             entry = CatalogueEntry.model_validate(item)
         except ValidationError as exc:
-            problems = "; ".join(
-                f"{'.'.join(str(p) for p in err['loc']) or '<entry>'}: {err['msg']}"
-                for err in exc.errors()
-            )
+            problems = "; ".join(_entry_problem(err) for err in exc.errors())
             raise ConfigError(f"{source}: rectangle {label}: {problems}") from None
         # The model takes inf for a float (and the sides' gt=0 lets +inf through); a face at
         # infinity or of infinite size is no face.
@@ -220,3 +217,12 @@ def load_catalogue(
     path = Path(path)
     text = read_config_text(path, "the rectangle catalogue")
     return parse_catalogue(parse_structured(text, path), config, path)
+
+
+def _entry_problem(err: dict) -> str:
+    """One of pydantic's errors of a catalogue entry as ``field: problem`` (the entry's own
+    checks as their words alone: "<entry>: Value error, invalid catalogue entry: a: ..." was
+    shown as it came)."""
+    field = ".".join(str(p) for p in err["loc"])
+    message = err["msg"].removeprefix("Value error, ").removeprefix("invalid catalogue entry: ")
+    return f"{field}: {message}" if field else message
