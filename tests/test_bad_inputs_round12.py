@@ -17,6 +17,7 @@ from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import validate_config
 from spacepose.core.frame_preparation import FramePreparer
+from spacepose.core.gicp import gicp
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.nav_start import start_filter
@@ -385,3 +386,29 @@ def test_a_catalogue_entrys_own_check_reads_as_its_words(tmp_path):
     assert str(caught.value) == (
         "s.json: rectangle entry 0 ('bus+x'): a: Input should be greater than 0"
     )
+
+
+# -- GICP about a far origin ---------------------------------------------------------------------
+
+
+def test_gicp_of_clouds_a_kilometre_from_their_origin_is_gicp_of_them_at_home():
+    """A 5 m box 1 km from the origin (a map in world coordinates): every rotation about that
+    origin is a 1 km lever arm, and ``gicp`` called the surface degenerate (information
+    eigenvalues 0.27 .. 2.8e11). Solved about the target's centre, it is the same registration
+    as at the origin, to rounding."""
+    rng = np.random.default_rng(0)
+    box = rng.uniform(-2.5, 2.5, (4000, 3))
+    box[np.arange(4000), rng.integers(0, 3, 4000)] = rng.choice([-2.5, 2.5], 4000)
+    T_true = se3.make_transform(
+        Rotation.from_euler("xyz", [2.0, -1.0, 3.0], degrees=True), [0.2, -0.1, 0.05]
+    )
+    source = se3.transform_points(se3.invert(T_true), box) + rng.normal(0, 0.002, box.shape)
+    home = gicp(source, box, workers=2)
+    far = se3.make_transform(np.eye(3), [1000.0, -300.0, 50.0])
+    away = gicp(se3.transform_points(far, source), se3.transform_points(far, box), workers=2)
+    T = se3.invert(far) @ away.T_target_source @ far
+    np.testing.assert_allclose(T, home.T_target_source, atol=1e-8)
+    np.testing.assert_allclose(home.T_target_source, T_true, atol=2e-3)
+    Ad = se3.adjoint(se3.invert(far))  # the far run's twist, about the box's own origin
+    ratio = np.diag(Ad @ away.covariance(1.0) @ Ad.T) / np.diag(home.covariance(1.0))
+    np.testing.assert_allclose(ratio, 1.0, rtol=1e-4)

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from spacepose.core import se3
 from spacepose.core.se3 import real_array
 from spacepose.errors import DegenerateGeometryError, InputError
 
@@ -67,6 +68,17 @@ class RegistrationResult:
         """Ratio of the largest to the smallest eigenvalue of ``information`` (inf if singular)."""
         ev = np.linalg.eigvalsh(self.information)
         return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
+
+
+def moved_back(result: RegistrationResult, S: NDArray[np.float64]) -> RegistrationResult:
+    """``result`` of clouds both moved by the shift ``S`` (4, 4), for the clouds where they
+    were: the pose ``S⁻¹ T S`` and the information of the twist about the original origin."""
+    T = se3.invert(S) @ result.T_target_source @ S  # S is a shift: R is kept to the bit
+    information = result.information
+    if information is not None:
+        Ad = se3.adjoint(S)
+        information = Ad.T @ information @ Ad
+    return replace(result, T_target_source=T, information=information)
 
 
 def kabsch(

@@ -50,7 +50,7 @@ from spacepose.core.icp import ICPConfig, icp
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.pose_covariance import CLUSTER_VOXELS, clustered_covariance, wider_of
 from spacepose.core.ransac import global_registration
-from spacepose.core.registration import RegistrationResult
+from spacepose.core.registration import RegistrationResult, moved_back
 from spacepose.core.robust import RobustKernelName
 from spacepose.core.scale import point_spacing
 from spacepose.core.voxel import voxel_cells
@@ -350,7 +350,7 @@ def register(
     back = se3.adjoint(se3.invert(S))  # a left twist about the centre -> about the origin
     centroid = se3.transform_points(se3.invert(S), degeneracy.centroid[None])[0]
     return RegisterResult(
-        _moved_back(result, S),
+        moved_back(result, S),
         back @ covariance @ back.T,
         iterations,
         time.perf_counter() - tic,
@@ -359,7 +359,7 @@ def register(
         len(src),
         len(tgt),
         replace(degeneracy, centroid=centroid),
-        None if coarse is None else _moved_back(coarse, S),
+        None if coarse is None else moved_back(coarse, S),
     )
 
 
@@ -369,17 +369,6 @@ def _downsampled(cloud: PointCloud, voxel: float) -> PointCloud:
         return PointCloud(voxel_cells(cloud.points, voxel)[0], source=cloud.source)
     except InputError as exc:  # a voxel far too fine for the cloud's extent
         raise InputError(f"voxel {voxel:.4g} m: {exc.reason}", cloud.source) from None
-
-
-def _moved_back(result: RegistrationResult, S: NDArray[np.float64]) -> RegistrationResult:
-    """``result`` of clouds moved by ``S`` (4, 4), for the clouds where they were: the pose
-    ``S⁻¹ T S`` and the information of the twist about the original origin."""
-    T = se3.invert(S) @ result.T_target_source @ S  # S is a shift: R is kept to the bit
-    information = result.information
-    if information is not None:
-        Ad = se3.adjoint(S)
-        information = Ad.T @ information @ Ad
-    return replace(result, T_target_source=T, information=information)
 
 
 def _fine_registration(
