@@ -77,3 +77,14 @@ def test_too_few_cells_are_refused():
     points, normals, residuals = _pairs(n=30)
     with pytest.raises(RegistrationError, match="in 1 cells are too few"):
         clustered_covariance(points, normals, residuals, 10.0)
+
+
+def test_isotropic_covariances_carry_no_normal():
+    from spacepose.core.gicp_covariances import plane_normals
+    from spacepose.errors import InputError
+
+    n = np.array([[0.0, 0.6, 0.8]])
+    C = np.eye(3) - (1.0 - 1e-3) * n[:, :, None] * n[:, None, :]
+    np.testing.assert_allclose(np.abs(plane_normals(C)), np.abs(n), atol=1e-12)
+    with pytest.raises(InputError, match="carry no plane normal"):
+        plane_normals(np.eye(3)[None])

@@ -61,7 +61,11 @@ def plane_normals(C: NDArray[np.float64]) -> NDArray[np.float64]:
     M = np.eye(3) - C  # (1 − ε) n nᵀ: each column is n times a component of n
     diagonal = np.einsum("nii->ni", M)
     column = np.take_along_axis(M, np.argmax(diagonal, axis=1)[:, None, None], axis=2)[..., 0]
-    return column / np.linalg.norm(column, axis=1, keepdims=True)
+    length = np.linalg.norm(column, axis=1, keepdims=True)
+    if not np.all(length > 0):
+        # ε = 1 (isotropic covariances) holds no normal: 0/0 gave NaN normals without a word.
+        raise InputError("covariances with ε = 1 (isotropic) carry no plane normal")
+    return column / length
 
 
 def check_covariances(C: ArrayLike | None, n: int, name: str) -> NDArray[np.float64] | None:

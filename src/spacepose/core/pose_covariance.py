@@ -19,6 +19,9 @@ from spacepose.errors import RegistrationError
 
 # Edge of the cells whose residuals are taken as one correlated group, in voxels: a voxel's
 # centroids in two samplings are biased alike over a few neighbouring cells (an edge, a bend).
+# On noisy views of two meshes (20 seeds a case, the sandwich alone) cells of 1, 3 and 10 voxels
+# gave a worst-axis RMS error/σ of 1.16-1.99, 1.13-1.80 and 1.05-2.11 (6 voxels: 1.11, one case):
+# larger cells see more of a shared bias but are fewer, and their sum is noisier.
 CLUSTER_VOXELS = 3.0
 
 
