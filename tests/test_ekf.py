@@ -9,7 +9,8 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from spacepose.core import dynamics, se3
-from spacepose.core.ekf import EKFConfig, RelativeNavEKF
+from spacepose.core.ekf import RelativeNavEKF
+from spacepose.core.ekf_config import EKFConfig
 from spacepose.core.nav_state import NavState, discretise, k_from_params, params_from_k
 from spacepose.errors import InputError
 

@@ -10,7 +10,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
-from spacepose.core.ekf import EKFConfig, RelativeNavEKF
+from spacepose.core.ekf import RelativeNavEKF
+from spacepose.core.ekf_config import EKFConfig
 from spacepose.core.frame_check import HELD
 from spacepose.core.fused_navigation import GATE_REASON, FusedNavigator, FusionConfig
 from spacepose.core.nav_start import scenario_geometry

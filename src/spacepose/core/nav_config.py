@@ -5,7 +5,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from spacepose.core.config import StageConfig
-from spacepose.core.ekf import EKFConfig
+from spacepose.core.ekf_config import EKFConfig
 from spacepose.core.lost_in_space import LostInSpaceConfig
 from spacepose.core.planes import PlaneConfig
 from spacepose.core.rectangles import RectangleConfig

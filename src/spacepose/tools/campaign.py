@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from spacepose.core.config import load_structured
+from spacepose.core.structured_text import load_structured
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeError
 from spacepose.tools.campaign_cases import CaseFunction, Metrics, Scalar, get_runner
 from spacepose.tools.campaign_spec import (

@@ -27,8 +27,8 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from spacepose.core.cloud import MAX_ABS_COORDINATE
-from spacepose.core.config import parse_structured, read_config_text
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, side_tolerance
+from spacepose.core.structured_text import parse_structured, read_config_text
 from spacepose.errors import ConfigError, SpaceposeWarning
 
 # Longest side (m) of a catalogued face read without a warning: the ISS's truss, 109 m, is

@@ -13,10 +13,11 @@ import yaml
 from numpy.typing import ArrayLike
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import load_structured, parse_problem, read_mapping, validate_config
+from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.fused_navigation import FusionConfig, Measurements
 from spacepose.core.lost_in_space import with_sensor_fov
 from spacepose.core.navigation import NavigationConfig
+from spacepose.core.structured_text import load_structured, parse_problem
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.runs import SCENARIO, read_run

@@ -17,7 +17,8 @@ from numpy.typing import NDArray
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import holds_boolean, load_structured, parse_problem
+from spacepose.core.config import holds_boolean
+from spacepose.core.structured_text import load_structured, parse_problem
 from spacepose.errors import FileFormatError, InputError, RegistrationError, SpaceposeWarning
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_sensor_cloud
 from spacepose.tools.depth_folder import folder_camera

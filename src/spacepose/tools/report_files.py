@@ -15,7 +15,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from spacepose.core.config import load_structured, not_text, parse_problem
+from spacepose.core.structured_text import load_structured, not_text, parse_problem
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools.report_html import html_table
 

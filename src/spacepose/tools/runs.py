@@ -25,10 +25,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import load_structured
 from spacepose.core.sim.scenarios import TRUTH_COLUMNS
 from spacepose.core.sim.simulation import Simulation
 from spacepose.core.sim.targets import Rectangle
+from spacepose.core.structured_text import load_structured
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning

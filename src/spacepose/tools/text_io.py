@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from spacepose.core.config import not_a_file, not_text
 from spacepose.core.motion import order_problem
+from spacepose.core.structured_text import not_a_file, not_text
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 
 __all__ = ["as_path", "check_timing", "not_a_file", "read_text", "timing_problem"]
