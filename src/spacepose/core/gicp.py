@@ -30,7 +30,7 @@ from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import as_registration_cloud, target_index
 from spacepose.core.icp_systems import solve_normal_equations, system_from_sums
 from spacepose.core.neighbors import SearchIndex
-from spacepose.core.registration import RegistrationResult, moved_back
+from spacepose.core.registration import RegistrationResult, far_centre, moved_back
 from spacepose.core.robust import RobustConfig, robust_weights
 from spacepose.core.threads import numba_threads
 from spacepose.errors import InputError, RegistrationError
@@ -42,9 +42,6 @@ _LM_MAX_TRIALS = 10
 # Floor of the a-posteriori variance factor (m² per unit of the regularised covariance): an exact
 # fit (identical clouds) would otherwise give an infinite information matrix.
 _MIN_VARIANCE_FACTOR = 1e-12
-# A target whose centre lies further from its origin than this many RMS radii is solved about its
-# centre (a tracker's frames lie within tens of radii of their sensor: never moved).
-_FAR_RADII = 100.0
 
 
 class GICPConfig(RobustConfig):
@@ -147,12 +144,10 @@ def gicp(
         Cs = compute_covariances(src, config.k_covariance, config.epsilon, workers)
     if Ct is None:
         Ct = compute_covariances(tgt, config.k_covariance, config.epsilon, workers)
-    centre = tgt.points.mean(axis=0)
-    radius = float(np.sqrt(np.mean(np.sum((tgt.points - centre) ** 2, axis=1))))
-    if np.linalg.norm(centre) > _FAR_RADII * radius:
-        # Solved about the target's centre (its covariances do not move): about a far origin
-        # each rotation is a lever arm of that distance, and a 5 m box 1 km out was called
-        # degenerate (information eigenvalues 0.27 .. 2.8e11).
+    centre = far_centre(tgt.points)
+    if centre is not None:
+        # Solved about the target's centre (its covariances do not move): a 5 m box 1 km out
+        # was called degenerate (information eigenvalues 0.27 .. 2.8e11).
         S = se3.make_transform(np.eye(3), -centre)
         near = gicp(
             src.transformed(S), tgt.transformed(S), S @ T @ se3.invert(S), config, workers, Cs, Ct

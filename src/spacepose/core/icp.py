@@ -32,7 +32,7 @@ from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp_systems import point_to_point_information, solve_normal_equations
 from spacepose.core.neighbors import SearchIndex
 from spacepose.core.normals import NormalsConfig, estimate_normals
-from spacepose.core.registration import RegistrationResult, kabsch
+from spacepose.core.registration import RegistrationResult, far_centre, kabsch
 from spacepose.core.robust import RobustConfig
 from spacepose.errors import DegenerateGeometryError, InputError
 
@@ -188,13 +188,16 @@ def icp_correspondences(
     else:
         evaluate = Matcher(tree, tgt, src.points, gate, plane, config, workers)
 
+    # A target far from its origin (a tracker's frame 300 m from its sensor) is solved about
+    # its centre; its trees and normals stay as they are.
+    about = far_centre(tgt.points) if plane else None
     matches = evaluate(T)
     converged = False
     iterations = 0
     while iterations < config.max_iterations:
         iterations += 1
         if plane:
-            update = se3.exp(solve_normal_equations(*matches.system[:2]))
+            update = se3.exp(solve_normal_equations(*matches.system[:2], about=about))
         else:
             update = kabsch(matches.points, tgt.points[matches.tgt_idx], matches.weight_values)
         T = update @ T

@@ -225,12 +225,19 @@ def system_from_sums(total: NDArray[np.float64]) -> tuple[NDArray[np.float64], .
 
 
 def solve_normal_equations(
-    H: NDArray[np.float64], g: NDArray[np.float64], damping: float = 0.0
+    H: NDArray[np.float64],
+    g: NDArray[np.float64],
+    damping: float = 0.0,
+    about: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """Twist ``δ = −(H + damping·I)⁻¹ g``; raises when H leaves a direction unconstrained.
 
     The check is on the undamped H so that Levenberg-Marquardt damping cannot hide a
-    degenerate surface behind a well-conditioned system.
+    degenerate surface behind a well-conditioned system. ``about`` (3,): the system, of a
+    twist about the origin, is solved for the twist about this point instead and the result
+    returned about the origin: about a far origin every rotation is a lever arm of that
+    distance and a well-posed surface looks degenerate (a 0.5 m target 300 m out: information
+    eigenvalues 8e-5 .. 1e8).
 
     Raises
     ------
@@ -238,10 +245,16 @@ def solve_normal_equations(
         When the smallest eigenvalue of H is below 1e-12 of the largest (e.g. every
         correspondence lies on one plane, so three degrees of freedom are free).
     """
+    Ad = None
+    if about is not None:
+        # A twist ξ_c about c is ξ = Ad ξ_c about the origin: the cost in ξ_c has Adᵀ H Ad.
+        Ad = se3.adjoint(se3.make_transform(np.eye(3), about))
+        H, g = Ad.T @ H @ Ad, Ad.T @ g
     ev = np.linalg.eigvalsh(H)
     if ev[0] <= _DEGENERATE_RATIO * ev[-1]:
         raise DegenerateGeometryError(
             "the correspondences do not constrain all 6 degrees of freedom "
             f"(information eigenvalues {ev[0]:.3g} .. {ev[-1]:.3g}); the surface is degenerate"
         )
-    return -np.linalg.solve(H + damping * np.eye(len(H)), g)
+    delta = -np.linalg.solve(H + damping * np.eye(len(H)), g)
+    return delta if Ad is None else Ad @ delta

@@ -70,6 +70,20 @@ class RegistrationResult:
         return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
 
 
+# A cloud whose centre lies further from its origin than this many RMS radii is solved about its
+# centre: about its origin each rotation is a lever arm of that distance (a tracker's frames lie
+# within tens of radii of their sensor, and are solved as they are).
+FAR_RADII = 100.0
+
+
+def far_centre(points: NDArray[np.float64]) -> NDArray[np.float64] | None:
+    """The centroid (3,) of (N, 3) ``points`` when it lies more than :data:`FAR_RADII` RMS radii
+    from their origin, else None."""
+    centre = points.mean(axis=0)
+    radius = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
+    return centre if np.linalg.norm(centre) > FAR_RADII * radius else None
+
+
 def moved_back(result: RegistrationResult, S: NDArray[np.float64]) -> RegistrationResult:
     """``result`` of clouds both moved by the shift ``S`` (4, 4), for the clouds where they
     were: the pose ``S⁻¹ T S`` and the information of the twist about the original origin."""
