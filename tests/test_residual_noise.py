@@ -79,3 +79,22 @@ def test_a_candidates_measurements_are_set_aside_until_it_is_kept():
     noise.commit()
     assert noise.sigma == pytest.approx(0.004)
     assert noise.gate == pytest.approx(GATE_SIGMAS * 0.004)
+
+
+def test_the_accepted_factor_follows_the_accepted_frames_alone():
+    """The health bounds widen by the accepted frames' noise; the frame being checked does not
+    widen its own bounds (a garbage frame's residuals would excuse themselves)."""
+    noise = ResidualNoise(voxel_gate=0.005)
+    assert noise.accepted_factor == 1.0
+    noise.add(0.01)  # pending: this frame's own
+    assert noise.gate == pytest.approx(0.03) and noise.accepted_factor == 1.0
+    noise.commit()
+    assert noise.accepted_factor == pytest.approx(GATE_SIGMAS * 0.01 / 0.005)
+    noise.add(0.5)
+    assert noise.accepted_factor == pytest.approx(6.0)
+    noise.discard()
+    # Below the voxel gate's third the voxel sets the scale: never narrower than it.
+    quiet = ResidualNoise(voxel_gate=0.005)
+    quiet.add(0.0005)
+    quiet.commit()
+    assert quiet.accepted_factor == 1.0

@@ -3,6 +3,8 @@ frames against the simulator's ground truth."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -112,6 +114,13 @@ def test_health_bounds_follow_the_scale():
     # Against a model the ok fitness is the model's.
     model = HealthBounds.from_scale(HealthConfig(), 0.006, 0.25, model_reference=True)
     assert (model.ok_fitness, lab.ok_fitness) == (0.8, 0.6)
+    # Residual noise that widened the gate 2.5 times widens the RMSE bounds as much, and
+    # nothing else (the precision bounds catch σ the information claims on weak directions).
+    noisy = HealthBounds.from_scale(HealthConfig(), 0.006, 0.25, noise_factor=2.5)
+    assert noisy.ok_rmse == pytest.approx(2.5 * lab.ok_rmse, rel=1e-12)
+    assert noisy.lost_rmse == pytest.approx(2.5 * lab.lost_rmse, rel=1e-12)
+    assert replace(noisy, ok_rmse=lab.ok_rmse, lost_rmse=lab.lost_rmse) == lab
+    assert HealthBounds.from_scale(HealthConfig(), 0.006, 0.25, noise_factor=0.5) == lab
 
 
 def test_assess_health_bounds():

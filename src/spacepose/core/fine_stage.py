@@ -326,7 +326,8 @@ class FineStage:
         return check_frame(estimate, prepared, prediction, self._context(), self.model_based)
 
     def _context(self) -> CheckContext:
-        return CheckContext(self.config, self.frames.scale, self.motion)
+        noise = self.registrar.noise.accepted_factor
+        return CheckContext(self.config, self.frames.scale, self.motion, noise)
 
     def close_on_first(
         self, prepared: PreparedCloud, checked: Checked, prediction: Prediction | None

@@ -40,21 +40,26 @@ HELD = "its weakly observed directions held by the motion model's prediction"
 @dataclass(frozen=True)
 class CheckContext:
     """What a frame is checked against: the tracker's config, the lengths derived from the
-    first usable frame, and the motion model (its observed error and last poses)."""
+    first usable frame, the motion model (its observed error and last poses), and how many
+    times the voxel gate the accepted frames' residual noise asks for
+    (:attr:`~spacepose.core.residual_noise.ResidualNoise.accepted_factor`)."""
 
     config: TrackerConfig
     scale: DataScale
     motion: MotionModel
+    noise_factor: float = 1.0
 
 
 def health_bounds(context: CheckContext, model_based: bool) -> HealthBounds:
-    """The health bounds at the data's scale, widened by the motion model's observed error."""
+    """The health bounds at the data's scale, widened by the motion model's observed error
+    and the measured residual noise."""
     return HealthBounds.from_scale(
         context.config.health,
         context.scale.voxel,
         context.scale.radius,
         context.motion.model_error(),
         model_based,
+        context.noise_factor,
     )
 
 
@@ -164,6 +169,16 @@ def check_frame(
             *reasons,
             f"{CONDITION} of the coarse surfaces {free.condition:.3g} > {free.bound:.3g}: "
             f"{names} unconstrained",
+        )
+        status = "degraded"
+    scale = context.scale
+    if scale.surfaceless and status != "lost":
+        # Random points filling a volume register onto anything at a σ of their count: eight
+        # frames of a uniform cube were ok 11-14 σ off.
+        reasons = (
+            *reasons,
+            f"no surface: ranges along neighbouring rays spread {1e3 * scale.noise:.1f} mm, as "
+            f"the whole first frame's {1e3 * (scale.range_spread or 0.0):.1f} mm",
         )
         status = "degraded"
     if status == "ok" and not model_based and estimate.reference.unobserved:

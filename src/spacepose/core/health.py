@@ -69,14 +69,20 @@ class HealthBounds:
         radius: float,
         model_error: tuple[float, float] | None = None,
         model_reference: bool = False,
+        noise_factor: float = 1.0,
     ) -> HealthBounds:
         """Bounds for a voxel edge ``voxel`` (m) and a target radius ``radius`` (m).
 
         ``model_error`` is the motion model's observed RMS error (centroid displacement m,
         rotation rad); the prediction bounds widen to ``model_error_sigmas`` times it.
         ``model_reference``: frames are registered onto a model, and the ok fitness is
-        ``model_fitness``.
+        ``model_fitness``. ``noise_factor`` (>= 1): the measured residual noise widened the
+        fine gate this many times beyond its voxel value; the RMSE bounds widen as much, since
+        the inlier RMSE grows with the gate and the noise, so that a sensor noisier than its
+        sampling is not degraded for its noise alone. The precision bounds stay in voxels:
+        noise-sized σ is what they are there to flag.
         """
+        noisy = voxel * max(1.0, noise_factor)
 
         def deg_at_radius(voxels: float) -> float:
             return math.degrees(voxels * voxel / radius)
@@ -91,8 +97,8 @@ class HealthBounds:
             min_points=config.min_points,
             ok_fitness=config.model_fitness if model_reference else config.ok_fitness,
             lost_fitness=config.lost_fitness,
-            ok_rmse=config.ok_rmse * voxel,
-            lost_rmse=config.lost_rmse * voxel,
+            ok_rmse=config.ok_rmse * noisy,
+            lost_rmse=config.lost_rmse * noisy,
             ok_condition=config.ok_condition,
             lost_condition=config.lost_condition,
             ok_sigma_translation=config.ok_sigma_translation * voxel,

@@ -109,6 +109,17 @@ class ResidualNoise:
         return self.voxel_gate if sigma is None else max(self.voxel_gate, GATE_SIGMAS * sigma)
 
     @property
+    def accepted_factor(self) -> float:
+        """How many times the voxel gate the gate of the accepted frames alone is (>= 1): the
+        factor by which the measured noise, not the sampling, sets the registration's scale.
+        The current frame's own measurements are left out: a garbage frame's residuals must
+        not widen the bounds it is checked against."""
+        if not self._sigmas:
+            return 1.0
+        sigma = float(statistics.median(self._sigmas))
+        return max(1.0, GATE_SIGMAS * sigma / self.voxel_gate)
+
+    @property
     def window(self) -> float:
         """Distance (m) within which the next measurement takes pairs."""
         return WINDOW_GATES * self.gate

@@ -160,7 +160,8 @@ class TrackerState:
         )
 
     def _context(self) -> CheckContext:
-        return CheckContext(self.config, self._frames.scale, self._motion)
+        noise = 1.0 if self._registrar is None else self._registrar.noise.accepted_factor
+        return CheckContext(self.config, self._frames.scale, self._motion, noise)
 
     def _start(
         self, index: int, timestamp: float, prepared: PreparedCloud, times: dict[str, float]
