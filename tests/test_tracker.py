@@ -167,8 +167,13 @@ def test_bad_inputs():
     with pytest.raises(InputError, match="needs a model or a first tracked frame"):
         tracker.coarse_pose(np.zeros((500, 3)))
     tracker.track_frame(None, 5.0)
-    with pytest.raises(InputError, match="non-decreasing"):
+    with pytest.raises(InputError, match=r"must increase: 4\.0 comes before"):
         tracker.track_frame(None, 4.0)
+    # The same time twice (the CLI refuses it in a file) and nanoseconds since the epoch.
+    with pytest.raises(InputError, match=r"must increase: 5\.0 repeats"):
+        tracker.track_frame(None, 5.0)
+    with pytest.raises(InputError, match=r"1\.7e\+18 s is past the year 5000"):
+        tracker.track_frame(None, 1.7e18)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -27,18 +27,29 @@ _ERROR_WINDOW = 20
 SETTLED_TESTS = 6
 
 
+# Latest time read as seconds since the Unix epoch: 1e11 s is the year 5138, so a larger time
+# counts milliseconds, microseconds or nanoseconds (1.7e12, 1.7e15, 1.7e18 in 2024).
+LATEST_S = 1e11
+TIME_UNIT = "(times are seconds; milliseconds, microseconds or nanoseconds given?)"
+
+
 def next_timestamp(timestamp: float, last: float) -> float:
     """``timestamp`` as seconds, checked to come after ``last`` (s).
 
     Raises
     ------
     InputError
-        Not a number, not finite, or before ``last``.
+        Not a number, not finite, past :data:`LATEST_S` (another unit), or not after ``last``:
+        two frames at one time leave the motion between them undefined (the motion model
+        divided by a step of zero).
     """
     # Text and yes/no are no times: float() reads "2.0" and True (as track_sequence does not).
     t = se3.real_number(timestamp, "frame timestamp (s)")
-    if t < last:
-        raise InputError(f"frame timestamps must be non-decreasing, got {t} after {last}")
+    if abs(t) > LATEST_S:
+        raise InputError(f"a frame time of {t:.4g} s is past the year 5000 {TIME_UNIT}")
+    if t <= last:
+        what = "repeats" if t == last else "comes before"
+        raise InputError(f"frame timestamps must increase: {t} {what} the last frame's {last}")
     return t
 
 

@@ -5,6 +5,8 @@ frame (docs/methods.md §5). :class:`~spacepose.core.tracker.Tracker` runs the a
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -110,10 +112,14 @@ class TrackerState:
 
     def fits(self, result: TrackResult) -> bool:
         """Whether ``result`` was accepted with its registration's fitness and RMSE within
-        their ok bounds (:mod:`spacepose.core.health`)."""
-        if result.status == "lost" or self._frames.scale is None:
+        their ok bounds (:mod:`spacepose.core.health`), the RMSE's at the voxel: the residual
+        noise that widens it is measured on this tracker's own frames, and frames registered
+        onto a garbage first frame would excuse themselves. A run whose first frame holds no
+        surface never fits."""
+        scale = self._frames.scale
+        if result.status == "lost" or scale is None or scale.surfaceless:
             return False
-        bounds = health_bounds(self._context(), self.model_based)
+        bounds = health_bounds(replace(self._context(), noise_factor=1.0), self.model_based)
         return result.fitness >= bounds.ok_fitness and result.rmse <= bounds.ok_rmse
 
     def continue_at(self, index: int) -> None:

@@ -16,15 +16,12 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from spacepose.core.motion import order_problem
+from spacepose.core.motion import LATEST_S, TIME_UNIT, order_problem
 from spacepose.core.structured_text import not_a_file, not_text
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 
 __all__ = ["as_path", "check_timing", "not_a_file", "read_text", "timing_problem"]
 
-# Latest time read as seconds since the Unix epoch: 1e11 s is the year 5138, so a larger time
-# counts milliseconds, microseconds or nanoseconds (1.7e12, 1.7e15, 1.7e18 in 2024).
-_LATEST_S = 1e11
 # Widest median gap (s) between a sequence's frames: no sensor tracks or navigates a target at
 # one frame an hour; nanoseconds (3.3e7 at 30 Hz) or microseconds (33,333) are read so.
 _WIDEST_STEP_S = 3600.0
@@ -37,7 +34,6 @@ _SLOWEST_STEP_S = 10.0
 # is times in hours (9.3e-6 at 30 Hz) or days, or seconds converted twice.
 _NARROWEST_STEP_S = 1e-4
 _MS_CLOCK_STEPS = (10.0, 1000.0)
-_UNIT = "(times are seconds; milliseconds, microseconds or nanoseconds given?)"
 
 
 def as_path(path: str | Path, what: str = "path") -> Path:
@@ -79,8 +75,8 @@ def timing_problem(timestamps: ArrayLike) -> str | None:
     """Why a sequence's times cannot be its frames' times in seconds, or None.
 
     They must increase (:func:`~spacepose.core.motion.order_problem`), and be seconds: a time
-    beyond :data:`_LATEST_S` or a median step beyond :data:`_WIDEST_STEP_S` or below
-    :data:`_NARROWEST_STEP_S` is another unit.
+    beyond :data:`~spacepose.core.motion.LATEST_S` or a median step beyond
+    :data:`_WIDEST_STEP_S` or below :data:`_NARROWEST_STEP_S` is another unit.
     Read as seconds, nanoseconds were tracked a year a frame, and navigation integrated the
     orbit over each of those years (hours a frame, a run that never ended). So is a
     millisecond clock (:func:`_millisecond_clock`): a 30 Hz camera's 0, 33, 67, 100 were
@@ -91,12 +87,12 @@ def timing_problem(timestamps: ArrayLike) -> str | None:
     if problem is not None or len(stamps) == 0:
         return problem
     latest = float(np.max(np.abs(stamps)))
-    if latest > _LATEST_S:
-        return f"a time of {latest:.4g} s is past the year 5000 {_UNIT}"
+    if latest > LATEST_S:
+        return f"a time of {latest:.4g} s is past the year 5000 {TIME_UNIT}"
     if len(stamps) > 1:
         step = float(np.median(np.diff(stamps)))
         if step > _WIDEST_STEP_S:
-            return f"the frames are {step:.4g} s apart (median), more than an hour {_UNIT}"
+            return f"the frames are {step:.4g} s apart (median), more than an hour {TIME_UNIT}"
         if step < _NARROWEST_STEP_S:
             return (
                 f"the frames are {step:.4g} s apart (median), faster than any ToF camera or "
@@ -127,7 +123,7 @@ def _millisecond_clock(stamps: np.ndarray) -> str | None:
     return (
         f"whole-number times {step:g} apart (median) whose steps vary "
         f"({np.min(jitter):g} to {np.max(jitter):g}): a {1e3 / np.mean(steps):.3g} Hz camera's "
-        f"milliseconds, read as seconds a frame every {step:g} s {_UNIT}"
+        f"milliseconds, read as seconds a frame every {step:g} s {TIME_UNIT}"
     )
 
 
@@ -156,7 +152,7 @@ def check_timing(timestamps: ArrayLike, path: str | Path) -> None:
         warnings.warn(
             SpaceposeWarning(
                 f"the frames are {step:.4g} s apart (median), slower than a ToF camera or "
-                f"flash LiDAR frames (1-100 Hz) {_UNIT}",
+                f"flash LiDAR frames (1-100 Hz) {TIME_UNIT}",
                 path,
             ),
             stacklevel=3,
