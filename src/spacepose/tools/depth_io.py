@@ -321,15 +321,24 @@ def _warn_if_odd_pixels(values: NDArray, camera: DepthCamera, source: str | Path
             warnings.warn(SpaceposeWarning(problem, source), stacklevel=4)
     if camera.width is not None:
         return
+    problem = off_centre_problem(camera, width, height)
+    if problem is not None:
+        warnings.warn(SpaceposeWarning(problem, source), stacklevel=4)
+
+
+def off_centre_problem(camera: DepthCamera, width: int, height: int) -> str | None:
+    """Why intrinsics that give no image size look like another resolution's for a
+    ``width`` × ``height`` image (a principal point a fifth of the image or more from its
+    centre), or None."""
     off_x = abs(camera.cx - 0.5 * (width - 1)) / width
     off_y = abs(camera.cy - 0.5 * (height - 1)) / height
-    if max(off_x, off_y) >= _OFF_CENTRE:
-        problem = (
-            f"the principal point lies far from the image's centre: intrinsics of another "
-            f"resolution? (({camera.cx:g}, {camera.cy:g}) in a {width}x{height} image; give "
-            "width and height in the intrinsics to check them)"
-        )
-        warnings.warn(SpaceposeWarning(problem, source), stacklevel=4)
+    if max(off_x, off_y) < _OFF_CENTRE:
+        return None
+    return (
+        f"the principal point lies far from the image's centre: intrinsics of another "
+        f"resolution? (({camera.cx:g}, {camera.cy:g}) in a {width}x{height} image; give "
+        "width and height in the intrinsics to check them)"
+    )
 
 
 def _without_far_plane(values: NDArray, camera: DepthCamera, source: str | Path) -> DepthCamera:
