@@ -127,3 +127,15 @@ def test_a_depth_folder_warns_of_intrinsics_of_another_resolution(lab_frames, tm
     with warnings.catch_warnings():
         warnings.simplefilter("error", SpaceposeWarning)
         open_frames(tmp_path)
+
+
+# -- The Python API: millimetres and times as the CLI's readers check them ----------------------
+
+
+def test_the_tracker_warns_of_a_first_frame_in_millimetres(lab_frames):
+    tracker = Tracker(TrackerConfig(), workers=1)
+    with pytest.warns(SpaceposeWarning, match="first frame looks like millimetres"):
+        tracker.track_frame(1000.0 * lab_frames[0].cloud.points, 0.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        Tracker(TrackerConfig(), workers=1).track_frame(lab_frames[0].cloud.points, 0.0)

@@ -10,6 +10,7 @@ reference model at the frame's voxel. Every length it uses is derived on the fir
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -17,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
 from spacepose.core.background import remove_background
-from spacepose.core.cloud import PointCloud, as_cloud
+from spacepose.core.cloud import PointCloud, as_cloud, check_scale
 from spacepose.core.correspondences import find_correspondences
 from spacepose.core.gicp_covariances import compute_covariances
 from spacepose.core.keyframes import Keyframe, PreparedCloud
@@ -33,7 +34,7 @@ from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_objec
 from spacepose.core.target_cut import cut_to_target
 from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
 from spacepose.core.voxel import voxel_cells, voxel_downsample
-from spacepose.errors import DegenerateGeometryError, InputError
+from spacepose.errors import DegenerateGeometryError, InputError, SpaceposeWarning
 
 # A crop: center (3,) and radius (m), sensor frame.
 Sphere = tuple[NDArray[np.float64], float]
@@ -386,6 +387,15 @@ class FramePreparer:
         scale = derive_scale(first.points, cfg.points_per_frame, cfg.voxel_size)
         if scale.radius <= 0:
             raise InputError("the first frame has no extent: no scale to derive", first.source)
+        units = check_scale(first.points)
+        if units.millimetres:
+            # The file readers say so of a file; points given in code are checked here (a
+            # millimetre cloud was tracked ok, its translations in thousands of "metres").
+            problem = (
+                f"the first frame looks like millimetres ({units.extent:.0f} m across, median "
+                f"point spacing {units.spacing:.2f} m); the tracker works in metres"
+            )
+            warnings.warn(SpaceposeWarning(problem, first.source), stacklevel=6)
         self.lengths = stage_lengths(cfg, scale.voxel, scale.radius)
         self.scale = scale
 
