@@ -31,7 +31,7 @@ from spacepose.core.ransac import feature_ransac
 from spacepose.core.track_result import elapsed_ms
 from spacepose.core.tracker_config import StageLengths
 from spacepose.core.twins import FitComparison, compare_fits, principal_turns
-from spacepose.core.voxel import voxel_downsample
+from spacepose.core.voxel import evenly_thinned, voxel_downsample
 from spacepose.errors import SpaceposeError
 
 # A registered frame: the estimate (None when registration failed), its status and reasons.
@@ -57,10 +57,9 @@ def coarse_features(
     sign-sensitive); a frame's point towards the sensor.
     """
     if prepared.coarse is None:
-        sparse = voxel_downsample(prepared.cloud, lengths.coarse_voxel)
-        if len(sparse) > COARSE_POINTS:
-            # Every k-th cell in the grid's order: the thinning is spread over the cloud.
-            sparse = sparse.select(np.linspace(0, len(sparse) - 1, COARSE_POINTS).astype(np.intp))
+        sparse = evenly_thinned(
+            voxel_downsample(prepared.cloud, lengths.coarse_voxel), COARSE_POINTS
+        )
         if outward:
             centroid = sparse.points.mean(axis=0)
             sparse = estimate_normals(sparse, lengths.coarse_normals, centroid, workers)

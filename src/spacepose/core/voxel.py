@@ -374,3 +374,11 @@ def _block_count(keys, counts, table, bits, dims, i, stop):
                     if total >= stop:
                         return total
     return total
+
+
+def evenly_thinned(cloud: PointCloud, most: int) -> PointCloud:
+    """``cloud`` with at most ``most`` of its points: every k-th in its order (a grid's order
+    spreads the thinning over the cloud), the cloud itself when it holds no more."""
+    if len(cloud) <= most:
+        return cloud
+    return cloud.select(np.linspace(0, len(cloud) - 1, most).astype(np.intp))
