@@ -16,7 +16,7 @@ from spacepose.core.sim import simulate
 from spacepose.core.sim.scenarios import LabConfig
 from spacepose.core.tracker import Tracker
 from spacepose.core.tracker_config import TrackerConfig
-from spacepose.errors import SpaceposeWarning
+from spacepose.errors import ConfigError, SpaceposeWarning
 
 
 @pytest.fixture(scope="module")
@@ -170,3 +170,15 @@ def test_global_registration_describes_at_most_the_coarse_count(monkeypatch, lab
     result = register_module.register(*pair, config=config, workers=1)
     ((n_src, n_tgt, voxel),) = seen
     assert max(n_src, n_tgt) < COARSE_POINTS and voxel == result.voxel_size
+
+
+@pytest.mark.parametrize("scale", [0.01, 100.0])
+def test_a_bench_frame_scale_beyond_its_range_is_named(tmp_path, scale):
+    """100 ran the kernel out of 24 GB after 47 s without a word; 0.01 failed in the normals
+    without naming frame_scale."""
+    from spacepose.tools.bench import bench_config
+
+    path = tmp_path / "bench.yaml"
+    path.write_text(f"frame_scale: {scale}\n")
+    with pytest.raises(ConfigError, match="frame_scale"):
+        bench_config(quick=True, path=path)
