@@ -182,3 +182,21 @@ def test_a_bench_frame_scale_beyond_its_range_is_named(tmp_path, scale):
     path.write_text(f"frame_scale: {scale}\n")
     with pytest.raises(ConfigError, match="frame_scale"):
         bench_config(quick=True, path=path)
+
+
+def test_a_focal_length_of_one_pixel_is_named_not_the_depth_unit(lab_frames, tmp_path):
+    """fx = fy = 1 fans the rays out 138 m across at 1.2 m: reported as a map in millimetres,
+    its advice to check depth_scale; the depths were right."""
+    from spacepose.core.depth import DepthCamera, render_depth
+    from spacepose.tools.depth_io import depth_cloud
+
+    depth = render_depth(
+        lab_frames[0].cloud.points, DepthCamera(fx=150, fy=150, cx=79.5, cy=59.5), 120, 160
+    )
+    with pytest.warns(SpaceposeWarning, match="focal lengths of 1 and 1 px") as caught:
+        depth_cloud(depth, DepthCamera(fx=1, fy=1, cx=79.5, cy=59.5, depth_scale=1), "d.png", "x")
+    assert not any("millimetres" in str(w.message) for w in caught)
+    with pytest.warns(SpaceposeWarning, match="look like millimetres"):
+        depth_cloud(
+            1e3 * depth, DepthCamera(fx=150, fy=150, cx=79.5, cy=59.5, depth_scale=1), "d.png", "x"
+        )

@@ -41,6 +41,8 @@ Sphere = tuple[NDArray[np.float64], float]
 # The model culled at every pose keeps one point per cell of the frame's voxel over this (or
 # over ``keyframe_density`` when larger): its points stay on the mesh, with the mesh's normals.
 _MODEL_THINNING = 3.0
+# The name of a frame given as an array (a file reader's names its file).
+_GIVEN = "frame"
 
 
 class FramePreparer:
@@ -98,7 +100,7 @@ class FramePreparer:
         cfg = self.config
         if cloud is None:
             raise InputError("no points")
-        pc = as_cloud(cloud, "frame")
+        pc = as_cloud(cloud, _GIVEN)
         sphere = self._predicted_sphere(T_predicted, slack)
         # A first frame is checked for a line, a background is removed from the whole frame,
         # and the test of whether the target is the whole scene reads the whole frame.
@@ -387,10 +389,11 @@ class FramePreparer:
         scale = derive_scale(first.points, cfg.points_per_frame, cfg.voxel_size)
         if scale.radius <= 0:
             raise InputError("the first frame has no extent: no scale to derive", first.source)
-        units = check_scale(first.points)
-        if units.millimetres:
-            # The file readers say so of a file; points given in code are checked here (a
-            # millimetre cloud was tracked ok, its translations in thousands of "metres").
+        units = check_scale(first.points) if first.source in (None, _GIVEN) else None
+        if units is not None and units.millimetres:
+            # Points given in code (a millimetre cloud was tracked ok, its translations in
+            # thousands of "metres"); a file reader, which names its file, has said so, or
+            # what the unit's fault really was (a focal length of 1 px).
             problem = (
                 f"the first frame looks like millimetres ({units.extent:.0f} m across, median "
                 f"point spacing {units.spacing:.2f} m); the tracker works in metres"

@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from PIL import Image, UnidentifiedImageError
 
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import MM_MIN_EXTENT, PointCloud, check_scale
 from spacepose.core.depth import DepthCamera, depth_to_cloud
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, warn_if_not_metres, warn_if_too_near
@@ -302,8 +302,26 @@ def depth_cloud(
     except InputError as exc:
         raise _why_no_return(values, camera, source) or exc from None
     _warn_if_odd_pixels(values, camera, source)
-    warn_if_depth_units(cloud, source, remedy)
+    if not _warn_if_short_focal(cloud, camera, source):
+        warn_if_depth_units(cloud, source, remedy)
     return cloud
+
+
+def _warn_if_short_focal(cloud: PointCloud, camera: DepthCamera, source: str | Path) -> bool:
+    """Warn, and say so, when the points spread as millimetres do but their depths are metres:
+    the rays fan out too wide, from focal lengths far too short (``fx: 1`` was reported as a
+    map in millimetres, its advice to check ``depth_scale``)."""
+    check = check_scale(cloud.points)
+    depth = float(np.median(cloud.points[:, 2]))
+    if not check.millimetres or abs(depth) >= MM_MIN_EXTENT:
+        return False
+    problem = (
+        f"the points spread {check.extent:.3g} m across at a median depth of {depth:.3g} m: "
+        f"focal lengths of {camera.fx:g} and {camera.fy:g} px fan the rays out too wide "
+        "(check fx and fy in the intrinsics)"
+    )
+    warnings.warn(SpaceposeWarning(problem, source), stacklevel=4)
+    return True
 
 
 def _warn_if_odd_pixels(values: NDArray, camera: DepthCamera, source: str | Path) -> None:
