@@ -108,14 +108,16 @@ class Tracker(TrackerState):
         timestamp: float,
         prior: tuple[ArrayLike, ArrayLike] | None,
     ) -> TrackResult:
-        timestamp = self._last_timestamp = next_timestamp(timestamp, self._last_timestamp)
+        timestamp = next_timestamp(timestamp, self._last_timestamp)
+        if prior is not None and not (isinstance(prior, tuple | list) and len(prior) == 2):
+            raise InputError("prior must be a pair (T_sensor_target (4, 4), covariance (6, 6))")
+        prediction = self._predict(timestamp) if prior is None else Prediction.given(*prior)
+        # Only a frame taken moves the clock on: a call refused above leaves its time free.
+        self._last_timestamp = timestamp
         self._t_start = time.perf_counter()
         index = self._index
         self._index += 1
         times = dict.fromkeys(STAGES, 0.0)
-        if prior is not None and not (isinstance(prior, tuple | list) and len(prior) == 2):
-            raise InputError("prior must be a pair (T_sensor_target (4, 4), covariance (6, 6))")
-        prediction = self._predict(timestamp) if prior is None else Prediction.given(*prior)
 
         tic = time.perf_counter()
         try:
