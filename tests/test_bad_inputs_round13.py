@@ -200,3 +200,16 @@ def test_a_focal_length_of_one_pixel_is_named_not_the_depth_unit(lab_frames, tmp
         depth_cloud(
             1e3 * depth, DepthCamera(fx=150, fy=150, cx=79.5, cy=59.5, depth_scale=1), "d.png", "x"
         )
+
+
+def test_register_of_a_metre_cloud_onto_a_millimetre_one_names_the_units(lab_frames):
+    """The metre cloud, at the voxel the millimetre one set (7.9 m), held 2 points, and the
+    error blamed it: "do its points all coincide?"."""
+    from spacepose.core.cloud import PointCloud
+    from spacepose.errors import InputError
+    from spacepose.tools.register import register
+
+    metres = PointCloud(lab_frames[0].cloud.points, source="a.npy")
+    millimetres = PointCloud(1e3 * lab_frames[1].cloud.points, source="b_mm.npy")
+    with pytest.raises(InputError, match=r"a.npy and b_mm.npy: the clouds differ .*the same unit"):
+        register(metres, millimetres, workers=1)

@@ -216,25 +216,20 @@ def derived_voxel(scales: list[CloudScale], config: RegisterConfig) -> float:
     return voxel
 
 
-def _warn_if_units_differ(scales: list[CloudScale], source: PointCloud, target: PointCloud) -> None:
-    """Warn when the two clouds differ by a unit's factor in size and in spacing alike (a scan in
-    millimetres onto one in metres): the registration then fails far from the cause, as "0
-    correspondences within 140 m; the initial guess is too far off". A partial scan against a
-    map differs in size, not in spacing."""
+def _unit_problem(scales: list[CloudScale]) -> str | None:
+    """Why the two clouds look like two units, or None: they differ by a unit's factor in size
+    and in spacing alike (a scan in millimetres onto one in metres), which fails far from the
+    cause, as "0 correspondences within 140 m; the initial guess is too far off". A partial
+    scan against a map differs in size, not in spacing."""
     small, large = sorted(scales, key=lambda s: s.radius)
     if min(small.radius, small.spacing) <= 0:  # coincident points: refused below as such
-        return
+        return None
     if large.radius > _UNIT_FACTOR * small.radius and large.spacing > _UNIT_FACTOR * small.spacing:
-        names = f"{source.source or 'source'} and {target.source or 'target'}"
-        factor = large.radius / small.radius
-        warnings.warn(
-            SpaceposeWarning(
-                f"the clouds differ {factor:.3g}-fold in size and spacing (radius "
-                f"{scales[0].radius:.3g} m and {scales[1].radius:.3g} m): the same unit?",
-                names,
-            ),
-            stacklevel=3,
+        return (
+            f"the clouds differ {large.radius / small.radius:.3g}-fold in size and spacing "
+            f"(radius {scales[0].radius:.3g} m and {scales[1].radius:.3g} m): the same unit?"
         )
+    return None
 
 
 def gate_schedule(fine_gate: float, start_gate: float) -> tuple[float, ...]:
@@ -290,7 +285,8 @@ def register(
         if len(cloud) < 3:
             raise InputError(f"{len(cloud)} point(s): a rigid fit needs 3", cloud.source)
     scales = [cloud_scale(c, config.seed) for c in (source, target)]
-    _warn_if_units_differ(scales, source, target)
+    unit_problem = _unit_problem(scales)
+    names = f"{source.source or 'source'} and {target.source or 'target'}"
     voxel = config.voxel_size or derived_voxel(scales, config)
     for cloud, scale in zip((source, target), scales, strict=True):
         if config.voxel_size is not None and voxel > scale.radius:
@@ -310,12 +306,17 @@ def register(
     src, tgt = (_downsampled(cloud.transformed(S), voxel) for cloud in (source, target))
     T = S @ T @ se3.invert(S)
     for cloud in (src, tgt):
+        if len(cloud) < 3 and unit_problem is not None:
+            # The voxel is the larger cloud's: the smaller one, not its points, is the fault.
+            raise InputError(unit_problem, names)
         if len(cloud) < 3:
             raise InputError(
                 f"{len(cloud)} distinct point(s) at the {voxel:.4g} m voxel: a rigid fit needs 3 "
                 "(do its points all coincide?)",
                 cloud.source,
             )
+    if unit_problem is not None:
+        warnings.warn(SpaceposeWarning(unit_problem, names), stacklevel=2)
     coarse = None
     fine_gate = config.gate_voxels * voxel
     start = config.start_radius_fraction * max(s.radius for s in scales)
