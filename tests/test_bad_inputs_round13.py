@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
+from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
@@ -110,8 +111,6 @@ def test_a_depth_folder_warns_of_intrinsics_of_another_resolution(lab_frames, tm
     """Half-resolution intrinsics without a size: the folder's images set the size first, and
     the frame's own check (which looks for a size the intrinsics lack) never spoke; tracked
     21 mm / 1.6° off (ATE) against 0.9 mm with the right intrinsics, without a word."""
-    from PIL import Image
-
     from spacepose.core.depth import DepthCamera, render_depth
     from spacepose.tools.frames import open_frames
 
@@ -213,3 +212,37 @@ def test_register_of_a_metre_cloud_onto_a_millimetre_one_names_the_units(lab_fra
     millimetres = PointCloud(1e3 * lab_frames[1].cloud.points, source="b_mm.npy")
     with pytest.raises(InputError, match=r"a.npy and b_mm.npy: the clouds differ .*the same unit"):
         register(metres, millimetres, workers=1)
+
+
+# -- Messages that named the wrong thing -------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["bench", "--seed", "-1"], "'--seed'"),
+        (["experiment", "li-l1", "--seed", "-1"], "'--seed'"),
+        (["simulate", "lab", "--motion", "tumbling-360", "--out", "sim"], "motion 'tumbling-360'"),
+    ],
+)
+def test_a_bad_option_is_named_as_given(tmp_path, monkeypatch, capsys, args, message):
+    """A negative seed said "invalid lab config: seed", a tumble of 360° a frame named the
+    scenario's tumble_deg field: neither is what the user typed."""
+    from spacepose.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(args) != 0
+    assert message in capsys.readouterr().err
+
+
+def test_an_experiment_out_under_a_file_and_intrinsics_that_are_a_folder(tmp_path, capsys):
+    from spacepose.cli import main
+
+    (tmp_path / "afile").write_text("x")
+    assert main(["experiment", "li-l1", "--quick", "--out", str(tmp_path / "afile")]) != 0
+    assert "afile: it is a regular file" in capsys.readouterr().err
+    folder = tmp_path / "depth"
+    (folder / "intrinsics.yaml").mkdir(parents=True)
+    Image.fromarray(np.full((4, 4), 1000, dtype=np.uint16)).save(folder / "000000.png")
+    assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) != 0
+    assert "intrinsics.yaml is a folder, not a file" in capsys.readouterr().err

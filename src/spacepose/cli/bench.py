@@ -16,7 +16,7 @@ def bench(
     quick: bool = typer.Option(False, help="320x240 frames, scaling up to 20k points."),
     peers: bool = typer.Option(False, help="Also time Open3D and small_gicp (peers extra)."),
     repeats: int = typer.Option(5, help="Timed calls per stage and contender."),
-    seed: int = typer.Option(0, help="Seed of the simulated frames and of every RANSAC."),
+    seed: int = typer.Option(0, min=0, help="Seed of the simulated frames and of every RANSAC."),
     workers: int = typer.Option(-1, help="Threads for every contender (-1: all cores)."),
     config: Path | None = typer.Option(
         None, help="YAML/JSON file of benchmark options overriding the (--quick) defaults."

@@ -13,7 +13,7 @@ from spacepose.cli.app import app, console
 def demo(
     out: Path = typer.Option(Path("runs/demo"), help="Folder for the runs and report.html."),
     orbit_frames: int = typer.Option(600, min=20, help="Frames of the orbit run."),
-    seed: int = typer.Option(0, help="Seed of the simulations and experiments."),
+    seed: int = typer.Option(0, min=0, help="Seed of the simulations and experiments."),
     workers: int = typer.Option(-1, help="Threads for neighbour searches (-1: all cores)."),
 ) -> None:
     """Run the lab (Li et al.) and orbit (Yu et al.) pipelines end to end and print both tables."""

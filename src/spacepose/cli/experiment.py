@@ -18,7 +18,7 @@ def experiment(
         ..., help="li-l1 ... li-l4, li-global, yu-y1 ... yu-y4, robustness, fusion, room"
     ),
     out: Path = typer.Option(Path("runs/experiments"), help="Folder; NAME/ is created inside."),
-    seed: int = typer.Option(0, help="Seed of every random draw."),
+    seed: int = typer.Option(0, min=0, help="Seed of every random draw."),
     quick: bool = typer.Option(False, help="Smaller sizes, for a smoke run."),
     workers: int = typer.Option(-1, help="Threads for neighbour searches (-1: all cores)."),
     seeds: int = typer.Option(

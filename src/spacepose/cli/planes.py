@@ -27,7 +27,7 @@ def planes(
     threshold: float = typer.Option(0.005, help="Plane thickness d (m) for RANSAC inliers."),
     min_inliers: int = typer.Option(50, help="Stop when a plane has fewer inliers."),
     max_planes: int = typer.Option(10, help="Largest number of planes to extract."),
-    seed: int = typer.Option(0, help="Seed of the RANSAC sampling."),
+    seed: int = typer.Option(0, min=0, help="Seed of the RANSAC sampling."),
     as_json: bool = typer.Option(False, "--json", help="Print a JSON list instead of a table."),
 ) -> None:
     """List the planes of FILE with centroid, normal, eigenvalues, sides and recognised name.

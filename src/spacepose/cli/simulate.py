@@ -15,7 +15,7 @@ def simulate(
     scenario: str = typer.Argument(..., help="lab or orbit"),
     out: Path = typer.Option(..., help="Run folder to write."),
     frames: int | None = typer.Option(None, help="Number of frames (default: 58 lab, 600 orbit)."),
-    seed: int = typer.Option(0, help="Seed of every random draw."),
+    seed: int = typer.Option(0, min=0, help="Seed of every random draw."),
     sensor: str | None = typer.Option(
         None,
         help="tof, tof-clean, tof-paper, flash-lidar, flash-lidar-clean, flash-lidar-edges or "

@@ -32,7 +32,7 @@ from spacepose.core.depth import DepthCamera
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools import depth_folder, depth_io, intrinsics_io
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_cloud, warn_if_too_near
-from spacepose.tools.text_io import check_timing, read_text
+from spacepose.tools.text_io import check_timing, not_a_file, read_text
 
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
 TIMESTAMPS_FILE = "timestamps.txt"
@@ -346,6 +346,11 @@ def _open_depth_folder(
     from ``source`` (see :func:`~spacepose.tools.depth_folder.folder_camera`), checked at their
     size (:func:`~spacepose.tools.intrinsics_io.check_camera`)."""
     if camera is None:
+        for name in intrinsics_io.INTRINSICS_FILES:
+            problem = not_a_file(root / name)
+            if (root / name).exists() and problem is not None:
+                # Found by its name, yet no file to read: said so, not "put it in the folder".
+                raise InputError(f"depth images need intrinsics: {name} is {problem}", root)
         raise InputError(
             f"depth images need intrinsics: put {intrinsics_io.INTRINSICS_FILES[0]} (fx, fy, cx, "
             "cy, depth_scale) in the folder or give --intrinsics",

@@ -38,7 +38,11 @@ def motion_fields(motion: str) -> dict[str, object]:
     """
     tumbling = _TUMBLING.fullmatch(motion)
     if tumbling:
-        return {"motion": "tumbling", "tumble_deg": float(tumbling.group(1))}
+        degrees = float(tumbling.group(1))
+        if not 0.0 < degrees <= 90.0:
+            # Named as given, not as the scenario's tumble_deg field a user never wrote.
+            raise ConfigError(f"motion {motion!r}: D must lie in (0, 90] degrees a frame")
+        return {"motion": "tumbling", "tumble_deg": degrees}
     if motion in ("constant", "accelerating"):
         return {"motion": motion}
     raise ConfigError(

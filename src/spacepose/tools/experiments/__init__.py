@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from spacepose.errors import ConfigError, SpaceposeError
+from spacepose.tools.outputs import check_writable
 
 # Modules that register experiments when imported.
 _MODULES: tuple[str, ...] = (
@@ -128,6 +129,8 @@ def run_experiment(name: str, out_dir: str | Path, options: ExperimentOptions) -
         raise ConfigError(f"unknown experiment {name!r}; choose one of: {', '.join(names)}")
     check_options(name, options)
     out = Path(out_dir)
+    # A file where a folder goes is named, as every command's output check does.
+    check_writable(out / f"{name}.json")
     # The folders this run makes, deepest first: a run refused before it writes (a bad cell,
     # a config it cannot read) leaves no empty folders behind.
     made = [p for p in (out, *out.parents) if not p.exists()]
