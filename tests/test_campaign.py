@@ -302,6 +302,18 @@ def test_same_seed_same_metrics_other_seed_different():
             },
             "unknown sensor 'sonar'",
         ),
+        (
+            {
+                "case_kind": "registration",
+                "grid": {
+                    **GRID_24,
+                    "scenario": ["lab"],
+                    "method": ["gicp"],
+                    "perturbation_deg": [1000],
+                },
+            },
+            "perturbation_deg values must be numbers >= 0 and <= 180, got [1000]",
+        ),
     ],
 )
 def test_bad_config_is_a_config_error_naming_the_file(tmp_path, capsys, fields, expected):

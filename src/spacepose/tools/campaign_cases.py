@@ -10,6 +10,7 @@ scored against the truth). They are registered when this module is imported, whi
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -42,6 +43,7 @@ class Bound:
     low: float
     strict: bool = False
     integer: bool = False
+    high: float = math.inf
 
     def problem(self, axis: str, values: Sequence[Scalar]) -> str | None:
         """What is wrong with an axis' values (None: nothing)."""
@@ -55,10 +57,12 @@ class Bound:
             return None
         what = "integers" if self.integer else "numbers"
         above = f"{'>' if self.strict else '>='} {self.low:g}"
-        return f"{axis} values must be {what} {above}, got {bad}"
+        below = f" and <= {self.high:g}" if self.high < math.inf else ""
+        return f"{axis} values must be {what} {above}{below}, got {bad}"
 
     def _within(self, value: float) -> bool:
-        return value > self.low if self.strict else value >= self.low
+        above = value > self.low if self.strict else value >= self.low
+        return above and value <= self.high
 
 
 @dataclass(frozen=True)
@@ -173,7 +177,8 @@ def _registration_params(params: Mapping[str, Scalar]) -> dict[str, Any]:
     },
     extra_axes=("sensor", "perturbation_deg", "perturbation_mm", "max_correspondence_mm"),
     bounds={
-        "perturbation_deg": Bound(0.0),
+        # A turn of more than half a turn is a smaller one the other way.
+        "perturbation_deg": Bound(0.0, high=180.0),
         "perturbation_mm": Bound(0.0),
         # ICP and GICP need a gate above zero.
         "max_correspondence_mm": Bound(0.0, strict=True),
