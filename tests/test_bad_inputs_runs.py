@@ -50,7 +50,7 @@ def no_runs(monkeypatch: pytest.MonkeyPatch) -> None:
     [
         ("target=moon", ("unknown target 'moon'", "lab, hubble, panels")),
         ("motion=spin", ("unknown motion 'spin'",)),
-        ("motion=tumbling-1000", ("tumbling-1000", "tumble_deg")),
+        ("motion=tumbling-1000", ("tumbling-1000", "(0, 90]")),
         ("clutter=forest", ("unknown clutter 'forest'",)),
         ("range=-1", ("range -1 ",)),
         ("range=0", ("range 0 ",)),

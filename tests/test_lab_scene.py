@@ -117,7 +117,7 @@ def test_grid_errors_are_one_line() -> None:
         grid_scenario(clutter="forest")
     with pytest.raises(ConfigError, match="unknown sensor 'sonar'"):
         grid_scenario(sensor="sonar")
-    with pytest.raises(ConfigError, match="tumble_deg"):
+    with pytest.raises(ConfigError, match=r"motion .tumbling-120.: D must lie in \(0, 90\]"):
         grid_scenario(motion="tumbling-120")
     with pytest.raises(ConfigError, match="range"):
         grid_scenario(range_m=-1.0)

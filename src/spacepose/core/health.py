@@ -26,6 +26,8 @@ Status = Literal["ok", "degraded", "lost"]
 # Reason of a registration that leaves a direction (nearly) unobserved: a view of a wall and a
 # floor alone lets the pose slide along their corner.
 CONDITION = "condition"
+# Reason of a pose no prediction was there to confirm (a coarse pose found anywhere).
+UNCONFIRMED = "no prediction to confirm the pose"
 
 
 @dataclass(frozen=True)
@@ -251,7 +253,7 @@ def assess_health(
             "out moves the pose beyond its sigma"
         )
     if disagreement is None:
-        weak.append("no prediction to confirm the pose")
+        weak.append(UNCONFIRMED)
     else:
         dt, dr = disagreement
         ok_t, ok_r = b.ok_prediction_translation, b.ok_prediction_rotation_deg

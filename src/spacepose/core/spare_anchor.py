@@ -63,13 +63,23 @@ class SpareAnchor:
         self._config, self._workers = config, workers
         self.tracker: Tracker | None = None
         self._unfit = 0
+        # A pose found with no prediction to confirm it (a coarse jump) came between: later
+        # fits confirm it, not the first frame.
+        self._jumped = False
 
     def follow(
-        self, frame: Frame, result: TrackResult, first: TrackResult | None, fits: bool
+        self,
+        frame: Frame,
+        result: TrackResult,
+        first: TrackResult | None,
+        fits: bool,
+        jumped: bool = False,
     ) -> tuple[bool, tuple[Tracker, TrackResult] | None]:
         """Follow the run's tracker's ``result`` on ``frame`` ``(cloud, timestamp)``, its first
         frame's result ``first`` (None before it); ``fits``: the result is accepted and fits
-        (fitness and RMSE within their ok bounds, :meth:`TrackerState.fits`).
+        (fitness and RMSE within their ok bounds, :meth:`TrackerState.fits`); ``jumped``: it
+        is a coarse jump beyond any motion from the first frame (:meth:`TrackerState.jumped`),
+        and no later fit confirms the first frame.
 
         Returns
         -------
@@ -85,7 +95,8 @@ class SpareAnchor:
         """
         if first is None or result.index == first.index:
             return True, None
-        if fits:
+        self._jumped = self._jumped or jumped
+        if fits and not self._jumped:
             return False, None
         if result.status != "lost":
             self._unfit += 1

@@ -260,8 +260,8 @@ class Tracker(TrackerState):
         """Model-free, until a frame after the first is accepted (core.spare_anchor). The
         frame's time counts both trackers'."""
         tic = time.perf_counter()
-        fits = self.fits(result)
-        needed, adopted = self._spare.follow((cloud, timestamp), result, self._first, fits)
+        fits, jumped = self.fits(result), self.jumped(result)
+        needed, adopted = self._spare.follow((cloud, timestamp), result, self._first, fits, jumped)
         if adopted is None:
             self._spare = self._spare if needed else None
             return with_time(result, elapsed_ms(tic))

@@ -15,7 +15,7 @@ from spacepose.core.fine_stage import FineStage
 from spacepose.core.frame_check import CheckContext, health_bounds
 from spacepose.core.frame_preparation import FramePreparer, checked_model
 from spacepose.core.frame_registration import FrameRegistrar
-from spacepose.core.health import Status, pose_disagreement
+from spacepose.core.health import UNCONFIRMED, Status, pose_disagreement
 from spacepose.core.keyframe_window import KeyframeWindow
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 from spacepose.core.motion import MotionModel, Prediction
@@ -82,6 +82,7 @@ class TrackerState:
         # Model-free: the first frame's result, and a spare tracker while no later frame has
         # confirmed it (core.spare_anchor).
         self._first: TrackResult | None = None
+        self._first_centroid = np.zeros(3)
         self._spare = None if model is not None else SpareAnchor(config, workers)
 
     @property
@@ -121,6 +122,21 @@ class TrackerState:
             return False
         bounds = health_bounds(replace(self._context(), noise_factor=1.0), self.model_based)
         return result.fitness >= bounds.ok_fitness and result.rmse <= bounds.ok_rmse
+
+    def jumped(self, result: TrackResult) -> bool:
+        """Whether ``result`` is a pose no prediction confirmed that moves the first frame's
+        target farther than it can move in the frames between (the largest motion a frame of
+        the health check): a coarse jump onto a glitched first frame (moved 1 km), which later
+        fits confirm instead of the first frame."""
+        if self._first is None or result.status == "lost" or UNCONFIRMED not in result.reasons:
+            return False
+        bounds = health_bounds(self._context(), self.model_based)
+        frames = max(1, result.index - self._first.index)
+        moved, turned = pose_disagreement(result.T_sensor_target, np.eye(4), self._first_centroid)
+        return (
+            moved > frames * bounds.max_motion_translation
+            or turned > frames * bounds.max_motion_rotation_deg
+        )
 
     def continue_at(self, index: int) -> None:
         """Number the next frame ``index``: the frames before it went to another tracker (a
@@ -175,6 +191,7 @@ class TrackerState:
         """Model-free: the first usable frame defines the target frame (pose identity)."""
         T, cov = np.eye(4), np.zeros((6, 6))
         first = Keyframe(index, prepared, T, cov, timestamp=timestamp, dense=self._dense(prepared))
+        self._first_centroid = prepared.centroid
         self._window.restart(first)
         self._support.first = first
         self._motion.accept(timestamp, T, cov, None, restart=True)

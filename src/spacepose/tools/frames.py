@@ -382,29 +382,29 @@ def _open_depth_folder(
             ),
             stacklevel=3,
         )
-    camera = _sized(camera, paths, source)
-    intrinsics_io.check_camera(camera, source)
+    sized = _sized(camera, paths)
+    intrinsics_io.check_camera(sized, source)
+    if camera.width is None and sized.width is not None:
+        # The frames' own check looks for a size the intrinsics lack; the folder gave one.
+        problem = depth_io.off_centre_problem(sized, sized.width, sized.height)
+        if problem is not None:
+            warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
+    camera = sized
     loader = partial(depth_io.read_depth_cloud, camera=camera)
     return FrameSequence(paths, timestamps, loader=loader)
 
 
-def _sized(camera: DepthCamera, paths: Sequence[Path], source: str | Path) -> DepthCamera:
+def _sized(camera: DepthCamera, paths: Sequence[Path]) -> DepthCamera:
     """``camera`` with the sequence's image size where its intrinsics give none: the size most
     of its images have (read from their headers). One camera makes every frame, and an image
     of another size (a frame of another stream) would be back-projected with the wrong
-    principal point without a word. Intrinsics whose principal point lies far from that size's
-    centre are warned about once (``source``: the intrinsics): a frame's own check, which
-    looks for a size the intrinsics lack, no longer would."""
+    principal point without a word."""
     if camera.width is not None and camera.height is not None:
         return camera
     sizes = Counter(size for size in map(depth_io.image_size, paths) if size is not None)
     if not sizes:
         return camera  # each frame's own error is reported when it is read
     (width, height), _ = sizes.most_common(1)[0]
-    if camera.width is None:
-        problem = depth_io.off_centre_problem(camera, width, height)
-        if problem is not None:
-            warnings.warn(SpaceposeWarning(problem, source), stacklevel=4)
     size = {"width": width, "height": height}
     return camera.model_copy(update={k: v for k, v in size.items() if getattr(camera, k) is None})
 
