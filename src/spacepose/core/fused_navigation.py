@@ -82,7 +82,10 @@ class FusionConfig(StageConfig):
         default_factory=NavigationConfig, description="The filter and the rectangle pipeline."
     )
     tracker: TrackerConfig = Field(
-        default_factory=TrackerConfig, description="The model-based tracker giving the poses."
+        default_factory=lambda: TrackerConfig(range_bias=0.0),
+        description="The model-based tracker giving the poses; its range_bias is 0: one offset "
+        "shared by every frame is no independent noise of each pose, which the filter would "
+        "average away (a consider state for it is not modelled).",
     )
     pose_sigma_scale: float = Field(
         3.0,

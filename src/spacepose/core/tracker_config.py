@@ -277,6 +277,11 @@ class TrackerConfig(StageConfig):
         (on the lab run a keyframe chain drifted about 0.015° per 4° keyframe, in one
         direction, 3.6 of its noise-only σ). It enters the reported covariance only, not the
         weights of the pose graph (there it made the lab run's y error 2-3× worse).
+    range_bias
+        Against a model: 1-σ of the sensor's unknown constant range offset, in units of its
+        measured range noise; each reported pose's covariance carries its effect, a shift of
+        the target along the line of sight (methods.md §5.3). A model-free pose relates two
+        frames of one sensor and cancels it. 0: a sensor calibrated beyond its noise.
     """
 
     method: Method = "keyframe"
@@ -296,6 +301,7 @@ class TrackerConfig(StageConfig):
     floor_translation: float = Field(0.0083, ge=0)
     floor_rotation: float = Field(0.00145, ge=0)
     floor_motion: float = Field(0.01, ge=0)
+    range_bias: float = Field(1.0, ge=0)
     background: BackgroundConfig = BackgroundConfig()
     mls: MLSConfig = MLSConfig()
     normals: NormalsConfig = NormalsConfig(k=15)
