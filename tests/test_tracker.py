@@ -1179,3 +1179,33 @@ def test_a_slide_through_frames_never_made_keyframes_is_carried_to_the_next_keyf
     assert all(frame_check.UNOBSERVED_CHAIN in r.reasons for r in results[8:])
     T_true_k0 = np.array([T @ se3.invert(T_sensor_room[0]) for T in T_sensor_room])
     assert false_ok(results, T_true_k0) == 0
+
+
+@pytest.mark.parametrize(
+    ("reasons", "marked"),
+    [
+        (("fitness 0.39 < 0.6", "no prediction to confirm the pose"), True),
+        (("no prediction to confirm the pose",), False),
+        (("fitness 0.39 < 0.6",), False),
+    ],
+)
+def test_a_poorly_fitting_coarse_pose_marks_the_keyframe_chain(reasons, marked):
+    """A 1 m box 8 m out (an independent renderer's) was restarted by a coarse pose 120° off
+    onto a near-twin of its view at a fitness of 0.39; every later frame fitted the chain and
+    its step, and frame 39 was `ok` at 123σ. Such a pose, no prediction confirming it, marks the
+    keyframes after it as the views that left a direction unobserved do: no frame chained
+    onto them is `ok` until one closes on the first keyframe."""
+    from spacepose.core.keyframe_window import KeyframeWindow
+    from spacepose.core.keyframes import FineEstimate, Keyframe
+    from spacepose.core.registration import RegistrationResult
+
+    rng = np.random.default_rng(0)
+    cloud = PreparedCloud(PointCloud(rng.uniform(-0.5, 0.5, (500, 3)) + np.array([0, 0, 8.0])))
+    window = KeyframeWindow(TrackerConfig())
+    first = Keyframe(0, cloud, np.eye(4), np.zeros((6, 6)))
+    window.restart(first)
+    T = se3.make_transform(Rotation.from_rotvec([0, 2.1, 0]).as_matrix(), [0, 0, 0])
+    result = RegistrationResult(T, 0.39, 0.05, 10, True, np.eye(6), 200)
+    estimate = FineEstimate(T, np.eye(6) * 1e-6, np.eye(6) * 1e-6, result, first, np.zeros(6))
+    promoted = window.update(1, 0.1, cloud, estimate, ("degraded", reasons), 0.5, lambda p: None)
+    assert promoted and window.latest.unobserved is marked

@@ -31,8 +31,9 @@ from spacepose.core.tracker_config import TrackerConfig
 FAR_KEYFRAME = "keyframe"
 # Reason of a model-free frame whose prediction comes from a motion model never yet tested.
 UNTESTED_MODEL = "the motion model's error not yet observed to confirm the pose"
-# Reason of a frame registered onto a keyframe whose chain left a direction unobserved.
-UNOBSERVED_CHAIN = "keyframe chain through a view that left a direction unobserved"
+# Reason of a frame registered onto a keyframe whose chain left a direction unobserved, or
+# passed through a coarse pose that fitted poorly and nothing confirmed.
+UNOBSERVED_CHAIN = "keyframe chain through a view the data did not confirm"
 # The reason of a frame whose ill-conditioned registration the prediction held (fine_stage).
 HELD = "its weakly observed directions held by the motion model's prediction"
 

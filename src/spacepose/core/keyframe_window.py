@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from spacepose.core.frame_check import FAR_KEYFRAME, UNTESTED_MODEL
-from spacepose.core.health import CONDITION, Status
+from spacepose.core.health import CONDITION, UNCONFIRMED, Status
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
 from spacepose.core.tracker_config import TrackerConfig
 
@@ -127,7 +127,7 @@ class KeyframeWindow:
         # An `ok` frame since then was registered onto the window without a slide and passed
         # the prediction check: the motion model carries its pose on, not the slid one.
         self._slid = status != "ok" and (
-            self._slid or any(r.startswith(CONDITION) for r in reasons)
+            self._slid or any(r.startswith(CONDITION) for r in reasons) or _unconfirmed(reasons)
         )
         stale = estimate.result.fitness < self.config.keyframe.stale_fitness
         sudden, self._stale = stale and not self._stale, stale
@@ -161,3 +161,10 @@ class KeyframeWindow:
         keep = 1 if self.li else self.config.keyframe_graph.window
         self.keyframes = [*self.keyframes[-keep:], kf]
         return True
+
+
+def _unconfirmed(reasons: tuple[str, ...]) -> bool:
+    """A coarse pose no prediction confirmed that fits its reference poorly: a near-twin of the
+    target's view (a box 8 m out, turned 120° onto another face pair at a fitness of 0.39) gives
+    every later frame a consistent step and a wrong pose, `ok` at 123σ."""
+    return UNCONFIRMED in reasons and any(r.startswith("fitness") for r in reasons)
