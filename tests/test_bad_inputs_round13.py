@@ -246,12 +246,3 @@ def test_an_experiment_out_under_a_file_and_intrinsics_that_are_a_folder(tmp_pat
     Image.fromarray(np.full((4, 4), 1000, dtype=np.uint16)).save(folder / "000000.png")
     assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) != 0
     assert "intrinsics.yaml is a folder, not a file" in capsys.readouterr().err
-
-
-def test_register_of_points_on_a_line_says_so_without_global():
-    from spacepose.errors import InputError
-    from spacepose.tools.register import register
-
-    line = np.c_[np.linspace(0, 1, 500), np.zeros(500), np.full(500, 2.0)]
-    with pytest.raises(InputError, match="lie on a line"):
-        register(line, line + 0.01, workers=1)

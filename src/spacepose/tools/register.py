@@ -48,7 +48,6 @@ from spacepose.core.gicp import GICPConfig, gicp
 from spacepose.core.gicp_covariances import compute_covariances, plane_normals
 from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp import ICPConfig, icp
-from spacepose.core.moments import on_a_line
 from spacepose.core.normals import NormalsConfig, estimate_normals
 from spacepose.core.pose_covariance import CLUSTER_VOXELS, clustered_covariance, wider_of
 from spacepose.core.ransac import global_registration
@@ -285,9 +284,6 @@ def register(
     for cloud in (source, target):
         if len(cloud) < 3:
             raise InputError(f"{len(cloud)} point(s): a rigid fit needs 3", cloud.source)
-        if on_a_line(cloud.points):
-            # Said as --global says it, not as the fine stage's "the surface is degenerate".
-            raise InputError("all points lie on a line or at one place: no rigid fit", cloud.source)
     scales = [cloud_scale(c, config.seed) for c in (source, target)]
     unit_problem = _unit_problem(scales)
     names = f"{source.source or 'source'} and {target.source or 'target'}"
