@@ -246,3 +246,12 @@ def test_an_experiment_out_under_a_file_and_intrinsics_that_are_a_folder(tmp_pat
     Image.fromarray(np.full((4, 4), 1000, dtype=np.uint16)).save(folder / "000000.png")
     assert main(["track", str(folder), "--out", str(tmp_path / "e.tum")]) != 0
     assert "intrinsics.yaml is a folder, not a file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("cells", ["range=+", "range=1.2+", "motion=constant++tumbling-5"])
+def test_cells_with_an_empty_value_echo_what_was_typed(cells, capsys):
+    """``range=+`` was refused as "range=: '' is not a number", not as what was typed."""
+    from spacepose.cli import main
+
+    assert main(["experiment", "robustness", "--cells", cells]) != 0
+    assert f"--cells {cells!r}: an empty value" in capsys.readouterr().err

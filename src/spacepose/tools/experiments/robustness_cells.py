@@ -128,6 +128,9 @@ def parse_cells(spec: str) -> dict[str, list[str] | list[float]]:
         if name in axes:
             raise ConfigError(f"--cells: axis {name} is named twice; join its values with +")
         written = [v.strip() for v in values.split("+")]
+        if not all(written):
+            # "range=1+" or "range=+": a value left out, said with what was typed.
+            raise ConfigError(f"--cells {item!r}: an empty value between the + signs")
         axes[name] = [_number(name, v) for v in written] if name in _NUMERIC else written
     if not axes:
         raise ConfigError(f"--cells {spec!r} names no cells; write AXIS=VALUE[+VALUE...]")
