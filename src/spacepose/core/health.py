@@ -82,7 +82,8 @@ class HealthBounds:
         fine gate this many times beyond its voxel value; the RMSE bounds widen as much, since
         the inlier RMSE grows with the gate and the noise, so that a sensor noisier than its
         sampling is not degraded for its noise alone. The precision bounds stay in voxels:
-        noise-sized σ is what they are there to flag.
+        widened too, they let rocket bodies 17-45° off about their axis be ok (the σ bound
+        alone held them; methods.md §5.3).
         """
         noisy = voxel * max(1.0, noise_factor)
 

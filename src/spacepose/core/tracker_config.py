@@ -110,7 +110,8 @@ class HealthConfig(StageConfig):
         margin is thin: the paper-like ToF camera (flying pixels, multipath) at 0.5 m fits the
         lab mock-up 0.77-0.79 at the true pose (1 mm off), so those frames are degraded.
     ok_rmse, lost_rmse
-        Inlier RMSE of the fine registration (voxels).
+        Inlier RMSE of the fine registration (voxels, times the factor by which the measured
+        residual noise widens the fine gate).
     ok_condition, lost_condition
         Condition number of the registration information at the cloud centroid, rotations
         taken as displacements at the radius (unit-free). The lab mock-up gives 45-100 at 0.5,
