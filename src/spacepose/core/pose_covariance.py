@@ -214,11 +214,13 @@ def range_bias_covariance(
     q, n = moved[s], model.cloud.normals[t]
     rays = q - T_target_sensor[:3, 3]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    h = np.hstack([np.cross(q, n), n])
-    H = h.T @ h
-    if np.linalg.eigvalsh(H)[0] <= 1e-12 * np.linalg.eigvalsh(H)[-1]:
+    # The point-to-plane system whose residuals are nᵢ·rᵢ (each point one unit along its ray
+    # from a stand-in target point): H = Σ h hᵀ, g = Σ h (n·r).
+    H, g, _ = point_to_plane_system(q, q - rays, n, workers)
+    ev = np.linalg.eigvalsh(H)
+    if ev[0] <= 1e-12 * ev[-1]:
         return np.zeros((6, 6))
-    j_target = -np.linalg.solve(H, h.T @ np.einsum("ij,ij->i", n, rays))
+    j_target = -np.linalg.solve(H, g)
     # The twist of T_target_sensor in the target frame, as one of T_sensor_target in the sensor
     # frame: exp(ξ) T_ts ↔ exp(−Ad(T_st) ξ) T_st (the sign leaves j jᵀ as it is).
     j = se3.adjoint(T_sensor_target) @ j_target

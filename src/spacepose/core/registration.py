@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
+from spacepose.core.scale import rms_radius
 from spacepose.core.se3 import real_array
 from spacepose.errors import DegenerateGeometryError, InputError
 
@@ -74,14 +75,17 @@ class RegistrationResult:
 # centre: about its origin each rotation is a lever arm of that distance (a tracker's frames lie
 # within tens of radii of their sensor, and are solved as they are).
 FAR_RADII = 100.0
+_FAR_SAMPLE = 1024
 
 
 def far_centre(points: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """The centroid (3,) of (N, 3) ``points`` when it lies more than :data:`FAR_RADII` RMS radii
-    from their origin, else None."""
-    centre = points.mean(axis=0)
-    radius = float(np.sqrt(np.mean(np.sum((points - centre) ** 2, axis=1))))
-    return centre if np.linalg.norm(centre) > FAR_RADII * radius else None
+    from their origin, else None. Both from an even stride of about a thousand points: the
+    test has a hundredfold margin, any centre near the cloud serves the solve, and ICP asks
+    once a call (0.55 ms over a 20,000-point keyframe, a few per tracked frame)."""
+    sample = points[:: max(1, len(points) // _FAR_SAMPLE)]
+    centre = sample.mean(axis=0)
+    return centre if np.linalg.norm(centre) > FAR_RADII * rms_radius(sample) else None
 
 
 def moved_back(result: RegistrationResult, S: NDArray[np.float64]) -> RegistrationResult:
