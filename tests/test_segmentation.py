@@ -263,3 +263,24 @@ def test_a_cluster_before_a_wall_with_fewer_points_than_a_frame_needs_is_not_the
     assert debris.sum() == 49
     mask = nearest_object(pts, 0.12, min_points=100)
     assert not mask[debris].any() and mask[~debris].all()
+
+
+def test_with_a_model_the_body_behind_a_dish_pointed_at_the_sensor_is_part_of_the_object():
+    """A 0.36 m dish 0.7 m before a 1 m bus at 5 m, its boom unseen: by its own size the dish
+    is the object and the bus, wholly behind it and around it in the view, its background.
+    Given the model's radius (1.33 m), the bus fits with the dish in the model's diameter and
+    joins it; a wall 3 m behind, spanning the view, does not."""
+    rng = np.random.default_rng(4)
+    s = 0.01
+    dish = _plate([0.2, 0.1, 3.7], (0.36, 0.36), 2, s, rng)
+    bus = _plate([0.0, 0.0, 4.4], (1.0, 1.0), 2, s, rng)
+    wall = _plate([0.0, 0.0, 7.4], (4.0, 3.0), 2, 4 * s, rng)
+    pts = np.r_[dish, bus, wall]
+    alone = nearest_object(pts, s)
+    assert alone[: len(dish)].all() and not alone[len(dish) :].any()
+    mask = nearest_object(pts, s, model_radius=1.33)
+    n_target = len(dish) + len(bus)
+    assert mask[:n_target].all()
+    assert not mask[n_target:].any()
+    # A model half the size does not reach the bus.
+    assert not nearest_object(pts, s, model_radius=0.5)[len(dish) : n_target].any()

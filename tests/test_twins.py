@@ -39,6 +39,29 @@ def test_principal_turns_are_the_half_turns_about_the_axes_through_the_centroid(
         assert np.quantile(d, 0.99) < 0.05
 
 
+def test_a_box_square_about_an_axis_has_its_quarter_turns_as_twins_too():
+    """A 1 x 1 x 1.6 box maps onto itself a quarter turn about its long axis: both quarter
+    turns join the three half turns; a 1 x 1.3 x 1.6 box (variances 1.3 apart) has none."""
+    rng = np.random.default_rng(1)
+    R = Rotation.from_euler("xyz", [-15, 40, 10], degrees=True).as_matrix()
+    centre = np.array([0.5, 0.2, 6.0])
+    square = _box_surface(rng, np.array([1.0, 1.0, 1.6]), 20000) @ R.T + centre
+    turns = principal_turns(square)
+    assert len(turns) == 5
+    quarters = [T for T in turns if np.isclose(np.trace(T[:3, :3]), 1.0, atol=1e-9)]
+    assert len(quarters) == 2
+    for T in quarters:
+        assert np.allclose(T[:3, :3] @ R[:, 2], R[:, 2], atol=2e-2) or np.allclose(
+            T[:3, :3] @ R[:, 2], -R[:, 2], atol=2e-2
+        )
+        assert abs(R[:, 2] @ Rotation.from_matrix(T[:3, :3]).as_rotvec()) > 0.99 * np.pi / 2
+        d, _ = cKDTree(square).query(se3.transform_points(T, square))
+        assert np.quantile(d, 0.99) < 0.05
+    assert np.allclose(quarters[0] @ quarters[1], np.eye(4), atol=1e-12)
+    oblong = _box_surface(rng, np.array([1.0, 1.3, 1.6]), 20000)
+    assert len(principal_turns(oblong)) == 3
+
+
 def test_compare_fits_decides_on_an_appendage_and_not_on_a_symmetric_box():
     rng = np.random.default_rng(1)
     sides = np.array([2.4, 1.8, 1.4])

@@ -362,7 +362,8 @@ class FramePreparer:
             return pc, None
         if self.region is None or T_predicted is None:
             spacing = point_spacing(pc.points)
-            mask = nearest_object(pc.points, spacing, self.config.health.min_points)
+            model_radius = None if self._model_region is None else self._model_region.radius
+            mask = nearest_object(pc.points, spacing, self.config.health.min_points, model_radius)
             if mask.sum() < self.config.health.min_points:
                 return pc, None
             if self.region is None:

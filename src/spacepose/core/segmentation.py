@@ -80,7 +80,9 @@ class TargetRegion:
     kept: float
 
 
-def nearest_object(points: ArrayLike, spacing: float, min_points: int = 1) -> NDArray[np.bool_]:
+def nearest_object(
+    points: ArrayLike, spacing: float, min_points: int = 1, model_radius: float | None = None
+) -> NDArray[np.bool_]:
     """(N,) mask of the points of the nearest object of a frame (see the module docstring);
     points at the sensor's origin or far beyond the frame's surfaces (:func:`within_reach`) are
     never in it.
@@ -93,6 +95,11 @@ def nearest_object(points: ArrayLike, spacing: float, min_points: int = 1) -> ND
         Median point spacing (m), :func:`spacepose.core.scale.point_spacing`.
     min_points
         Fewest points of an object found before a backdrop (a tracked frame's least).
+    model_radius
+        Radius (m) of the target model's bounding sphere, when there is a model: the object
+        then also takes every cluster that lies wholly within the model's reach of it
+        (:func:`_within_model`), the body behind an antenna pointed at the sensor, which the
+        growth by the object's own size leaves behind as its background.
     """
     pts = as_points(points)
     min_points = whole_number(min_points, "min_points")
@@ -100,7 +107,7 @@ def nearest_object(points: ArrayLike, spacing: float, min_points: int = 1) -> ND
     if not valid.all():
         mask = np.zeros(len(pts), dtype=bool)
         if valid.any():
-            mask[valid] = nearest_object(pts[valid], spacing, min_points)
+            mask[valid] = nearest_object(pts[valid], spacing, min_points, model_radius)
         return mask
     cell = _CELL_SPACINGS * spacing
     all_centroids, all_of_point = voxel_cells(pts, cell)
@@ -150,6 +157,9 @@ def nearest_object(points: ArrayLike, spacing: float, min_points: int = 1) -> ND
         near = part & (_gaps(own, centroids, labels, n_labels, reach) <= reach)
         grown = keep | near[labels]
         if grown.sum() == keep.sum():
+            if model_radius is not None:
+                fits = _within_model(centroids, keep, labels, n_labels, model_radius, cell)
+                keep |= fits & (counts >= _MIN_SHARE * keep.sum())[labels]
             kept = np.zeros(len(all_cells), dtype=bool)
             kept[solid] = keep
             kept[~solid] = _beside(all_cells[~solid], cells[keep])
@@ -369,6 +379,28 @@ def _extents(
     np.minimum.at(lo, labels, view)
     np.maximum.at(hi, labels, view)
     return lo, hi
+
+
+def _within_model(
+    centroids: NDArray[np.float64],
+    keep: NDArray[np.bool_],
+    labels: NDArray[np.intp],
+    n_labels: int,
+    model_radius: float,
+    cell: float,
+) -> NDArray[np.bool_]:
+    """(M,) True for the cells (centroids (M, 3)) of the clusters that fit with the object
+    (cells ``keep``) in the model's diameter: every cell of theirs within ``2 model_radius``
+    (plus a cell) of the object's farthest cell, bounded by its distance from the object's
+    centroid plus the object's radius. A wall or a table reaching beyond the target's size
+    does not fit; the body behind a near appendage does. (The caller keeps those holding a
+    real share of the object's cells: specks of flying pixels behind the silhouette fit too.)"""
+    own = centroids[keep]
+    center = own.mean(axis=0)
+    reach = 2.0 * model_radius + cell - float(np.linalg.norm(own - center, axis=1).max())
+    farthest = np.zeros(n_labels)
+    np.maximum.at(farthest, labels, np.linalg.norm(centroids - center, axis=1))
+    return (farthest <= reach)[labels]
 
 
 def _gaps(
