@@ -96,7 +96,7 @@ def test_simulate_errors_are_one_line(tmp_path, capsys) -> None:
     assert main(["simulate", "orbit", "--out", out, "--target-size", "0"]) == 1
     assert "--target-size applies to the lab scenario only" in capsys.readouterr().err
     assert main(["simulate", "lab", "--out", out, "--model", str(tmp_path / "none.obj")]) == 1
-    assert "none.obj: no such mesh file" in capsys.readouterr().err
+    assert "none.obj: cannot read the mesh: no such file" in capsys.readouterr().err
     assert main(["simulate", "lab", "--out", out, "--noise-scale", "-1"]) == 1
     assert "noise_scale" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()

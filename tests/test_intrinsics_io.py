@@ -67,7 +67,8 @@ def test_a_ros_camera_info_yaml_is_an_intrinsics_file(tmp_path):
     assert (camera.k1, camera.k2, camera.p1, camera.p2, camera.k3) == (
         -0.12, 0.031, 0.0004, -0.0007, 0.0
     )  # fmt: skip
-    assert (camera.width, camera.height, camera.depth_scale) == (640, 480, 0.001)
+    # No depth_scale: by the image's type, as ROS's 16UC1 (mm) and 32FC1 (m).
+    assert (camera.width, camera.height, camera.depth_scale) == (640, 480, None)
     # Our own fields may stand beside it; an unknown key is still an error.
     path.write_text(ROS_CAMERA_INFO + "depth_scale: 0.0002\ndepth_kind: range\n")
     camera = read_intrinsics(path)

@@ -124,7 +124,7 @@ def test_load_mesh_scales_and_centres() -> None:
 
 
 def test_load_mesh_bad_input(tmp_path) -> None:
-    with pytest.raises(FileFormatError, match="no such mesh file"):
+    with pytest.raises(FileFormatError, match="cannot read the mesh: no such file"):
         load_mesh(tmp_path / "missing.obj")
     with pytest.raises(FileFormatError, match="unknown mesh extension"):
         load_mesh(tmp_path / "model.xyz")

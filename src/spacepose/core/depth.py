@@ -29,6 +29,8 @@ from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.lens import distort, undistort
 from spacepose.errors import InputError
 
+# Metres per stored value of an integer depth image whose scale is not given.
+MILLIMETRE = 0.001
 # Share of an image's pixels whose distortion may fail to invert before the camera is refused.
 _MOST_PIXELS = 0.5
 
@@ -37,7 +39,9 @@ class DepthCamera(StageConfig):
     """Intrinsics of a depth camera (pinhole, OpenCV distortion) and the unit of its values.
 
     ``depth_scale`` is metres per stored unit: 0.001 for millimetres (ROS ``16UC1``), 1 for
-    float images in metres (ROS ``32FC1``), 0.0002 for TUM RGB-D's 5000 units per metre.
+    float images in metres (ROS ``32FC1``), 0.0002 for TUM RGB-D's 5000 units per metre. Left
+    out, it follows the image's type (:meth:`metres_per_unit`): integer images are read as
+    millimetres, float ones (a renderer's EXR, a float TIFF) as metres.
     ``width`` and ``height``, when given, are checked against every image. ``depth_kind`` says
     whether a value is the depth along the boresight (``z``: OpenCV, ROS, Kinect-style cameras)
     or the range along the pixel's ray (``range``); read as the wrong kind, a flat wall bends.
@@ -50,7 +54,11 @@ class DepthCamera(StageConfig):
     fy: float = Field(ge=1, le=1e6, description="Focal length along y (rows), pixels.")
     cx: float = Field(description="Principal point, column (pixel centres at integers).")
     cy: float = Field(description="Principal point, row.")
-    depth_scale: float = Field(0.001, gt=0, description="Metres per stored depth unit.")
+    depth_scale: float | None = Field(
+        None,
+        gt=0,
+        description="Metres per stored depth unit; left out: 0.001 (integer images), 1 (float).",
+    )
     k1: float = 0.0
     k2: float = 0.0
     k3: float = 0.0
@@ -67,6 +75,14 @@ class DepthCamera(StageConfig):
     max_depth: float | None = Field(
         None, gt=0, description="Depths (m) at or beyond this are no return: a far clip plane."
     )
+
+    def metres_per_unit(self, dtype: np.dtype) -> float:
+        """Metres per stored value of an image of ``dtype``: ``depth_scale``, or, left out, the
+        convention of the type (float: metres; integer: millimetres). A float map in metres
+        read as millimetres tracked a scene a thousand times too small, ``ok``."""
+        if self.depth_scale is not None:
+            return self.depth_scale
+        return 1.0 if np.issubdtype(dtype, np.floating) else MILLIMETRE
 
     @property
     def distorted(self) -> bool:
@@ -208,7 +224,7 @@ def backproject(depth: ArrayLike, camera: DepthCamera, source: str | None = None
             f"{width}x{height} image: intrinsics of another resolution?",
             source,
         )
-    z = values.astype(np.float64) * camera.depth_scale
+    z = values.astype(np.float64) * camera.metres_per_unit(values.dtype)
     try:
         rays = pixel_rays(camera, height, width)
     except InputError as exc:

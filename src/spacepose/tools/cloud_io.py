@@ -255,6 +255,10 @@ def read_model(path: str | Path) -> PointCloud:
     from spacepose.core.sim.targets import sample_surface
 
     path = as_path(path)
+    problem = not_a_file(path)
+    if problem is not None:
+        # Before the PLY header is looked at: a pipe named model.ply blocked that read for ever.
+        raise FileFormatError(f"cannot read the model: {problem}", path)
     suffix = path.suffix.lower()
     mesh = suffix in MESH_SUFFIXES and (suffix != ".ply" or ply_has_faces(path))
     if not mesh:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import re
 from collections import Counter
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -20,13 +21,15 @@ from spacepose.errors import ConfigError, InputError
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES
 from spacepose.tools.intrinsics_io import find_intrinsics, read_intrinsics
 from spacepose.tools.npy_io import npy_shape
-from spacepose.tools.text_io import check_timing, read_text
+from spacepose.tools.text_io import check_timing, data_number, read_text
 
 # A depth folder's frames may also be NumPy arrays; elsewhere a ``.npy`` is a point cloud.
 FOLDER_DEPTH_SUFFIXES: tuple[str, ...] = (*DEPTH_SUFFIXES, ".npy")
 # Suffixes of one format: a folder's images are all of one.
 _FORMATS = {".tif": ".tiff"}
 TUM_DEPTH_LIST = "depth.txt"
+# Metres per stored unit of TUM RGB-D's 16-bit depth images (5000 per metre).
+TUM_DEPTH_SCALE = 0.0002
 
 
 def folder_camera(
@@ -83,15 +86,22 @@ def is_depth_folder(root: str | Path) -> bool:
     return (Path(root) / TUM_DEPTH_LIST).is_file() or find_intrinsics(root) is not None
 
 
-def _name_order(path: Path) -> tuple[tuple[int | str, ...], str]:
-    """Sort key of a frame's name: its runs of digits by value (``frame5`` before
-    ``frame10``), but those after a dot, a fraction's digits, as text (``1.25`` before
-    ``1.5``); the same order as the names' where the numbers are zero-padded. Names of equal
-    value (``frame1``, ``frame01``) follow as text, so the order never rests on the folder's."""
-    chunks: list[int | str] = re.split(r"(\d+)", path.name)
+# A number in a frame's name: digits, and a fraction after a dot between digits (TUM times).
+_NUMBER = re.compile(r"(\d+(?:\.\d+)?)")
+
+
+def _name_order(path: Path) -> tuple[tuple[str | Decimal, ...], str]:
+    """Sort key of a frame's name: the numbers of its stem (the name less its suffix) by value,
+    a number being digits with, after a dot that follows a digit, a fraction (``frame5``
+    before ``frame10``, ``1.25`` before ``1.5``, ``0`` before ``0.5``, ``scan.2`` before
+    ``scan.10``); the same order as the names' where the numbers are zero-padded. Names of
+    equal value (``frame1``, ``frame01``) follow as text, so the order never rests on the
+    folder's."""
+    stem = path.name[: len(path.name) - len(path.suffix)]
+    chunks: list[str | Decimal] = _NUMBER.split(stem)
+    # Text and numbers alternate, so a position always compares like with like.
     for i in range(1, len(chunks), 2):
-        if not str(chunks[i - 1]).endswith("."):
-            chunks[i] = int(chunks[i])
+        chunks[i] = Decimal(chunks[i])
     return tuple(chunks), path.name
 
 
@@ -194,7 +204,7 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
             continue
         parts = body.split(maxsplit=1)
         try:
-            stamp = float(parts[0])
+            stamp = data_number(parts[0])
         except ValueError:
             stamp = float("nan")
         if len(parts) != 2 or not np.isfinite(stamp):

@@ -252,7 +252,9 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
         the file.
     """
     values = read_depth_image(path)
-    remedy = f"check depth_scale in the intrinsics ({camera.depth_scale:g} m per stored unit)"
+    scale = camera.metres_per_unit(values.dtype)
+    given = "" if camera.depth_scale is not None else ", by the image's type"
+    remedy = f"check depth_scale in the intrinsics ({scale:g} m per stored unit{given})"
     return depth_cloud(values, camera, path, remedy, stride)
 
 
@@ -376,7 +378,7 @@ def _without_far_plane(values: NDArray, camera: DepthCamera, source: str | Path)
     """
     if camera.max_depth is not None or not np.issubdtype(np.asarray(values).dtype, np.floating):
         return camera
-    z = np.asarray(values, dtype=np.float64) * camera.depth_scale
+    z = np.asarray(values, dtype=np.float64) * camera.metres_per_unit(np.asarray(values).dtype)
     hit = z[np.isfinite(z) & (z > 0)]
     if len(hit) == 0:
         return camera
@@ -427,7 +429,7 @@ def _why_no_return(values: NDArray, camera: DepthCamera, path: str | Path) -> In
     depths (a renderer's camera looking down -z, as OpenGL's) or for the intrinsics' far
     plane."""
     with np.errstate(invalid="ignore", over="ignore"):
-        z = values.astype(np.float64) * camera.depth_scale
+        z = values.astype(np.float64) * camera.metres_per_unit(values.dtype)
         finite = np.isfinite(z) & (z != 0)
         if np.issubdtype(values.dtype, np.integer):  # the type's largest value: no return
             finite &= values != np.iinfo(values.dtype).max

@@ -32,7 +32,7 @@ from spacepose.core.depth import DepthCamera
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools import depth_folder, depth_io, intrinsics_io
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_cloud, warn_if_too_near
-from spacepose.tools.text_io import check_timing, not_a_file, read_text
+from spacepose.tools.text_io import check_timing, data_number, not_a_file, read_text
 
 CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".xyz", ".txt", ".csv", ".npy", ".npz")
 TIMESTAMPS_FILE = "timestamps.txt"
@@ -366,6 +366,10 @@ def _open_depth_folder(
                 root,
             )
         paths, timestamps = depth_folder.read_tum_depth_list(root / depth_folder.TUM_DEPTH_LIST)
+        if camera.depth_scale is None:
+            # TUM RGB-D's layout, and its unit: 5000 per metre (read as millimetres, every
+            # translation came out 5 times too long, ok).
+            camera = camera.model_copy(update={"depth_scale": depth_folder.TUM_DEPTH_SCALE})
     else:
         paths = depth_folder.depth_files(root)
         timestamps = _folder_timestamps(root, len(paths))
@@ -427,7 +431,7 @@ def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:
         if not body:
             continue
         try:
-            value = float(body)
+            value = data_number(body)
         except ValueError:
             raise InputError(f"line {lineno}: not a timestamp: {body!r}", path) from None
         if not np.isfinite(value):

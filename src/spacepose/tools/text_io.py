@@ -71,6 +71,20 @@ def read_text(path: str | Path, what: str) -> str:
         raise FileFormatError(f"cannot read {what}: {not_text(exc)}", path) from None
 
 
+def data_number(text: str) -> float:
+    """The number ``text`` of a data file (a time, a coordinate) as ``float`` reads it, but
+    for Python's digit separators: ``0_3`` is no number a file means (``float`` read it as 3).
+
+    Raises
+    ------
+    ValueError
+        Not a number.
+    """
+    if "_" in text:
+        raise ValueError(f"not a number: {text!r}")
+    return float(text)
+
+
 def timing_problem(timestamps: ArrayLike) -> str | None:
     """Why a sequence's times cannot be its frames' times in seconds, or None.
 

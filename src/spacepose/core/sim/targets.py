@@ -294,13 +294,13 @@ def sample_surface(target: Target, count: int, seed: int = 0) -> PointCloud:
         points, normals, face = points[~hidden], normals[~hidden], face[~hidden]
     # A sheet (a dish, a foil) is seen from both sides: its samples carry both normals, as a
     # closed part's two faces would, so that a model culled by its normals keeps it from behind.
-    sheet = _sheet_faces(target.mesh)[face]
+    sheet = sheet_faces(target.mesh)[face]
     points = np.vstack([points, points[sheet]])
     normals = np.vstack([normals, -normals[sheet]])
     return PointCloud(points, normals, source=f"{target.name} surface samples")
 
 
-def _sheet_faces(mesh: trimesh.Trimesh) -> NDArray[np.bool_]:
+def sheet_faces(mesh: trimesh.Trimesh) -> NDArray[np.bool_]:
     """(F,) True for the faces of the connected parts that do not close (an edge of theirs
     borders one face only, once coincident vertices are merged).
 
