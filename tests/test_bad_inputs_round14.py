@@ -150,3 +150,80 @@ def test_a_time_written_with_a_digit_separator_is_refused(tmp_path):
     tum.write_text("0 0 0 0 0 0 0 1\n0_5 0 0 0 0 0 0 1\n")
     with pytest.raises(FileFormatError, match="line 2: not a number"):
         read_tum(tum)
+
+
+def test_an_exr_of_a_region_is_placed_where_its_data_window_lies(tmp_path):
+    """A render of a region (its data window inside the display window) was read as the whole
+    image: a 64x48 render's crop came out 40x30 ("the intrinsics say 64x48"), or, without a
+    size, every ray off by the window's origin. An overscan (a data window beyond the display
+    window) is cut to the image."""
+    import OpenEXR
+
+    from spacepose.tools.exr_io import exr_size, read_exr_depth
+
+    depth = _wall_depth().astype(np.float32)
+    display = (np.array([0, 0], np.int32), np.array([63, 47], np.int32))
+    cases = {"region": (10, 5, 49, 34), "overscan": (-4, -3, 67, 50)}
+    for name, (x0, y0, x1, y1) in cases.items():
+        padded = np.zeros((70, 90), np.float32)
+        padded[10:58, 10:74] = depth  # the image, with a 10-pixel margin
+        header = {
+            "compression": OpenEXR.ZIP_COMPRESSION,
+            "type": OpenEXR.scanlineimage,
+            "dataWindow": (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32)),
+            "displayWindow": display,
+        }
+        values = np.ascontiguousarray(padded[10 + y0 : 11 + y1, 10 + x0 : 11 + x1])
+        path = tmp_path / f"{name}.exr"
+        with OpenEXR.File(header, {"Z": values}) as exr:
+            exr.write(str(path))
+        read = read_exr_depth(path)
+        assert read.shape == (48, 64) and exr_size(path) == (64, 48)
+        inside = np.zeros((48, 64), dtype=bool)
+        inside[max(y0, 0) : y1 + 1, max(x0, 0) : x1 + 1] = True
+        assert np.array_equal(read[inside], depth[inside]) and not read[~inside].any()
+
+
+@pytest.mark.parametrize("colour", ["grey", "one grey", "grey-float"])
+def test_grey_in_columns_4_to_6_is_refused_as_colours(tmp_path, colour):
+    """x y z r g b with r = g = b (grey) read as normals along (1, 1, 1), "not of unit
+    length"; random colours were already refused as colours. Unit normals of one plate are
+    still normals."""
+    from spacepose.errors import FileFormatError
+    from spacepose.tools.cloud_io import read_cloud
+
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform(-1.0, 1.0, (200, 3)) + np.array([0.0, 0.0, 3.0])
+    rgb = {
+        "grey": np.repeat(rng.integers(0, 256, (200, 1)), 3, axis=1),
+        "one grey": np.full((200, 3), 128),
+        "grey-float": np.full((200, 3), 0.5),
+    }[colour]
+    path = tmp_path / "cloud.xyz"
+    np.savetxt(path, np.c_[xyz, rgb])
+    with pytest.raises(FileFormatError, match="columns 4-6 look like colours"):
+        read_cloud(path)
+    np.savetxt(path, np.c_[xyz, np.tile([0.0, 0.6, 0.8], (200, 1))])
+    assert np.allclose(read_cloud(path).normals, [0.0, 0.6, 0.8])
+
+
+def test_slabs_cut_through_a_curved_surface_are_no_planes():
+    """``planes`` with its defaults reported 10 "planes" on a hemisphere (a ToF view of a 1 m
+    sphere, 1 mm noise): rings of ~100 points a 5 mm slab cut through it, 1 x 1 m across.
+    The two faces of a box seen edge-on are still found, whole."""
+    from spacepose.core.planes import PlaneConfig, extract_planes
+
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(12000, 3))
+    v /= np.linalg.norm(v, axis=1)[:, None]
+    hemisphere = [0.0, 0.0, 3.0] + 0.5 * v[v[:, 2] < 0][:4000] + rng.normal(0, 0.001, (4000, 3))
+    assert extract_planes(hemisphere, PlaneConfig()) == []
+    # Two 0.6 x 0.6 m faces of a box meeting along the y axis, 3 m out, turned 45° to the view.
+    u, w = rng.uniform(0.0, 0.6, (2, 2000)), rng.uniform(-0.3, 0.3, (2, 2000))
+    left = np.c_[-u[0] / np.sqrt(2), w[0], 3.0 + u[0] / np.sqrt(2)]
+    right = np.c_[u[1] / np.sqrt(2), w[1], 3.0 + u[1] / np.sqrt(2)]
+    box = np.r_[left, right] + rng.normal(0, 0.001, (4000, 3))
+    planes = extract_planes(box, PlaneConfig())
+    assert len(planes) == 2 and all(p.n_inliers > 1900 for p in planes)
+    normals = sorted(np.round(np.abs(p.normal), 2).tolist() for p in planes)
+    assert np.allclose(normals, [[0.71, 0.0, 0.71]] * 2, atol=0.01)

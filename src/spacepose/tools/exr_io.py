@@ -84,12 +84,38 @@ def _channels(path: Path) -> dict[str, NDArray]:
     with OpenEXR.File(str(path), separate_channels=True) as exr:
         parts = exr.parts
         if len(parts) == 1:
-            return {name: channel.pixels for name, channel in parts[0].channels.items()}
+            header = parts[0].header
+            return {
+                name: _on_display(channel.pixels, header)
+                for name, channel in parts[0].channels.items()
+            }
         return {
-            f"{part.name()}.{name}": channel.pixels
+            f"{part.name()}.{name}": _on_display(channel.pixels, part.header)
             for part in parts
             for name, channel in part.channels.items()
         }
+
+
+def _on_display(pixels: NDArray, header: dict) -> NDArray:
+    """A channel's pixels where they lie in the image: a render of a region (its data window
+    inside the display window) placed at the data window's origin, the rest no return (0).
+    Read as the whole image, a crop of a 640×480 render was 440×380 ("the intrinsics say
+    640x480"), or, without a size, every ray was off by the window's origin."""
+    data, display = header.get("dataWindow"), header.get("displayWindow")
+    if data is None or display is None or pixels.ndim != 2:
+        return pixels
+    (x0, y0), (dx0, dy0), (dx1, dy1) = data[0], display[0], display[1]
+    if (x0, y0, *pixels.shape[::-1]) == (dx0, dy0, dx1 - dx0 + 1, dy1 - dy0 + 1):
+        return pixels
+    image = np.zeros((int(dy1 - dy0 + 1), int(dx1 - dx0 + 1)), dtype=pixels.dtype)
+    # The overlap of the two windows, in the display image's pixels and in the data's.
+    top, left = max(int(y0 - dy0), 0), max(int(x0 - dx0), 0)
+    row, col = top - int(y0 - dy0), left - int(x0 - dx0)
+    rows = min(image.shape[0] - top, pixels.shape[0] - row)
+    cols = min(image.shape[1] - left, pixels.shape[1] - col)
+    if rows > 0 and cols > 0:
+        image[top : top + rows, left : left + cols] = pixels[row : row + rows, col : col + cols]
+    return image
 
 
 @contextmanager
@@ -136,12 +162,14 @@ def _depth_channel(channels: dict[str, NDArray], path: Path) -> str:
 
 
 def exr_size(path: Path) -> tuple[int, int] | None:
-    """(width, height) of an EXR from its header, None if it does not open."""
+    """(width, height) of an EXR's image (its display window) from its header, None if it
+    does not open."""
     import OpenEXR
 
     try:
         with _quiet(), OpenEXR.File(str(path), header_only=True) as exr:
-            (x0, y0), (x1, y1) = exr.header()["dataWindow"]
+            header = exr.header()
+            (x0, y0), (x1, y1) = header.get("displayWindow", header["dataWindow"])
     except (RuntimeError, KeyError, TypeError, ValueError):  # the frame's own read says why
         return None
     return int(x1 - x0 + 1), int(y1 - y0 + 1)

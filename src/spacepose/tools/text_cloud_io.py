@@ -96,9 +96,10 @@ def read_text_cloud(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64
 
 def _colours(values: NDArray[np.float64]) -> bool:
     """Whether three columns (N, 3) read as normals are colours: no component negative and
-    none above 255, most rows not of unit length, and pointing many ways. A curved surface's
-    normals point into every octant somewhere; a plane's (long normals of one plate) all one
-    way, and those are read as their directions."""
+    none above 255, most rows not of unit length, and pointing many ways or grey (r = g = b on
+    every row, not all black). A curved surface's normals point into every octant somewhere;
+    a plane's (long normals of one plate) all one way, and those are read as their directions
+    (so is one colour for every point: nothing tells it from such normals)."""
     if not (np.all(values >= 0.0) and np.all(values <= 255.0)):
         return False
     lengths = np.linalg.norm(values, axis=1)
@@ -107,6 +108,8 @@ def _colours(values: NDArray[np.float64]) -> bool:
     some = lengths > 0  # black is a colour, and no direction
     if not some.any():
         return False  # all zero: no direction, and no colour either (normals left unfilled)
+    if np.all(values == values[:, :1]):
+        return True  # grey: read as normals along (1, 1, 1), "not of unit length"
     directions = values[some] / lengths[some, None]
     mean = directions.mean(axis=0)
     if not np.any(mean):
