@@ -43,7 +43,8 @@ from spacepose.core.config import StageConfig
 from spacepose.core.moments import fit_plane
 from spacepose.core.neighbors import hybrid
 from spacepose.core.normals import neighbourhood_normals
-from spacepose.core.planes import PlaneConfig, largest_component, ransac_plane
+from spacepose.core.plane_support import largest_component
+from spacepose.core.planes import PlaneConfig, ransac_plane
 from spacepose.core.voxel import voxel_cells
 from spacepose.errors import DegenerateGeometryError, InputError
 

@@ -23,24 +23,14 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud, as_points
-from spacepose.core.clusters import cluster_labels
 from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane, on_a_line
+from spacepose.core.plane_support import cuts_a_curve, largest_component
 from spacepose.core.ransac import sample_triples
 from spacepose.errors import DegenerateGeometryError, InputError
 
 # Largest number of distances held at once when scoring a batch (32 MB of float64).
 _SCORE_BLOCK = 1 << 22
-# A plane whose inliers' own surface normals lie further than this from its normal, at the
-# median, is a slab through a curved surface (_cuts_a_curve): a face's lie within a few
-# degrees, its edges' aside; a ring cut through a sphere at h from its centre, at acos(h/R).
-_CURVED_DEG = 30.0
-# Neighbours of an inlier that give its surface normal, and the most inliers asked.
-_SURFACE_NEIGHBOURS = 10
-_SURFACE_SAMPLE = 500
-# A neighbourhood spans a surface when its middle spread (eigenvalue) is at least this share
-# of its largest: ten points of a grid give 0.3-1, of a scan line or one point copied ~0.
-_SURFACE_SPREAD = 0.05
 
 
 class PlaneConfig(StageConfig):
@@ -143,96 +133,6 @@ def _count_inliers(
         d = np.abs(normals @ points[start : start + chunk].T - offsets[:, None])
         counts += np.count_nonzero(d <= threshold, axis=1)
     return counts
-
-
-def largest_component(points: ArrayLike, radius: float) -> NDArray[np.intp]:
-    """Indices (sorted) of the largest group of points connected by steps shorter than radius.
-
-    Ties go to the group holding the lowest index, so the result is deterministic.
-    """
-    labels = cluster_labels(np.asarray(points, dtype=np.float64), radius)
-    return np.flatnonzero(labels == np.argmax(np.bincount(labels)))
-
-
-def dense_support(
-    points: ArrayLike, normal: ArrayLike, k: int = 8, spread: float = 2.0
-) -> NDArray[np.intp]:
-    """Indices (sorted) of the dense connected region of a plane's points: the face itself.
-
-    A RANSAC slab keeps every stray point that falls inside it, and those far from the face pull
-    its distribution matrix (Y1's uniform outliers moved the sides by a centimetre). On the face
-    the points lie at the sampling's spacing; strays inside the slab lie far sparser. In the
-    plane's own coordinates each point's distance to its k-th neighbour measures the local
-    spacing; the points whose spacing is at most ``spread`` times the median one are dense, and
-    of them the largest group connected by steps of ``spread`` median spacings is kept. Every
-    length comes from the points themselves. ``spread`` 2 keeps a face's edges (neighbours in a
-    half disc: √2 times the spacing) and, on average, its corners (a quarter disc: twice), and
-    drops strays more than about one spacing outside the edge. Measured on Y1-style clouds
-    (10 × 18 cm, 1,250 points, 1,250 outliers in a box), with the ``random`` edge estimate of
-    :func:`spacepose.core.rectangle_measurement.measure_rectangle`: sides 0.51 ± 0.43 and
-    −0.20 ± 0.63 mm off and the centre 0.37 ± 0.20 mm off over 10 seeds (the whole slab: 8.4
-    and 10.6 mm, 1.7 mm). Over 30 seeds, a ``spread`` of 2.5 keeps more strays along the long
-    edges (short side up to 3.6 mm off) and 1.5 trims the face (long side 1.1 mm short on
-    average).
-
-    Parameters
-    ----------
-    points
-        (K, 3) points of one plane (any frame, m), K > k.
-    normal
-        (3,) the plane's unit normal.
-    k
-        Neighbour rank of the spacing.
-    spread
-        Largest spacing of a dense point, in median spacings.
-
-    Returns
-    -------
-    Indices into ``points``; all of them when there are k or fewer.
-    """
-    pts = np.asarray(points, dtype=np.float64)
-    if len(pts) <= k:
-        return np.arange(len(pts))
-    n = np.asarray(normal, dtype=np.float64)
-    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
-    u = np.cross(n, helper)
-    u /= np.linalg.norm(u)
-    uv = pts @ np.column_stack([u, np.cross(n, u)])
-    # Spacings of the distinct places: copies of one row (a driver's mark written 2,000 times)
-    # are no density, and a median spacing of 0 cut every link.
-    places, place_of = np.unique(uv, axis=0, return_inverse=True)
-    if len(places) <= k:
-        return np.arange(len(pts))
-    spacing = cKDTree(places).query(places, k=k + 1)[0][:, k][place_of.ravel()]
-    step = spread * float(np.median(spacing))
-    dense = np.flatnonzero(spacing <= step)
-    return dense[largest_component(np.column_stack([uv[dense], np.zeros(len(dense))]), step)]
-
-
-def _cuts_a_curve(
-    points: NDArray[np.float64], tree: cKDTree, inliers: NDArray[np.intp], normal: NDArray
-) -> bool:
-    """Whether a plane's inliers are a slab cut through a curved surface, not a face: the
-    surface's own normals there (of each inlier's :data:`_SURFACE_NEIGHBOURS` nearest points
-    in the whole cloud; a strided sample of at most :data:`_SURFACE_SAMPLE` inliers) lie more
-    than :data:`_CURVED_DEG` from the plane's, at the median. A 5 mm slab through a 1 m
-    sphere seen by a ToF camera took rings of ~100 points, reported as 1 x 1 m "planes".
-
-    Only neighbourhoods that span a surface count (the middle of their three spreads at least
-    :data:`_SURFACE_SPREAD` of the largest): a scan line's points, or copies of one point (a
-    driver's mark of no return), have no normal of their own; with fewer than half such, no
-    judgement (False)."""
-    sample = inliers[:: max(1, len(inliers) // _SURFACE_SAMPLE)]
-    k = min(_SURFACE_NEIGHBOURS, len(points))
-    _, idx = tree.query(points[sample], k=k)
-    near = points[np.asarray(idx).reshape(len(sample), k)]
-    centred = near - near.mean(axis=1, keepdims=True)
-    spreads, axes = np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))
-    surface = spreads[:, 1] > _SURFACE_SPREAD * spreads[:, 2]
-    if surface.sum() < 0.5 * len(sample):
-        return False
-    along = np.abs(axes[surface, :, 0] @ normal)
-    return float(np.median(along)) < np.cos(np.radians(_CURVED_DEG))
 
 
 def _check_resolution(pts: NDArray[np.float64], threshold: float, source: str | None) -> None:
@@ -451,7 +351,7 @@ def extract_planes(
             break
         inliers = remaining[plane.inliers]
         remaining = np.delete(remaining, plane.inliers)
-        if _cuts_a_curve(pts, tree, inliers, plane.normal):
+        if cuts_a_curve(pts, tree, inliers, plane.normal):
             # A slab through a curved surface, no face: its points are no plane's.
             slabs += 1
             if slabs >= config.max_planes:

@@ -1,8 +1,8 @@
 """Rectangles of a whole cloud: planes → each plane's own support → measurement → recognition.
 
 RANSAC (:func:`spacepose.core.planes.extract_planes`) finds the planes; each keeps only its
-dense connected region (:func:`spacepose.core.planes.dense_support`), since the stray points a
-slab collects around a face pull its distribution matrix; the support is measured as a
+dense connected region (:func:`spacepose.core.plane_support.dense_support`), since the stray
+points a slab collects around a face pull its distribution matrix; the support is measured as a
 rectangle (:func:`spacepose.core.rectangle_measurement.measure_rectangle`) and recognised
 against the catalogue (:func:`spacepose.core.rectangles.recognise`). All vectors are in the
 frame of the points (the sensor frame), in metres.
@@ -25,7 +25,8 @@ from spacepose.core.moments import (
     normalised_weights,
     on_a_line,
 )
-from spacepose.core.planes import Plane, PlaneConfig, dense_support, extract_planes
+from spacepose.core.plane_support import dense_support
+from spacepose.core.planes import Plane, PlaneConfig, extract_planes
 from spacepose.core.rectangle_measurement import RectangleMeasurement, measure_rectangle
 from spacepose.core.rectangles import CatalogueEntry, RectangleConfig, recognise
 from spacepose.errors import InputError

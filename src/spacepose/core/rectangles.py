@@ -169,7 +169,7 @@ class RectangleConfig(StageConfig):
         (:func:`~spacepose.core.rectangle_measurement.measure_rectangle`).
     support
         Measure only the plane's dense connected region
-        (:func:`spacepose.core.planes.dense_support`), not every point of the RANSAC slab.
+        (:func:`spacepose.core.plane_support.dense_support`), not every point of the RANSAC slab.
     kurtosis_tolerance
         Largest allowed ``|E[u⁴]/E[u²]² − 1.8|`` along either side (noise-corrected); a disc or
         an ellipse gives 2.0; hidden corners and bands move it by 0.1 and more (1.64 to 2.74
