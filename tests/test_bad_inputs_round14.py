@@ -227,3 +227,22 @@ def test_slabs_cut_through_a_curved_surface_are_no_planes():
     assert len(planes) == 2 and all(p.n_inliers > 1900 for p in planes)
     normals = sorted(np.round(np.abs(p.normal), 2).tolist() for p in planes)
     assert np.allclose(normals, [[0.71, 0.0, 0.71]] * 2, atol=0.01)
+
+
+def test_a_transform_file_with_comment_lines_is_read(tmp_path):
+    """``register --init`` with a ``# T_target_source`` line above its 16 numbers was "expected
+    16 numbers (a 4x4 matrix)"; a comment after a row is read past too."""
+    from spacepose.core import se3
+    from spacepose.errors import FileFormatError
+    from spacepose.tools.register_io import read_transform
+
+    T = se3.make_transform(np.eye(3), [0.1, -0.2, 0.3])
+    rows = [" ".join(f"{v:.6f}" for v in row) for row in T]
+    path = tmp_path / "init.txt"
+    path.write_text(
+        "# T_target_source (m)\n" + "\n".join(rows[:2]) + "  # x, y\n" + "\n".join(rows[2:]) + "\n"
+    )
+    assert np.allclose(read_transform(path), T)
+    path.write_text("# only a comment\n1 0 0 0\n")
+    with pytest.raises(FileFormatError, match="expected 16 numbers"):
+        read_transform(path)

@@ -144,7 +144,8 @@ def test_warns_on_a_shorter_estimate_and_repeated_timestamps(
     captured = capsys.readouterr()
     assert json.loads(captured.out)["warnings"] == [
         "21 poses against 20 in gt.tum: only the 21 estimated ones are scored",
-        "1 estimate(s) share a ground-truth pose with another (repeated timestamps)",
+        "1 estimate(s) share a ground-truth pose with another (repeated timestamps, or a "
+        "--max-dt wider than the spacing of the truth)",
     ]
     assert len(captured.err.strip().splitlines()) == 2
 

@@ -326,7 +326,10 @@ def test_an_estimate_with_repeated_times_is_noted_and_not_paired_by_line(
         plots, "pose_error_curves", lambda t, c, title: drawn.extend(c) or curves(t, c, title)
     )
     page = build_report(root, tmp_path / "r.html").read_text()
-    note = "gicp: 1 estimate(s) share a ground-truth pose with another (repeated timestamps)"
+    note = (
+        "gicp: 1 estimate(s) share a ground-truth pose with another (repeated timestamps, or a "
+        "--max-dt wider than the spacing of the truth)"
+    )
     assert note in page
     assert drawn == ["icp"]  # icp's times are the truth's; gicp's are not, so no curve
 

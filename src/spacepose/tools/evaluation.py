@@ -187,7 +187,10 @@ def shared_pairings(i_gt: np.ndarray) -> str | None:
     shared = len(i_gt) - len(np.unique(i_gt))
     if not shared:
         return None
-    return f"{shared} estimate(s) share a ground-truth pose with another (repeated timestamps)"
+    return (
+        f"{shared} estimate(s) share a ground-truth pose with another (repeated timestamps, "
+        "or a --max-dt wider than the spacing of the truth)"
+    )
 
 
 def lone_rebased_pose(count: int, rebase_first: bool) -> str | None:
