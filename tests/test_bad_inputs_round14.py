@@ -150,6 +150,9 @@ def test_a_time_written_with_a_digit_separator_is_refused(tmp_path):
     tum.write_text("0 0 0 0 0 0 0 1\n0_5 0 0 0 0 0 0 1\n")
     with pytest.raises(FileFormatError, match="line 2: not a number"):
         read_tum(tum)
+    # A comment naming a frame after the values is no number.
+    tum.write_text("0 0 0 0 0 0 0 1 # T_sensor_target\n0.5 0 0 0 0 0 0 1\n")
+    assert read_tum(tum).timestamps.tolist() == [0.0, 0.5]
 
 
 def test_an_exr_of_a_region_is_placed_where_its_data_window_lies(tmp_path):
@@ -182,6 +185,14 @@ def test_an_exr_of_a_region_is_placed_where_its_data_window_lies(tmp_path):
         inside = np.zeros((48, 64), dtype=bool)
         inside[max(y0, 0) : y1 + 1, max(x0, 0) : x1 + 1] = True
         assert np.array_equal(read[inside], depth[inside]) and not read[~inside].any()
+    # A display window of 10⁵ x 10⁵ pixels around a small render is refused, not allocated.
+    from spacepose.errors import FileFormatError
+
+    header["displayWindow"] = (np.array([0, 0], np.int32), np.array([99999, 99999], np.int32))
+    with OpenEXR.File(header, {"Z": values}) as exr:
+        exr.write(str(tmp_path / "huge.exr"))
+    with pytest.raises(FileFormatError, match="display window is 100000x100000 pixels"):
+        read_exr_depth(tmp_path / "huge.exr")
 
 
 @pytest.mark.parametrize("colour", ["grey", "one grey", "grey-float"])

@@ -362,7 +362,9 @@ class Relocaliser:
         estimate, status = found[:2]
         if fits_better(estimate, status, kept):
             return True
-        if estimate is None or status == "lost":
+        if estimate is None or status == "lost" or estimate.result.fitness < self.ok_fitness:
+            # A pose that leaves much of the frame off the model may have slipped itself: its
+            # count decides nothing, as between twins.
             return False
         T_kept = kept[0].T_sensor_target
         if pose_disagreement(estimate.T_sensor_target, T_kept, prepared.centroid)[1] < 90.0:

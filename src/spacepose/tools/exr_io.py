@@ -26,6 +26,8 @@ from numpy.typing import NDArray
 from spacepose.errors import FileFormatError, SpaceposeWarning
 
 EXR_SUFFIX = ".exr"
+# Most pixels of a display window an image is placed in (a 4K frame holds 8.3 million).
+_LARGEST_IMAGE = 1 << 26
 # Channel names (the last part, case-insensitive) that hold depth.
 _DEPTH_NAMES = ("z", "depth", "distance")
 
@@ -107,7 +109,14 @@ def _on_display(pixels: NDArray, header: dict) -> NDArray:
     (x0, y0), (dx0, dy0), (dx1, dy1) = data[0], display[0], display[1]
     if (x0, y0, *pixels.shape[::-1]) == (dx0, dy0, dx1 - dx0 + 1, dy1 - dy0 + 1):
         return pixels
-    image = np.zeros((int(dy1 - dy0 + 1), int(dx1 - dx0 + 1)), dtype=pixels.dtype)
+    width, height = int(dx1 - dx0 + 1), int(dy1 - dy0 + 1)
+    if width <= 0 or height <= 0 or width * height > _LARGEST_IMAGE:
+        # A header's display window is only numbers: 10⁵ x 10⁵ would be 40 GB of zeros.
+        raise ValueError(
+            f"its display window is {width}x{height} pixels, no depth camera's image "
+            f"(at most {_LARGEST_IMAGE:,} pixels read)"
+        )
+    image = np.zeros((height, width), dtype=pixels.dtype)
     # The overlap of the two windows, in the display image's pixels and in the data's.
     top, left = max(int(y0 - dy0), 0), max(int(x0 - dx0), 0)
     row, col = top - int(y0 - dy0), left - int(x0 - dx0)

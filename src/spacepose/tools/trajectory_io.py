@@ -51,8 +51,9 @@ def _read_rows(path: Path, width: int, kind: str) -> tuple[NDArray[np.float64], 
             raise FileFormatError(
                 f"line {lineno}: expected {width} values for {kind}, got {len(body)}", path
             )
-        if "_" in line:
-            # numpy reads Python's digit separators: 0_5 was 5 s.
+        if any("_" in token for token in body):
+            # numpy reads Python's digit separators: 0_5 was 5 s. (Of the values only: a
+            # comment after them may name T_sensor_target.)
             raise FileFormatError(f"line {lineno}: not a number in {body}", path)
         tokens.append(body)
         numbers.append(lineno)
