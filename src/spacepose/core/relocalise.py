@@ -234,7 +234,7 @@ class Relocaliser:
             self.twin, test = rival
             # Still undecided: the retry decided nothing and backs off as a miss. Reset, a
             # symmetric target retried every frame (18 -> 124 ms a frame at 25 m).
-            return self._missed((estimate, "degraded", (*reasons, _ambiguous(test))))
+            return self._missed((estimate, "degraded", (*reasons, _ambiguous(test, self.twin))))
         self._misses = self._skip = 0
         return estimate, status, reasons
 
@@ -285,7 +285,7 @@ class Relocaliser:
             return self._restore(measured_by_twin, twin), True
         estimate = checked[0]
         self.twin = se3.invert(estimate.T_sensor_target) @ twin[0].T_sensor_target
-        return (estimate, "degraded", (*checked[2], _ambiguous(test))), False
+        return (estimate, "degraded", (*checked[2], _ambiguous(test, self.twin))), False
 
     def _rematch(
         self, prepared: PreparedCloud, pair: tuple[Checked, Checked]
@@ -396,9 +396,12 @@ def fits_better(estimate: FineEstimate | None, status: Status, kept: Checked) ->
     return estimate.result.fitness >= f_kept + 0.5 * (1.0 - f_kept)
 
 
-def _ambiguous(test: FitComparison) -> str:
+def _ambiguous(test: FitComparison, T_target_twin: NDArray[np.float64]) -> str:
+    """The reason of a frame whose pose and twin (a half or, on a model nearly round about an
+    axis, a quarter turn away) the data do not tell apart."""
+    turn = pose_disagreement(T_target_twin, np.eye(4), np.zeros(3))[1]
     return (
-        f"ambiguous: the model half a turn away is not told apart ({test.only_first} / "
+        f"ambiguous: the model turned {turn:.0f}° is not told apart ({test.only_first} / "
         f"{test.only_second} points fit one pose only)"
     )
 
