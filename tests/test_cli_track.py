@@ -17,12 +17,17 @@ from spacepose.core.metrics import evaluate
 from spacepose.core.sim.scenarios import LabConfig, simulate_lab
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import ConfigError, InputError, SpaceposeWarning
+from spacepose.errors import ConfigError, InputError, Interrupted, SpaceposeWarning
 from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.evaluation import compare_trajectory_files
 from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.runs import write_run
-from spacepose.tools.tracking_io import HEALTH_COLUMNS, track_folder, tracker_config
+from spacepose.tools.tracking_io import (
+    HEALTH_COLUMNS,
+    read_covariance_csv,
+    track_folder,
+    tracker_config,
+)
 from spacepose.tools.trajectory_io import read_tum, write_tum
 
 N_FRAMES = 4
@@ -248,8 +253,10 @@ def test_out_under_a_regular_file_fails_before_tracking(frame_dir, tmp_path, cap
     assert "notes.txt: it is a regular file" in _one_line_error(capsys)
 
 
-def test_rows_are_written_as_the_run_goes(frame_dir, tmp_path, monkeypatch):
-    """A run that dies at frame 2 keeps the trajectory and health rows of frames 0 and 1."""
+def test_rows_are_written_as_the_run_goes(frame_dir, tmp_path, monkeypatch, capsys):
+    """A run interrupted at frame 2 keeps the trajectory, health and covariance rows of frames 0
+    and 1, whole, and says so: the CLI's one line names how far it got (it said 'aborted', and
+    nothing told a later reader that EST.tum stops short), exit code 130."""
     from spacepose.core.tracker import Tracker
 
     real = Tracker.track_frame
@@ -261,11 +268,16 @@ def test_rows_are_written_as_the_run_goes(frame_dir, tmp_path, monkeypatch):
 
     monkeypatch.setattr(Tracker, "track_frame", dies_at_frame_2)
     out = tmp_path / "e.tum"
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(Interrupted, match=r"e\.tum: interrupted after 2 of 4 frames"):
         track_folder(frame_dir, out, tracker_config(method="point_to_plane"))
     np.testing.assert_array_equal(read_tum(out).timestamps, [100.0, 100.5])
     with (tmp_path / "e.health.csv").open() as fh:
         assert [r["frame"] for r in csv.DictReader(fh)] == ["0", "1"]
+    assert read_covariance_csv(tmp_path / "e.cov.csv").shape == (2, 6, 6)
+    capsys.readouterr()
+    assert main(["track", str(frame_dir), "--out", str(tmp_path / "cli.tum")]) == 130
+    assert "interrupted after 2 of 4 frames" in _one_line_error(capsys)
+    np.testing.assert_array_equal(read_tum(tmp_path / "cli.tum").timestamps, [100.0, 100.5])
 
 
 def test_timestamps_count_mismatch(frame_dir, tmp_path):

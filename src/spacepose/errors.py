@@ -58,6 +58,21 @@ class RegistrationError(SpaceposeError):
     """A registration that cannot produce a transform (no correspondences, no consensus)."""
 
 
+class Interrupted(SpaceposeError):
+    """A run stopped by the user (Ctrl-C), its outputs written up to the last whole frame.
+
+    Parameters
+    ----------
+    message
+        How far the run got and what its outputs hold.
+    source
+        The output the message concerns (prefixed as for :class:`InputError`).
+    """
+
+    def __init__(self, message: str, source: str | Path | None = None) -> None:
+        super().__init__(_located(self, message, source))
+
+
 class SpaceposeWarning(UserWarning):
     """Input that is accepted but looks wrong (coordinates in millimetres, a skipped file).
 

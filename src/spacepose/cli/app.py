@@ -18,7 +18,7 @@ import typer
 from rich.console import Console
 from typer._click.exceptions import NoArgsIsHelpError, UsageError
 
-from spacepose.errors import SpaceposeError, SpaceposeWarning
+from spacepose.errors import Interrupted, SpaceposeError, SpaceposeWarning
 
 app = typer.Typer(
     name="spacepose",
@@ -57,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
         warnings.showwarning = shown.show
         try:
             result = app(args=argv, prog_name="spacepose", standalone_mode=False)
+        except Interrupted as exc:  # Ctrl-C that a command caught to close its outputs
+            _fail(shown, str(exc))
+            return 130
         except SpaceposeError as exc:
             return _fail(shown, str(exc))
         except typer.Abort:

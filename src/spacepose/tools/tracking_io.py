@@ -23,7 +23,7 @@ from spacepose.core.scale import rms_radius
 from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
+from spacepose.errors import FileFormatError, InputError, Interrupted, SpaceposeWarning
 from spacepose.tools.cloud_io import read_model
 from spacepose.tools.frames import CLOUD_SUFFIXES, FrameInput, Frames, input_files, open_frames
 from spacepose.tools.outputs import check_spares_inputs, check_writable
@@ -339,60 +339,21 @@ def track_folder(
     scale_path.unlink(missing_ok=True)  # a former run's lengths are not this run's
     rows: list[_Row] = []
     times: list[float] = []
-    written_scale = None
     with tum.open("w") as tum_fh, open_table(health) as health_fh, open_table(cov_path) as cov_fh:
         files = (tum_fh, health_fh, cov_fh)
         _write_rows(files, [], header=True)
-        last_time = -np.inf
-        for frame in frames:
-            tracked = frame.timestamp > last_time
-            if not tracked:
-                # A bag's header stamps, read as the frames come: a repeat or a step back is
-                # this frame's fault, not the run's; the trajectory skips it (TUM times rise).
-                result = _out_of_order(frame, last_time)
-                tracker.continue_at(frame.index + 1)
-                # Said as an unreadable frame is (the table alone held it).
-                problem = f"frame lost: {result.reasons[0]}"
-                warnings.warn(SpaceposeWarning(problem, frame.source), stacklevel=2)
-            else:
-                if model_cloud is not None and frame.cloud is not None and last_time == -np.inf:
-                    warn_if_model_in_other_unit(model_cloud, frame.cloud, model)
-                result = tracker.track_frame(frame.cloud, frame.timestamp)
-                last_time = frame.timestamp
-            if frame.error is not None:  # the read error says more than the tracker's "no points"
-                result = dataclasses.replace(result, reasons=(frame.error,))
-                # On stderr too, not in the table alone (the CLI counts repeats past three).
-                problem = frame.error.removeprefix(f"{frame.source}: ")
-                warnings.warn(
-                    SpaceposeWarning(f"not read, frame lost: {problem}", frame.source), stacklevel=2
-                )
-            # The tracker's reasons ("unusable frame: 1 point(s)") name no file; a read error
-            # does.
-            where = "" if frame.error is not None else f", {frame.source}"
-            rows.append(_Row(result, where, tracked))
-            if result.revises:
-                # Earlier frames' results revised (a model-free first frame replaced): the
-                # files are written again, a few lines at the start of a run.
-                new = {r.index: r for r in result.revises}
-                rows = [
-                    dataclasses.replace(r, result=new.get(r.result.index, r.result)) for r in rows
-                ]
-                for fh in files:
-                    fh.seek(0)
-                    fh.truncate()
-                _write_rows(files, rows, header=True)
-            else:
-                _write_rows(files, rows[-1:], header=False)
-            if tracker.scale is not None and tracker.scale is not written_scale:
-                # The lengths derived from the first usable frame, as soon as it sets them (an
-                # interrupted run keeps them), and again when the whole scene becomes the
-                # target: what a new sensor's user checks.
-                written_scale = tracker.scale
-                lengths = tracker.scale.to_dict() | tracker.lengths.to_dict()
-                scale_path.write_text(json.dumps(lengths, indent=2) + "\n")
-            times.append(result.time_ms["total"])
-            if progress is not None:
-                progress(len(rows), len(frames), result.status)
+        try:
+            _track_frames(
+                tracker, frames, files, rows, times, scale_path, (model_cloud, model), progress
+            )
+        except KeyboardInterrupt:
+            # Written again whole: an interrupt inside a write would leave half a row.
+            _rewrite(files, rows)
+            raise Interrupted(
+                f"interrupted after {len(rows)} of {len(frames)} frames: the trajectory and its "
+                "tables hold those frames",
+                tum,
+            ) from None
     statuses = [r.result.status for r in rows]
     first_lost = next(
         (
@@ -415,3 +376,73 @@ def track_folder(
         "config": str(config_path),
         "scale": str(scale_path) if tracker.scale is not None else None,
     }
+
+
+def _track_frames(
+    tracker: Tracker,
+    frames: Frames,
+    files: tuple[TextIO, TextIO, TextIO],
+    rows: list[_Row],
+    times: list[float],
+    scale_path: Path,
+    model: tuple[PointCloud | None, str | Path | None],
+    progress: Callable[[int, int, str], None] | None,
+) -> None:
+    """Track each frame and write its rows as it comes (``rows`` and ``times`` grow with them;
+    ``model``: the model cloud and its file; :func:`track_folder`)."""
+    model_cloud, model_path = model
+    written_scale = None
+    last_time = -np.inf
+    for frame in frames:
+        tracked = frame.timestamp > last_time
+        if not tracked:
+            # A bag's header stamps, read as the frames come: a repeat or a step back is this
+            # frame's fault, not the run's; the trajectory skips it (TUM times rise).
+            result = _out_of_order(frame, last_time)
+            tracker.continue_at(frame.index + 1)
+            # Said as an unreadable frame is (the table alone held it).
+            problem = f"frame lost: {result.reasons[0]}"
+            warnings.warn(SpaceposeWarning(problem, frame.source), stacklevel=3)
+        else:
+            if model_cloud is not None and frame.cloud is not None and last_time == -np.inf:
+                warn_if_model_in_other_unit(model_cloud, frame.cloud, model_path)
+            result = tracker.track_frame(frame.cloud, frame.timestamp)
+            last_time = frame.timestamp
+        if frame.error is not None:  # the read error says more than the tracker's "no points"
+            result = dataclasses.replace(result, reasons=(frame.error,))
+            # On stderr too, not in the table alone (the CLI counts repeats past three).
+            problem = frame.error.removeprefix(f"{frame.source}: ")
+            warnings.warn(
+                SpaceposeWarning(f"not read, frame lost: {problem}", frame.source), stacklevel=3
+            )
+        # The tracker's reasons ("unusable frame: 1 point(s)") name no file; a read error does.
+        where = "" if frame.error is not None else f", {frame.source}"
+        rows.append(_Row(result, where, tracked))
+        if result.revises:
+            # Earlier frames' results revised (a model-free first frame replaced): the files are
+            # written again, a few lines at the start of a run.
+            new = {r.index: r for r in result.revises}
+            rows[:] = [
+                dataclasses.replace(r, result=new.get(r.result.index, r.result)) for r in rows
+            ]
+            _rewrite(files, rows)
+        else:
+            _write_rows(files, rows[-1:], header=False)
+        if tracker.scale is not None and tracker.scale is not written_scale:
+            # The lengths derived from the first usable frame, as soon as it sets them (an
+            # interrupted run keeps them), and again when the whole scene becomes the target:
+            # what a new sensor's user checks.
+            written_scale = tracker.scale
+            lengths = tracker.scale.to_dict() | tracker.lengths.to_dict()
+            scale_path.write_text(json.dumps(lengths, indent=2) + "\n")
+        times.append(result.time_ms["total"])
+        if progress is not None:
+            progress(len(rows), len(frames), result.status)
+
+
+def _rewrite(files: tuple[TextIO, TextIO, TextIO], rows: Sequence[_Row]) -> None:
+    """Write the three tables again from their first line."""
+    for fh in files:
+        fh.seek(0)
+        fh.truncate()
+    _write_rows(files, rows, header=True)
