@@ -361,6 +361,26 @@ def test_a_first_frame_of_noise_that_later_frames_fit_badly_gives_way():
     np.testing.assert_array_equal(out.trajectory.poses[1:], alone.trajectory.poses)
 
 
+def test_frames_between_an_abandoned_first_frame_and_the_new_one_are_lost():
+    """Two frames of noise, then the orbit run: the spare started on frame 1 fits nothing and
+    the one started on frame 2 takes over. Frame 1's result was the run tracker's, relative to
+    frame 0: a third party's run kept such a frame degraded with its pose in the abandoned
+    target frame, beside poses in the new one. It is revised to lost, its pose unknown."""
+    sim = simulate_orbit(OrbitConfig(frames=8, seed=0))
+    rng = np.random.default_rng(0)
+    noise = [rng.uniform(-5.0, 5.0, (3000, 3)) + np.array([0, 0, 25.0]) for _ in range(2)]
+    clouds = [*noise, *(sim.frame(k).cloud for k in range(2, 8))]
+    out = track_sequence(clouds, sim.timestamps, TrackerConfig(), None, 2)
+    between = out.results[1]
+    assert between.status == "lost" and between.reasons[0].startswith("tracked against frame 0")
+    assert "frame 2's sensor frame" in between.reasons[0]
+    assert np.isinf(between.covariance.diagonal()).all()
+    np.testing.assert_array_equal(between.T_sensor_target, np.eye(4))
+    assert out.results[0].status == "lost" and out.results[2].status == "ok"
+    alone = track_sequence(clouds[2:], sim.timestamps[2:], TrackerConfig(), None, 2)
+    np.testing.assert_array_equal(out.trajectory.poses[2:], alone.trajectory.poses)
+
+
 def test_a_spare_ends_after_three_frames_that_never_fit(lab):
     """A scene no registration fits within the ok bounds (here an RMSE bound of 1 % of a voxel)
     never confirms its first frame: the spare, whose frames fit no better, is not taken, and

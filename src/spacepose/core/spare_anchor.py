@@ -42,6 +42,23 @@ def abandoned_anchor(first: TrackResult, new_anchor: int) -> TrackResult:
     )
 
 
+def orphaned(result: TrackResult, old_anchor: int, new_anchor: int) -> TrackResult:
+    """The revised result of a frame between an abandoned first frame and the new one: lost,
+    for its pose was relative to the abandoned target frame (the identity, σ infinite, as a
+    lost frame's with nothing known)."""
+    reason = (
+        f"tracked against frame {old_anchor}, a first frame no later frame confirmed: the "
+        f"target frame is frame {new_anchor}'s sensor frame instead"
+    )
+    return dataclasses.replace(
+        result,
+        status="lost",
+        T_sensor_target=np.eye(4),
+        covariance=np.diag(np.full(6, np.inf)),
+        reasons=(reason,),
+    )
+
+
 def new_anchor(first: TrackResult, old_anchor: int) -> TrackResult:
     """The revised result of the frame that now defines the target frame (it was lost against
     the first one): the identity, as every model-free first frame's."""
@@ -63,6 +80,8 @@ class SpareAnchor:
         self._config, self._workers = config, workers
         self.tracker: Tracker | None = None
         self._unfit = 0
+        # The run's results after its first frame: relative to a target frame that may go.
+        self._after_first: list[TrackResult] = []
         # A pose found with no prediction to confirm it (a coarse jump) came between: later
         # fits confirm it, not the first frame.
         self._jumped = False
@@ -95,6 +114,7 @@ class SpareAnchor:
         """
         if first is None or result.index == first.index:
             return True, None
+        self._after_first.append(result)
         self._jumped = self._jumped or jumped
         if fits and not self._jumped:
             return False, None
@@ -107,7 +127,18 @@ class SpareAnchor:
             return True, None
         tracker, spare_result = spare
         anchor = tracker._first
-        revised = (abandoned_anchor(first, anchor.index), new_anchor(anchor, first.index))
+        # The frames between the two first frames were tracked in the abandoned target frame
+        # (a degraded frame's pose stayed in it, beside poses in the new one).
+        between = [
+            orphaned(r, first.index, anchor.index)
+            for r in self._after_first
+            if r.index < anchor.index
+        ]
+        revised = (
+            abandoned_anchor(first, anchor.index),
+            *between,
+            new_anchor(anchor, first.index),
+        )
         return False, (tracker, dataclasses.replace(spare_result, revises=revised))
 
     def _track(self, frame: Frame, index: int) -> tuple[Tracker, TrackResult] | None:
