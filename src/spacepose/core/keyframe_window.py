@@ -65,14 +65,19 @@ class KeyframeWindow:
 
     def confirm(self, fitness_onto: Callable[[Keyframe], float]) -> None:
         """Settle a provisional keyframe on the frame after it: kept when that frame fits it
-        at least as well (``fitness_onto``, a keyframe -> the frame's fitness registered onto
-        it) as the keyframe before it, else dropped with the window as it was before. A view
-        turning away fits its newest keyframe best; after a glitch the scene is back in the
-        older one's view."""
+        better (``fitness_onto``, a keyframe -> the frame's fitness registered onto it) than
+        the keyframe before it and that one no longer serves (a fitness under the stale
+        bound), else dropped with the window as it was before. A view turning away fits its
+        newest keyframe best and its older one poorly; after a glitch the scene is back in the
+        older one's view. Fitness counts the frame's points only, so a glitch that added a
+        surface (a second return 3 m behind the lab target) fitted the next frame as well as
+        the keyframe before it: kept, its cloud 1.5 m across held every later frame's coarse
+        surfaces degenerate, `degraded` at σ 0.4 m to the end of the run."""
         if self._provisional is None:
             return
         before, self._provisional = self._provisional, None
-        if fitness_onto(self.latest) < fitness_onto(before[0][-1]):
+        old = fitness_onto(before[0][-1])
+        if fitness_onto(self.latest) <= old or old >= self.config.keyframe.stale_fitness:
             self.restore(before)
 
     def snapshot(self) -> tuple[list[Keyframe], bool]:
