@@ -3,12 +3,19 @@ refused as it should be."""
 
 from __future__ import annotations
 
-import numpy as np
+import json
 
+import numpy as np
+import pytest
+
+from spacepose.cli import main
 from spacepose.core.metrics import pose_errors
-from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+from spacepose.core.nav_config import NavigatorEKFConfig
+from spacepose.core.sim.scenarios import LabConfig, OrbitConfig, simulate_lab, simulate_orbit
 from spacepose.core.track_sequence import track_sequence
 from spacepose.core.tracker_config import TrackerConfig
+from spacepose.tools.cloud_io import read_cloud
+from spacepose.tools.runs import write_run
 
 
 def test_one_frame_with_a_surface_behind_the_target_does_not_spoil_the_frames_after_it():
@@ -34,3 +41,38 @@ def test_one_frame_with_a_surface_behind_the_target_does_not_spoil_the_frames_af
     truth = sim.T_sensor_target @ np.linalg.inv(sim.T_sensor_target[0])
     dt, de = pose_errors(out.trajectory.poses[ok], truth[ok])
     assert np.abs(dt).max() < 0.003 and np.degrees(np.abs(de)).max() < 0.3
+
+
+@pytest.mark.parametrize("field", ["Scalar field", "C2C absolute distances"])
+def test_a_cloudcompare_field_name_with_a_space_is_one_column(tmp_path, field):
+    """CloudCompare names its scalar fields "Scalar field", "C2C absolute distances": the
+    header was split on spaces too, 5 names for 4 columns, and the file refused."""
+    rng = np.random.default_rng(0)
+    table = np.c_[rng.uniform(-1.0, 1.0, (50, 3)), rng.uniform(0.0, 1.0, 50)]
+    path = tmp_path / "cc.txt"
+    rows = "\n".join(",".join(f"{v:.6f}" for v in row) for row in table)
+    path.write_text(f"//X,Y,Z,{field}\n{rows}\n")
+    np.testing.assert_allclose(read_cloud(path).points, table[:, :3], atol=1e-6)
+
+
+def test_navigate_takes_the_scenarios_filter_noise_where_its_config_does_not(tmp_path):
+    """`spacepose navigate` kept the navigator's default process noise (3e-8) where the run's
+    scenario holds the one measured from what CW misses (1.25e-6 on the orbit run): the
+    experiments applied it, the command did not, and its NEES was above the bounds on every
+    frame of the second half. A config file's ``ekf`` block naming sigma_accel alone had also
+    rebuilt the rest of the filter settings from EKFConfig's defaults (the chaser attitude
+    taken as exact): it now changes that key only, and the scenario's value gives way to it."""
+    run = write_run(tmp_path / "run", simulate_orbit(OrbitConfig(frames=8)))
+    scenario = json.loads((run / "scenario.json").read_text())
+    measured = scenario["process_noise"]["sigma_accel"]
+    assert measured > 1e-7
+    out = tmp_path / "nav.csv"
+    assert main(["navigate", str(run), "--out", str(out)]) == 0
+    ekf = json.loads(out.with_suffix(".config.json").read_text())["ekf"]
+    assert ekf["sigma_accel"] == measured and ekf["sigma_chaser_attitude_deg"] == 0.01
+    partial = tmp_path / "partial.yaml"
+    partial.write_text("ekf:\n  sigma_accel: 2.0e-6\n")
+    assert main(["navigate", str(run), "--out", str(out), "--config", str(partial)]) == 0
+    ekf = json.loads(out.with_suffix(".config.json").read_text())["ekf"]
+    defaults = NavigatorEKFConfig().model_dump()
+    assert ekf == defaults | {"sigma_accel": 2.0e-6}

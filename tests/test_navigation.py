@@ -572,7 +572,8 @@ def test_cli_navigate_a_frame_folder_with_a_scenario_file(run_dir, tmp_path, cap
     scenario = json.loads((run_dir / "scenario.json").read_text())
     stamps = np.loadtxt(run_dir / "groundtruth.tum", usecols=0, ndmin=1)
     (frames / "timestamps.txt").write_text("".join(f"{float(t)!r}\n" for t in stamps))
-    keep = ("mean_motion", "R_O_C", "rectangles", "initial_q_I_B")
+    # The filter's noise too: the process noise measured on the run, the chaser attitude's σ.
+    keep = ("mean_motion", "R_O_C", "rectangles", "initial_q_I_B", "process_noise", "config")
     (tmp_path / "scenario.yaml").write_text(yaml.safe_dump({k: scenario[k] for k in keep}))
     ref, out = tmp_path / "ref.csv", tmp_path / "nav.csv"
     assert main(["navigate", str(run_dir), "--out", str(ref), "--debug-prior-from-truth"]) == 0

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from spacepose.core.config import StageConfig
 from spacepose.core.ekf_config import EKFConfig
@@ -10,39 +10,67 @@ from spacepose.core.lost_in_space import LostInSpaceConfig
 from spacepose.core.planes import PlaneConfig
 from spacepose.core.rectangles import RectangleConfig
 
-__all__ = ["NavigationConfig"]
+__all__ = [
+    "NavigationConfig",
+    "NavigatorEKFConfig",
+    "NavigatorPlaneConfig",
+    "NavigatorRectangleConfig",
+]
+
+
+class NavigatorPlaneConfig(PlaneConfig):
+    """:class:`PlaneConfig` with the navigator's default slab (the flash LiDAR's 1 cm noise);
+    a config file's ``plane`` block changes only the keys it names."""
+
+    distance_threshold: float = Field(0.03, gt=0)
+
+
+class NavigatorRectangleConfig(RectangleConfig):
+    """:class:`RectangleConfig` with the navigator's default range noise."""
+
+    sigma: float = Field(0.01, ge=0)
+
+
+class NavigatorEKFConfig(EKFConfig):
+    """:class:`EKFConfig` with the navigator's defaults (the orbit run's flash LiDAR at 25 m);
+    a config file's ``ekf`` block changes only the keys it names (a block naming sigma_accel
+    alone had rebuilt the rest from EKFConfig's defaults: the chaser attitude taken as exact,
+    the filter 19σ off across the line of sight)."""
+
+    sigma_accel: float = Field(3e-8, ge=0, description="Process noise on ρ̈, m/s²/√Hz.")
+    sigma_angular_accel: float = Field(3e-8, ge=0, description="Process noise on ω̇, rad/s²/√Hz.")
+    sigma_centroid: float = Field(0.01, gt=0, description="Centroid measurement σ, m.")
+    init_sigma_position: float = Field(0.1, gt=0, description="Initial σ of ρ, m.")
+    init_sigma_attitude_deg: float = Field(3.0, gt=0, description="Initial σ of attitude, deg.")
+    init_sigma_rate_deg_s: float = Field(3.0, gt=0, description="Initial σ of ω, deg/s.")
+    sigma_feature: float = Field(
+        0.005, gt=0, description="Prior σ of a rectangle's location error δ_j, m."
+    )
+    sigma_chaser_attitude_deg: float = Field(
+        0.01, ge=0, description="1σ per axis of the knowledge error of R_O_C, deg."
+    )
 
 
 class NavigationConfig(StageConfig):
     """Settings of :class:`RelativeNavigator` (defaults: the flash LiDAR of the orbit run)."""
 
-    plane: PlaneConfig = Field(
-        default_factory=lambda: PlaneConfig(distance_threshold=0.03),
+    plane: NavigatorPlaneConfig = Field(
+        default_factory=NavigatorPlaneConfig,
         description="RANSAC plane extraction; thickness about 3σ of the range noise. Its "
         "range_threshold, when unset, is 3 rectangle.sigma (see ray_share_out).",
     )
-    rectangle: RectangleConfig = Field(
-        default_factory=lambda: RectangleConfig(sigma=0.01),
+    rectangle: NavigatorRectangleConfig = Field(
+        default_factory=NavigatorRectangleConfig,
         description="Recognition; sigma is the range noise removed from the eigenvalues.",
     )
-    ekf: EKFConfig = Field(
-        default_factory=lambda: EKFConfig(
-            sigma_accel=3e-8,
-            sigma_angular_accel=3e-8,
-            sigma_centroid=0.01,
-            init_sigma_position=0.1,
-            init_sigma_velocity=0.01,
-            init_sigma_attitude_deg=3.0,
-            init_sigma_rate_deg_s=3.0,
-            init_sigma_inertia=0.3,
-            init_sigma_com=0.1,
-            sigma_feature=0.005,
-            sigma_chaser_attitude_deg=0.01,
-        ),
+    ekf: NavigatorEKFConfig = Field(
+        default_factory=NavigatorEKFConfig,
         description="Filter noise model; sigma_attitude_deg and sigma_centroid are unused (each "
         "rectangle's attitude and centroid covariance is measured: nav_measurements); "
         "sigma_chaser_attitude_deg is the knowledge error of R_O_C (0.01°, a star tracker's), "
-        "held as a consider state; sigma_accel is replaced by a scenario's measured one.",
+        "held as a consider state. A run's scenario gives sigma_accel (measured from what CW "
+        "misses) and sigma_chaser_attitude_deg where a config file does not "
+        "(tools.navigation_config_io.with_run_settings).",
     )
     tilt_scale: float = Field(
         1.0,
@@ -103,6 +131,15 @@ class NavigationConfig(StageConfig):
         "sparsely off the axis, which pulls the plain mean (about 2 cm at 25 m on the orbit "
         "run; weights ∝ range³ left 4 cm along the wing and a 5 mm bias of the CoM).",
     )
+
+    @field_validator("plane", "rectangle", "ekf", mode="before")
+    @classmethod
+    def _navigator_defaults(cls, value: object) -> object:
+        # A base config given in code (PlaneConfig(range_threshold=0.02)) keeps the navigator's
+        # defaults for what it leaves unset, as a config file's block does.
+        if isinstance(value, StageConfig):
+            return value.model_dump(exclude_unset=True)
+        return value
 
     def plane_config(self) -> PlaneConfig:
         """The plane extraction settings the navigator uses (with the ray share-out)."""

@@ -57,8 +57,11 @@ def read_text_cloud(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64
     if first is None:
         raise FileFormatError("no point rows in text file", path)
     delimiter = "," if "," in lines[first] else None
-    # ';' too: a row of "0.1;0.2;0.3" is a row with the wrong separator, not a header.
-    head = lines[first].replace(",", " ").replace(";", " ").split()
+    # ';' too: a row of "0.1;0.2;0.3" is a row with the wrong separator, not a header. A name
+    # between separators may hold a space (CloudCompare's "//X,Y,Z,Scalar field").
+    separated = re.split(r"[,;]", lines[first]) if re.search(r"[,;]", lines[first]) else None
+    head = lines[first].split() if separated is None else [t.strip() for t in separated]
+    head = [t for t in head if t]
     # A header line names its columns ("x,y,z", CloudCompare's "//X,Y,Z"); a row with a number
     # in it is a row, however malformed its first field ("0x1 2 3" was taken for a header).
     header = not any(_is_number(token) for token in head)

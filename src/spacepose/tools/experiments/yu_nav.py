@@ -34,7 +34,6 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from spacepose.core.ekf import RelativeNavEKF
-from spacepose.core.lost_in_space import with_sensor_fov
 from spacepose.core.nav_start import scenario_geometry
 from spacepose.core.nav_state import INERTIA, N_FIXED, NavState, k_from_params, params_from_k
 from spacepose.core.navigation import NavigationConfig, RelativeNavigator
@@ -42,6 +41,7 @@ from spacepose.core.sim.scenarios import OrbitConfig, simulate_orbit
 from spacepose.core.sim.simulation import Simulation
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register
+from spacepose.tools.navigation_config_io import with_run_settings
 from spacepose.tools.plots import error_with_envelope, figure_png
 
 PriorSource = Literal["perturbed-truth", "none"]
@@ -77,24 +77,11 @@ def attitude_prior(q_I_B: NDArray[np.float64], seed: int) -> tuple[float, ...]:
 
 
 def navigation_config(scenario: dict[str, Any], base: NavigationConfig) -> NavigationConfig:
-    """``base`` with what the scenario tells: its measured translational process noise, the
-    σ of the chaser attitude it gives the filter (the consider state; the scenario's
-    ``chaser_attitude_sigma_deg``, a star tracker's specification, not its error) and, when
-    ``base`` leaves it unset, the sensor's field of view for the lost-in-space start."""
-    update: dict[str, Any] = {}
-    ekf: dict[str, float] = {}
-    noise = scenario.get("process_noise")
-    if noise:
-        ekf["sigma_accel"] = float(noise["sigma_accel"])
-    chaser = scenario.get("config", {}).get("chaser_attitude_sigma_deg")
-    if chaser is not None:
-        ekf["sigma_chaser_attitude_deg"] = float(chaser)
-    if ekf:
-        update["ekf"] = base.ekf.model_copy(update=ekf)
-    if base.lost_in_space.fov_deg is None and "sensor_fov_deg" in scenario:
-        fov = scenario["sensor_fov_deg"]
-        update["lost_in_space"] = with_sensor_fov(base.lost_in_space, fov, "scenario")
-    return base.model_copy(update=update)
+    """``base`` with what the scenario tells where ``base`` does not set it: its measured
+    translational process noise, the σ of the chaser attitude it gives the filter and the
+    sensor's field of view (:func:`~spacepose.tools.navigation_config_io.with_run_settings`,
+    as ``spacepose navigate`` takes them)."""
+    return with_run_settings(base, scenario, "scenario", None, False)
 
 
 def navigate_with_truth(
@@ -122,7 +109,7 @@ def navigate_with_truth(
     sim = simulate_orbit(config)
     scenario = sim.scenario()
     n, R_O_C = scenario_geometry(scenario, "orbit simulation")
-    base = nav_config or navigation_config(scenario, NavigationConfig())
+    base = navigation_config(scenario, nav_config or NavigationConfig())
     q_prior = attitude_prior(sim.truth[0, 7:11], seed) if prior == "perturbed-truth" else None
     nav_config = NavigationConfig.model_validate(base.model_dump() | {"prior_q_I_B": q_prior})
     catalogue = parse_catalogue(scenario, nav_config.rectangle)
