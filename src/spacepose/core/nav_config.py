@@ -72,6 +72,17 @@ class NavigationConfig(StageConfig):
         "misses) and sigma_chaser_attitude_deg where a config file does not "
         "(tools.navigation_config_io.with_run_settings).",
     )
+    range_sigma: float | None = Field(
+        None,
+        gt=0,
+        description="Range noise σ of the sensor, m: the plane slab is 3σ and the rectangles' "
+        "sigma σ, where plane.distance_threshold and rectangle.sigma are not set themselves "
+        "(with_range_sigma). Unset: a simulated run's scenario gives its sensor's σ at the "
+        "standoff, else it is measured on the first frame with points "
+        "(spacepose.core.scale.range_noise). The defaults, 3 cm and 1 cm, fit the orbit run's "
+        "flash LiDAR alone: at 3 cm of noise the wing came out as two parallel planes and the "
+        "filter diverged, 41° off at 15σ.",
+    )
     tilt_scale: float = Field(
         1.0,
         gt=0,
@@ -131,6 +142,16 @@ class NavigationConfig(StageConfig):
         "sparsely off the axis, which pulls the plain mean (about 2 cm at 25 m on the orbit "
         "run; weights ∝ range³ left 4 cm along the wing and a 5 mm bias of the CoM).",
     )
+
+    def with_range_sigma(self, sigma: float) -> NavigationConfig:
+        """This config for a sensor of range noise ``sigma`` (m): ``range_sigma`` set, and the
+        plane slab (3σ) and the rectangles' sigma (σ) where they are not set themselves."""
+        update: dict[str, object] = {"range_sigma": sigma}
+        if "distance_threshold" not in self.plane.model_fields_set:
+            update["plane"] = self.plane.model_copy(update={"distance_threshold": 3.0 * sigma})
+        if "sigma" not in self.rectangle.model_fields_set:
+            update["rectangle"] = self.rectangle.model_copy(update={"sigma": sigma})
+        return self.model_copy(update=update)
 
     @field_validator("plane", "rectangle", "ekf", mode="before")
     @classmethod

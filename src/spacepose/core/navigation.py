@@ -69,6 +69,7 @@ from spacepose.core.rectangles import (
     catalogue_entries,
     recognise,
 )
+from spacepose.core.scale import range_noise
 from spacepose.errors import InputError, PredictionGapError, SpaceposeError
 
 __all__ = [
@@ -86,6 +87,14 @@ Rects = list[tuple[RectangleMeasurement, list[CatalogueEntry]]]
 # Candidates that all explain less than this share of a frame's data, frame after frame, were
 # started on a frame that was not the target's: the start is made again.
 _LOST_SHARE = 0.5
+
+
+# Rays whose ranges measure the noise: the orbit run's sparse frames (about 1,000 points, an
+# object 30 pixels across) put edges into most larger neighbourhoods; with 16 the 1 cm noise
+# read 1.5-2.4 cm, with 6 1.1-1.2 cm (3 cm: 3.1-3.2).
+_NOISE_NEIGHBOURS = 6
+# Median of sqrt(χ²_3 / 3), what range_noise reads for σ = 1 over 6 neighbours.
+_NOISE_MEDIAN = 0.888
 
 
 @dataclass(eq=False)
@@ -135,6 +144,8 @@ class RelativeNavigator:
         self.config = (
             NavigationConfig() if config is None else stage_config(config, NavigationConfig)
         )
+        if self.config.range_sigma is not None:
+            self.config = self.config.with_range_sigma(self.config.range_sigma)
         self.n, self.R_O_C = orbit_geometry(mean_motion, R_O_C)
         self.model = None if model is None else ModelSurface.from_cloud(as_cloud(model, "model"))
         self.tracks: list[_Track] = []
@@ -173,6 +184,8 @@ class RelativeNavigator:
             self.tracks, self._confident = [], False
             problems.append(f"the filter starts again: {exc}")
         rects: Rects = []
+        if cloud is not None and self.config.range_sigma is None:
+            self._measure_range_sigma(cloud)
         if cloud is not None:
             try:
                 rects = self.rectangles(cloud)
@@ -181,6 +194,14 @@ class RelativeNavigator:
                 problems.append(f"no rectangle measured, its rectangles left out: {exc}")
         row = self._step(t, cloud, rects)
         return replace(row, problem="; ".join(problems)) if problems else row
+
+    def _measure_range_sigma(self, cloud: PointCloud) -> None:
+        """Set the range noise from the first frame that shows it (methods.md §2.1): the
+        spread of the ranges along neighbouring rays (:func:`range_noise`), over the fewest
+        neighbours that fit a plane with a residual left (:data:`_NOISE_NEIGHBOURS`)."""
+        sigma = range_noise(cloud.points, k=_NOISE_NEIGHBOURS) / _NOISE_MEDIAN
+        if sigma > 0:
+            self.config = self.config.with_range_sigma(sigma)
 
     def _step(self, t: float, cloud: PointCloud | None, rects: Rects) -> NavRow:
         """:meth:`step` once the filters are predicted to ``t`` and the frame's rectangles

@@ -17,6 +17,7 @@ from spacepose.core.config import read_mapping, validate_config
 from spacepose.core.fused_navigation import FusionConfig, Measurements
 from spacepose.core.lost_in_space import with_sensor_fov
 from spacepose.core.navigation import NavigationConfig
+from spacepose.core.sim.sensors import SensorConfig, sigma_at
 from spacepose.core.structured_text import load_structured, parse_problem
 from spacepose.errors import ConfigError, FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import read_cloud
@@ -200,6 +201,26 @@ def with_scenario_noise(
     return config.model_copy(update={"ekf": merged})
 
 
+def scenario_range_sigma(description: dict, source: str) -> float | None:
+    """The range noise σ (m) of a simulated run's sensor at its standoff (amplitude 1), or
+    None when the scenario does not describe its sensor (a hand-written one).
+
+    Raises
+    ------
+    ConfigError
+        A sensor or standoff that is not a valid setting (an edited scenario).
+    """
+    settings = description.get("config")
+    if not isinstance(settings, dict) or not isinstance(settings.get("sensor"), dict):
+        return None
+    sensor = validate_config(SensorConfig, settings["sensor"], f"{source}: config.sensor")
+    standoff = settings.get("standoff_m")
+    if isinstance(standoff, bool) or not isinstance(standoff, int | float) or not standoff > 0:
+        raise ConfigError(f"{source}: config.standoff_m must be a distance > 0, got {standoff!r}")
+    sigma = float(sigma_at(sensor, np.array([float(standoff)]))[0])
+    return sigma if sigma > 0 else None
+
+
 def with_run_settings(
     config: NavigationConfig,
     description: dict,
@@ -233,6 +254,9 @@ def with_run_settings(
         fov = with_sensor_fov(config.lost_in_space, description["sensor_fov_deg"], source)
         config = config.model_copy(update={"lost_in_space": fov})
     config = with_scenario_noise(config, description, source)
+    if config.range_sigma is None:
+        sigma = scenario_range_sigma(description, source)
+        config = config if sigma is None else config.with_range_sigma(sigma)
     prior_name = "prior_q_I_B"
     if debug_prior_from_truth:
         if "initial_q_I_B" not in description:

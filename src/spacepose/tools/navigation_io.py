@@ -28,7 +28,7 @@ from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_na
 from spacepose.core.moments import no_plane, on_a_line
 from spacepose.core.nav_result import NavRow, nav_table
 from spacepose.core.nav_start import scenario_geometry
-from spacepose.core.navigation import NavigationConfig, navigate
+from spacepose.core.navigation import NavigationConfig, RelativeNavigator
 from spacepose.core.pose_noise import POSE_NOISE_AXES, PoseNoiseScale
 from spacepose.errors import ConfigError, InputError, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
@@ -188,8 +188,10 @@ def navigate_run(
     tracks: list[Any] = []
     health_csv = pose_noise_json = None
     if measurements == "rectangles":
-        rows = navigate(pairs, catalogue, n, R_O_C, cfg, model)
-        config_json = dump_config(cfg, out.with_suffix(".config.json"))
+        navigator = RelativeNavigator(catalogue, n, R_O_C, cfg, model)
+        rows = navigator.run(pairs)
+        # The effective settings: a range noise measured on the first frame among them.
+        config_json = dump_config(navigator.config, out.with_suffix(".config.json"))
     else:
         fusion = (fusion or FusionConfig()).model_copy(
             update={"measurements": measurements, "navigation": cfg}
