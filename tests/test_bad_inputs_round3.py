@@ -161,16 +161,24 @@ def test_cloud_frames_in_kilometres_are_warned_about(tmp_path):
 
 def test_one_pose_scored_rebased_says_its_zero_errors_measure_nothing(tmp_path, capsys):
     """A one-pose estimate rebased on its first pose scored 0 mm and 0 deg, exit 0, without a
-    word, however far off it was."""
+    word, however far off it was. It then said so with exit 0 still, which passed an estimate
+    in nanoseconds against a truth in seconds (one pose on the truth's times) as perfect: an
+    error now, saying why the other poses were left out."""
     est, gt = tmp_path / "est.tum", tmp_path / "gt.tum"
     est.write_text("0 0 0 0 0 0 0 1\n")
     gt.write_text("0 3 -2 7 0.6 0 0 0.8\n")
-    assert main(["evaluate", str(est), str(gt), "--rebase-first", "--json"]) == 0
+    assert main(["evaluate", str(est), str(gt), "--rebase-first", "--json"]) == 1
     captured = capsys.readouterr()
-    scores = json.loads(captured.out)
-    assert scores["ate_translation_rmse_mm"] == pytest.approx(0.0, abs=1e-9)
-    assert any("every error is zero" in note for note in scores["warnings"])
-    assert f"warning: {est}: one pose scored: rebased on itself" in captured.err
+    assert captured.out == ""
+    assert f"error: {est}: one pose scored: rebased on itself" in captured.err
+    ns = tmp_path / "ns.tum"
+    ns.write_text("".join(f"{k * 10**9} {k} 0 0 0 0 0 1\n" for k in range(6)))
+    gt.write_text("".join(f"{k} {k} 0 0 0 0 0 1\n" for k in range(6)))
+    assert main(["evaluate", str(ns), str(gt), "--rebase-first"]) == 1
+    err = capsys.readouterr().err
+    assert "5 of 6 estimated poses lie outside gt.tum's times" in err and "one pose" in err
+    est.write_text("0 0 0 0 0 0 0 1\n")
+    gt.write_text("0 3 -2 7 0.6 0 0 0.8\n")
     # report scores a track as evaluate does, and says so too.
     (tmp_path / "scenario.json").write_text("{}")
     est.rename(tmp_path / "est_track.tum")

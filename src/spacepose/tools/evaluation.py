@@ -118,15 +118,16 @@ def compare_trajectory_files(
     Raises
     ------
     InputError
-        An estimate without a ground-truth pose within ``tolerance``, naming ``est_path``; a
-        ground truth with two poses at one time, naming ``gt_path``.
+        An estimate without a ground-truth pose within ``tolerance``, or with one pose alone
+        to score rebased (zero by construction), naming ``est_path``; a ground truth with two
+        poses at one time, naming ``gt_path``.
 
     Warns
     -----
     SpaceposeWarning
         Lost frames left out (``EST.health.csv`` beside the estimate), estimated poses outside
         the ground truth's span left out, different lengths,
-        repeated pairings, one pose scored rebased (zero by construction), a model-free
+        repeated pairings, a model-free
         estimate compared as it is, or
         poses whose distances (from the origin, or rebased from the first) differ by a unit's
         factor (mm against m).
@@ -163,7 +164,9 @@ def compare_trajectory_files(
         notes.append(shared)
     alone = lone_rebased_pose(len(est), rebase_first)
     if alone is not None:
-        notes.append(alone)
+        # Zero by construction: an exit code of 0 passed a track with one pose on the truth's
+        # times (an estimate in nanoseconds against a truth in seconds) as a perfect one.
+        raise InputError("; ".join([*notes, alone]), est_path)
     if (
         not rebase_first
         and starts_at_identity(est.poses[0])
