@@ -66,8 +66,9 @@ class KeyframeWindow:
     def confirm(self, fitness_onto: Callable[[Keyframe], float]) -> None:
         """Settle a provisional keyframe on the frame after it: kept when that frame fits it
         better (``fitness_onto``, a keyframe -> the frame's fitness registered onto it) than
-        the keyframe before it and that one no longer serves (a fitness under the stale
-        bound), else dropped with the window as it was before. A view turning away fits its
+        the keyframe before it and that one no longer serves as well as a keyframe must (a
+        fitness under the promotion bound, ``min_fitness``), else dropped with the window as
+        it was before. A view turning away fits its
         newest keyframe best and its older one poorly; after a glitch the scene is back in the
         older one's view. Fitness counts the frame's points only, so a glitch that added a
         surface (a second return 3 m behind the lab target) fitted the next frame as well as
@@ -77,7 +78,7 @@ class KeyframeWindow:
             return
         before, self._provisional = self._provisional, None
         old = fitness_onto(before[0][-1])
-        if fitness_onto(self.latest) <= old or old >= self.config.keyframe.stale_fitness:
+        if fitness_onto(self.latest) <= old or old >= self.config.keyframe.min_fitness:
             self.restore(before)
 
     def snapshot(self) -> tuple[list[Keyframe], bool]:
