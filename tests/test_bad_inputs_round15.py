@@ -15,6 +15,7 @@ from spacepose.core.sim.scenarios import LabConfig, OrbitConfig, simulate_lab, s
 from spacepose.core.sim.sensors import SENSOR_PRESETS
 from spacepose.core.track_sequence import track_sequence
 from spacepose.core.tracker_config import TrackerConfig
+from spacepose.errors import ConfigError
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.experiments.yu_nav import navigate_with_truth
 from spacepose.tools.runs import write_run
@@ -110,3 +111,18 @@ def test_a_scenario_without_its_sensor_has_the_range_noise_measured(tmp_path, no
     assert 0.009 * noise_scale < config["range_sigma"] < 0.013 * noise_scale
     assert config["plane"]["distance_threshold"] == pytest.approx(3 * config["range_sigma"])
     assert config["rectangle"]["sigma"] == config["range_sigma"]
+
+
+def test_one_motion_under_two_spellings_is_named_twice():
+    """``motion=tumbling-5+tumbling-5.0`` ran the same runs twice, two identical rows, where
+    ``range=1.2+1.20`` was refused as named twice."""
+    from spacepose.tools.experiments.robustness_cells import mesh_path, select_cells
+
+    spec = "seed=0,target=lab,range=1.2,noise=1,clutter=none,motion=tumbling-5+tumbling-5.0"
+    with pytest.raises(ConfigError, match=r"motion tumbling-5\.0 is named twice"):
+        select_cells(spec, False, 12)
+    runs, _ = select_cells(spec.replace("+tumbling-5.0", "+tumbling-5.5"), False, 12)
+    assert [r.motion for r in runs] == ["tumbling-5", "tumbling-5.5"]
+    # A missing target mesh is said to be missing (it said "is not a mesh file").
+    with pytest.raises(ConfigError, match="no such mesh file"):
+        mesh_path("/nonexistent/sat.obj")

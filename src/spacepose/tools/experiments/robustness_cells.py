@@ -86,6 +86,9 @@ def mesh_path(target: str) -> str:
     if target == "lab" or generated_seed(target) is not None:
         return target
     path = MODELS_DIR / TARGETS[target] if target in TARGETS else Path(target)
+    if not path.exists():
+        # Said as missing: "not a mesh file" sent a user looking at a file that is not there.
+        raise ConfigError(f"{path}: robustness target {target!r}: no such mesh file")
     if not path.is_file():
         raise ConfigError(f"{path}: robustness target {target!r} is not a mesh file")
     return str(path)
@@ -245,7 +248,9 @@ def select_cells(
         grid = RobustnessGrid()
     for axis in AXES:
         values = getattr(grid, axis)
-        twice = next((v for k, v in enumerate(values) if v in values[:k]), None)
+        # A motion by what it means: tumbling-5 and tumbling-5.0 ran the same cells twice.
+        meant = [motion_fields(v) for v in values] if axis == "motion" else values
+        twice = next((v for k, v in enumerate(values) if meant[k] in meant[:k]), None)
         if twice is not None:  # the same runs again, reported as more seeds with no spread
             raise ConfigError(f"{source}: {axis} {twice} is named twice")
     runs = [Cell(*values) for values in itertools.product(*(getattr(grid, a) for a in AXES))]
