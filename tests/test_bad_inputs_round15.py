@@ -126,3 +126,15 @@ def test_one_motion_under_two_spellings_is_named_twice():
     # A missing target mesh is said to be missing (it said "is not a mesh file").
     with pytest.raises(ConfigError, match="no such mesh file"):
         mesh_path("/nonexistent/sat.obj")
+
+
+def test_a_pose_sigma_factor_not_measured_is_said(tmp_path, capsys):
+    """On a run too short for the bootstrap's batches the poses' σ factor stayed the configured
+    3, written to NAV.config.json as if measured, without a word."""
+    run = write_run(tmp_path / "run", simulate_orbit(OrbitConfig(frames=6, seed=2)))
+    out = tmp_path / "nav.csv"
+    args = ["navigate", str(run), "--out", str(out), "--measurements", "registration"]
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "the poses' σ factor is not measured on the run" in err
+    assert not out.with_suffix(".pose_noise.json").exists()

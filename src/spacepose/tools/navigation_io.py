@@ -203,6 +203,13 @@ def navigate_run(
                 warnings.simplefilter("ignore")
                 again = ((f.timestamp, f.cloud) for f in frames)
                 fusion, noise = bootstrapped_fusion(again, *run, model, fusion)
+            if noise is None and fusion.bootstrap_poses:
+                # Kept without a word, the factor looked measured (NAV.config.json holds it).
+                problem = (
+                    "the poses' σ factor is not measured on the run (too few ok poses, or ok "
+                    f"renders, for its batches): the configured {fusion.pose_sigma_scale:g} is used"
+                )
+                warnings.warn(SpaceposeWarning(problem, input_dir), stacklevel=2)
         rows, tracks = _navigate_fused(pairs, catalogue, n, R_O_C, fusion, model, unreadable)
         health_csv = write_health_csv(out.with_suffix(".health.csv"), tracks)
         config_json = dump_config(fusion, out.with_suffix(".config.json"))
