@@ -138,3 +138,30 @@ def test_a_pose_sigma_factor_not_measured_is_said(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "the poses' σ factor is not measured on the run" in err
     assert not out.with_suffix(".pose_noise.json").exists()
+
+
+@pytest.mark.parametrize("measurements", ["rectangles", "registration"])
+def test_navigate_stopped_with_ctrl_c_keeps_the_frames_done(
+    tmp_path, monkeypatch, capsys, measurements
+):
+    """navigate wrote its table at the end: a run stopped with Ctrl-C lost every frame. It now
+    writes the frames done and says how many, exit code 130."""
+    from spacepose.core.fused_navigation import FusedNavigator
+    from spacepose.core.navigation import RelativeNavigator
+
+    run = write_run(tmp_path / "run", simulate_orbit(OrbitConfig(frames=8)))
+    navigator = RelativeNavigator if measurements == "rectangles" else FusedNavigator
+    real = navigator.step
+
+    def dies_at_frame_6(self, t, cloud):
+        if t >= 6.0:
+            raise KeyboardInterrupt
+        return real(self, t, cloud)
+
+    monkeypatch.setattr(navigator, "step", dies_at_frame_6)
+    out = tmp_path / "nav.csv"
+    args = ["navigate", str(run), "--out", str(out), "--measurements", measurements]
+    assert main(args) == 130
+    assert "nav.csv: interrupted after 6 frames" in capsys.readouterr().err
+    with out.open() as fh:
+        assert len(fh.read().splitlines()) == 1 + 6

@@ -128,7 +128,7 @@ def test_an_output_that_cannot_be_written_fails_before_navigating(run_dir, tmp_p
     def no_navigation(*args, **kwargs):
         raise AssertionError("navigation started before the output was checked")
 
-    monkeypatch.setattr("spacepose.tools.navigation_io.RelativeNavigator.run", no_navigation)
+    monkeypatch.setattr("spacepose.tools.navigation_io.RelativeNavigator.step", no_navigation)
     (tmp_path / "NAV.csv").mkdir()
     with pytest.raises(InputError, match=r"NAV\.csv: output exists and is not a regular file"):
         navigate_run(run_dir, tmp_path / "NAV.csv")
@@ -147,7 +147,7 @@ def test_a_scenario_file_key_no_scenario_holds_is_named(run_dir, tmp_path, monke
     def stop(*args, **kwargs):
         raise Stop
 
-    monkeypatch.setattr("spacepose.tools.navigation_io.RelativeNavigator.run", stop)
+    monkeypatch.setattr("spacepose.tools.navigation_io.RelativeNavigator.step", stop)
     scenario = json.loads((run_dir / "scenario.json").read_text())
     assert set(scenario) <= SCENARIO_KEYS
     with warnings.catch_warnings():

@@ -15,7 +15,7 @@ from __future__ import annotations
 import csv
 import json
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -24,13 +24,13 @@ from numpy.typing import ArrayLike
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config
-from spacepose.core.fused_navigation import FusionConfig, Measurements, fused_navigate
+from spacepose.core.fused_navigation import FusedNavigator, FusionConfig, Measurements
 from spacepose.core.moments import no_plane, on_a_line
 from spacepose.core.nav_result import NavRow, nav_table
 from spacepose.core.nav_start import scenario_geometry
-from spacepose.core.navigation import NavigationConfig, RelativeNavigator
+from spacepose.core.navigation import NavigationConfig, RelativeNavigator, frame_pairs
 from spacepose.core.pose_noise import POSE_NOISE_AXES, PoseNoiseScale
-from spacepose.errors import ConfigError, InputError, SpaceposeWarning
+from spacepose.errors import ConfigError, InputError, Interrupted, SpaceposeWarning
 from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.cloud_io import read_model
 from spacepose.tools.frames import (
@@ -189,7 +189,7 @@ def navigate_run(
     health_csv = pose_noise_json = None
     if measurements == "rectangles":
         navigator = RelativeNavigator(catalogue, n, R_O_C, cfg, model)
-        rows = navigator.run(pairs)
+        rows, interrupted = _steps(navigator.step, pairs)
         # The effective settings: a range noise measured on the first frame among them.
         config_json = dump_config(navigator.config, out.with_suffix(".config.json"))
     else:
@@ -210,7 +210,8 @@ def navigate_run(
                     f"renders, for its batches): the configured {fusion.pose_sigma_scale:g} is used"
                 )
                 warnings.warn(SpaceposeWarning(problem, input_dir), stacklevel=2)
-        rows, tracks = _navigate_fused(pairs, catalogue, n, R_O_C, fusion, model, unreadable)
+        fused = FusedNavigator(catalogue, n, R_O_C, fusion, model)
+        rows, tracks, interrupted = _navigate_fused(fused, pairs, unreadable)
         health_csv = write_health_csv(out.with_suffix(".health.csv"), tracks)
         config_json = dump_config(fusion, out.with_suffix(".config.json"))
         pose_noise_json = _write_pose_noise(out, noise)
@@ -220,6 +221,11 @@ def navigate_run(
     navigated = sum(r.state is not None for r in rows)
     ambiguous = sum(r.status == "ambiguous" for r in rows)
     candidates_csv = _write_candidates(out, rows, ambiguous > 0)
+    if interrupted:
+        raise Interrupted(
+            f"interrupted after {len(rows)} frames: the table and its companions hold those frames",
+            nav_csv,
+        )
     if navigated == 0:
         why = _why_nothing(rows, candidates_csv, model is not None)
         if measurements == "registration":
@@ -268,24 +274,33 @@ def _open_checked_frames(
     return frames
 
 
+def _steps(
+    step: Callable[[float, Any], Any], pairs: Iterable[tuple[float, Any]]
+) -> tuple[list, bool]:
+    """``step`` over the ``(t, cloud)`` pairs in time order, and whether Ctrl-C stopped it (the
+    rows of the frames done are kept and written: a run of minutes lost them all)."""
+    rows: list[Any] = []
+    try:
+        for t, cloud in frame_pairs(pairs):
+            rows.append(step(t, cloud))
+    except KeyboardInterrupt:
+        return rows, True
+    return rows, False
+
+
 def _navigate_fused(
-    pairs: Iterator[tuple[float, Any]],
-    catalogue: Sequence[Any],
-    n: float,
-    R_O_C: ArrayLike,
-    fusion: FusionConfig,
-    model: PointCloud | None,
-    unreadable: dict[int, str],
-) -> tuple[list[NavRow], list[Any]]:
-    """The rows of :func:`~spacepose.core.fused_navigation.fused_navigate` and the tracker's
-    results, an unreadable frame's with its reason from ``unreadable``."""
-    fused = fused_navigate(pairs, catalogue, n, R_O_C, fusion, model)
+    navigator: FusedNavigator, pairs: Iterator[tuple[float, Any]], unreadable: dict[int, str]
+) -> tuple[list[NavRow], list[Any], bool]:
+    """The rows of a :class:`~spacepose.core.fused_navigation.FusedNavigator` over the pairs,
+    the tracker's results (an unreadable frame's with its reason from ``unreadable``), and
+    whether Ctrl-C stopped it (:func:`_steps`)."""
+    fused, interrupted = _steps(navigator.step, pairs)
     rows = [r.nav for r in fused]
     tracks = [
         replace(r.track, reasons=(unreadable[k],)) if k in unreadable else r.track
         for k, r in enumerate(fused)
     ]
-    return rows, tracks
+    return rows, tracks, interrupted
 
 
 def _warn_unusable_frames(
