@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from spacepose.cli import main
+from spacepose.core.cloud import PointCloud
 from spacepose.core.metrics import pose_errors
 from spacepose.core.nav_config import NavigatorEKFConfig
 from spacepose.core.sim.scenarios import LabConfig, OrbitConfig, simulate_lab, simulate_orbit
@@ -16,7 +17,7 @@ from spacepose.core.sim.sensors import SENSOR_PRESETS
 from spacepose.core.track_sequence import track_sequence
 from spacepose.core.tracker_config import TrackerConfig
 from spacepose.errors import ConfigError
-from spacepose.tools.cloud_io import read_cloud
+from spacepose.tools.cloud_io import read_cloud, write_cloud
 from spacepose.tools.experiments.yu_nav import navigate_with_truth
 from spacepose.tools.runs import write_run
 
@@ -111,6 +112,13 @@ def test_a_scenario_without_its_sensor_has_the_range_noise_measured(tmp_path, no
     assert 0.009 * noise_scale < config["range_sigma"] < 0.013 * noise_scale
     assert config["plane"]["distance_threshold"] == pytest.approx(3 * config["range_sigma"])
     assert config["rectangle"]["sigma"] == config["range_sigma"]
+    # A first frame of noise (a 10 m box at 25 m) reads a noise of its own size: not taken,
+    # the next frame's is (taken, its 3 m slab found no plane on any later frame).
+    noise = np.random.default_rng(0).uniform(-5.0, 5.0, (3000, 3)) + np.array([0.0, 0.0, 25.0])
+    write_cloud(run / "frames" / "000000.ply", PointCloud(noise))
+    assert main(["navigate", str(run), "--out", str(out)]) == 0
+    config = json.loads(out.with_suffix(".config.json").read_text())
+    assert 0.009 * noise_scale < config["range_sigma"] < 0.013 * noise_scale
 
 
 def test_one_motion_under_two_spellings_is_named_twice():

@@ -69,7 +69,7 @@ from spacepose.core.rectangles import (
     catalogue_entries,
     recognise,
 )
-from spacepose.core.scale import range_noise
+from spacepose.core.scale import range_noise, rms_radius
 from spacepose.errors import InputError, PredictionGapError, SpaceposeError
 
 __all__ = [
@@ -95,6 +95,8 @@ _LOST_SHARE = 0.5
 _NOISE_NEIGHBOURS = 6
 # Median of sqrt(χ²_3 / 3), what range_noise reads for σ = 1 over 6 neighbours.
 _NOISE_MEDIAN = 0.888
+# A range noise is taken when its 3σ slab is under a tenth of the frame's RMS radius.
+_MAX_NOISE_SHARE = 30.0
 
 
 @dataclass(eq=False)
@@ -200,7 +202,9 @@ class RelativeNavigator:
         spread of the ranges along neighbouring rays (:func:`range_noise`), over the fewest
         neighbours that fit a plane with a residual left (:data:`_NOISE_NEIGHBOURS`)."""
         sigma = range_noise(cloud.points, k=_NOISE_NEIGHBOURS) / _NOISE_MEDIAN
-        if sigma > 0:
+        # A frame of noise or a glitch reads as much as its own size: measured again on the
+        # next frame, not set for the run (a slab as thick as the cloud finds no plane).
+        if 0 < _MAX_NOISE_SHARE * sigma < rms_radius(cloud.points):
             self.config = self.config.with_range_sigma(sigma)
 
     def _step(self, t: float, cloud: PointCloud | None, rects: Rects) -> NavRow:

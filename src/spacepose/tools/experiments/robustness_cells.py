@@ -94,6 +94,18 @@ def mesh_path(target: str) -> str:
     return str(path)
 
 
+def _meaning(axis: str, value: object) -> object:
+    """What a cell's value on ``axis`` runs: a motion's scenario fields (``tumbling-5`` and
+    ``tumbling-5.0`` are one), the value itself for the rest and for an unknown motion (which
+    :func:`check_cells` names with its source)."""
+    if axis != "motion":
+        return value
+    try:
+        return motion_fields(str(value))
+    except ConfigError:
+        return value
+
+
 def _number(name: str, text: str) -> float:
     """A numeric axis's value as a number (a seed's ``2`` as 2.0 too: the grid takes a whole
     float as its int).
@@ -249,7 +261,7 @@ def select_cells(
     for axis in AXES:
         values = getattr(grid, axis)
         # A motion by what it means: tumbling-5 and tumbling-5.0 ran the same cells twice.
-        meant = [motion_fields(v) for v in values] if axis == "motion" else values
+        meant = [_meaning(axis, v) for v in values]
         twice = next((v for k, v in enumerate(values) if meant[k] in meant[:k]), None)
         if twice is not None:  # the same runs again, reported as more seeds with no spread
             raise ConfigError(f"{source}: {axis} {twice} is named twice")
