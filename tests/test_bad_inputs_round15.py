@@ -112,6 +112,10 @@ def test_a_scenario_without_its_sensor_has_the_range_noise_measured(tmp_path, no
     assert 0.009 * noise_scale < config["range_sigma"] < 0.013 * noise_scale
     assert config["plane"]["distance_threshold"] == pytest.approx(3 * config["range_sigma"])
     assert config["rectangle"]["sigma"] == config["range_sigma"]
+    # Fused with registration poses, the fusion config written holds it too.
+    assert main(["navigate", str(run), "--out", str(out), "--measurements", "both"]) == 0
+    fused = json.loads(out.with_suffix(".config.json").read_text())["navigation"]
+    assert fused["range_sigma"] == config["range_sigma"]
     # A first frame of noise (a 10 m box at 25 m) reads a noise of its own size: not taken,
     # the next frame's is (taken, its 3 m slab found no plane on any later frame).
     noise = np.random.default_rng(0).uniform(-5.0, 5.0, (3000, 3)) + np.array([0.0, 0.0, 25.0])

@@ -151,6 +151,8 @@ def navigate_run(
         The attitude prior is not a rotation
         (:func:`~spacepose.tools.navigation_config_io.prior_quaternion`), or is given with
         ``debug_prior_from_truth``.
+    Interrupted
+        Ctrl-C, after the frames done are written.
     """
     cfg = config or NavigationConfig()
     out = Path(out)
@@ -213,6 +215,8 @@ def navigate_run(
         fused = FusedNavigator(catalogue, n, R_O_C, fusion, model)
         rows, tracks, interrupted = _navigate_fused(fused, pairs, unreadable)
         health_csv = write_health_csv(out.with_suffix(".health.csv"), tracks)
+        if fused.rectangles is not None:  # the effective settings, as for rectangles alone
+            fusion = fusion.model_copy(update={"navigation": fused.rectangles.config})
         config_json = dump_config(fusion, out.with_suffix(".config.json"))
         pose_noise_json = _write_pose_noise(out, noise)
         _warn_unusable_frames(tracks, unreadable, health_csv)
