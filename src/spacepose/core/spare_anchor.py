@@ -50,12 +50,14 @@ def orphaned(result: TrackResult, old_anchor: int, new_anchor: int) -> TrackResu
         f"tracked against frame {old_anchor}, a first frame no later frame confirmed: the "
         f"target frame is frame {new_anchor}'s sensor frame instead"
     )
+    # A frame lost already keeps why (an unreadable file's error) before the revision's reason.
+    reasons = (*result.reasons, reason) if result.status == "lost" else (reason,)
     return dataclasses.replace(
         result,
         status="lost",
         T_sensor_target=np.eye(4),
         covariance=np.diag(np.full(6, np.inf)),
-        reasons=(reason,),
+        reasons=reasons,
     )
 
 
