@@ -24,12 +24,14 @@ a filter's initial state in :mod:`spacepose.core.nav_start`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 from spacepose.core import dynamics
 from spacepose.core.attitude_fix import (
@@ -93,8 +95,8 @@ _LOST_SHARE = 0.5
 # object 30 pixels across) put edges into most larger neighbourhoods; with 16 the 1 cm noise
 # read 1.5-2.4 cm, with 6 1.1-1.2 cm (3 cm: 3.1-3.2).
 _NOISE_NEIGHBOURS = 6
-# Median of sqrt(χ²_3 / 3), what range_noise reads for σ = 1 over 6 neighbours.
-_NOISE_MEDIAN = 0.888
+# Median of sqrt(χ²_ν / ν), ν = k − 3: what range_noise reads for σ = 1 (0.888 for k = 6).
+_NOISE_MEDIAN = math.sqrt(chi2.median(_NOISE_NEIGHBOURS - 3) / (_NOISE_NEIGHBOURS - 3))
 # A range noise is taken when its 3σ slab is under a tenth of the frame's RMS radius.
 _MAX_NOISE_SHARE = 30.0
 
