@@ -281,8 +281,10 @@ class TrackerConfig(StageConfig):
     range_bias
         Against a model: 1-σ of the sensor's unknown constant range offset, in units of its
         measured range noise; each reported pose's covariance carries its effect, a shift of
-        the target along the line of sight (methods.md §5.3). A model-free pose relates two
-        frames of one sensor and cancels it. 0: a sensor calibrated beyond its noise.
+        the target along the line of sight, and that of a range error changing with range
+        (a ToF camera's wiggling) that the residuals show (methods.md §5.3). A model-free pose
+        relates two frames of one sensor and cancels both. 0: a sensor calibrated beyond its
+        noise (neither is carried).
     """
 
     method: Method = "keyframe"

@@ -19,7 +19,8 @@ from spacepose.core.health import UNCONFIRMED, Status, pose_disagreement
 from spacepose.core.keyframe_window import KeyframeWindow
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 from spacepose.core.motion import MotionModel, Prediction
-from spacepose.core.pose_covariance import range_bias_covariance
+from spacepose.core.pose_covariance import CLUSTER_VOXELS
+from spacepose.core.range_bias import range_bias_effect
 from spacepose.core.relocalise import Relocaliser
 from spacepose.core.scale import DataScale
 from spacepose.core.scene_follower import SceneFollower
@@ -265,10 +266,14 @@ class TrackerState:
         )
         if self.model_based and self.config.range_bias > 0:
             # Reported only: the health check weighs the registration's own σ, and the motion
-            # model the poses' scatter, which one offset shared by every frame does not widen.
+            # model the poses' scatter, which one range error shared by every frame does not
+            # widen.
             sigma = self.config.range_bias * self._frames.scale.noise
             gate = self._registrar.noise.gate
             points = prepared.cloud.points
-            bias = range_bias_covariance(points, self._model.prepared, T, gate, sigma, self.workers)
-            result = replace(result, covariance=result.covariance + bias)
+            cell = CLUSTER_VOXELS * self._frames.scale.voxel
+            effect = range_bias_effect(
+                points, self._model.prepared, T, gate, sigma, cell, self.workers
+            )
+            result = replace(result, covariance=effect.covariance(result.covariance))
         return result

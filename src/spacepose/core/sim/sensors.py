@@ -83,6 +83,13 @@ class SensorConfig(StageConfig):
         0.0, ge=0, le=1, description="Weakest return kept (albedo·|cos θ|); also σ's floor."
     )
     range_bias: float = Field(0.0, description="Systematic range offset of every return, m.")
+    wiggle_amplitude: float = Field(
+        0.0,
+        ge=0,
+        description="Amplitude of a range offset periodic in range (an AMCW ToF camera's "
+        "wiggling: its modulation's harmonics), m.",
+    )
+    wiggle_period: float = Field(1.9, gt=0, description="Period in range of the wiggling, m.")
     multipath_bias: float = Field(0.0, ge=0, description="Range excess at a concave crease, m.")
     multipath_length: float = Field(
         0.01, gt=0, description="Decay length of the multipath excess away from the crease, m."
@@ -309,9 +316,9 @@ class Scan:
     pixel
         (N,) row-major pixel index of each point.
     bias
-        (N,) systematic range offset of each point (``range_bias`` plus the multipath excess;
-        0 on flying pixels' multipath), m; the measured range is true (or mixed) range + bias +
-        noise.
+        (N,) systematic range offset of each point (``range_bias``, the wiggling and the
+        multipath excess; 0 on flying pixels' multipath), m; the measured range is true (or
+        mixed) range + bias + noise.
     """
 
     points: NDArray[np.float64]
@@ -336,9 +343,10 @@ def scan(
     sensor, returns weaker than ``min_amplitude`` are lost; flying pixels at depth edges and
     silhouettes (:func:`~spacepose.core.sim.artefacts.flying_pixels`; only returns count as
     depths, so a pixel next to empty space flies only when ``flying_tail > 0``); the systematic
-    range bias and the multipath excess near concave creases; range (or xyz) noise, σ evaluated
-    at the true range and amplitude; dropouts. Missed and dropped rays are left out, so the
-    output is not organised; ``Scan.pixel`` says where each point came from.
+    range bias, the wiggling (of the true or mixed range) and the multipath excess near concave
+    creases; range (or xyz) noise, σ evaluated at the true range and amplitude; dropouts. Missed
+    and dropped rays are left out, so the output is not organised; ``Scan.pixel`` says where
+    each point came from.
 
     Parameters
     ----------
@@ -383,6 +391,7 @@ def scan(
     bias = np.zeros(len(idx))
     if noisy:
         bias += config.range_bias
+        bias += config.wiggle_amplitude * np.sin(2 * np.pi * r / config.wiggle_period)
         if config.multipath_bias > 0:
             surface = directions * np.where(hit, true_range, np.nan)[:, None]
             crease = concave_creases(
