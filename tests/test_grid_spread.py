@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from spacepose.core import se3, window_registration
+from spacepose.core import range_bias, se3, window_registration
 from spacepose.core.frame_check import UNTESTED_MODEL
 from spacepose.core.sim import simulate
 from spacepose.core.tracker import Tracker, TrackerConfig
@@ -61,6 +61,9 @@ def test_a_model_based_frame_carries_the_grid_spread_too(monkeypatch):
     sim = simulate_orbit(hubble_at_close_range(20))
 
     def track(with_spread: bool):
+        # The measured range terms (range_bias.py) off in both: they widen a frame of the run
+        # without the spread term too (18 within 3σ), standing in for what is tested here.
+        monkeypatch.setattr(range_bias, "SHIFT_BOUND", np.inf)
         if not with_spread:
             monkeypatch.setattr(window_registration, "with_grid_spread", lambda r, s, e, *_: e)
         tracker = Tracker(TrackerConfig(), sim.model_cloud(), workers=1)

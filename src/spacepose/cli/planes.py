@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import typer
 from rich.table import Table
 
 from spacepose.cli.app import app, console
+from spacepose.errors import SpaceposeWarning
 
 
 @app.command()
@@ -36,7 +38,7 @@ def planes(
     several (faces of equal size) it is left unnamed and ``candidates`` lists them all.
     """
     from spacepose.core.config import validate_config
-    from spacepose.core.planes import PlaneConfig
+    from spacepose.core.planes import PlaneConfig, why_no_planes
     from spacepose.core.rectangle_search import find_rectangles
     from spacepose.core.rectangles import RectangleConfig, candidates
     from spacepose.tools.catalogue import load_catalogue
@@ -57,7 +59,11 @@ def planes(
         RectangleConfig, {"sigma": sigma, "focal_px": focal_px}, "command line"
     )
     entries = [] if catalogue is None else load_catalogue(catalogue, rect_config)
-    found = find_rectangles(read_sensor_cloud(file), entries, plane_config, rect_config)
+    cloud = read_sensor_cloud(file)
+    found = find_rectangles(cloud, entries, plane_config, rect_config)
+    if not found:
+        reason = why_no_planes(cloud, plane_config)
+        warnings.warn(SpaceposeWarning(f"{file}: no plane found: {reason}"), stacklevel=1)
     rows = [
         {
             "centroid": f.measurement.centroid.tolist(),

@@ -28,7 +28,7 @@ from spacepose.core.motion import Prediction
 from spacepose.core.neighbors import knn
 from spacepose.core.normals import estimate_normals, plane_offsets
 from spacepose.core.reach import within_reach
-from spacepose.core.scale import DataScale, derive_scale, point_spacing
+from spacepose.core.scale import DataScale, derive_scale, point_spacing, sensor_frame_problem
 from spacepose.core.scene_motion import SceneTest
 from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_object, region_of
 from spacepose.core.target_cut import cut_to_target
@@ -399,6 +399,8 @@ class FramePreparer:
                 f"the first frame looks like millimetres ({units.extent:.0f} m across, median "
                 f"point spacing {units.spacing:.2f} m); the tracker works in metres"
             )
+            warnings.warn(SpaceposeWarning(problem, first.source), stacklevel=6)
+        if problem := sensor_frame_problem(first.points, scale.spacing):
             warnings.warn(SpaceposeWarning(problem, first.source), stacklevel=6)
         self.lengths = stage_lengths(cfg, scale.voxel, scale.radius)
         self.scale = scale

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -193,6 +193,10 @@ def ransac_plane(
     _check_resolution(pts, config.distance_threshold, getattr(points, "source", None))
     if on_a_line(pts):
         raise no_plane(pts, getattr(points, "source", None))
+    # About the points' mean: a plane's moments about an origin 1e11 m away cancel to rounding
+    # noise, and every refit had no inlier (0 planes and numpy's "Mean of empty slice").
+    origin = pts.mean(axis=0)
+    pts = pts - origin
     rng = np.random.default_rng(config.seed) if rng is None else rng
     n_hyp = config.max_iterations
     if config.outlier_ratio is not None:
@@ -219,7 +223,40 @@ def ransac_plane(
             f"no plane with 3 inliers among {n_hyp} hypotheses on {len(pts)} points"
         )
     inliers = np.flatnonzero(np.abs(pts @ best_normal - best_offset) <= config.distance_threshold)
-    return _refit(pts, inliers, config)
+    plane = _refit(pts, inliers, config)
+    normal, offset = plane.normal, plane.offset + float(plane.normal @ origin)
+    if offset > 0:  # towards the cloud's origin (the sensor), as fit_plane faces it
+        normal, offset = -normal, -offset
+    return replace(plane, normal=normal, offset=offset, centroid=plane.centroid + origin)
+
+
+def why_no_planes(
+    cloud_or_points: PointCloud | ArrayLike, config: PlaneConfig = PlaneConfig()
+) -> str:
+    """Why :func:`extract_planes` found no plane in these points, in one line.
+
+    Raises
+    ------
+    InputError
+        As :func:`extract_planes`, for points it refuses.
+    """
+    config = stage_config(config, PlaneConfig)
+    pts = as_points(cloud_or_points, min_points=3)
+    if len(pts) < config.min_inliers:
+        return f"{len(pts)} points, fewer than min_inliers {config.min_inliers}"
+    try:
+        best = ransac_plane(pts, config, np.random.default_rng(config.seed))
+    except DegenerateGeometryError as exc:
+        return str(exc)
+    within = f"within {config.distance_threshold:g} m"
+    if config.cluster_radius is not None:
+        within += f" (its largest group, links under {config.cluster_radius:g} m)"
+    if best.n_inliers < config.min_inliers:
+        return (
+            f"the best plane holds {best.n_inliers} points {within}, fewer than min_inliers "
+            f"{config.min_inliers}"
+        )
+    return f"the best plane ({best.n_inliers} points {within}) cuts a curved surface, no face"
 
 
 def range_residuals(

@@ -35,6 +35,9 @@ from scipy.spatial import cKDTree
 from spacepose.core.cloud import as_points
 from spacepose.errors import InputError
 
+# Finest angle (rad) between neighbouring returns that a range sensor resolves, with margin: a
+# survey scanner's finest step is 0.0005° (9e-6 rad), a ToF camera's pixel about 2e-3 rad.
+MIN_SENSOR_ANGLE = 1e-6
 # Query points of the spacing estimate: the median of 2,000 nearest-neighbour distances is
 # within about 2 % of the full median (its standard error is ~1.25 σ/√n of a narrow spread).
 _SPACING_SAMPLES = 2000
@@ -249,6 +252,22 @@ def rms_radius(points: NDArray[np.float64]) -> float:
     """RMS distance (m) of (N, 3) points from their centroid."""
     centred = points - points.mean(axis=0)
     return float(np.sqrt((centred**2).sum(axis=1).mean()))
+
+
+def sensor_frame_problem(points: ArrayLike, spacing: float) -> str:
+    """Why ``points`` (N, 3) cannot have been measured by a sensor at their frame's origin, or
+    "" when they can: neighbours ``spacing`` (m) apart at their median range subtend an angle
+    finer than any range sensor resolves (:data:`MIN_SENSOR_ANGLE`). A frame moved 10 km out
+    (a world frame) lost every frame after the first ("the pose graph edges leave a free node
+    unconstrained"), which named neither the cause nor the frame."""
+    r = float(np.median(np.linalg.norm(as_points(points), axis=1)))
+    if not r > 0 or spacing / r >= MIN_SENSOR_ANGLE:
+        return ""
+    return (
+        f"the points are {r:.3g} m from the origin yet {spacing:.2g} m apart ({spacing / r:.1g} "
+        "rad, finer than any range sensor resolves): the tracker takes the origin as the "
+        "sensor; give the clouds in the sensor's frame"
+    )
 
 
 def derive_scale(

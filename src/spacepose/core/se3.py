@@ -106,6 +106,11 @@ def as_transform(T: ArrayLike, name: str = "transform") -> NDArray[np.float64]:
         raise InputError(f"{name} must be a 4x4 matrix of numbers, got {T!r:.60}") from None
     if T.shape != (4, 4):
         raise InputError(f"{name} must be a 4x4 matrix, got shape {T.shape}")
+    return _rigid(T, name)
+
+
+def _rigid(T: NDArray[np.float64], name: str) -> NDArray[np.float64]:
+    """``T`` (4, 4) itself once it is finite and rigid (tolerances of :func:`as_transform`)."""
     if not np.isfinite(T).all():
         raise InputError(f"{name} has non-finite entries")
     # Plain max-abs tests: np.allclose costs ~10 µs a call, and every registration and pose
@@ -216,11 +221,25 @@ def invert(T: ArrayLike) -> NDArray[np.float64]:
     Raises
     ------
     InputError
-        ``T`` is not (..., 4, 4) (a 3×3 rotation ended in numpy's IndexError).
+        ``T`` is not (..., 4, 4) (a 3×3 rotation ended in numpy's IndexError), or not rigid
+        (a scaled matrix's "inverse" undid a quarter of it, without a word); a single ``T``
+        not finite either (a stack's NaN members, missing poses, stay NaN).
     """
     T = real_array(T, "invert: T")
     if T.shape[-2:] != (4, 4):
         raise InputError(f"invert needs a 4x4 transform (or a stack of them), got shape {T.shape}")
+    if T.ndim == 2:
+        _rigid(T, "invert: T")
+    else:
+        # A stack may hold missing poses (NaN); those it has must be rigid.
+        flat = T.reshape(-1, 4, 4)
+        known = np.isfinite(flat).all(axis=(1, 2))
+        bad = np.flatnonzero(known)[non_rigid(flat[known])]
+        if len(bad):
+            raise InputError(
+                f"invert: transform {int(bad[0])} of {len(flat)} is not rigid (a scale, a shear, "
+                "a reflection or a last row other than (0, 0, 0, 1))"
+            )
     Rt = np.swapaxes(T[..., :3, :3], -1, -2)
     out = np.zeros_like(T)
     out[..., :3, :3] = Rt
@@ -235,14 +254,15 @@ def compose(*transforms: ArrayLike) -> NDArray[np.float64]:
     Raises
     ------
     InputError
-        A transform is not 4×4 (numpy's matmul error named neither which nor why).
+        A transform is not 4×4 (numpy's matmul error named neither which nor why), not finite
+        or not rigid.
     """
     out = np.eye(4)
     for k, T in enumerate(transforms):
         T = real_array(T, f"compose: transform {k}")
         if T.shape != (4, 4):
             raise InputError(f"compose: transform {k} must be 4x4, got shape {T.shape}")
-        out = out @ T
+        out = out @ _rigid(T, f"compose: transform {k}")
     return out
 
 
@@ -253,7 +273,7 @@ def transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> NDArray[np.float6
     ------
     InputError
         ``T_a_b`` is not 4×4 (a 3×3 rotation was taken as a transform whose translation was
-        its third column) or the points are not (..., 3).
+        its third column), not finite or not rigid, or the points are not (..., 3).
     """
     T_a_b, points_b = _pair(T_a_b, points_b, "points")
     return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
@@ -277,7 +297,7 @@ def _pair(
         raise InputError(f"T_a_b must be a 4x4 transform, got shape {T.shape}")
     if rows.ndim < 1 or rows.shape[-1] != 3:
         raise InputError(f"{name} must have shape (N, 3), got {rows.shape}")
-    return T, rows
+    return _rigid(T, "T_a_b"), rows
 
 
 def skew(v: ArrayLike) -> NDArray[np.float64]:
@@ -443,12 +463,13 @@ def adjoint(T: ArrayLike) -> NDArray[np.float64]:
     Raises
     ------
     InputError
-        ``T`` is not 4×4 (a 3×3 rotation ended in numpy's IndexError).
+        ``T`` is not 4×4 (a 3×3 rotation ended in numpy's IndexError), not finite or not
+        rigid.
     """
     T = real_array(T, "adjoint: T")
     if T.shape != (4, 4):
         raise InputError(f"adjoint needs a 4x4 transform, got shape {T.shape}")
-    R, t = T[:3, :3], T[:3, 3]
+    R, t = _rigid(T, "adjoint: T")[:3, :3], T[:3, 3]
     Ad = np.zeros((6, 6))
     Ad[:3, :3] = R
     Ad[3:, 3:] = R

@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud, check_scale
+from spacepose.core.scale import point_spacing
 from spacepose.core.se3 import check_real
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.npy_io import read_npy, read_npz, write_npy, write_npz
@@ -38,7 +39,13 @@ from spacepose.tools.text_cloud_io import read_text_cloud, write_text_cloud
 from spacepose.tools.text_io import as_path, not_a_file
 
 _FLOAT32_MAX = float(np.finfo(np.float32).max)
+# Largest move of a point by float32's rounding, as a share of the cloud's point spacing, that
+# the default precision accepts: a lab frame at 1.2 m moves by 1e-7 m, 1e-5 of its spacing; the
+# same frame 7,000 km out (an Earth-centred frame) by 0.25 m, and came back flat.
+_FLOAT32_SHARE = 0.01
 _TEXT_SUFFIXES = (".xyz", ".txt", ".csv")
+# The cloud formats that are not text (an output of text under one of them is refused).
+BINARY_CLOUD_SUFFIXES: tuple[str, ...] = (".ply", ".pcd", ".npy", ".npz")
 # Widest scene (m) a cloud in millimetres can span: 100 km, past any ToF camera or LiDAR.
 _FARTHEST_M = 1e5
 # Narrowest span (m) a cloud of a surface can have: a micrometre, a thousandth of the finest
@@ -318,7 +325,7 @@ def write_cloud(
     cloud: PointCloud | ArrayLike,
     *,
     binary: bool = True,
-    dtype: str | np.dtype | type = "float32",
+    dtype: str | np.dtype | type | None = None,
 ) -> Path:
     """Write a point cloud, choosing the format by extension (see :func:`read_cloud`).
 
@@ -334,7 +341,9 @@ def write_cloud(
         Binary encoding for PLY (little-endian) and PCD; ignored by the other formats.
     dtype
         ``"float32"`` or ``"float64"`` (or numpy's ``np.float32``, ``np.dtype("float64")``):
-        the stored precision (text formats print enough digits to round-trip it).
+        the stored precision (text formats print enough digits to round-trip it). None:
+        float32 unless its rounding would move a point by more than a hundredth of the cloud's
+        point spacing (coordinates far from the origin), then float64.
 
     Returns
     -------
@@ -347,9 +356,8 @@ def write_cloud(
     named = dtype
     if isinstance(dtype, np.dtype) or (isinstance(dtype, type) and issubclass(dtype, np.generic)):
         named = np.dtype(dtype).name
-    if not isinstance(named, str) or named not in DIGITS:
+    if dtype is not None and (not isinstance(named, str) or named not in DIGITS):
         raise InputError(f"dtype must be 'float32' or 'float64', got {dtype!r}", path)
-    dtype = named
     writer = _WRITERS.get(path.suffix.lower())
     if writer is None:
         raise FileFormatError(
@@ -366,22 +374,38 @@ def write_cloud(
         if arr.ndim != 2 or arr.shape[1] not in (3, 6):
             raise InputError(f"cloud array must be (N, 3) or (N, 6), got {arr.shape}", path)
         cloud = PointCloud(arr[:, :3], arr[:, 3:] if arr.shape[1] == 6 else None, source=str(path))
-    if dtype == "float32":
-        # Beyond float32's range a coordinate was stored as inf (numpy's overflow warning
-        # alone), and the file read back with those points dropped.
-        peak, largest = float(max(cloud.points.max(), -cloud.points.min())), _FLOAT32_MAX
-        if peak > largest:
-            raise InputError(
-                f"points reach |coordinate| {peak:.3g}, beyond float32's {largest:.3g}: write "
-                "them with dtype='float64'",
-                path,
-            )
+    if named != "float64":
+        problem = _float32_problem(cloud.points)
+        if problem and dtype is not None:
+            raise InputError(f"{problem}: write them with dtype='float64'", path)
+        named = "float64" if problem else "float32"
     # A folder by the file's name (or a file where its folder goes) ended in a bare
     # IsADirectoryError / FileExistsError.
     check_writable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer(path, cloud.points, cloud.normals, binary, np.dtype(dtype))
+    writer(path, cloud.points, cloud.normals, binary, np.dtype(named))
     return path
+
+
+def _float32_problem(points: NDArray[np.float64]) -> str:
+    """Why float32 cannot hold ``points`` (N, 3), or "" when it can: beyond its range, or
+    rounded by more than :data:`_FLOAT32_SHARE` of the point spacing."""
+    if not len(points):
+        return ""
+    peak = float(np.abs(points).max())
+    if peak > _FLOAT32_MAX:
+        # Stored as inf (numpy's overflow warning alone), the file read back without them.
+        return f"points reach |coordinate| {peak:.3g}, beyond float32's {_FLOAT32_MAX:.3g}"
+    moved = float(np.abs(points.astype(np.float32).astype(np.float64) - points).max())
+    if moved == 0.0 or len(points) < 2 or np.all(points == points[0]):
+        return ""
+    spacing = point_spacing(points)
+    if moved <= _FLOAT32_SHARE * spacing:
+        return ""
+    return (
+        f"float32 moves points at |coordinate| up to {peak:.3g} by {moved:.3g} m, "
+        f"{moved / spacing:.2g} of their spacing {spacing:.3g} m"
+    )
 
 
 Reader = Callable[[Path], tuple[NDArray[np.float64], NDArray[np.float64] | None]]

@@ -41,7 +41,7 @@ from spacepose.tools.frames import (
     untimed_folder,
 )
 from spacepose.tools.navigation_config_io import read_scenario, scenario_model, with_run_settings
-from spacepose.tools.outputs import check_spares_inputs, check_writable
+from spacepose.tools.outputs import check_spares_inputs, check_text_name, check_writable
 from spacepose.tools.pose_bootstrap_run import bootstrapped_fusion, run_mesh_and_sensor
 from spacepose.tools.tracking_io import check_not_a_frame, open_table, write_health_csv
 
@@ -275,6 +275,7 @@ def _open_checked_frames(
     check_spares_inputs(outputs, [*input_files(input_dir, frames), *given])
     # NAV.csv's own suffix is a frame's: only another folder keeps it out of the frames.
     check_not_a_frame(out, frames, "a navigation table", "write it elsewhere")
+    check_text_name(out, "a CSV table", "name it .csv")
     return frames
 
 

@@ -76,3 +76,39 @@ def check_spares_inputs(outputs: Iterable[str | Path], inputs: Iterable[str | Pa
         for source in sources:
             if source.is_file() and os.path.samefile(out, source):
                 raise InputError(f"would overwrite the input {source}: write it elsewhere", out)
+
+
+def check_text_name(out: str | Path, writes: str, fix: str) -> None:
+    """Refuse a text output named as data spacepose reads: a point cloud, a depth image, a mesh
+    or a bag. Written so, the next run over the folder read it as a frame (lost: "not an image
+    Pillow can decode") and a viewer refused it.
+
+    Parameters
+    ----------
+    out
+        The output file.
+    writes
+        What the command writes there ("a TUM trajectory").
+    fix
+        The name to give it instead ("name it .tum").
+
+    Raises
+    ------
+    InputError
+        One line naming the output, what it holds and what its suffix means.
+    """
+    # Imported here: the readers check their own outputs through this module.
+    from spacepose.core.sim.mesh_files import MESH_SUFFIXES
+    from spacepose.tools.bag_io import BAG_SUFFIXES
+    from spacepose.tools.cloud_io import BINARY_CLOUD_SUFFIXES, DEPTH_SUFFIXES
+
+    suffix = Path(out).suffix.lower()
+    kinds = {
+        "a point cloud": BINARY_CLOUD_SUFFIXES,
+        "a depth image": (*DEPTH_SUFFIXES, ".jpg", ".jpeg", ".bmp"),
+        "a mesh": MESH_SUFFIXES,
+        "a bag": BAG_SUFFIXES,
+    }
+    for kind, suffixes in kinds.items():
+        if suffix in suffixes:
+            raise InputError(f"{writes} is text, and a {suffix} file is read as {kind}: {fix}", out)

@@ -24,7 +24,7 @@ from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_sensor_cloud
 from spacepose.tools.depth_folder import folder_camera
 from spacepose.tools.depth_io import read_depth_cloud
 from spacepose.tools.intrinsics_io import read_intrinsics
-from spacepose.tools.outputs import check_spares_inputs, check_writable
+from spacepose.tools.outputs import check_spares_inputs, check_text_name, check_writable
 from spacepose.tools.register import RegisterConfig, RegisterResult, register
 from spacepose.tools.text_io import read_text
 from spacepose.tools.trajectory_io import nearest_rotations
@@ -100,6 +100,7 @@ def register_files(
         check_writable(out)
         given = (source_path, target_path, init_path, intrinsics)
         check_spares_inputs([out], [p for p in given if p is not None])
+        check_text_name(out, "a JSON result", "name it .json")
     source = _read_input(source_path, intrinsics)
     target = _read_input(target_path, intrinsics)
     init = None if init_path is None else read_transform(init_path)

@@ -26,7 +26,7 @@ from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, Interrupted, SpaceposeWarning
 from spacepose.tools.cloud_io import read_model
 from spacepose.tools.frames import CLOUD_SUFFIXES, FrameInput, Frames, input_files, open_frames
-from spacepose.tools.outputs import check_spares_inputs, check_writable
+from spacepose.tools.outputs import check_spares_inputs, check_text_name, check_writable
 from spacepose.tools.trajectory_io import tum_lines
 
 HEALTH_COLUMNS: tuple[str, ...] = (
@@ -332,6 +332,7 @@ def track_folder(
     given = [p for p in (model, intrinsics) if p is not None]
     check_spares_inputs(output_paths(out), [*input_files(input, frames), *given])
     check_not_a_frame(Path(out), frames)
+    check_text_name(out, "a TUM trajectory", "name it .tum")
     model_cloud = None if model is None else read_model(model)
     tum, health, config_path, scale_path, cov_path = output_paths(out)
     tracker = Tracker(config, model_cloud, workers)

@@ -14,6 +14,7 @@ import numpy as np
 import trimesh
 from numpy.typing import NDArray
 
+from spacepose.core.cloud import MAX_ABS_COORDINATE
 from spacepose.core.sim.targets import Target, sheet_faces
 from spacepose.core.structured_text import not_a_file
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
@@ -79,6 +80,15 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
         raise FileFormatError(
             f"{bad} of {len(faces)} triangles have a corner of NaN or inf coordinates, and "
             "would be left out",
+            path,
+        )
+    peak = float(np.abs(vertices).max()) * scale
+    if peak > MAX_ABS_COORDINATE:
+        # Their areas and normals overflowed (numpy's bare warnings), and the error that
+        # followed named a sampled cloud, not this file.
+        raise FileFormatError(
+            f"vertices reach |coordinate| {peak:.3g}, beyond {MAX_ABS_COORDINATE:.3g}: their "
+            "squares overflow float64 (wrong units or a corrupt file?)",
             path,
         )
     if not _has_area(vertices[faces]):
