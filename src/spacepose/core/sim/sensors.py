@@ -344,8 +344,7 @@ def scan(
     silhouettes (:func:`~spacepose.core.sim.artefacts.flying_pixels`; only returns count as
     depths, so a pixel next to empty space flies only when ``flying_tail > 0``); the systematic
     range bias, the wiggling (of the true or mixed range) and the multipath excess near concave
-    creases; range (or xyz) noise, σ evaluated at the true range and amplitude; dropouts; a
-    range sensor's returns whose measured range leaves ``[min_range, max_range]``. Missed
+    creases; range (or xyz) noise, σ evaluated at the true range and amplitude; dropouts. Missed
     and dropped rays are left out, so the output is not organised; ``Scan.pixel`` says where
     each point came from.
 
@@ -421,11 +420,6 @@ def scan(
             r = r + sigma * correlated_noise(shape, config.noise_correlation_px, rng)[idx]
         elif noisy:
             r = r + sigma * rng.standard_normal(len(idx))
-        # The sensor gates what it measures, not the true range: a noise of kilometres
-        # (noise_scale 1e6) wrote frames 10 km across from a camera ranging 0.3-10 m.
-        inside = (r >= config.min_range) & (r <= config.max_range)
-        idx, r, d, n = idx[inside], r[inside], d[inside], n[inside]
-        flying, bias, sigma = flying[inside], bias[inside], sigma[inside]
         points = d * r[:, None]
         sigma_normal = range_sigma_along_normal(sigma, d, n) if len(idx) else np.zeros(0)
     return Scan(points, n, face[idx], sigma, sigma_normal, flying, idx, bias)
