@@ -33,6 +33,7 @@ from spacepose.core.scene_motion import SceneTest
 from spacepose.core.segmentation import TargetRegion, crop_sphere, nearest_object, region_of
 from spacepose.core.target_cut import cut_to_target
 from spacepose.core.tracker_config import StageLengths, TrackerConfig, pairwise_kind, stage_lengths
+from spacepose.core.viewpoint import facing_bin
 from spacepose.core.voxel import voxel_cells, voxel_downsample
 from spacepose.errors import DegenerateGeometryError, InputError, SpaceposeWarning
 
@@ -257,7 +258,7 @@ class FramePreparer:
         # One point per cell and side: a panel thinner than the cell has its two faces in one
         # cell, and a single point there would hide the panel from one side (satellite_panels
         # at 5 m: 1,669 of its arrays' cells held both faces).
-        side = _facing_bin(model.normals)
+        side = facing_bin(model.normals)
         first = np.unique(cell * 6 + side, return_index=True)[1]
         return model if len(first) == len(model) else model.select(np.sort(first))
 
@@ -404,14 +405,6 @@ class FramePreparer:
             warnings.warn(SpaceposeWarning(problem, first.source), stacklevel=6)
         self.lengths = stage_lengths(cfg, scale.voxel, scale.radius)
         self.scale = scale
-
-
-def _facing_bin(normals: NDArray[np.float64]) -> NDArray[np.intp]:
-    """(N,) which of the six axis directions (±x, ±y, ±z) each normal is nearest: opposite
-    faces always fall in different bins."""
-    axis = np.argmax(np.abs(normals), axis=1)
-    positive = normals[np.arange(len(normals)), axis] > 0.0
-    return 2 * axis + positive
 
 
 def _cropped(pc: PointCloud, sphere: Sphere | None, workers: int) -> PointCloud:

@@ -168,6 +168,11 @@ class Tracker(TrackerState):
         if status == "lost" or estimate is None:
             return self._lost(index, timestamp, prediction, reasons, times, coarse)
         health = (status, reasons)
+        if self._origin is not None:
+            gate = self._registrar.noise.gate
+            health = self._origin.assess(
+                prepared.cloud.points, estimate.T_sensor_target, gate, health, self.workers
+            )
         return self._accept(index, timestamp, prepared, estimate, prediction, health, coarse, times)
 
     def track(

@@ -35,6 +35,7 @@ from spacepose.core.track_result import (
     lost_result,
 )
 from spacepose.core.tracker_config import StageLengths, TrackerConfig
+from spacepose.core.viewpoint import OriginCheck
 from spacepose.errors import ConfigError
 
 
@@ -70,6 +71,8 @@ class TrackerState:
         self._model_cloud = self._model_input
         self._model: Keyframe | None = None
         self._relocaliser: Relocaliser | None = None
+        # Against a model: whether the cloud's origin sees the faces a frame lies on.
+        self._origin: OriginCheck | None = None
         self._frames = FramePreparer(config, self._model_cloud, workers)
         # Model-free: a support moving otherwise, split off the object (core.support).
         self._support: SupportSeparation | None = None
@@ -167,6 +170,7 @@ class TrackerState:
             self._model = self._frames.prepare_model(self._model_cloud)
             # Its normals tell the faces a pose turns to the sensor (visible_model).
             self._model_cloud = self._frames.sensor_model(self._model_cloud)
+            self._origin = OriginCheck(self._model_cloud)
         self._registrar = registrar
         if not self.model_based:
             health, stale = cfg.health, cfg.keyframe.stale_fitness
@@ -233,6 +237,7 @@ class TrackerState:
         self._frames = FramePreparer(self.config, self._model_input, self.workers)
         self._model_cloud = self._model_input
         self._registrar = self._model = self._relocaliser = self._fine = self._support = None
+        self._origin = None
 
     def _accept(
         self,
