@@ -42,6 +42,11 @@ from spacepose.core.se3 import check_real
 from spacepose.core.threads import thread_count
 from spacepose.errors import InputError, RegistrationError
 
+# Most hypotheses a RANSAC may draw: the stop at confidence p needs
+# log(1 − p) / log(1 − w³) three-point samples, 6.9·10⁶ at an inlier ratio w of 1 % and
+# p = 0.999 (9.2·10⁶ at p = 0.9999); at fewer inliers than 1 % the consensus is noise anyway.
+MOST_ITERATIONS = 10_000_000
+
 
 class RansacConfig(StageConfig):
     """Parameters of :func:`feature_ransac`.
@@ -57,7 +62,9 @@ class RansacConfig(StageConfig):
         Reject a sample when any edge of its source triangle and the matching target edge
         differ by more than this ratio (Open3D's edge-length checker); 0 disables the test.
     max_iterations
-        Largest number of hypotheses drawn.
+        Largest number of hypotheses drawn, at most :data:`MOST_ITERATIONS` (10⁷: the
+        confidence bound needs 6.9·10⁶ triples at a 1 % inlier ratio and the default
+        ``confidence`` 0.999, 9.2·10⁶ at 0.9999; more draws nothing a stop would use).
     confidence
         Probability p of having drawn at least one all-inlier sample when sampling stops.
     seed
@@ -88,7 +95,8 @@ class RansacConfig(StageConfig):
     max_correspondence_distance: float = Field(default=0.015, gt=0)
     mutual_filter: bool = True
     edge_length_ratio: float = Field(default=0.9, ge=0, lt=1)
-    max_iterations: int = Field(default=100_000, ge=1)
+    # Bounded: 10¹² ran the first model-based frame for hours without a word.
+    max_iterations: int = Field(default=100_000, ge=1, le=MOST_ITERATIONS)
     confidence: float = Field(default=0.999, gt=0, lt=1)
     seed: int = Field(0, ge=0)
     # Bounded: a batch's arrays grow with it (10⁸ ran out of time and memory).

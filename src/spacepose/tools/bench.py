@@ -47,10 +47,8 @@ and truth (:mod:`~spacepose.tools.bench_data`), the peers and the environment re
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 from pydantic import Field, PositiveFloat, PositiveInt
 from rich.table import Table
@@ -99,6 +97,7 @@ from spacepose.tools.bench_trials import (
     voxel_trials,
 )
 from spacepose.tools.outputs import check_writable
+from spacepose.tools.text_io import strict_json
 
 STAGES: tuple[str, ...] = (
     "voxel",
@@ -349,17 +348,6 @@ def _measure(config: BenchConfig, repeats: int, seed: int, workers: int, contend
 # Output
 
 
-def _json_ready(value: Any) -> Any:
-    """A copy with non-finite floats as None, so the file is strict JSON."""
-    if isinstance(value, dict):
-        return {k: _json_ready(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_ready(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def check_bench_output(path: str | Path) -> None:
     """Refuse a benchmark output that cannot be written, or is not named ``.json``.
 
@@ -387,7 +375,7 @@ def write_bench(result: dict, path: str | Path) -> Path:
     check_bench_output(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(_json_ready(result), indent=2, allow_nan=False) + "\n")
+        path.write_text(strict_json(result, indent=2) + "\n")
     except OSError as exc:
         raise InputError(f"cannot write the benchmark: {exc.strerror}", path) from None
     return path

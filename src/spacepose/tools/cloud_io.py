@@ -334,9 +334,10 @@ def write_cloud(
     path
         Output file; its parent directory is created.
     cloud
-        A PointCloud (normals written when present) or an (N, 3) / (N, 6) array of points and
-        optional normals; an array goes through :class:`PointCloud`, so rows with NaN are
-        dropped and an all-NaN array raises.
+        A PointCloud (normals written when present; its per-point ``sigma`` is not written in
+        any format, with a warning, as no reader here reads it back) or an (N, 3) / (N, 6)
+        array of points and optional normals; an array goes through :class:`PointCloud`, so
+        rows with NaN are dropped and an all-NaN array raises.
     binary
         Binary encoding for PLY (little-endian) and PCD; ignored by the other formats.
     dtype
@@ -348,6 +349,11 @@ def write_cloud(
     Returns
     -------
     The path written. The same data always give the same bytes.
+
+    Warns
+    -----
+    SpaceposeWarning
+        ``cloud`` carries per-point ``sigma``, which the file leaves out (once a call).
     """
     path = as_path(path)
     if not isinstance(binary, bool | np.bool_):
@@ -384,6 +390,16 @@ def write_cloud(
     check_writable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     writer(path, cloud.points, cloud.normals, binary, np.dtype(named))
+    if cloud.sigma is not None:
+        # Dropped without a word before: a cloud written and read back lost its noise model.
+        warnings.warn(
+            SpaceposeWarning(
+                f"per-point sigma is not written ({len(cloud.sigma)} values): the cloud formats "
+                "here store points and normals only",
+                path,
+            ),
+            stacklevel=2,
+        )
     return path
 
 

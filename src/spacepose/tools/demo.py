@@ -15,7 +15,6 @@ Steps, each writing into one folder:
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,9 +31,11 @@ from spacepose.tools.experiments import ExperimentOptions, run_experiment
 from spacepose.tools.experiments.li import AXES, METHODS, PAPER_TABLE2
 from spacepose.tools.experiments.yu_nav import navigation_config
 from spacepose.tools.navigation_io import navigate_run
+from spacepose.tools.navigation_io import output_paths as navigation_output_paths
 from spacepose.tools.report import build_report
 from spacepose.tools.runs import read_run, write_run
-from spacepose.tools.tracking_io import track_folder, tracker_config
+from spacepose.tools.text_io import strict_json
+from spacepose.tools.tracking_io import output_paths, track_folder, tracker_config
 from spacepose.tools.trajectory_io import read_tum
 
 # Yu et al. 2019 (methods.md §2.5, Y4): accuracy the paper reports after convergence, per axis.
@@ -111,6 +112,10 @@ def run_demo(
         return value
 
     lab_dir, orbit_dir = root / "lab", root / "orbit"
+    # The demo's own results of an earlier demo go first: the new runs' frames are not theirs.
+    earlier = [p for m in METHODS for p in output_paths(lab_dir / "tracks" / f"{m}.tum")]
+    for path in [*earlier, *navigation_output_paths(orbit_dir / "nav.csv")]:
+        path.unlink(missing_ok=True)
     step("simulate lab", lambda: write_run(lab_dir, simulate(scenario_config("lab", seed=seed))))
     step(
         "simulate orbit",
@@ -136,7 +141,7 @@ def run_demo(
             lambda n=name: run_experiment(n, root / "experiments" / n, options),
         )
     (root / "tables.json").write_text(
-        json.dumps({"li_table2": li_table, "yu_y4_rms": yu_table, "seconds": seconds}, indent=1)
+        strict_json({"li_table2": li_table, "yu_y4_rms": yu_table, "seconds": seconds}, indent=1)
     )
     report = step("report", lambda: build_report(root))
     return DemoResult(li_table, yu_table, report, seconds)

@@ -25,7 +25,7 @@ from spacepose.core.depth import DepthCamera, depth_to_cloud
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, warn_if_not_metres, warn_if_too_near
 from spacepose.tools.exr_io import EXR_SUFFIX, exr_size, read_exr_depth, write_exr_depth
-from spacepose.tools.intrinsics_io import lens_problem
+from spacepose.tools.intrinsics_io import lens_problem, principal_point_problem
 from spacepose.tools.npy_io import load_npy, npy_shape
 from spacepose.tools.text_io import not_a_file
 
@@ -37,9 +37,16 @@ _FAR_PLANE_SHARE = 0.01
 # Depths no sensor returns, even read as millimetres (100 km): a far plane whatever the rest
 # (a render of the background alone is all 1e10 m).
 _BEYOND_ANY_SENSOR_M = 1e8
-# A principal point this share of the image from its centre is another resolution's (half the
-# resolution's puts it a quarter out; lenses put theirs within a few per cent of the centre).
-_OFF_CENTRE = 0.2
+# Depths (m) no ToF camera or flash LiDAR returns: nearer than a millimetre (the nearest
+# of them range from a few centimetres; a depth_scale of 1e-8 put a scene 1.2 m away at 12 µm)
+# or farther than 100 km (the farthest, a rendezvous LiDAR's, a few km; 1000 put it at
+# 1,200 km). Such a map is in another unit than depth_scale says, and was reported as points
+# on a line or a degenerate surface instead; between these and the ranges of real sensors it
+# is only warned of (warn_if_depth_units), as a scene may be.
+_NEAREST_DEPTH_M = 1e-3
+_FARTHEST_DEPTH_M = 1e5
+# Returns whose depths are compared with them: about this many, evenly strided.
+_DEPTH_SAMPLE = 4096
 # What Pillow raises on a corrupt file besides OSError: a TIFF that lost its size tags ends in
 # TypeError ("Missing dimensions"), others in struct, index or key errors of their parsers.
 _DECODE_ERRORS = (
@@ -241,8 +248,9 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
     FileFormatError
         The image cannot be decoded (see :func:`read_depth_image`).
     InputError
-        No pixel has a return, the size differs from the intrinsics', or the lens distortion
-        folds the image.
+        No pixel has a return, the size differs from the intrinsics', the lens distortion
+        folds the image, or the depths lie nearer than a millimetre or beyond 100 km
+        (a wrong ``depth_scale``, named with the depth).
 
     Warns
     -----
@@ -284,14 +292,17 @@ def depth_cloud(
         (:func:`~spacepose.tools.intrinsics_io.lens_problem`, checked at the map's size:
         intrinsics without one were not checked, and frames came out with their corners'
         rays through the opposite side), the size differs from the intrinsics', no pixel has
-        a return (named: every depth negative, or beyond ``max_depth``).
+        a return (named: every depth negative, or beyond ``max_depth``), or the depths lie
+        nearer than a millimetre or farther than 100 km (:func:`_check_depth_unit`: a
+        ``depth_scale`` of another unit).
 
     Warns
     -----
     SpaceposeWarning
         The points are in another unit (:func:`warn_if_depth_units`), a far plane is read as
         no return (:func:`_without_far_plane`), some depths are negative, or the principal
-        point of intrinsics without a size is a fifth of the image from its centre.
+        point of intrinsics without a size looks swapped or is a fifth of the image from its
+        centre.
     """
     height, width = np.shape(values)[:2]
     camera = _without_far_plane(values, camera, source)
@@ -303,10 +314,41 @@ def depth_cloud(
         cloud = depth_to_cloud(values, camera, stride, source=str(source))
     except InputError as exc:
         raise _why_no_return(values, camera, source) or exc from None
+    _check_depth_unit(cloud, source, remedy)
     _warn_if_odd_pixels(values, camera, source)
     if not _warn_if_short_focal(cloud, camera, source):
         warn_if_depth_units(cloud, source, remedy)
     return cloud
+
+
+def _check_depth_unit(cloud: PointCloud, source: str | Path, remedy: str) -> None:
+    """Refuse a map whose depths no depth sensor returns (even its farthest returns nearer
+    than :data:`_NEAREST_DEPTH_M`, or its nearest beyond :data:`_FARTHEST_DEPTH_M`): its
+    values times the unit read them in (``remedy``, which names it) are not metres.
+
+    Raises
+    ------
+    InputError
+        Naming ``source``, the depth in metres and ``remedy``.
+    """
+    depth = cloud.points[:: max(1, len(cloud) // _DEPTH_SAMPLE), 2]
+    depth = depth[depth > 0.0]
+    if not len(depth):
+        return
+    # The nearest returns against the far limit, the farthest against the near one: a render's
+    # Earth 400 km behind a target 25 m away is far, and its target is not.
+    nearest, farthest = np.percentile(depth, [1.0, 99.0])
+    if nearest > _FARTHEST_DEPTH_M:
+        where = f"the nearest 1 % of the returns lie beyond {nearest:.3g} m, farther"
+    elif farthest < _NEAREST_DEPTH_M:
+        where = f"the farthest 1 % of the returns lie within {farthest:.3g} m, nearer"
+    else:
+        return
+    raise InputError(
+        f"{where} than any ToF camera or flash LiDAR ranges: the depths are in another unit? "
+        f"{remedy}",
+        source,
+    )
 
 
 def _warn_if_short_focal(cloud: PointCloud, camera: DepthCamera, source: str | Path) -> bool:
@@ -329,8 +371,10 @@ def _warn_if_short_focal(cloud: PointCloud, camera: DepthCamera, source: str | P
 def _warn_if_odd_pixels(values: NDArray, camera: DepthCamera, source: str | Path) -> None:
     """Warn of what a map that back-projects reads oddly: depths below zero among the others
     (read as no return, as a map all below zero is refused), and, with intrinsics that give no
-    size, a principal point a fifth of the image or more from its centre (intrinsics of
-    another resolution put every ray off without a word)."""
+    size, a principal point swapped or a fifth of the image or more from its centre
+    (:func:`off_centre_problem`: intrinsics of another resolution put every ray off without a
+    word; intrinsics with a size are checked once, by
+    :func:`~spacepose.tools.intrinsics_io.check_camera`)."""
     height, width = np.shape(values)[:2]
     if np.issubdtype(np.asarray(values).dtype, np.signedinteger) or np.issubdtype(
         np.asarray(values).dtype, np.floating
@@ -347,18 +391,10 @@ def _warn_if_odd_pixels(values: NDArray, camera: DepthCamera, source: str | Path
 
 
 def off_centre_problem(camera: DepthCamera, width: int, height: int) -> str | None:
-    """Why intrinsics that give no image size look like another resolution's for a
-    ``width`` × ``height`` image (a principal point a fifth of the image or more from its
-    centre), or None."""
-    off_x = abs(camera.cx - 0.5 * (width - 1)) / width
-    off_y = abs(camera.cy - 0.5 * (height - 1)) / height
-    if max(off_x, off_y) < _OFF_CENTRE:
-        return None
-    return (
-        f"the principal point lies far from the image's centre: intrinsics of another "
-        f"resolution? (({camera.cx:g}, {camera.cy:g}) in a {width}x{height} image; give "
-        "width and height in the intrinsics to check them)"
-    )
+    """Why ``camera``'s principal point looks wrong for a ``width`` × ``height`` image: cx and
+    cy swapped, or a fifth of the image or more from its centre (another resolution's), or None
+    (:func:`~spacepose.tools.intrinsics_io.principal_point_problem`)."""
+    return principal_point_problem(camera, width, height)
 
 
 def _without_far_plane(values: NDArray, camera: DepthCamera, source: str | Path) -> DepthCamera:

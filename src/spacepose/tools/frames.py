@@ -387,12 +387,10 @@ def _open_depth_folder(
             stacklevel=3,
         )
     sized = _sized(camera, paths)
+    # Checked at the size the intrinsics give, or else the images': the frames' own check looks
+    # for a size the intrinsics lack, and the folder gave one (a principal point of another
+    # resolution, or swapped, is warned of here, once).
     intrinsics_io.check_camera(sized, source)
-    if camera.width is None and sized.width is not None:
-        # The frames' own check looks for a size the intrinsics lack; the folder gave one.
-        problem = depth_io.off_centre_problem(sized, sized.width, sized.height)
-        if problem is not None:
-            warnings.warn(SpaceposeWarning(problem, source), stacklevel=3)
     camera = sized
     loader = partial(depth_io.read_depth_cloud, camera=camera)
     return FrameSequence(paths, timestamps, loader=loader)

@@ -30,6 +30,15 @@ _JACOBIAN_STEP = 1e-6
 # A pincushion that draws the image's edge to less than half its pinhole radius is no lens's:
 # a ToF lens bends its corners by a few per cent, a fisheye's barrel the other way.
 _FARTHEST_PINCUSHION = 2.0
+# A principal point this share of the image from its centre is another resolution's (half the
+# resolution's puts it a quarter out; lenses put theirs within a few per cent of the centre).
+OFF_CENTRE = 0.2
+# A principal point within this share of the image's larger side of the centre with cx and cy
+# exchanged, when that centre lies twice as far from the true one, is a swapped one (lenses
+# put theirs within a few per cent of the centre; cx 239.5, cy 319.5 in a 640x480 image, 13 %
+# and 17 % of the image off, under OFF_CENTRE, tracked 264 mm off without a word). Images
+# nearer square than that are left to OFF_CENTRE: their swapped centre is a lens's own.
+_SWAPPED_CENTRE = 0.03
 
 
 def read_intrinsics(path: str | Path) -> DepthCamera:
@@ -175,7 +184,9 @@ def check_camera(camera: DepthCamera, source: str | Path) -> None:
     Warns
     -----
     SpaceposeWarning
-        The distortion pulls some pixel's direction to less than half its pinhole radius.
+        The distortion pulls some pixel's direction to less than half its pinhole radius, or
+        the principal point looks swapped or of another resolution
+        (:func:`principal_point_problem`).
     """
     width, height = camera.width, camera.height
     if width is None or height is None:
@@ -190,6 +201,38 @@ def check_camera(camera: DepthCamera, source: str | Path) -> None:
         raise ConfigError(f"{source}: {problem}")
     if caution is not None:
         warnings.warn(SpaceposeWarning(caution, source), stacklevel=3)
+    odd = principal_point_problem(camera, width, height)
+    if odd is not None:
+        warnings.warn(SpaceposeWarning(odd, source), stacklevel=3)
+
+
+def principal_point_problem(camera: DepthCamera, width: int, height: int) -> str | None:
+    """Why ``camera``'s principal point looks wrong for a ``width`` x ``height`` image, or None:
+    cx and cy swapped (each within :data:`_SWAPPED_CENTRE` of the image of the other's centre),
+    or the point :data:`OFF_CENTRE` of the image or more from its centre (intrinsics of another
+    resolution). A warning, not a refusal: a lens's own principal point may lie off centre."""
+    centre_x, centre_y = 0.5 * (width - 1), 0.5 * (height - 1)
+    near = _SWAPPED_CENTRE * max(width, height)
+    # The swapped centre clear of the true one's neighbourhood, so no centred lens matches it.
+    if (
+        abs(width - height) / 2.0 > 2.0 * near
+        and abs(camera.cx - centre_y) <= near
+        and abs(camera.cy - centre_x) <= near
+    ):
+        return (
+            f"the principal point ({camera.cx:g}, {camera.cy:g}) is the centre of a "
+            f"{height}x{width} image, not of this {width}x{height} one: cx and cy swapped?"
+        )
+    off_x = abs(camera.cx - centre_x) / width
+    off_y = abs(camera.cy - centre_y) / height
+    if max(off_x, off_y) < OFF_CENTRE:
+        return None
+    # Intrinsics without a size were checked at the image's: giving one checks it at theirs.
+    hint = "; give width and height in the intrinsics to check them" if camera.width is None else ""
+    return (
+        f"the principal point lies far from the image's centre: intrinsics of another "
+        f"resolution? (({camera.cx:g}, {camera.cy:g}) in a {width}x{height} image{hint})"
+    )
 
 
 @functools.lru_cache(maxsize=8)

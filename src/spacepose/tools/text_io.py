@@ -4,14 +4,18 @@ One reader so that every such file fails the same way: one :class:`FileFormatErr
 file for a missing path, a folder, a pipe or device (reading one would wait for a writer for
 ever), a read the system refuses, or bytes that are not UTF-8; a byte-order mark is dropped
 (it would otherwise hide the first number). Frame times read from such files are checked to
-rise and to be seconds (:func:`timing_problem`, :func:`check_timing`).
+rise and to be seconds (:func:`timing_problem`, :func:`check_timing`). Results are written
+as strict JSON (:func:`strict_json`: non-finite numbers as null).
 """
 
 from __future__ import annotations
 
+import json
+import math
 import os
 import warnings
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -20,7 +24,15 @@ from spacepose.core.motion import LATEST_S, TIME_UNIT, order_problem
 from spacepose.core.structured_text import not_a_file, not_text
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 
-__all__ = ["as_path", "check_timing", "not_a_file", "read_text", "timing_problem"]
+__all__ = [
+    "as_path",
+    "check_timing",
+    "json_ready",
+    "not_a_file",
+    "read_text",
+    "strict_json",
+    "timing_problem",
+]
 
 # Widest median gap (s) between a sequence's frames: no sensor tracks or navigates a target at
 # one frame an hour; nanoseconds (3.3e7 at 30 Hz) or microseconds (33,333) are read so.
@@ -171,3 +183,38 @@ def check_timing(timestamps: ArrayLike, path: str | Path) -> None:
             ),
             stacklevel=3,
         )
+
+
+def json_ready(value: Any) -> Any:
+    """A copy of ``value`` that strict JSON can hold: NumPy scalars and arrays as Python numbers
+    and lists, non-finite floats (NaN, inf) as None (``json.dumps`` writes them as the bare
+    tokens ``NaN`` and ``Infinity``, which strict parsers refuse)."""
+    if isinstance(value, dict):
+        return {k: json_ready(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return json_ready(value.tolist())
+    if isinstance(value, list | tuple):
+        return [json_ready(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def strict_json(value: Any, **kwargs: Any) -> str:
+    """``json.dumps`` of :func:`json_ready` ``(value)``: strict JSON, non-finite numbers null.
+
+    Parameters
+    ----------
+    value
+        Dicts, lists, tuples, numbers (NumPy's too), text, booleans and None.
+    **kwargs
+        Passed to ``json.dumps`` (``indent``, ``sort_keys``, ``default``).
+
+    Raises
+    ------
+    ValueError
+        A ``default`` that returns a non-finite float (never written as a bare ``NaN``).
+    """
+    return json.dumps(json_ready(value), allow_nan=False, **kwargs)

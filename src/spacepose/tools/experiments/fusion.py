@@ -22,7 +22,6 @@ frames whose per-axis error lies within 3σ about the target centre), since the 
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 from typing import Any
@@ -48,6 +47,7 @@ from spacepose.tools.experiments.yu_nav import (
     score,
 )
 from spacepose.tools.pose_bootstrap_run import bootstrapped_fusion
+from spacepose.tools.text_io import strict_json
 
 _MODELS = Path(__file__).resolve().parents[4] / "data" / "models"
 # Target name -> (mesh file or None for the default target, scale, measurement kinds).
@@ -348,7 +348,7 @@ def fusion(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
         for kind in kinds
     }
     table = {"frames": frames, "seeds": seeds, "runs": runs}
-    (out_dir / "fusion.json").write_text(json.dumps(table, indent=2, default=float) + "\n")
+    (out_dir / "fusion.json").write_text(strict_json(table, indent=2, default=float) + "\n")
     (out_dir / "fusion.md").write_text(markdown_table(runs))
     for name, run in runs.items():
         if run["seeds_navigated"] < len(seeds):  # its figures stand on the other seeds alone

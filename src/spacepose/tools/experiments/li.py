@@ -20,7 +20,6 @@ numbers then only smoke-test the pipeline.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +36,7 @@ from spacepose.core.sim.simulation import Simulation
 from spacepose.core.tracker import Tracker, TrackerConfig
 from spacepose.tools import plots
 from spacepose.tools.experiments import ExperimentOptions, register
+from spacepose.tools.text_io import strict_json
 
 AXES = ("x_mm", "y_mm", "z_mm", "pitch_deg", "yaw_deg", "roll_deg")
 METHOD_LABELS: dict[str, str] = {
@@ -84,7 +84,7 @@ PROFILES = ("tof-clean", "tof-paper")
 
 
 def _write(out_dir: Path, name: str, table: dict[str, Any], figures: dict[str, Figure]) -> dict:
-    (out_dir / f"{name}.json").write_text(json.dumps(table, indent=2, default=float) + "\n")
+    (out_dir / f"{name}.json").write_text(strict_json(table, indent=2, default=float) + "\n")
     for suffix, fig in figures.items():
         (out_dir / f"{name}{suffix}.png").write_bytes(plots.figure_png(fig))
     return table

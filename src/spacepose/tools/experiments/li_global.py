@@ -52,7 +52,6 @@ them and writes the table and figure.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -76,6 +75,7 @@ from spacepose.tools.experiments.li_global_pipelines import (
     open3d_global,
     ours_global,
 )
+from spacepose.tools.text_io import strict_json
 
 # Ours (coverage-ranked RANSAC), the paper's plain RANSAC (inlier-ranked) in our pipeline, and
 # Open3D's pipeline.
@@ -284,6 +284,6 @@ def global_registration_experiment(out_dir: Path, options: ExperimentOptions) ->
         },
         "trials": result["trials"],
     }
-    (out_dir / "li-global.json").write_text(json.dumps(table, indent=2) + "\n")
+    (out_dir / "li-global.json").write_text(strict_json(table, indent=2) + "\n")
     (out_dir / "li-global.png").write_bytes(plots.figure_png(_figure(result, config)))
     return table

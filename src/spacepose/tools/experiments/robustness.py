@@ -24,7 +24,6 @@ Runs go to ``jobs`` processes (results do not depend on it; ``ms_per_frame`` doe
 from __future__ import annotations
 
 import csv
-import json
 import multiprocessing
 from collections import Counter
 from collections.abc import Sequence
@@ -53,6 +52,7 @@ from spacepose.tools.experiments.robustness_scores import (
     score_frame,
     summarise_cell,
 )
+from spacepose.tools.text_io import strict_json
 
 
 def run_cell(
@@ -126,7 +126,7 @@ def run_cells(
     def logged(record: dict[str, Any]) -> dict[str, Any]:
         if log is not None:
             with log.open("a") as fh:
-                fh.write(json.dumps({k: v for k, v in record.items() if k != "frames"}) + "\n")
+                fh.write(strict_json({k: v for k, v in record.items() if k != "frames"}) + "\n")
         return record
 
     if jobs <= 1 or len(runs) <= 1:
@@ -319,7 +319,7 @@ def write_outputs(
                 writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
                 writer.writeheader()
                 writer.writerows(rows)
-    (out_dir / "robustness.json").write_text(json.dumps(result, indent=2, default=float) + "\n")
+    (out_dir / "robustness.json").write_text(strict_json(result, indent=2, default=float) + "\n")
     (out_dir / "robustness.md").write_text(markdown_table(table))
     (out_dir / "robustness.png").write_bytes(plots.figure_png(summary_figure(table)))
     return result

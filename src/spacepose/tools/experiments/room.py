@@ -15,7 +15,6 @@ Quick mode: two seeds of 8 frames at a quarter of the camera's pixels.
 from __future__ import annotations
 
 import importlib
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ from spacepose.core.track_result import TrackResult
 from spacepose.core.tracker import Tracker
 from spacepose.tools.experiments import ExperimentOptions, register
 from spacepose.tools.experiments.robustness_scores import FALSE_OK_SIGMAS
+from spacepose.tools.text_io import strict_json
 
 SEEDS, FRAMES = 5, 60
 QUICK_SEEDS, QUICK_FRAMES = 2, 8
@@ -166,6 +166,6 @@ def room_experiment(out: Path, options: ExperimentOptions) -> dict[str, Any]:
         for seed in range(options.seed, options.seed + seeds)
     ]
     table = {"rows": rows, "mean_std": summary(rows)}
-    (out / "room.json").write_text(json.dumps(table, indent=2) + "\n")
+    (out / "room.json").write_text(strict_json(table, indent=2) + "\n")
     (out / "room.md").write_text(_markdown(rows, table["mean_std"]))
     return table

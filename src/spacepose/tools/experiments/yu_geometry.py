@@ -16,7 +16,6 @@ Tables are in cm and cm², as in the paper.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any
@@ -28,6 +27,7 @@ from numpy.typing import NDArray
 from spacepose.core.planes import PlaneConfig, ransac_plane
 from spacepose.core.rectangle_measurement import measure_rectangle
 from spacepose.tools.experiments import ExperimentOptions, register
+from spacepose.tools.text_io import strict_json
 
 CM = 0.01
 SIDE_A, SIDE_B, HEIGHT = 0.10, 0.18, 0.065  # m
@@ -74,7 +74,7 @@ def _theory(sigma: float) -> NDArray[np.float64]:
 
 
 def _write(out_dir: Path, name: str, table: dict[str, Any], fig: Figure) -> dict[str, Any]:
-    (out_dir / f"{name}.json").write_text(json.dumps(table, indent=2) + "\n")
+    (out_dir / f"{name}.json").write_text(strict_json(table, indent=2) + "\n")
     fig.savefig(out_dir / f"{name}.png", dpi=110)
     return table
 

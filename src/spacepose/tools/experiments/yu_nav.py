@@ -24,7 +24,6 @@ seeded random 15°, is a debugging aid only: it uses the truth.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Literal
 
@@ -43,6 +42,7 @@ from spacepose.tools.catalogue import parse_catalogue
 from spacepose.tools.experiments import ExperimentOptions, register
 from spacepose.tools.navigation_config_io import with_run_settings
 from spacepose.tools.plots import error_with_envelope, figure_png
+from spacepose.tools.text_io import strict_json
 
 PriorSource = Literal["perturbed-truth", "none"]
 # The one switch for the navigator's start: "none", the lost-in-space start from the first
@@ -405,6 +405,6 @@ def yu_y4(out_dir: Path, options: ExperimentOptions) -> dict[str, Any]:
         "paper": PAPER,
         "figures": figures,
     }
-    (out_dir / "y4.json").write_text(json.dumps(table, indent=2, default=float) + "\n")
+    (out_dir / "y4.json").write_text(strict_json(table, indent=2, default=float) + "\n")
     (out_dir / "y4.md").write_text(markdown_table(orbits))
     return table
