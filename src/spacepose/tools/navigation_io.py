@@ -41,7 +41,13 @@ from spacepose.tools.frames import (
     untimed_folder,
 )
 from spacepose.tools.navigation_config_io import read_scenario, scenario_model, with_run_settings
-from spacepose.tools.outputs import check_spares_inputs, check_text_name, check_writable
+from spacepose.tools.outputs import (
+    check_not_anothers,
+    check_spares_inputs,
+    check_text_name,
+    check_writable,
+    companion,
+)
 from spacepose.tools.pose_bootstrap_run import bootstrapped_fusion, run_mesh_and_sensor
 from spacepose.tools.tracking_io import check_not_a_frame, open_table, write_health_csv
 
@@ -193,7 +199,7 @@ def navigate_run(
         navigator = RelativeNavigator(catalogue, n, R_O_C, cfg, model)
         rows, interrupted = _steps(navigator.step, pairs)
         # The effective settings: a range noise measured on the first frame among them.
-        config_json = dump_config(navigator.config, out.with_suffix(".config.json"))
+        config_json = dump_config(navigator.config, companion(out, ".csv", ".config.json"))
     else:
         fusion = (fusion or FusionConfig()).model_copy(
             update={"measurements": measurements, "navigation": cfg}
@@ -214,10 +220,10 @@ def navigate_run(
                 warnings.warn(SpaceposeWarning(problem, input_dir), stacklevel=2)
         fused = FusedNavigator(catalogue, n, R_O_C, fusion, model)
         rows, tracks, interrupted = _navigate_fused(fused, pairs, unreadable)
-        health_csv = write_health_csv(out.with_suffix(".health.csv"), tracks)
+        health_csv = write_health_csv(companion(out, ".csv", ".health.csv"), tracks)
         if fused.rectangles is not None:  # the effective settings, as for rectangles alone
             fusion = fusion.model_copy(update={"navigation": fused.rectangles.config})
-        config_json = dump_config(fusion, out.with_suffix(".config.json"))
+        config_json = dump_config(fusion, companion(out, ".csv", ".config.json"))
         pose_noise_json = _write_pose_noise(out, noise)
         _warn_unusable_frames(tracks, unreadable, health_csv)
     _warn_refused_frames(rows, unreadable)
@@ -270,6 +276,7 @@ def _open_checked_frames(
         )
     outputs = output_paths(out, measurements)
     check_writable(*outputs)
+    check_not_anothers(out, ".csv", ".cov.csv", "track")
     frames = open_frames(input_dir, intrinsics=intrinsics, topic=topic)
     given = [p for p in (scenario, model, intrinsics) if p is not None]
     check_spares_inputs(outputs, [*input_files(input_dir, frames), *given])
@@ -329,7 +336,7 @@ def _warn_refused_frames(rows: Sequence[NavRow], unreadable: dict[int, str]) -> 
 
 def _write_candidates(out: Path, rows: Sequence[NavRow], ambiguous: bool) -> Path | None:
     """Write ``out``'s ``.candidates.csv`` when some frame is ``ambiguous``; None otherwise."""
-    path = out.with_suffix(".candidates.csv")
+    path = companion(out, ".csv", ".candidates.csv")
     if ambiguous:
         return write_candidates_csv(path, rows)
     # An earlier run's candidates are not this run's (left beside it, they read as so).
@@ -341,7 +348,7 @@ def _write_pose_noise(out: Path, noise: PoseNoiseScale | None) -> Path | None:
     """The bootstrap's measurement of the poses' σ factor beside ``out`` (``.pose_noise.json``:
     the factor, each axis's batch ratio, the frames and batches), or None, and an earlier run's
     file removed, when it was not measured."""
-    path = out.with_suffix(".pose_noise.json")
+    path = companion(out, ".csv", ".pose_noise.json")
     if noise is None:
         path.unlink(missing_ok=True)
         return None
@@ -357,7 +364,7 @@ def output_paths(out: str | Path, measurements: Measurements = "rectangles") -> 
     out = Path(out)
     companions = [".config.json", ".candidates.csv"]
     companions += [".health.csv", ".pose_noise.json"] if measurements != "rectangles" else []
-    return (out, *(out.with_suffix(c) for c in companions))
+    return (out, *(companion(out, ".csv", c) for c in companions))
 
 
 def _readable_pairs(

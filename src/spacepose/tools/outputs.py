@@ -7,7 +7,7 @@ the work; so every command that writes checks its outputs first (:func:`check_wr
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 from spacepose.errors import InputError
@@ -112,3 +112,44 @@ def check_text_name(out: str | Path, writes: str, fix: str) -> None:
     for kind, suffixes in kinds.items():
         if suffix in suffixes:
             raise InputError(f"{writes} is text, and a {suffix} file is read as {kind}: {fix}", out)
+
+
+def companion(out: str | Path, own_suffix: str, suffix: str) -> Path:
+    """The file beside ``out`` that a command writes with it (``EST.tum`` -> ``EST.health.csv``
+    for ``own_suffix`` ``.tum``): ``out``'s name less its own suffix, or its whole name when it
+    has another, plus ``suffix``.
+
+    Only the command's own suffix is taken off: taking any made ``est_0.25`` and ``est_0.5``
+    share ``est_0.health.csv``, the second run's table replacing the first's.
+    """
+    out = Path(out)
+    stem = out.name[: -len(own_suffix)] if out.suffix.lower() == own_suffix else out.name
+    return out.with_name(stem + suffix)
+
+
+def check_not_anothers(
+    out: str | Path,
+    own_suffix: str,
+    marker: str,
+    owner: str,
+    is_theirs: Callable[[Path], bool] = Path.is_file,
+) -> None:
+    """Refuse ``out`` when its companions would replace another command's: a file ``marker``
+    beside ``out``'s stem that ``is_theirs`` (``owner``'s alone: track's ``.cov.csv``,
+    navigate's table) says the shared companions (``.config.json``, ``.health.csv``) are that
+    command's. ``run.tum`` tracked and ``run.csv`` navigated shared ``run.config.json`` and
+    ``run.health.csv`` without a word, and ``evaluate run.tum`` read the navigation's health
+    table.
+
+    Raises
+    ------
+    InputError
+        One line naming the output and the other command's file.
+    """
+    found = companion(out, own_suffix, marker)
+    if found.is_file() and is_theirs(found):
+        raise InputError(
+            f"its .config.json and .health.csv would replace those of {found.name} beside it "
+            f"({owner}'s): name the output otherwise",
+            out,
+        )

@@ -131,6 +131,21 @@ def check_run_out(out_dir: str | Path) -> None:
         )
 
 
+def _earlier_results(out: Path) -> list[str]:
+    """The files under an earlier run's folder ``out`` that simulate does not write (tracks,
+    navigation tables, reports), by their paths in it."""
+    if not (out / SCENARIO).is_file():
+        return []
+    own = {GROUNDTRUTH, MODEL_CLOUD, MODEL_MESH, SCENARIO, TRUTH}
+    return sorted(
+        str(p.relative_to(out))
+        for p in out.rglob("*")
+        if p.is_file()
+        and p.name not in own
+        and not (p.parent == out / FRAMES_DIR and p.name[:1].isdigit() and p.suffix == ".ply")
+    )
+
+
 def write_run(
     out_dir: str | Path,
     sim: Simulation,
@@ -157,6 +172,18 @@ def write_run(
 
     check_run_out(out_dir)
     out = Path(out_dir)
+    if earlier := _earlier_results(out):
+        shown = ", ".join(earlier[:4]) + (
+            f" and {len(earlier) - 4} more" if len(earlier) > 4 else ""
+        )
+        problem = (
+            f"holds results of the run written there before ({shown}): they are not of the "
+            "frames written now, and report would score them against the new truth"
+        )
+        warnings.warn(SpaceposeWarning(problem, out), stacklevel=2)
+    if sim.truth is None:
+        # An orbit run's truth left under a lab run: report scored its navigation against it.
+        (out / TRUTH).unlink(missing_ok=True)
     frames_dir = out / FRAMES_DIR
     frames_dir.mkdir(parents=True, exist_ok=True)
     wanted = {_frame_name(k) for k in range(len(sim))}

@@ -26,7 +26,13 @@ from spacepose.core.trajectory import Trajectory
 from spacepose.errors import FileFormatError, InputError, Interrupted, SpaceposeWarning
 from spacepose.tools.cloud_io import read_model
 from spacepose.tools.frames import CLOUD_SUFFIXES, FrameInput, Frames, input_files, open_frames
-from spacepose.tools.outputs import check_spares_inputs, check_text_name, check_writable
+from spacepose.tools.outputs import (
+    check_not_anothers,
+    check_spares_inputs,
+    check_text_name,
+    check_writable,
+    companion,
+)
 from spacepose.tools.trajectory_io import tum_lines
 
 HEALTH_COLUMNS: tuple[str, ...] = (
@@ -158,16 +164,12 @@ def write_health_csv(path: str | Path, results: Sequence[TrackResult]) -> Path:
 
 def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path, Path]:
     """``EST.tum`` -> (``EST.tum``, ``EST.health.csv``, ``EST.config.json``,
-    ``EST.scale.json``, ``EST.cov.csv``)."""
+    ``EST.scale.json``, ``EST.cov.csv``); an ``EST`` not named ``.tum`` keeps its whole name
+    (``est_0.25`` -> ``est_0.25.health.csv``)."""
     out = Path(out)
-    stem = out.with_suffix("")
-    return (
-        out,
-        Path(f"{stem}.health.csv"),
-        Path(f"{stem}.config.json"),
-        Path(f"{stem}.scale.json"),
-        Path(f"{stem}.cov.csv"),
-    )
+    suffixes = (".health.csv", ".config.json", ".scale.json", ".cov.csv")
+    health, config, scale, cov = (companion(out, ".tum", s) for s in suffixes)
+    return out, health, config, scale, cov
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,6 +247,18 @@ def check_output(out: str | Path) -> None:
             out,
         )
     check_writable(*output_paths(out))
+    check_not_anothers(out, ".tum", ".csv", "navigate", _is_navigation_table)
+
+
+def _is_navigation_table(path: Path) -> bool:
+    """Whether ``path`` starts with the header navigate writes."""
+    from spacepose.core.nav_result import NAV_COLUMNS
+
+    try:
+        with path.open(encoding="utf-8", errors="replace") as fh:
+            return fh.readline().strip() == ",".join(NAV_COLUMNS)
+    except OSError:
+        return False
 
 
 def check_not_a_frame(
@@ -333,6 +347,10 @@ def track_folder(
     check_spares_inputs(output_paths(out), [*input_files(input, frames), *given])
     check_not_a_frame(Path(out), frames)
     check_text_name(out, "a TUM trajectory", "name it .tum")
+    if Path(out).suffix.lower() != ".tum":
+        # Tracked, scored by evaluate, but not found by report, which reads *.tum.
+        problem = "not named .tum: spacepose report looks for tracks named *.tum only"
+        warnings.warn(SpaceposeWarning(problem, out), stacklevel=2)
     model_cloud = None if model is None else read_model(model)
     tum, health, config_path, scale_path, cov_path = output_paths(out)
     tracker = Tracker(config, model_cloud, workers)
