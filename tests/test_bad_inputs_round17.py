@@ -228,3 +228,32 @@ def test_write_cloud_says_that_sigma_is_not_written(tmp_path, suffix):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SpaceposeWarning)
         write_cloud(tmp_path / f"plain{suffix}", points)
+
+
+def test_plane_ransac_iterations_are_bounded_as_features_are():
+    """``PlaneConfig(max_iterations=10**12)`` was taken as the features' RANSAC's was: the
+    plane search has the same bound now, and names the field."""
+    from spacepose.core.planes import PlaneConfig
+
+    with pytest.raises(
+        ConfigError, match=r"invalid plane config: max_iterations: .*less than or equal to 10000000"
+    ):
+        PlaneConfig(max_iterations=10**12)
+    assert PlaneConfig(max_iterations=10**7).max_iterations == 10**7
+
+
+def test_register_checks_a_single_depth_images_sized_intrinsics(tmp_path, capsys):
+    """`register a.png b.png` with sized intrinsics whose cx and cy are swapped said nothing
+    (a depth folder's are checked at their size; one image's were not). Now it warns as the
+    folder does."""
+    from spacepose.cli import main
+
+    for name in ("a.png", "b.png"):
+        _plane_png(tmp_path / name)
+    (tmp_path / "intrinsics.yaml").write_text(
+        "fx: 50\nfy: 50\ncx: 23.5\ncy: 31.5\nwidth: 64\nheight: 48\ndepth_scale: 0.001\n"
+    )
+    main(["register", str(tmp_path / "a.png"), str(tmp_path / "b.png")])
+    assert "intrinsics.yaml: the principal point (23.5, 31.5) is the centre of a 48x64" in (
+        capsys.readouterr().err
+    )

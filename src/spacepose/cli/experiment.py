@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -40,6 +39,7 @@ def experiment(
 ) -> None:
     """Run one experiment; tables (JSON) and figures (PNG) go to OUT/NAME/, listed at the end."""
     from spacepose.tools.experiments import ExperimentOptions, run_experiment
+    from spacepose.tools.text_io import strict_json
 
     options = ExperimentOptions(
         seed=seed,
@@ -58,5 +58,5 @@ def experiment(
         table = run_experiment(name, out / name, options)
     if as_json:
         # Plain print: rich would wrap long lines and break the JSON for a pipe.
-        typer.echo(json.dumps(table, default=float, indent=2))
+        typer.echo(strict_json(table, default=float, indent=2))
     print_written(out / name, start, stderr=as_json)

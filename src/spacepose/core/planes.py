@@ -46,7 +46,8 @@ class PlaneConfig(StageConfig):
         Assumed outlier share ε used in the iteration bound
         ``k = log(1 − p) / log(1 − (1 − ε)³)``; ``None`` runs exactly ``max_iterations``.
     max_iterations
-        Upper limit on the number of hypotheses per plane.
+        Upper limit on the number of hypotheses per plane, at most 10⁷
+        (:data:`~spacepose.core.ransac.MOST_ITERATIONS`).
     min_inliers
         A plane with fewer inliers ends :func:`extract_planes`.
     max_planes
@@ -74,7 +75,8 @@ class PlaneConfig(StageConfig):
     distance_threshold: float = Field(0.005, gt=0)
     confidence: float = Field(0.99, gt=0, lt=1)
     outlier_ratio: float | None = Field(0.5, ge=0, lt=1)
-    max_iterations: int = Field(1000, ge=1)
+    # Bounded as feature RANSAC's (ransac.MOST_ITERATIONS): 10¹² ran without a word.
+    max_iterations: int = Field(1000, ge=1, le=ransac.MOST_ITERATIONS)
     min_inliers: int = Field(50, ge=3)
     max_planes: int = Field(10, ge=1)
     batch_size: int = Field(64, ge=1, le=65536)

@@ -23,7 +23,7 @@ from spacepose.errors import FileFormatError, InputError, RegistrationError, Spa
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_sensor_cloud
 from spacepose.tools.depth_folder import folder_camera
 from spacepose.tools.depth_io import read_depth_cloud
-from spacepose.tools.intrinsics_io import read_intrinsics
+from spacepose.tools.intrinsics_io import check_camera, read_intrinsics
 from spacepose.tools.outputs import check_spares_inputs, check_text_name, check_writable
 from spacepose.tools.register import RegisterConfig, RegisterResult, register
 from spacepose.tools.text_io import read_text
@@ -149,7 +149,9 @@ def _read_input(path: str | Path, intrinsics: str | Path | None) -> PointCloud:
     given = None if intrinsics is None else read_intrinsics(intrinsics)
     # As for a depth folder: intrinsics given beside the image's own file that differ are
     # refused (the given file won without a word, the image's own calibration ignored).
-    camera, _ = folder_camera(path.parent, intrinsics, given)
+    camera, source = folder_camera(path.parent, intrinsics, given)
     if camera is None:
         raise InputError("a depth image needs --intrinsics (or intrinsics.yaml beside it)", path)
+    # As a depth folder's are: a sized camera's principal point and lens checked at its size.
+    check_camera(camera, source or path)
     return read_depth_cloud(path, camera)
