@@ -112,7 +112,10 @@ class FacingTest:
         plane = np.abs(np.einsum("nkj,nkj->nk", normals, q[:, None, :] - points))
         seen_plane = np.where(near & ~away, plane, np.inf).min(axis=1)
         away_plane = np.where(near & away, plane, np.inf).min(axis=1)
-        return float(np.mean((away_plane <= gate) & (seen_plane > gate)))
+        # A face turned to the origin within reach is a thin part's near face: a return pushed
+        # through the part by a range error (a 6 mm wiggle on the lab's 5 mm wings: 27 % of
+        # the returns) is the sensor's fault, not the origin's.
+        return float(np.mean((away_plane <= gate) & (seen_plane > reach)))
 
 
 def facing_bin(normals: NDArray[np.float64]) -> NDArray[np.intp]:
