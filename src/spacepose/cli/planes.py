@@ -26,7 +26,11 @@ def planes(
     cluster_radius: float | None = typer.Option(
         None, help="Keep each plane's largest group of inliers closer than this (m)."
     ),
-    threshold: float = typer.Option(0.005, help="Plane thickness d (m) for RANSAC inliers."),
+    threshold: float | None = typer.Option(
+        None,
+        help="Plane thickness d (m) for RANSAC inliers [default: 3 σ, σ given by --sigma or "
+        "measured along FILE's rays; 0.005 for a frame without noise].",
+    ),
     min_inliers: int = typer.Option(50, help="Stop when a plane has fewer inliers."),
     max_planes: int = typer.Option(10, help="Largest number of planes to extract."),
     seed: int = typer.Option(0, min=0, help="Seed of the RANSAC sampling."),
@@ -38,28 +42,28 @@ def planes(
     several (faces of equal size) it is left unnamed and ``candidates`` lists them all.
     """
     from spacepose.core.config import validate_config
-    from spacepose.core.planes import PlaneConfig, why_no_planes
+    from spacepose.core.planes import PlaneConfig, slab_thickness, why_no_planes
     from spacepose.core.rectangle_search import find_rectangles
     from spacepose.core.rectangles import RectangleConfig, candidates
     from spacepose.tools.catalogue import load_catalogue
     from spacepose.tools.cloud_io import read_sensor_cloud
 
-    plane_config = validate_config(
-        PlaneConfig,
-        {
-            "distance_threshold": threshold,
-            "min_inliers": min_inliers,
-            "max_planes": max_planes,
-            "seed": seed,
-            "cluster_radius": cluster_radius,
-        },
-        "command line",
-    )
+    settings = {
+        "min_inliers": min_inliers,
+        "max_planes": max_planes,
+        "seed": seed,
+        "cluster_radius": cluster_radius,
+    }
+    validate_config(PlaneConfig, settings, "command line")  # refused before the file is read
     rect_config = validate_config(
         RectangleConfig, {"sigma": sigma, "focal_px": focal_px}, "command line"
     )
     entries = [] if catalogue is None else load_catalogue(catalogue, rect_config)
     cloud = read_sensor_cloud(file)
+    if threshold is None:
+        threshold = slab_thickness(cloud.points, sigma)
+    settings = {**settings, "distance_threshold": threshold}
+    plane_config = validate_config(PlaneConfig, settings, "command line")
     found = find_rectangles(cloud, entries, plane_config, rect_config)
     if not found:
         reason = why_no_planes(cloud, plane_config)

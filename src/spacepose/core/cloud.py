@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -10,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from spacepose.core import se3
 from spacepose.core.se3 import check_real
-from spacepose.errors import InputError
+from spacepose.errors import InputError, SpaceposeWarning
 
 #: A cloud is suspected to be in millimetres when it spans more than this many "metres" (bounding
 #: box diagonal) with a median nearest-neighbour spacing above MM_MIN_SPACING. No ToF camera or
@@ -250,7 +251,10 @@ def as_points(
 
 
 def as_cloud(
-    values: PointCloud | ArrayLike, name: str = "points", min_points: int = 1
+    values: PointCloud | ArrayLike,
+    name: str = "points",
+    min_points: int = 1,
+    say_dropped: bool = True,
 ) -> PointCloud:
     """A :class:`PointCloud` as it is, or an (N, 3) array wrapped in one (validated).
 
@@ -262,8 +266,23 @@ def as_cloud(
     InputError
         Not (N, 3), no finite row, coordinates out of range, or fewer than ``min_points`` rows;
         the message names ``name`` (or the cloud's source).
+
+    Warns
+    -----
+    SpaceposeWarning
+        An array's rows holding NaN or inf were left out (unless ``say_dropped`` is False: a
+        tracker's frame, whose NaN rows are pixels without a return).
     """
     cloud = values if isinstance(values, PointCloud) else PointCloud(values, source=name)
+    if say_dropped and cloud is not values and cloud.n_dropped:
+        # The rows of what comes back (normals, features, correspondence indices) are the
+        # kept rows: one NaN row first shifted every index by one against the caller's array.
+        problem = (
+            f"{cloud.n_dropped} of {cloud.n_dropped + len(cloud)} rows hold NaN or inf and are "
+            "left out: rows and indices of the result refer to the rows kept (drop them first, "
+            "or pass a PointCloud, to keep the numbering)"
+        )
+        warnings.warn(SpaceposeWarning(problem, name), stacklevel=3)
     if len(cloud) < min_points:
         raise InputError(f"need at least {min_points} points, got {len(cloud)}", cloud.source)
     return cloud

@@ -10,6 +10,7 @@ reference model at the frame's voxel. Every length it uses is derived on the fir
 
 from __future__ import annotations
 
+import os
 import warnings
 from dataclasses import replace
 
@@ -101,7 +102,7 @@ class FramePreparer:
         cfg = self.config
         if cloud is None:
             raise InputError("no points")
-        pc = as_cloud(cloud, _GIVEN)
+        pc = as_cloud(cloud, _GIVEN, say_dropped=False)
         sphere = self._predicted_sphere(T_predicted, slack)
         # A first frame is checked for a line, a background is removed from the whole frame,
         # and the test of whether the target is the whole scene reads the whole frame.
@@ -440,6 +441,12 @@ def checked_model(model: PointCloud | ArrayLike, min_points: int) -> PointCloud:
         Every point on one line or at one place: no surface to register onto (found on the
         first frame, it was reported as every frame's fault, after all of them were run).
     """
+    if isinstance(model, str | os.PathLike):
+        # Read as numbers, a path ended in "could not convert string to float".
+        raise InputError(
+            f"model is a file name ({model}): read it with spacepose.tools.cloud_io.read_model "
+            "and pass the cloud"
+        )
     pc = as_cloud(model, "model")
     if len(pc) < min_points:
         raise InputError(f"model has {len(pc)} points (< {min_points})", pc.source)

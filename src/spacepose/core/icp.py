@@ -25,7 +25,7 @@ from pydantic import Field
 from scipy.spatial import cKDTree
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_cloud
 from spacepose.core.config import stage_config
 from spacepose.core.correspondences import Correspondences, FusedPlaneMatcher, Matcher
 from spacepose.core.grid import VoxelIndex
@@ -71,7 +71,7 @@ class ICPConfig(RobustConfig):
 def as_registration_cloud(cloud: PointCloud | ArrayLike, name: str) -> PointCloud:
     """Validate a registration input: a :class:`PointCloud` or (N, 3) array with >= 3 points,
     not all at one place."""
-    pc = cloud if isinstance(cloud, PointCloud) else PointCloud(cloud, source=name)
+    pc = as_cloud(cloud, name)
     if len(pc) < 3:
         raise InputError(f"{name} cloud needs at least 3 points for a rigid fit, got {len(pc)}")
     if _at_one_place(pc.points):

@@ -24,14 +24,12 @@ a filter's initial state in :mod:`spacepose.core.nav_start`.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
-from scipy.stats import chi2
 
 from spacepose.core import dynamics
 from spacepose.core.attitude_fix import (
@@ -71,7 +69,7 @@ from spacepose.core.rectangles import (
     catalogue_entries,
     recognise,
 )
-from spacepose.core.scale import range_noise, rms_radius
+from spacepose.core.scale import plane_range_sigma
 from spacepose.errors import InputError, PredictionGapError, SpaceposeError
 
 __all__ = [
@@ -89,16 +87,6 @@ Rects = list[tuple[RectangleMeasurement, list[CatalogueEntry]]]
 # Candidates that all explain less than this share of a frame's data, frame after frame, were
 # started on a frame that was not the target's: the start is made again.
 _LOST_SHARE = 0.5
-
-
-# Rays whose ranges measure the noise: the orbit run's sparse frames (about 1,000 points, an
-# object 30 pixels across) put edges into most larger neighbourhoods; with 16 the 1 cm noise
-# read 1.5-2.4 cm, with 6 1.1-1.2 cm (3 cm: 3.1-3.2).
-_NOISE_NEIGHBOURS = 6
-# Median of sqrt(χ²_ν / ν), ν = k − 3: what range_noise reads for σ = 1 (0.888 for k = 6).
-_NOISE_MEDIAN = math.sqrt(chi2.median(_NOISE_NEIGHBOURS - 3) / (_NOISE_NEIGHBOURS - 3))
-# A range noise is taken when its 3σ slab is under a tenth of the frame's RMS radius.
-_MAX_NOISE_SHARE = 30.0
 
 
 @dataclass(eq=False)
@@ -179,7 +167,7 @@ class RelativeNavigator:
         navigator starts again. Either is said in the row's ``problem``.
         """
         t = seconds(t, "frame time t")
-        cloud = None if cloud is None else as_cloud(cloud, "frame")
+        cloud = None if cloud is None else as_cloud(cloud, "frame", say_dropped=False)
         problems = []
         try:
             for track in self.tracks:
@@ -200,13 +188,11 @@ class RelativeNavigator:
         return replace(row, problem="; ".join(problems)) if problems else row
 
     def _measure_range_sigma(self, cloud: PointCloud) -> None:
-        """Set the range noise from the first frame that shows it (methods.md §2.1): the
-        spread of the ranges along neighbouring rays (:func:`range_noise`), over the fewest
-        neighbours that fit a plane with a residual left (:data:`_NOISE_NEIGHBOURS`)."""
-        sigma = range_noise(cloud.points, k=_NOISE_NEIGHBOURS) / _NOISE_MEDIAN
-        # A frame of noise or a glitch reads as much as its own size: measured again on the
-        # next frame, not set for the run (a slab as thick as the cloud finds no plane).
-        if 0 < _MAX_NOISE_SHARE * sigma < rms_radius(cloud.points):
+        """Set the range noise from the first frame that shows it (methods.md §2.1,
+        :func:`~spacepose.core.scale.plane_range_sigma`); a frame that does not is measured
+        again on the next."""
+        sigma = plane_range_sigma(cloud.points)
+        if sigma is not None:
             self.config = self.config.with_range_sigma(sigma)
 
     def _step(self, t: float, cloud: PointCloud | None, rects: Rects) -> NavRow:

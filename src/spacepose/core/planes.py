@@ -27,6 +27,7 @@ from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane, on_a_line
 from spacepose.core.plane_support import cuts_a_curve, largest_component
 from spacepose.core.ransac import sample_triples
+from spacepose.core.scale import plane_range_sigma
 from spacepose.errors import DegenerateGeometryError, InputError
 
 # Largest number of distances held at once when scoring a batch (32 MB of float64).
@@ -230,6 +231,17 @@ def ransac_plane(
     if offset > 0:  # towards the cloud's origin (the sensor), as fit_plane faces it
         normal, offset = -normal, -offset
     return replace(plane, normal=normal, offset=offset, centroid=plane.centroid + origin)
+
+
+def slab_thickness(points: ArrayLike, sigma: float = 0.0) -> float:
+    """The plane slab (m) for a frame: 3σ, σ given (> 0) or measured along the frame's rays
+    (:func:`~spacepose.core.scale.plane_range_sigma`), or :class:`PlaneConfig`'s default when
+    the frame shows no noise. A fixed 5 mm slab under a flash LiDAR's 1 cm noise cut each face
+    of the orbit run in two parallel planes 1 cm apart, and named none of them."""
+    if sigma <= 0.0:
+        sigma = plane_range_sigma(points) or 0.0
+    default = PlaneConfig.model_fields["distance_threshold"].default
+    return 3.0 * sigma if sigma > 0.0 else default
 
 
 def why_no_planes(

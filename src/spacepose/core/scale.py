@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from spacepose.core.cloud import as_points
 from spacepose.errors import InputError
@@ -41,6 +42,16 @@ MIN_SENSOR_ANGLE = 1e-6
 # Query points of the spacing estimate: the median of 2,000 nearest-neighbour distances is
 # within about 2 % of the full median (its standard error is ~1.25 σ/√n of a narrow spread).
 _SPACING_SAMPLES = 2000
+
+# Rays whose ranges measure a frame's noise for the plane search: the orbit run's sparse
+# frames (about 1,000 points, an object 30 pixels across) put edges into most larger
+# neighbourhoods; with 16 the 1 cm noise read 1.5-2.4 cm, with 6 1.1-1.2 cm (3 cm: 3.1-3.2).
+_PLANE_NOISE_NEIGHBOURS = 6
+# Median of sqrt(χ²_ν / ν), ν = k − 3: what range_noise reads for σ = 1 (0.888 for k = 6).
+_PLANE_NOISE_DOF = _PLANE_NOISE_NEIGHBOURS - 3
+_PLANE_NOISE_MEDIAN = math.sqrt(chi2.median(_PLANE_NOISE_DOF) / _PLANE_NOISE_DOF)
+# A range noise is taken when its 3σ slab is under a tenth of the frame's RMS radius.
+_PLANE_NOISE_SHARE = 30.0
 # Neighbours in direction of the range-noise estimate: a plane in three unknowns leaves 13
 # degrees of freedom per point.
 _NOISE_NEIGHBOURS = 16
@@ -202,6 +213,20 @@ def range_noise(
     if len(pts) > samples:
         query = np.sort(rng.choice(len(pts), samples, replace=False))
     return _ray_spread(u, ranges, query, k)
+
+
+def plane_range_sigma(points: ArrayLike) -> float | None:
+    """The range noise σ (m) of a frame as the plane search takes it (its slab 3σ thick), or
+    None when the frame does not show one.
+
+    :func:`range_noise` over the fewest neighbours that fit a plane with a residual left
+    (:data:`_PLANE_NOISE_NEIGHBOURS`), scaled to σ; a σ whose 3σ slab is not under a tenth of
+    the frame's RMS radius is a frame of noise or a glitch, which reads as much as its own size
+    (a slab as thick as the cloud finds no plane), and 0 is a frame without noise: None.
+    """
+    pts = as_points(points)
+    sigma = range_noise(pts, k=_PLANE_NOISE_NEIGHBOURS) / _PLANE_NOISE_MEDIAN
+    return sigma if 0 < _PLANE_NOISE_SHARE * sigma < rms_radius(pts) else None
 
 
 def _ray_spread(
