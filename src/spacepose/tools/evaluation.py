@@ -89,6 +89,11 @@ class TrajectoryComparison:
         }
 
 
+# Rotations this far apart (median, deg) with a reading that brings them within the second
+# are quaternions written in another order: no tracker is wrong by 60° on most frames and
+# right to a few degrees once w is moved.
+_MISREAD_TURN_DEG = 60.0
+_REREAD_TURN_DEG = 5.0
 # The statuses EST.health.csv holds (spacepose.core.track_result).
 _STATUSES: tuple[str, ...] = ("ok", "degraded", "lost")
 
@@ -151,8 +156,16 @@ def compare_trajectory_files(
         _, i_gt = associate(est.timestamps, gt.timestamps, tolerance)
         table = evaluate(est, gt, rebase_first=rebase_first, tolerance=tolerance)
     except InputError as exc:
-        raise InputError(f"against {gt_path.name}: {exc.reason}", est_path) from None
+        # The poses left out first are said: "5 of 5 estimated timestamps" of a 6-row file.
+        before = "" if outside_note is None else f"{outside_note}; "
+        raise InputError(f"against {gt_path.name}: {before}{exc.reason}", est_path) from None
     notes = [note for note in (lost_note, outside_note) if note is not None]
+    offset = clock_offset(est.timestamps, gt.timestamps[i_gt], gt_path.name)
+    if offset is not None:
+        notes.append(offset)
+    order = quaternion_order(est.poses, gt.poses[i_gt], gt_path.name, rebase_first)
+    if order is not None:
+        notes.append(order)
     if n_read != len(gt) and outside_note is None:  # the note says what is scored already
         scored = "estimated ones" if len(est) == n_read else "estimated ones not lost"
         notes.append(
@@ -182,6 +195,60 @@ def compare_trajectory_files(
     for note in notes:
         warnings.warn(SpaceposeWarning(note, est_path), stacklevel=2)
     return TrajectoryComparison(table, n_read, len(gt), rebase_first, (*read_notes, *notes))
+
+
+def clock_offset(t_est: np.ndarray, t_gt: np.ndarray, gt_name: str) -> str | None:
+    """The note for estimates all paired with truths one same time away (a clock offset that
+    a wide ``--max-dt`` let through: the scores compare poses that far apart in time), or
+    None. ``t_est`` and ``t_gt`` (N,) are the paired times."""
+    gap = t_gt - t_est
+    if len(gap) < 3 or np.ptp(gap) > TIMESTAMP_TOLERANCE or abs(gap[0]) <= TIMESTAMP_TOLERANCE:
+        return None
+    return (
+        f"every estimate is paired with a pose of {gt_name} {gap[0]:+.6g} s from it: a clock "
+        "offset between the two files? the errors compare poses that far apart in time"
+    )
+
+
+def quaternion_order(
+    est: np.ndarray, gt: np.ndarray, gt_name: str, rebase_first: bool
+) -> str | None:
+    """The note for rotations that agree once one file's quaternions are read w first (a
+    common mix-up: TUM writes ``qx qy qz qw``), or None; ``est`` and ``gt`` (N, 4, 4) paired.
+
+    A truth written w first scored 160° of rotation error beside 0.17 mm of translation."""
+    as_written = _median_turn_deg(est, gt, rebase_first)
+    if as_written < _MISREAD_TURN_DEG:
+        return None
+    for name, a, b in (("the estimate", _w_first(est), gt), (gt_name, est, _w_first(gt))):
+        read_w_first = _median_turn_deg(a, b, rebase_first)
+        if read_w_first < _REREAD_TURN_DEG:
+            return (
+                f"rotations {as_written:.0f}° apart (median) agree within {read_w_first:.2g}° "
+                f"when {name}'s quaternions are read w first: TUM's order is qx qy qz qw"
+            )
+    return None
+
+
+def _w_first(poses: np.ndarray) -> np.ndarray:
+    """``poses`` (N, 4, 4) whose rotations were read from quaternions written ``w x y z`` as
+    if they were ``x y z w``: the rotations those quaternions meant."""
+    from scipy.spatial.transform import Rotation
+
+    read = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # (x, y, z, w) as read
+    out = poses.copy()
+    out[:, :3, :3] = Rotation.from_quat(np.roll(read, -1, axis=1)).as_matrix()
+    return out
+
+
+def _median_turn_deg(a: np.ndarray, b: np.ndarray, rebase_first: bool) -> float:
+    """Median angle (deg) of ``a_k b_k⁻¹`` (each rebased on its first when ``rebase_first``)."""
+    Ra, Rb = a[:, :3, :3], b[:, :3, :3]
+    if rebase_first:
+        Ra = Ra @ Ra[0].T
+        Rb = Rb @ Rb[0].T
+    cos = (np.einsum("nij,nij->n", Ra, Rb) - 1.0) / 2.0
+    return float(np.degrees(np.median(np.arccos(np.clip(cos, -1.0, 1.0)))))
 
 
 def shared_pairings(i_gt: np.ndarray) -> str | None:
