@@ -169,10 +169,15 @@ class Tracker(TrackerState):
             return self._lost(index, timestamp, prediction, reasons, times, coarse)
         health = (status, reasons)
         if self._origin is not None:
-            gate = self._registrar.noise.gate
-            health = self._origin.assess(
-                prepared.cloud.points, estimate.T_sensor_target, gate, health, self.workers
+            noise, points, T = (
+                self._registrar.noise,
+                prepared.cloud.points,
+                estimate.T_sensor_target,
             )
+            health = self._origin.assess(points, T, noise.gate, health, self.workers)
+            # Noise-free frames measure σ = 0: the gate's third is the scale then.
+            sigma = noise.sigma or noise.gate / 3.0
+            health = self._handedness.assess(points, T, noise.gate, sigma, health, self.workers)
         return self._accept(index, timestamp, prepared, estimate, prediction, health, coarse, times)
 
     def track(

@@ -8,20 +8,21 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.fine_stage import FineStage
 from spacepose.core.frame_check import CheckContext, health_bounds
 from spacepose.core.frame_preparation import FramePreparer, checked_model
 from spacepose.core.frame_registration import FrameRegistrar
+from spacepose.core.handedness import HandednessCheck
 from spacepose.core.health import UNCONFIRMED, Status, pose_disagreement
 from spacepose.core.keyframe_window import KeyframeWindow
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud
 from spacepose.core.motion import MotionModel, Prediction
 from spacepose.core.pose_covariance import CLUSTER_VOXELS
 from spacepose.core.range_bias import range_bias_effect
-from spacepose.core.relocalise import Relocaliser
+from spacepose.core.relocalise import Relocaliser, coarse_pose
 from spacepose.core.scale import DataScale
 from spacepose.core.scene_follower import SceneFollower
 from spacepose.core.spare_anchor import SpareAnchor
@@ -71,8 +72,10 @@ class TrackerState:
         self._model_cloud = self._model_input
         self._model: Keyframe | None = None
         self._relocaliser: Relocaliser | None = None
-        # Against a model: whether the cloud's origin sees the faces a frame lies on.
+        # Against a model: whether the cloud's origin sees the faces a frame lies on, and
+        # whether the frames are a mirror image.
         self._origin: OriginCheck | None = None
+        self._handedness: HandednessCheck | None = None
         self._frames = FramePreparer(config, self._model_cloud, workers)
         # Model-free: a support moving otherwise, split off the object (core.support).
         self._support: SupportSeparation | None = None
@@ -171,6 +174,7 @@ class TrackerState:
             # Its normals tell the faces a pose turns to the sensor (visible_model).
             self._model_cloud = self._frames.sensor_model(self._model_cloud)
             self._origin = OriginCheck(self._model_cloud)
+            self._handedness = HandednessCheck(self._model_cloud, self._coarse_onto_model)
         self._registrar = registrar
         if not self.model_based:
             health, stale = cfg.health, cfg.keyframe.stale_fitness
@@ -186,6 +190,12 @@ class TrackerState:
         self._relocaliser = Relocaliser(
             registrar, fine.reference, model, fine.register, fine.check, ok_fitness, workers
         )
+
+    def _coarse_onto_model(self, cloud: PointCloud) -> NDArray[np.float64] | None:
+        """The coarse ``T_sensor_target`` (4, 4) of ``cloud`` (sensor frame) onto the model, or
+        None (:func:`~spacepose.core.relocalise.coarse_pose`)."""
+        prepared = PreparedCloud(cloud)
+        return coarse_pose(prepared, self._model, self._frames.lengths, True, self.workers)
 
     def _context(self) -> CheckContext:
         noise = 1.0 if self._registrar is None else self._registrar.noise.accepted_factor
@@ -237,7 +247,7 @@ class TrackerState:
         self._frames = FramePreparer(self.config, self._model_input, self.workers)
         self._model_cloud = self._model_input
         self._registrar = self._model = self._relocaliser = self._fine = self._support = None
-        self._origin = None
+        self._origin = self._handedness = None
 
     def _accept(
         self,
