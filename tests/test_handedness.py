@@ -79,3 +79,18 @@ def test_the_lab_runs_mirror_image_is_not_ok_against_its_model():
     assert not [s for s in said if "mirrored" in s]
     assert sum(status == "ok" for status, _, _ in right) >= 4
     assert max(angle for _, angle, _ in right) < 0.5
+
+
+def test_no_returns_or_a_model_without_normals_is_refused_in_one_line():
+    """An empty frame ended in numpy's "slice step cannot be zero": an InputError now, as is
+    a model without the normals the point-to-plane fits need."""
+    import pytest
+
+    from spacepose.errors import InputError
+
+    points = np.random.default_rng(1).normal(size=(100, 3))
+    model = PointCloud(points, np.tile([0.0, 0.0, 1.0], (100, 1)))
+    with pytest.raises(InputError, match="returns: need at least 1 point"):
+        mirror_cost_share(np.zeros((0, 3)), model, np.eye(4), 0.01, 0.001)
+    with pytest.raises(InputError, match="needs normals"):
+        mirror_cost_share(points, PointCloud(points), np.eye(4), 0.01, 0.001)

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
 from spacepose.core.viewpoint import UNSEEN_BOUND, FacingTest
-from spacepose.errors import SpaceposeWarning
+from spacepose.errors import InputError, SpaceposeWarning
 
 GATE = 0.006
 
@@ -139,3 +139,13 @@ def test_a_lab_run_written_in_a_world_frame_is_not_ok_against_its_model():
     assert not [s for s in said if "origin" in s]
     assert not [r for _, _, reasons in own for r in reasons if "origin" in r]
     assert sum(status == "ok" for status, _, _ in own) >= 6
+
+
+def test_no_returns_or_a_model_without_normals_is_refused_in_one_line():
+    """An empty frame ended in numpy's "slice step cannot be zero", a model without normals in
+    "bad operand type for abs()": both are the package's InputError now."""
+    model = _box_model((1.0, 1.0, 1.0), 2_000)
+    with pytest.raises(InputError, match="returns: need at least 1 point"):
+        FacingTest.of(model).unseen_share(np.zeros((0, 3)), np.eye(4), GATE)
+    with pytest.raises(InputError, match="needs outward normals"):
+        FacingTest.of(PointCloud(model.points))

@@ -23,10 +23,10 @@ from numpy.typing import NDArray
 
 from spacepose.core import se3
 from spacepose.core.basin_probe import BETTER_BY, truncated_cost
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.health import Status
 from spacepose.core.icp import ICPConfig, icp
-from spacepose.errors import SpaceposeError, SpaceposeWarning
+from spacepose.errors import InputError, SpaceposeError, SpaceposeWarning
 
 # The mirrored frame must fit with a truncated cost below this share of the frame's as given
 # (and lower by more than BETTER_BY): a model close to mirror-symmetric fits the two alike, and
@@ -80,6 +80,9 @@ def mirror_cost_share(
         or None: a start for the mirror image besides the principal reflections (the lab
         mock-up's near symmetry is no principal plane's: those starts lay 42-180° off).
     """
+    points_sensor = as_points(points_sensor, "returns")
+    if model.normals is None:
+        raise InputError("the model needs normals for point-to-plane fits", model.source)
     step = -(-len(points_sensor) // SAMPLED_RETURNS)
     given = points_sensor[::step]
     mirrored = given * _MIRROR.diagonal()[:3]

@@ -23,9 +23,9 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from spacepose.core import se3
-from spacepose.core.cloud import PointCloud
+from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.health import Status
-from spacepose.errors import SpaceposeWarning
+from spacepose.errors import InputError, SpaceposeWarning
 
 # Returns tested a frame, at most (every k-th): a share of 0.1 is then known to ±0.013 (one
 # binomial σ), and a 5,000-return frame costs 3 ms instead of 33.
@@ -64,7 +64,17 @@ class FacingTest:
 
     @classmethod
     def of(cls, model: PointCloud) -> FacingTest:
-        """The test against ``model``, whose normals point outwards."""
+        """The test against ``model``, whose normals point outwards.
+
+        Raises
+        ------
+        InputError
+            ``model`` has no normals (which faces turn away is read from them).
+        """
+        if model.normals is None:
+            raise InputError(
+                "the model needs outward normals to tell its faces' sides", model.source
+            )
         points, normals = model.points, model.normals
         side = facing_bin(normals)
         members = [np.flatnonzero(side == b) for b in range(6)]
@@ -90,6 +100,7 @@ class FacingTest:
         towards the far face lies farther than the gate from the near face's samples when
         they are sparse, yet within the gate of its plane."""
         T_target_sensor = se3.invert(T_sensor_target)
+        points_sensor = as_points(points_sensor, "returns")
         step = -(-len(points_sensor) // SAMPLED_RETURNS)
         q = se3.transform_points(T_target_sensor, points_sensor[::step])
         # Far enough to find a sample of the face a return lies on, however sparse the model.
