@@ -1,0 +1,50 @@
+"""Twentieth hostile round: maps and inputs of other conventions, read without a word."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from spacepose.core.depth import DepthCamera
+from spacepose.errors import InputError
+from spacepose.tools.depth_io import read_depth_cloud
+
+_CAMERA = DepthCamera(fx=60.0, fy=60.0, cx=31.5, cy=23.5)
+
+
+def _box_depth(width: int = 64, height: int = 48) -> np.ndarray:
+    """(H, W) depths in metres: a 0.3 m square 1.2 m away whose centre bulges 5 cm nearer,
+    no return (0) around it."""
+    z = np.zeros((height, width), dtype=np.float32)
+    z[12:36, 20:44] = 1.2
+    z[20:28, 28:36] = 1.15
+    return z
+
+
+def _z_buffer(z: np.ndarray, near: float = 0.1, far: float = 100.0) -> np.ndarray:
+    """``z`` as an OpenGL renderer's normalised depth buffer: 1 where nothing was hit."""
+    hit = np.where(z > 0, z, 1.0)
+    return np.where(z > 0, (1 / near - 1 / hit) / (1 / near - 1 / far), 1.0).astype(np.float32)
+
+
+def test_a_normalised_depth_buffer_is_refused(tmp_path):
+    """A float TIFF holding a renderer's depth buffer (0.92 where the target is, 1 elsewhere)
+    was read as metres: a wall 1 m away with a 2 mm relief, tracked without a word. It is now
+    refused naming the file; the same scene in metres reads as before, and a map whose far
+    plane at 1 m is declared with max_depth is read."""
+    path = tmp_path / "000000.tiff"
+    Image.fromarray(_z_buffer(_box_depth())).save(path)
+    with pytest.raises(
+        InputError,
+        match=r"000000\.tiff: every value lies in \(0\.9.*1\] and "
+        r"81 % are exactly 1: a renderer's normalised depth buffer",
+    ):
+        read_depth_cloud(path, _CAMERA)
+    metres = tmp_path / "metres.tiff"
+    Image.fromarray(_box_depth()).save(metres)
+    cloud = read_depth_cloud(metres, _CAMERA)
+    assert len(cloud) == 24 * 24
+    assert np.isclose(cloud.points[:, 2].max(), 1.2)
+    declared = read_depth_cloud(path, _CAMERA.model_copy(update={"max_depth": 0.999}))
+    assert len(declared) == 24 * 24
