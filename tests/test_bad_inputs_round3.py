@@ -347,15 +347,15 @@ def test_model_free_navigation_short_of_its_batch_says_so(tmp_path):
     from types import SimpleNamespace
 
     from spacepose.core.fused_navigation import FusionConfig
-    from spacepose.tools.navigation_io import _why_no_registration
+    from spacepose.tools.navigation_reasons import why_no_registration
 
     tracks = [SimpleNamespace(status=s) for s in ("ok",) * 5 + ("degraded",)]
     health = tmp_path / "nav.health.csv"
-    why = _why_no_registration(tracks, FusionConfig(), False, health)
+    why = why_no_registration(tracks, FusionConfig(), False, health)
     assert "a batch of 200 ok poses" in why and "the tracker gave 5 in 6 frames" in why
     assert "no ok pose" not in why
     lost = [SimpleNamespace(status="lost")] * 3
-    assert "the tracker gave no ok pose" in _why_no_registration(
+    assert "the tracker gave no ok pose" in why_no_registration(
         lost, FusionConfig(), False, health
     )
 

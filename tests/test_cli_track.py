@@ -22,12 +22,8 @@ from spacepose.tools.cloud_io import write_cloud
 from spacepose.tools.evaluation import compare_trajectory_files
 from spacepose.tools.frames import open_frames, read_timestamps
 from spacepose.tools.runs import write_run
-from spacepose.tools.tracking_io import (
-    HEALTH_COLUMNS,
-    read_covariance_csv,
-    track_folder,
-    tracker_config,
-)
+from spacepose.tools.track_tables import HEALTH_COLUMNS, read_covariance_csv
+from spacepose.tools.tracking_io import track_folder, tracker_config
 from spacepose.tools.trajectory_io import read_tum, write_tum
 
 N_FRAMES = 4
@@ -450,7 +446,7 @@ def test_each_frames_covariance_is_written_to_the_bit(frame_dir, tmp_path, capsy
     tracker's to the bit, and it is positive definite, its diagonal the health table's σ²."""
     from spacepose.core.tracker import Tracker
     from spacepose.tools.cloud_io import read_cloud
-    from spacepose.tools.tracking_io import COVARIANCE_COLUMNS, read_covariance_csv
+    from spacepose.tools.track_tables import COVARIANCE_COLUMNS, read_covariance_csv
 
     out = tmp_path / "est.tum"
     assert main(["track", str(frame_dir), "--out", str(out)]) == 0, capsys.readouterr().err

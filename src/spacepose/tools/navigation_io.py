@@ -41,6 +41,14 @@ from spacepose.tools.frames import (
     untimed_folder,
 )
 from spacepose.tools.navigation_config_io import read_scenario, scenario_model, with_run_settings
+from spacepose.tools.navigation_reasons import (
+    warn_if_predicted_alone,
+    warn_refused_frames,
+    warn_unusable_frames,
+    why_no_registration,
+    why_nothing,
+    with_unreadable,
+)
 from spacepose.tools.outputs import (
     check_not_anothers,
     check_spares_inputs,
@@ -49,7 +57,8 @@ from spacepose.tools.outputs import (
     companion,
 )
 from spacepose.tools.pose_bootstrap_run import bootstrapped_fusion, run_mesh_and_sensor
-from spacepose.tools.tracking_io import check_not_a_frame, open_table, write_health_csv
+from spacepose.tools.track_tables import open_table, write_health_csv
+from spacepose.tools.tracking_io import check_not_a_frame
 
 
 @dataclass(frozen=True)
@@ -225,8 +234,8 @@ def navigate_run(
             fusion = fusion.model_copy(update={"navigation": fused.rectangles.config})
         config_json = dump_config(fusion, companion(out, ".csv", ".config.json"))
         pose_noise_json = _write_pose_noise(out, noise)
-        _warn_unusable_frames(tracks, unreadable, health_csv)
-    _warn_refused_frames(rows, unreadable)
+        warn_unusable_frames(tracks, unreadable, health_csv)
+    warn_refused_frames(rows, unreadable)
     nav_csv = write_nav_csv(out, rows)
     navigated = sum(r.state is not None for r in rows)
     ambiguous = sum(r.status == "ambiguous" for r in rows)
@@ -237,11 +246,11 @@ def navigate_run(
             nav_csv,
         )
     if navigated == 0:
-        why = _why_nothing(rows, candidates_csv, model is not None)
+        why = why_nothing(rows, candidates_csv, model is not None)
         if measurements == "registration":
-            why = _why_no_registration(tracks, fusion, model is not None, health_csv)
-        raise InputError(_with_unreadable(why, len(rows), unreadable), input_dir)
-    _warn_if_predicted_alone(rows, navigated, cfg.prior_q_I_B is not None, nav_csv)
+            why = why_no_registration(tracks, fusion, model is not None, health_csv)
+        raise InputError(with_unreadable(why, len(rows), unreadable), input_dir)
+    warn_if_predicted_alone(rows, navigated, cfg.prior_q_I_B is not None, nav_csv)
     return NavigationSummary(
         nav_csv,
         config_json,
@@ -315,25 +324,6 @@ def _navigate_fused(
     return rows, tracks, interrupted
 
 
-def _warn_unusable_frames(
-    tracks: Sequence[Any], unreadable: dict[int, str], health_csv: Path
-) -> None:
-    """Warn of each frame read but unusable to the tracker, navigated as empty."""
-    for k, track in enumerate(tracks):
-        unusable = [r for r in track.reasons if r.startswith("unusable frame")]
-        if k not in unreadable and unusable:  # said as the rectangles' path says its own
-            problem = f"frame {k} navigated as empty: {unusable[0]}"
-            warnings.warn(SpaceposeWarning(problem, health_csv), stacklevel=3)
-
-
-def _warn_refused_frames(rows: Sequence[NavRow], unreadable: dict[int, str]) -> None:
-    """Warn of each frame whose points the plane search refused (its rectangles are left out)
-    or before which the filter could not predict (it starts again): each ended the whole run."""
-    for k, row in enumerate(rows):
-        if row.problem is not None and k not in unreadable:
-            warnings.warn(SpaceposeWarning(f"frame {k}: {row.problem}"), stacklevel=3)
-
-
 def _write_candidates(out: Path, rows: Sequence[NavRow], ambiguous: bool) -> Path | None:
     """Write ``out``'s ``.candidates.csv`` when some frame is ``ambiguous``; None otherwise."""
     path = companion(out, ".csv", ".candidates.csv")
@@ -401,73 +391,3 @@ def _no_plane(cloud: PointCloud) -> str | None:
     if on_a_line(cloud.points):
         return no_plane(cloud.points).reason
     return None
-
-
-def _why_no_registration(
-    tracks: Sequence[Any], fusion: FusionConfig, has_model: bool, health_csv: Path | None
-) -> str:
-    """One line: why registration poses navigated no frame. Model-free, the filter waits for
-    a batch of ok poses: a run shorter than it was said to have given "no ok pose", though
-    the tracker gave one on every frame."""
-    ok = sum(track.status == "ok" for track in tracks)
-    if ok == 0:
-        return f"no frame navigated: the tracker gave no ok pose (see {health_csv})"
-    if not has_model and ok >= fusion.model_free_frames:
-        return (
-            f"no frame navigated: without a model the filter starts once its batch of ok poses "
-            f"shows a rigid body's moments, and the tracker's {ok} did not (too little of the "
-            "tumble seen?): a longer run, or a model (--model)"
-        )
-    if not has_model:
-        return (
-            f"no frame navigated: without a model the filter starts on a batch of "
-            f"{fusion.model_free_frames} ok poses (the body's axes and centre of mass), and "
-            f"the tracker gave {ok} in {len(tracks)} frames: a longer run, or a model (--model)"
-        )
-    return f"no frame navigated from the tracker's {ok} ok poses (see {health_csv})"
-
-
-def _why_nothing(rows: Sequence[NavRow], candidates_csv: Path | None, has_model: bool) -> str:
-    """One line: why no frame of the run was navigated."""
-    if candidates_csv is not None:
-        most = max(len(r.candidates) for r in rows)
-        extra = "" if has_model else "; a target model (model.ply) might tell them apart"
-        return (
-            f"no frame navigated: the target's pose stayed ambiguous in all {len(rows)} frames "
-            f"(up to {most} candidates explain the data equally well: a symmetric target?), "
-            f"candidates in {candidates_csv}{extra}"
-        )
-    return (
-        f"no frame navigated: none of the {len(rows)} frames shows a whole rectangle of the "
-        "catalogue (check the catalogue's sizes and the plane settings)"
-    )
-
-
-def _with_unreadable(why: str, frames: int, unreadable: dict[int, str]) -> str:
-    """``why`` no frame was navigated, after the frames that could not be read, if any."""
-    if not unreadable:
-        return why
-    k = min(unreadable)
-    first = f"(frame {k}: {unreadable[k]})"
-    # With none read, the rest of the reason (a catalogue's sizes, a tracker's poses)
-    # would send the user after what no frame was there to show.
-    return (
-        f"no frame navigated: none of the {frames} frames could be read {first}"
-        if len(unreadable) == frames
-        else f"{len(unreadable)} of {frames} frames could not be read {first}; {why}"
-    )
-
-
-def _warn_if_predicted_alone(
-    rows: Sequence[NavRow], navigated: int, prior: bool, nav_csv: Path
-) -> None:
-    """Warn when no measurement updated the filter after its start."""
-    if navigated > 1 and not any(r.status == "update" for r in rows):
-        # Started, then predicted alone: counted as navigated, 4 m and 178° off after a --prior
-        # of the wrong side (no rectangle agreed with the pose it started from).
-        hint = " (a --prior far from the target's attitude?)" if prior else ""
-        problem = (
-            f"no measurement updated the filter after its start: {navigated - 1} frames "
-            f"predicted alone{hint}"
-        )
-        warnings.warn(SpaceposeWarning(problem, nav_csv), stacklevel=3)

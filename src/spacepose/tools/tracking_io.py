@@ -1,7 +1,8 @@
 """Tracking a sequence of frames into files: the tracker config from a file and the command
-line, the per-frame health table, the outputs' paths (``EST.tum``, ``EST.health.csv``,
+line, the outputs' paths (``EST.tum``, ``EST.health.csv``,
 ``EST.config.json``, ``EST.scale.json``) and :func:`track_folder`, which writes them row by row
-as the run goes, from any input :func:`~spacepose.tools.frames.open_frames` opens.
+as the run goes, from any input :func:`~spacepose.tools.frames.open_frames` opens (the tables'
+rows: :mod:`spacepose.tools.track_tables`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
-from numpy.typing import NDArray
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, load_config, validate_config
@@ -23,7 +23,7 @@ from spacepose.core.scale import rms_radius
 from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import FileFormatError, InputError, Interrupted, SpaceposeWarning
+from spacepose.errors import InputError, Interrupted, SpaceposeWarning
 from spacepose.tools.cloud_io import read_model
 from spacepose.tools.frames import CLOUD_SUFFIXES, FrameInput, Frames, input_files, open_frames
 from spacepose.tools.outputs import (
@@ -33,25 +33,14 @@ from spacepose.tools.outputs import (
     check_writable,
     companion,
 )
-from spacepose.tools.trajectory_io import tum_lines
-
-HEALTH_COLUMNS: tuple[str, ...] = (
-    "frame",
-    "timestamp",
-    "status",
-    "fitness",
-    "rmse",
-    "iterations",
-    "time_ms",
-    "sig_rx",
-    "sig_ry",
-    "sig_rz",
-    "sig_tx",
-    "sig_ty",
-    "sig_tz",
-    "structure",
-    "reasons",
+from spacepose.tools.track_tables import (
+    COVARIANCE_COLUMNS,
+    HEALTH_COLUMNS,
+    covariance_row,
+    health_row,
+    open_table,
 )
+from spacepose.tools.trajectory_io import tum_lines
 
 
 def tracker_config(
@@ -79,87 +68,6 @@ def tracker_config(
     if background:
         data["use_background_removal"] = True
     return validate_config(TrackerConfig, data, path)
-
-
-# The covariance table: each frame's 6×6 covariance of T_sensor_target (twist rx ry rz tx ty tz,
-# left perturbation in the sensor frame; rad², rad·m, m²) as its upper triangle, row by row.
-_AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
-_UPPER = np.triu_indices(6)
-COVARIANCE_COLUMNS: tuple[str, ...] = (
-    "frame",
-    "timestamp",
-    *(f"c_{_AXES[i]}_{_AXES[j]}" for i, j in zip(*_UPPER, strict=True)),
-)
-
-
-def covariance_row(result: TrackResult) -> dict[str, object]:
-    """One row of :data:`COVARIANCE_COLUMNS`: the frame, its time, and the upper triangle of
-    its covariance to the bit (``repr``), so that a filter reading it gets what the tracker
-    gave."""
-    upper = np.asarray(result.covariance, dtype=np.float64)[_UPPER]
-    return {
-        "frame": result.index,
-        "timestamp": repr(result.timestamp),
-        **{c: repr(float(v)) for c, v in zip(COVARIANCE_COLUMNS[2:], upper, strict=True)},
-    }
-
-
-def read_covariance_csv(path: str | Path) -> NDArray[np.float64]:
-    """The (N, 6, 6) covariances of a :data:`COVARIANCE_COLUMNS` table, in its row order.
-
-    Raises
-    ------
-    FileFormatError
-        Not such a table (other columns, a value that is not a number).
-    """
-    path = Path(path)
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
-        if tuple(reader.fieldnames or ()) != COVARIANCE_COLUMNS:
-            raise FileFormatError("not a covariance table of spacepose track", path)
-        try:
-            upper = np.array([[float(row[c]) for c in COVARIANCE_COLUMNS[2:]] for row in reader])
-        except (TypeError, ValueError) as exc:
-            raise FileFormatError(f"a value that is not a number: {exc}", path) from None
-    out = np.zeros((len(upper), 6, 6))
-    out[:, _UPPER[0], _UPPER[1]] = upper.reshape(-1, 21)
-    out[:, _UPPER[1], _UPPER[0]] = upper.reshape(-1, 21)
-    return out
-
-
-def health_row(result: TrackResult) -> dict[str, object]:
-    """One row of :data:`HEALTH_COLUMNS` (σ in rad and m, RMSE in m, time in ms, the residual
-    structure unit-free; the reasons a frame is not ``ok`` joined by ``; ``)."""
-    return {
-        "frame": result.index,
-        "timestamp": repr(result.timestamp),
-        "status": result.status,
-        "fitness": f"{result.fitness:.6g}",
-        "rmse": f"{result.rmse:.6g}",
-        "iterations": result.iterations,
-        "time_ms": f"{result.time_ms.get('total', float('nan')):.3f}",
-        **{c: f"{v:.6g}" for c, v in zip(HEALTH_COLUMNS[7:13], result.sigma, strict=True)},
-        "structure": f"{result.structure:.4g}",
-        "reasons": "; ".join(result.reasons),
-    }
-
-
-def open_table(path: Path) -> TextIO:
-    """A CSV table opened for writing as UTF-8. A reason quotes a frame's file name, which on
-    Linux need not be UTF-8 (Python holds such bytes as surrogates): those are written as
-    backslash escapes, not a UnicodeEncodeError that ends the run."""
-    return path.open("w", newline="", encoding="utf-8", errors="backslashreplace")
-
-
-def write_health_csv(path: str | Path, results: Sequence[TrackResult]) -> Path:
-    """Write the per-frame health table (:data:`HEALTH_COLUMNS`) as CSV."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open_table(path) as fh:
-        writer = csv.DictWriter(fh, fieldnames=HEALTH_COLUMNS)
-        writer.writeheader()
-        writer.writerows(health_row(r) for r in results)
-    return path
 
 
 def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path, Path]:
