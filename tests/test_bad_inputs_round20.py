@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -48,3 +50,29 @@ def test_a_normalised_depth_buffer_is_refused(tmp_path):
     assert np.isclose(cloud.points[:, 2].max(), 1.2)
     declared = read_depth_cloud(path, _CAMERA.model_copy(update={"max_depth": 0.999}))
     assert len(declared) == 24 * 24
+
+
+def test_frames_in_feet_against_a_model_in_metres_say_the_units(tmp_path):
+    """The lab run's frames in feet against its model in metres lost every frame as "fitness
+    0.11 < 0.3", naming no unit. The run's reason now says the first frame is 3–4 times the
+    model's size; frames in the model's unit are about its size (the lab's: 1.1-1.2)."""
+    from spacepose.core.scale import rms_radius
+    from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+    from spacepose.core.tracker import TrackerConfig
+    from spacepose.tools.cloud_io import read_cloud, write_cloud
+    from spacepose.tools.runs import write_run
+    from spacepose.tools.tracking_io import track_folder
+
+    run = write_run(tmp_path / "run", simulate_lab(LabConfig(frames=2, seed=0)))
+    feet = tmp_path / "feet"
+    feet.mkdir()
+    for path in sorted((run / "frames").glob("*.ply")):
+        write_cloud(feet / path.name, read_cloud(path).points * 3.28084)
+    summary = track_folder(feet, tmp_path / "est.tum", TrackerConfig(), run / "model.ply", 1)
+    assert summary["lost"] == summary["frames"] == 2
+    assert re.search(
+        r"the first frame is 3\.\d+ times the model's size .*feet are 3\.28 times metres",
+        summary["first_lost"],
+    )
+    frame, model = read_cloud(run / "frames" / "000000.ply"), read_cloud(run / "model.ply")
+    assert 1.0 < rms_radius(frame.points) / rms_radius(model.points) < 1.3

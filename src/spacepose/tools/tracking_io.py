@@ -90,23 +90,44 @@ class _Row:
     tracked: bool
 
 
-def warn_if_model_in_other_unit(model: PointCloud, first: PointCloud, path: Any) -> None:
+def warn_if_model_in_other_unit(model: PointCloud, first: PointCloud, path: Any) -> float:
     """Warn (naming ``path``) when the model's RMS radius is five times the first frame's or
     more (its returns, whatever else they hold: a view sees part of a target, not a fifth of
     it). A model in centimetres lost every frame ("RANSAC found no consensus") without a hint,
-    where one in millimetres is warned about when read."""
+    where one in millimetres is warned about when read.
+
+    Returns
+    -------
+    float
+        The first frame's RMS radius over the model's (NaN without two returns): above 1 the
+        frame may hold clutter, so that alone is not warned of, but a run that loses every
+        frame says it (:func:`_lost_hint`).
+    """
     seen = first.points[first.points.any(axis=1)]  # rows at the origin are no returns
     if len(seen) < 2:
-        return
+        return float("nan")
     model_radius, frame_radius = rms_radius(model.points), rms_radius(seen)
-    if not model_radius >= 5.0 * frame_radius:
-        return
-    problem = (
-        f"the model is {model_radius / frame_radius:.3g} times the size of the first frame "
-        f"(RMS radius {model_radius:.3g} m against {frame_radius:.3g} m): in another unit "
-        "than the frames (centimetres read as metres are 100 times)?"
+    if model_radius >= 5.0 * frame_radius:
+        problem = (
+            f"the model is {model_radius / frame_radius:.3g} times the size of the first frame "
+            f"(RMS radius {model_radius:.3g} m against {frame_radius:.3g} m): in another unit "
+            "than the frames (centimetres read as metres are 100 times)?"
+        )
+        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
+    return frame_radius / model_radius
+
+
+def _lost_hint(size_ratio: float) -> str:
+    """What a model-based run that lost every frame adds to its reason when its first frame is
+    twice the model's size or more: frames in feet against a model in metres (3.3 times) lost
+    every frame as "fitness 0.11 < 0.3", in inches as "the model has 16 points at the frame's
+    voxel", and nothing named the units."""
+    if not size_ratio >= 2.0:
+        return ""
+    return (
+        f"; the first frame is {size_ratio:.3g} times the model's size (RMS radius): frames "
+        "and model in different units (feet are 3.28 times metres, inches 39.4)?"
     )
-    warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
 
 
 def _write_rows(files: tuple[TextIO, TextIO, TextIO], rows: Sequence[_Row], header: bool) -> None:
@@ -270,7 +291,7 @@ def track_folder(
         files = (tum_fh, health_fh, cov_fh)
         _write_rows(files, [], header=True)
         try:
-            _track_frames(
+            size_ratio = _track_frames(
                 tracker, frames, files, rows, times, scale_path, (model_cloud, model), progress
             )
         except KeyboardInterrupt:
@@ -290,6 +311,8 @@ def track_folder(
         ),
         None,
     )
+    if first_lost is not None and statuses.count("lost") == len(statuses):
+        first_lost += _lost_hint(size_ratio)
     return {
         "frames": len(statuses),
         "ok": statuses.count("ok"),
@@ -314,10 +337,12 @@ def _track_frames(
     scale_path: Path,
     model: tuple[PointCloud | None, str | Path | None],
     progress: Callable[[int, int, str], None] | None,
-) -> None:
+) -> float:
     """Track each frame and write its rows as it comes (``rows`` and ``times`` grow with them;
-    ``model``: the model cloud and its file; :func:`track_folder`)."""
+    ``model``: the model cloud and its file; :func:`track_folder`). Returns the first frame's
+    size over the model's (:func:`warn_if_model_in_other_unit`; NaN model-free)."""
     model_cloud, model_path = model
+    size_ratio = float("nan")
     written_scale = None
     last_time = -np.inf
     for frame in frames:
@@ -332,7 +357,7 @@ def _track_frames(
             warnings.warn(SpaceposeWarning(problem, frame.source), stacklevel=3)
         else:
             if model_cloud is not None and frame.cloud is not None and last_time == -np.inf:
-                warn_if_model_in_other_unit(model_cloud, frame.cloud, model_path)
+                size_ratio = warn_if_model_in_other_unit(model_cloud, frame.cloud, model_path)
             result = tracker.track_frame(frame.cloud, frame.timestamp)
             last_time = frame.timestamp
         if frame.error is not None:  # the read error says more than the tracker's "no points"
@@ -365,6 +390,7 @@ def _track_frames(
         times.append(result.time_ms["total"])
         if progress is not None:
             progress(len(rows), len(frames), result.status)
+    return size_ratio
 
 
 def _rewrite(files: tuple[TextIO, TextIO, TextIO], rows: Sequence[_Row]) -> None:
