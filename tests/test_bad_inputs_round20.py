@@ -76,3 +76,46 @@ def test_frames_in_feet_against_a_model_in_metres_say_the_units(tmp_path):
     )
     frame, model = read_cloud(run / "frames" / "000000.ply"), read_cloud(run / "model.ply")
     assert 1.0 < rms_radius(frame.points) / rms_radius(model.points) < 1.3
+
+
+@pytest.mark.parametrize("method", ["icp", "gicp"])
+def test_covariance_of_clouds_far_from_their_origin_is_the_near_one_moved(method):
+    """Two lab frames registered where they are and 10 km and 100 km along x: the pose and the
+    information moved as they must, but ``covariance()``'s pseudo-inverse of the far
+    information gave a rotation σ of 1.3e-11 rad at 10 km where 1.4e-6 was right (and 1e-14 at
+    7,000 km), without a word. It now inverts about the clouds' centre: the far covariance,
+    moved back by the adjoint, is the near one."""
+    from spacepose.core import se3
+    from spacepose.core.gicp import gicp
+    from spacepose.core.icp import ICPConfig, icp
+    from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+
+    sim = simulate_lab(LabConfig(frames=4, seed=0))
+    rng = np.random.default_rng(0)
+    a, b = (sim.frame(k).cloud.points for k in (0, 3))
+    a, b = (p[rng.choice(len(p), 3000, replace=False)] for p in (a, b))
+    if method == "icp":
+        config = ICPConfig(method="point_to_plane", max_correspondence_distance=0.02)
+        near = icp(a, b, config=config, workers=1).covariance()
+    else:
+        near = gicp(a, b, workers=1).covariance(1.0)
+    for offset, tolerance in ((1e4, 1e-4), (1e5, 1e-2)):
+        shift = se3.make_transform(np.eye(3), [offset, 0.0, 0.0])
+        if method == "icp":
+            far = icp(a + shift[:3, 3], b + shift[:3, 3], config=config, workers=1).covariance()
+        else:
+            far = gicp(a + shift[:3, 3], b + shift[:3, 3], workers=1).covariance(1.0)
+        back = se3.adjoint(se3.invert(shift))
+        moved = back @ far @ back.T
+        np.testing.assert_allclose(np.sqrt(np.diag(moved)), np.sqrt(np.diag(near)), rtol=tolerance)
+
+
+def test_information_centre_of_point_to_point_rows_is_their_centroid(rng):
+    """Closed form: point-to-point rows ``[-[p]ₓ, I]`` couple rotation and translation least
+    about their centroid."""
+    from spacepose.core.icp_systems import point_to_point_information
+    from spacepose.core.registration import information_centre
+
+    points = rng.normal([3.0, -2.0, 40.0], 0.5, size=(200, 3))
+    centre = information_centre(point_to_point_information(points))
+    np.testing.assert_allclose(centre, points.mean(axis=0), atol=1e-9)

@@ -53,6 +53,18 @@ class RegistrationResult:
     def covariance(self, sigma: float | None = None) -> NDArray[np.float64]:
         """6×6 covariance ``σ² · information⁻¹`` (pseudo-inverse where unconstrained).
 
+        It is the covariance the final correspondences give: it does not judge whether the
+        surfaces constrain every direction (a plate sliding in its own plane pairs its points
+        anyway, and GICP's regularised covariances put information on the slide);
+        :func:`~spacepose.tools.register.register` and the tracker do
+        (:func:`~spacepose.core.degeneracy.surface_degeneracy`).
+
+        Inverted about the clouds' centre (:func:`information_centre`) and moved back: about an
+        origin far from the clouds (10 km and more) each rotation is a lever arm of that
+        distance, and the pseudo-inverse of the information there gave a rotation σ 10⁵ times
+        too small at 10 km and 1e-14 rad at 7,000 km, which the information itself, moved to
+        the centre, does not.
+
         Parameters
         ----------
         sigma
@@ -62,13 +74,30 @@ class RegistrationResult:
         """
         s = sigma if sigma is not None else self.residual_sigma
         s = self.inlier_rmse if s is None else s
-        return s**2 * np.linalg.pinv(self.information, hermitian=True)
+        # A twist about the centre -> about the origin; the information moves by the transpose.
+        back = se3.adjoint(se3.make_transform(np.eye(3), information_centre(self.information)))
+        information = back.T @ self.information @ back
+        return s**2 * (back @ np.linalg.pinv(information, hermitian=True) @ back.T)
 
     @property
     def condition_number(self) -> float:
         """Ratio of the largest to the smallest eigenvalue of ``information`` (inf if singular)."""
         ev = np.linalg.eigvalsh(self.information)
         return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
+
+
+def information_centre(information: ArrayLike) -> NDArray[np.float64]:
+    """The point (3,) about which a registration's (6, 6) information (twist ``(omega, v)``
+    about the origin) couples rotation and translation least: for point-to-plane rows
+    ``(p × n, n)`` the cross block about ``c`` is ``B - [c]ₓ D`` (``B`` the cross block, ``D``
+    the translation block), made smallest in the least-squares sense; for point-to-point rows
+    it is the centroid. Directions the rows leave undetermined (along a plane's normal) do not
+    change the rows."""
+    information = np.asarray(information, dtype=np.float64)
+    B, D = information[:3, 3:], information[3:, 3:]
+    # Column j of [c]ₓ D is c × D_j = -[D_j]ₓ c: B - [c]ₓ D = B + [D_j]ₓ c, column by column.
+    K = np.vstack([se3.skew(D[:, j]) for j in range(3)])
+    return -np.linalg.lstsq(K, B.T.reshape(-1), rcond=None)[0]
 
 
 # A cloud whose centre lies further from its origin than this many RMS radii is solved about its
