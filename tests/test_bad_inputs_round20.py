@@ -119,3 +119,52 @@ def test_information_centre_of_point_to_point_rows_is_their_centroid(rng):
     points = rng.normal([3.0, -2.0, 40.0], 0.5, size=(200, 3))
     centre = information_centre(point_to_point_information(points))
     np.testing.assert_allclose(centre, points.mean(axis=0), atol=1e-9)
+
+
+@pytest.mark.parametrize("method", ["icp", "gicp"])
+def test_millimetre_arrays_against_a_gate_in_metres_are_warned_of(method):
+    """Integer millimetres (a driver's output) given to icp or gicp with the default gate of
+    0.05 m came out converged at the identity with 1.6 % of the points paired, without a
+    word. Now a warning names the spacing and the gate; the same clouds in metres say nothing."""
+    import warnings
+
+    from spacepose.core.gicp import gicp
+    from spacepose.core.icp import icp
+    from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+    from spacepose.errors import SpaceposeWarning
+
+    register = icp if method == "icp" else gicp
+    sim = simulate_lab(LabConfig(frames=2, seed=0))
+    a, b = (sim.frame(k).cloud.points for k in (0, 1))
+    with pytest.warns(
+        SpaceposeWarning,
+        match=r"points lie \d\.\d+ apart .* farther than the gate "
+        r"of 0\.05: millimetres given to lengths in metres",
+    ):
+        register((a * 1000).astype(np.int32), (b * 1000).astype(np.int32), workers=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        assert register(a, b, workers=1).fitness > 0.9
+
+
+def test_a_model_in_millimetres_given_to_the_tracker_is_warned_of():
+    """``Tracker(model=points_in_mm)`` lost every frame and never named the units: the check
+    lived in the command line's loop. The tracker now measures the model's size against the
+    first frame's and warns at five times or more; its own model says nothing."""
+    import warnings
+
+    from spacepose.core.sim.scenarios import LabConfig, simulate_lab
+    from spacepose.core.tracker import Tracker, TrackerConfig
+    from spacepose.errors import SpaceposeWarning
+
+    sim = simulate_lab(LabConfig(frames=1, seed=0))
+    frame = sim.frame(0).cloud
+    tracker = Tracker(TrackerConfig(), sim.model_cloud().points * 1000.0, workers=1)
+    with pytest.warns(SpaceposeWarning, match=r"the model is 8\d\d times the size of the first"):
+        tracker.track_frame(frame, 0.0)
+    assert 800.0 < tracker.model_size_ratio < 900.0
+    own = Tracker(TrackerConfig(), sim.model_cloud(), workers=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        own.track_frame(frame, 0.0)
+    assert 0.8 < own.model_size_ratio < 0.9

@@ -355,9 +355,7 @@ def test_model_free_navigation_short_of_its_batch_says_so(tmp_path):
     assert "a batch of 200 ok poses" in why and "the tracker gave 5 in 6 frames" in why
     assert "no ok pose" not in why
     lost = [SimpleNamespace(status="lost")] * 3
-    assert "the tracker gave no ok pose" in why_no_registration(
-        lost, FusionConfig(), False, health
-    )
+    assert "the tracker gave no ok pose" in why_no_registration(lost, FusionConfig(), False, health)
 
 
 # -- a folder of clouds read as depth images ----------------------------------------------------

@@ -27,7 +27,7 @@ from spacepose.core.config import stage_config
 from spacepose.core.gicp_covariances import check_covariances, compute_covariances
 from spacepose.core.gicp_kernels import CHUNK, gicp_pass_kernel, gicp_sums_kernel
 from spacepose.core.grid import VoxelIndex
-from spacepose.core.icp import as_registration_cloud, target_index
+from spacepose.core.icp import as_registration_cloud, target_index, warn_if_other_unit
 from spacepose.core.icp_systems import solve_normal_equations, system_from_sums
 from spacepose.core.neighbors import SearchIndex
 from spacepose.core.registration import RegistrationResult, far_centre, moved_back
@@ -133,6 +133,12 @@ def gicp(
         Fewer than 3 correspondences within the gate at some iteration.
     DegenerateGeometryError
         A surface that leaves a degree of freedom free.
+
+    Warns
+    -----
+    SpaceposeWarning
+        The clouds look like millimetres against a gate in metres
+        (:func:`~spacepose.core.icp.warn_if_other_unit`).
     """
     config = stage_config(config, GICPConfig)
     src = as_registration_cloud(source, "source")
@@ -153,6 +159,8 @@ def gicp(
             src.transformed(S), tgt.transformed(S), S @ T @ se3.invert(S), config, workers, Cs, Ct
         )
         return moved_back(near, S)
+    # Near its origin only: a far pair is checked once, in the call above.
+    warn_if_other_unit((src, tgt), config.max_correspondence_distance)
     index = target_index(tgt, target_tree)
     if not isinstance(index, VoxelIndex):
         index = VoxelIndex(tgt.points)

@@ -279,6 +279,18 @@ def rms_radius(points: NDArray[np.float64]) -> float:
     return float(np.sqrt((centred**2).sum(axis=1).mean()))
 
 
+def model_size_ratio(model: ArrayLike, frame: ArrayLike) -> float:
+    """RMS radius of a model's points (N, 3) over a frame's returns' (M, 3; rows at the origin
+    are no returns), or NaN with fewer than two returns. A view sees part of its target, not a
+    fifth of it: five or more says another unit (the model in centimetres); a frame is larger
+    than its target's model by its clutter, so below one says little alone."""
+    frame = as_points(frame)
+    seen = frame[frame.any(axis=1)]
+    if len(seen) < 2:
+        return float("nan")
+    return rms_radius(as_points(model)) / rms_radius(seen)
+
+
 def sensor_frame_problem(points: ArrayLike, spacing: float) -> str:
     """Why ``points`` (N, 3) cannot have been measured by a sensor at their frame's origin, or
     "" when they can: neighbours ``spacing`` (m) apart at their median range subtend an angle

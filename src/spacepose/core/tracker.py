@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from collections.abc import Iterable
 
 import numpy as np
@@ -41,6 +42,7 @@ from spacepose.core.frame_check import first_pass_gate, health_bounds, wide_gate
 from spacepose.core.keyframes import PreparedCloud
 from spacepose.core.motion import Prediction, next_timestamp
 from spacepose.core.relocalise import Checked
+from spacepose.core.scale import model_size_ratio
 from spacepose.core.scene_follower import SCENE_NOTE
 from spacepose.core.track_result import (
     STAGES,
@@ -52,7 +54,7 @@ from spacepose.core.track_result import (
 from spacepose.core.track_sequence import track_sequence as track_sequence
 from spacepose.core.tracker_config import TrackerConfig as TrackerConfig
 from spacepose.core.tracker_state import TrackerState
-from spacepose.errors import InputError, SpaceposeError
+from spacepose.errors import InputError, SpaceposeError, SpaceposeWarning
 
 
 class Tracker(TrackerState):
@@ -67,6 +69,12 @@ class Tracker(TrackerState):
         estimated if missing, pointing away from the model centroid); None for model-free.
     workers
         Threads for the neighbour searches (results do not depend on it).
+
+    Attributes
+    ----------
+    model_size_ratio
+        Against a model: the model's RMS radius over the first frame's returns' (NaN until a
+        frame with returns came; model-free, NaN). Five or more is warned of as another unit.
     """
 
     def track_frame(
@@ -111,6 +119,8 @@ class Tracker(TrackerState):
         timestamp = next_timestamp(timestamp, self._last_timestamp)
         if prior is not None and not (isinstance(prior, tuple | list) and len(prior) == 2):
             raise InputError("prior must be a pair (T_sensor_target (4, 4), covariance (6, 6))")
+        if self._model_cloud is not None and np.isnan(self.model_size_ratio):
+            self._check_model_size(cloud)
         prediction = self._predict(timestamp) if prior is None else Prediction.given(*prior)
         # Only a frame taken moves the clock on: a call refused above leaves its time free.
         self._last_timestamp = timestamp
@@ -206,6 +216,23 @@ class Tracker(TrackerState):
             raise InputError("coarse registration needs a model or a first tracked frame")
         prepared = self._preprocess(cloud)
         return self._relocaliser.coarse(prepared)
+
+    def _check_model_size(self, cloud: PointCloud | ArrayLike | None) -> None:
+        """Measure :attr:`model_size_ratio` on the first frame with returns, and warn when the
+        model is five times the frame's size or more: a model in centimetres lost every frame
+        ("RANSAC found no consensus") without a hint. A frame that cannot be read is left to
+        the frame's own check."""
+        try:
+            self.model_size_ratio = model_size_ratio(self._model_cloud.points, cloud)
+        except (InputError, TypeError, ValueError):
+            return
+        if self.model_size_ratio >= 5.0:
+            problem = (
+                f"the model is {self.model_size_ratio:.3g} times the size of the first frame "
+                "(RMS radius): in another unit than the frames (centimetres read as metres are "
+                "100 times)?"
+            )
+            warnings.warn(SpaceposeWarning(problem, self._model_cloud.source), stacklevel=4)
 
     def _predict(self, timestamp: float) -> Prediction | None:
         fallback = None

@@ -70,6 +70,8 @@ class TrackerState:
             None if model is None else checked_model(model, config.health.min_points)
         )
         self._model_cloud = self._model_input
+        # The model's size over the first frame's (model_size_ratio): NaN until one is seen.
+        self.model_size_ratio = float("nan")
         self._model: Keyframe | None = None
         self._relocaliser: Relocaliser | None = None
         # Against a model: whether the cloud's origin sees the faces a frame lies on, and

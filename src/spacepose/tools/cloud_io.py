@@ -272,7 +272,8 @@ def read_model(path: str | Path) -> PointCloud:
         return read_cloud(path)
     model = sample_surface(load_mesh(path, center=False), MODEL_SAMPLES, seed=0)
     warn_if_not_metres(model, path)
-    return model
+    # Named, as a cloud file is: the tracker's warnings about the model name it.
+    return PointCloud(model.points, model.normals, source=str(path))
 
 
 def read_sensor_cloud(path: str | Path) -> PointCloud:

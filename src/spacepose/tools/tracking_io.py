@@ -17,9 +17,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from spacepose.core.cloud import PointCloud
 from spacepose.core.config import dump_config, load_config, validate_config
-from spacepose.core.scale import rms_radius
 from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
@@ -90,43 +88,18 @@ class _Row:
     tracked: bool
 
 
-def warn_if_model_in_other_unit(model: PointCloud, first: PointCloud, path: Any) -> float:
-    """Warn (naming ``path``) when the model's RMS radius is five times the first frame's or
-    more (its returns, whatever else they hold: a view sees part of a target, not a fifth of
-    it). A model in centimetres lost every frame ("RANSAC found no consensus") without a hint,
-    where one in millimetres is warned about when read.
-
-    Returns
-    -------
-    float
-        The first frame's RMS radius over the model's (NaN without two returns): above 1 the
-        frame may hold clutter, so that alone is not warned of, but a run that loses every
-        frame says it (:func:`_lost_hint`).
-    """
-    seen = first.points[first.points.any(axis=1)]  # rows at the origin are no returns
-    if len(seen) < 2:
-        return float("nan")
-    model_radius, frame_radius = rms_radius(model.points), rms_radius(seen)
-    if model_radius >= 5.0 * frame_radius:
-        problem = (
-            f"the model is {model_radius / frame_radius:.3g} times the size of the first frame "
-            f"(RMS radius {model_radius:.3g} m against {frame_radius:.3g} m): in another unit "
-            "than the frames (centimetres read as metres are 100 times)?"
-        )
-        warnings.warn(SpaceposeWarning(problem, path), stacklevel=2)
-    return frame_radius / model_radius
-
-
-def _lost_hint(size_ratio: float) -> str:
+def _lost_hint(model_size_ratio: float) -> str:
     """What a model-based run that lost every frame adds to its reason when its first frame is
-    twice the model's size or more: frames in feet against a model in metres (3.3 times) lost
-    every frame as "fitness 0.11 < 0.3", in inches as "the model has 16 points at the frame's
-    voxel", and nothing named the units."""
-    if not size_ratio >= 2.0:
+    twice the model's size or more (``model_size_ratio``, the model's over the frame's, half or
+    less: :attr:`~spacepose.core.tracker.Tracker.model_size_ratio`): frames in feet against a
+    model in metres (3.3 times) lost every frame as "fitness 0.11 < 0.3", in inches as "the
+    model has 16 points at the frame's voxel", and nothing named the units."""
+    if not model_size_ratio <= 0.5:
         return ""
     return (
-        f"; the first frame is {size_ratio:.3g} times the model's size (RMS radius): frames "
-        "and model in different units (feet are 3.28 times metres, inches 39.4)?"
+        f"; the first frame is {1.0 / model_size_ratio:.3g} times the model's size (RMS "
+        "radius): frames and model in different units (feet are 3.28 times metres, inches "
+        "39.4)?"
     )
 
 
@@ -291,9 +264,7 @@ def track_folder(
         files = (tum_fh, health_fh, cov_fh)
         _write_rows(files, [], header=True)
         try:
-            size_ratio = _track_frames(
-                tracker, frames, files, rows, times, scale_path, (model_cloud, model), progress
-            )
+            _track_frames(tracker, frames, files, rows, times, scale_path, progress)
         except KeyboardInterrupt:
             # Written again whole: an interrupt inside a write would leave half a row.
             _rewrite(files, rows)
@@ -312,7 +283,7 @@ def track_folder(
         None,
     )
     if first_lost is not None and statuses.count("lost") == len(statuses):
-        first_lost += _lost_hint(size_ratio)
+        first_lost += _lost_hint(tracker.model_size_ratio)
     return {
         "frames": len(statuses),
         "ok": statuses.count("ok"),
@@ -335,14 +306,10 @@ def _track_frames(
     rows: list[_Row],
     times: list[float],
     scale_path: Path,
-    model: tuple[PointCloud | None, str | Path | None],
     progress: Callable[[int, int, str], None] | None,
-) -> float:
+) -> None:
     """Track each frame and write its rows as it comes (``rows`` and ``times`` grow with them;
-    ``model``: the model cloud and its file; :func:`track_folder`). Returns the first frame's
-    size over the model's (:func:`warn_if_model_in_other_unit`; NaN model-free)."""
-    model_cloud, model_path = model
-    size_ratio = float("nan")
+    :func:`track_folder`)."""
     written_scale = None
     last_time = -np.inf
     for frame in frames:
@@ -356,8 +323,6 @@ def _track_frames(
             problem = f"frame lost: {result.reasons[0]}"
             warnings.warn(SpaceposeWarning(problem, frame.source), stacklevel=3)
         else:
-            if model_cloud is not None and frame.cloud is not None and last_time == -np.inf:
-                size_ratio = warn_if_model_in_other_unit(model_cloud, frame.cloud, model_path)
             result = tracker.track_frame(frame.cloud, frame.timestamp)
             last_time = frame.timestamp
         if frame.error is not None:  # the read error says more than the tracker's "no points"
@@ -390,7 +355,6 @@ def _track_frames(
         times.append(result.time_ms["total"])
         if progress is not None:
             progress(len(rows), len(frames), result.status)
-    return size_ratio
 
 
 def _rewrite(files: tuple[TextIO, TextIO, TextIO], rows: Sequence[_Row]) -> None:
