@@ -168,3 +168,50 @@ def test_a_model_in_millimetres_given_to_the_tracker_is_warned_of():
         warnings.simplefilter("error", SpaceposeWarning)
         own.track_frame(frame, 0.0)
     assert 0.8 < own.model_size_ratio < 0.9
+
+
+def test_navigate_registration_on_a_run_without_its_model_goes_model_free(tmp_path, capsys):
+    """An orbit run folder whose model.ply was removed stopped at "run folder is missing
+    model.ply", where the README says registration without a model runs model-free. It now
+    does, and says why four frames navigate nothing: the model-free batch."""
+    from spacepose.cli import main
+
+    run = tmp_path / "orbit"
+    assert main(["simulate", "orbit", "--frames", "4", "--out", str(run)]) == 0
+    (run / "model.ply").unlink()
+    capsys.readouterr()
+    out = tmp_path / "nav.csv"
+    assert main(["navigate", str(run), "--measurements", "registration", "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "missing model.ply" not in err
+    assert "without a model the filter starts on a batch of 200 ok poses" in err
+    assert len(out.read_text().splitlines()) == 5  # a row for every frame, and the header
+
+
+def test_a_report_not_named_html_is_said_to_be(tmp_path):
+    """``report --out afile.txt`` wrote the HTML page into a .txt file without a word."""
+    import warnings
+
+    from spacepose.errors import SpaceposeWarning
+    from spacepose.tools.report import build_report
+
+    with pytest.warns(SpaceposeWarning, match=r"afile\.txt: not named \.html"):
+        with pytest.raises(InputError, match="nothing to report"):
+            build_report(tmp_path, tmp_path / "afile.txt")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        with pytest.raises(InputError, match="nothing to report"):
+            build_report(tmp_path, tmp_path / "page.HTML")
+
+
+def test_a_negative_max_dt_is_blamed_on_the_option(tmp_path, capsys, random_trajectory):
+    """``evaluate EST GT --max-dt -1`` said "error: EST.tum: against gt.tum: tolerance must
+    be ... >= 0", blaming the estimate's file for the option's value."""
+    from spacepose.cli import main
+    from spacepose.tools.trajectory_io import write_tum
+
+    est = write_tum(tmp_path / "est.tum", random_trajectory)
+    gt = write_tum(tmp_path / "gt.tum", random_trajectory)
+    assert main(["evaluate", str(est), str(gt), "--max-dt", "-1"]) != 0
+    err = capsys.readouterr().err
+    assert "Invalid value for '--max-dt'" in err and "est.tum" not in err

@@ -94,15 +94,24 @@ def test_orbit_run_has_truth_csv(tmp_path, orbit_sim) -> None:
     assert len(run.rectangles) == 10  # the default orbit target: bus, wing and antenna panel
 
 
-@pytest.mark.parametrize(
-    "missing", ["scenario.json", "groundtruth.tum", "model.ply", "model.obj", "frames"]
-)
+@pytest.mark.parametrize("missing", ["scenario.json", "groundtruth.tum", "frames"])
 def test_missing_file_is_named(tmp_path, lab_sim, missing) -> None:
     write_run(tmp_path, lab_sim)
     target = tmp_path / missing
     shutil.rmtree(target) if target.is_dir() else target.unlink()
     with pytest.raises(InputError, match=f"{tmp_path}: run folder is missing {missing}"):
         read_run(tmp_path)
+
+
+@pytest.mark.parametrize("missing", ["model.ply", "model.obj"])
+def test_a_run_without_its_model_is_read_model_free(tmp_path, lab_sim, missing) -> None:
+    """A run folder whose model was removed is tracked and navigated model-free: it was
+    refused as "missing model.ply" (navigate --measurements registration promised it)."""
+    write_run(tmp_path, lab_sim)
+    (tmp_path / missing).unlink()
+    run = read_run(tmp_path)
+    assert (run.model is None) == (missing == "model.ply")
+    assert len(run.frame_paths) == len(run.groundtruth)
 
 
 def test_bad_run_folders(tmp_path, lab_sim, orbit_sim) -> None:

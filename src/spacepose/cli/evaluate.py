@@ -28,6 +28,7 @@ def evaluate(
     max_dt: float = typer.Option(
         TIMESTAMP_TOLERANCE,
         "--max-dt",
+        min=0.0,
         help="Largest time difference (s) of an estimated pose and the ground-truth pose it is "
         "scored against, the nearest in time (TUM RGB-D's 100 Hz ground truth: 0.01, as evo's "
         "t_max_diff).",

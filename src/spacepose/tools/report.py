@@ -21,11 +21,12 @@ from __future__ import annotations
 
 import html
 import json
+import warnings
 from datetime import UTC, datetime
 from pathlib import Path
 
 from spacepose import __version__
-from spacepose.errors import FileFormatError, InputError
+from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.outputs import check_spares_inputs, check_writable
 from spacepose.tools.report_files import Skipped, read_json, scenario_name
 from spacepose.tools.report_html import html_figure, html_table
@@ -114,12 +115,21 @@ def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
     Returns
     -------
     The path written.
+
+    Warns
+    -----
+    SpaceposeWarning
+        ``out`` is not named ``.html`` (or ``.htm``).
     """
     root = Path(run_dir)
     if not root.is_dir():
         raise InputError("not a folder", root)
     out_path = Path(out) if out is not None else root / "report.html"
     check_writable(out_path)
+    if out_path.suffix.lower() not in (".html", ".htm"):
+        # Written all the same; opened by its name, a browser shows a .txt page as its source.
+        problem = "not named .html: the report is an HTML page, which a browser shows as text"
+        warnings.warn(SpaceposeWarning(problem, out_path), stacklevel=2)
     # The report reads the folder's files (a run's groundtruth.tum, a track): written onto one
     # it would destroy it. A page written before (report.html) is no input.
     check_spares_inputs(

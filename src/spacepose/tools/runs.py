@@ -60,7 +60,8 @@ class Run:
     groundtruth
         True ``T_sensor_target`` per frame.
     model
-        Target surface samples with normals, target frame.
+        Target surface samples with normals, target frame (``model.ply``); None when the
+        folder has none.
     frame_paths
         One PLY per frame, in time order.
     truth
@@ -70,7 +71,7 @@ class Run:
     path: Path
     scenario: dict[str, Any]
     groundtruth: Trajectory
-    model: PointCloud
+    model: PointCloud | None
     frame_paths: tuple[Path, ...]
     truth: NDArray[np.float64] | None = None
 
@@ -231,16 +232,18 @@ def read_run(path: str | Path) -> Run:
     Raises
     ------
     InputError
-        The folder does not exist, or a file of the layout is missing, the number of frames
-        differs from the number of ground-truth poses, or their times do not rise or are not
-        seconds (:func:`~spacepose.tools.text_io.check_timing`).
+        The folder does not exist, or a file of the layout (but the model's) is missing, the
+        number of frames differs from the number of ground-truth poses, or their times do not
+        rise or are not seconds (:func:`~spacepose.tools.text_io.check_timing`).
     FileFormatError
         ``scenario.json`` or ``truth.csv`` cannot be parsed (other files: see their readers).
     """
     root = Path(path)
     if not root.is_dir():
         raise InputError("run folder does not exist", root)
-    for name in (SCENARIO, GROUNDTRUTH, MODEL_CLOUD, MODEL_MESH, FRAMES_DIR):
+    # The model files are not needed: a run folder without them is tracked and navigated
+    # model-free (navigate refused one "missing model.ply", where the README promised that).
+    for name in (SCENARIO, GROUNDTRUTH, FRAMES_DIR):
         if not (root / name).exists():
             raise InputError(f"run folder is missing {name}", root)
     # read_text names the file whatever fails: a bare OSError ("Input/output error") did not.
@@ -272,7 +275,8 @@ def read_run(path: str | Path) -> Run:
         if not (root / TRUTH).is_file():
             raise InputError(f"orbit run folder is missing {TRUTH}", root)
         truth = read_truth(root / TRUTH, groundtruth.timestamps)
-    return Run(root, scenario, groundtruth, read_cloud(root / MODEL_CLOUD), frame_paths, truth)
+    model = read_cloud(root / MODEL_CLOUD) if (root / MODEL_CLOUD).exists() else None
+    return Run(root, scenario, groundtruth, model, frame_paths, truth)
 
 
 def _warn_of_timestamps(root: Path) -> None:
