@@ -275,6 +275,22 @@ def test_same_seed_same_metrics_other_seed_different():
     assert first["metrics"]["draw"] != other["metrics"]["draw"]
 
 
+def test_a_case_no_scenario_allows_is_recorded_not_fatal():
+    """A grid crossing the orbit scenario with the ToF camera raised ConfigError ("the sensor
+    sees nothing") in its worker, which ended the whole campaign with a Dask traceback and no
+    results table, on every resume too. It is now that case's error, as any other failure."""
+
+    def impossible(params: dict) -> dict:
+        raise ConfigError("the sensor sees nothing: target 25 m away, sensor ranges 0.3-10 m")
+
+    params = {"scenario": "orbit", "noise_scale": 1.0, "method": "a", "seed": 0}
+    record = cp.execute_case(impossible, params)
+    assert record["error"] == (
+        "ConfigError: the sensor sees nothing: target 25 m away, sensor ranges 0.3-10 m"
+    )
+    assert record["metrics"] == {} and record["case_id"] == cs.case_id(params)
+
+
 # ------------------------------------------------------------------------------------------------
 # bad input
 # ------------------------------------------------------------------------------------------------

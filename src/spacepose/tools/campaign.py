@@ -63,8 +63,11 @@ _IDENTITY_FIELDS: tuple[str, ...] = ("name", "case_kind")
 def execute_case(fn: CaseFunction, params: dict[str, Scalar]) -> dict[str, Any]:
     """Run one case and return its part record (what is stored in ``parts/<case_id>.json``).
 
-    An expected failure (a :class:`SpaceposeError` other than ``ConfigError``) is recorded in
-    ``error`` with empty metrics; any other exception propagates and stops the campaign.
+    An expected failure (any :class:`SpaceposeError`) is recorded in ``error`` with empty
+    metrics; any other exception propagates and stops the campaign. A ``ConfigError`` is one
+    too: a grid may combine values no scenario allows (the orbit's standoff before a ToF
+    camera, "the sensor sees nothing"), and raised it ended the whole campaign with a Dask
+    traceback and no table, and every resume failed the same way.
 
     Raises
     ------
@@ -76,8 +79,6 @@ def execute_case(fn: CaseFunction, params: dict[str, Scalar]) -> dict[str, Any]:
     error = None
     try:
         raw = fn(dict(params))
-    except ConfigError:
-        raise
     except SpaceposeError as exc:
         raw, error = {}, f"{type(exc).__name__}: {exc}"
     elapsed = time.perf_counter() - start

@@ -106,10 +106,10 @@ def case_runner(
 
     The runner receives one case's parameters (every grid axis, e.g. ``scenario``,
     ``noise_scale``, ``method``, ``seed``) and returns scalar metrics (bool, int or float). It
-    raises a :class:`~spacepose.errors.SpaceposeError` (not ``ConfigError``) for an expected
-    failure such as a registration without correspondences: the case is then recorded with its
-    ``error`` message and no metrics. ``choices`` and ``bounds`` restrict an axis' values
-    (:class:`CaseRunner`).
+    raises a :class:`~spacepose.errors.SpaceposeError` for an expected failure such as a
+    registration without correspondences or a combination of values no scenario allows: the
+    case is then recorded with its ``error`` message and no metrics. ``choices`` and
+    ``bounds`` restrict an axis' values (:class:`CaseRunner`).
     """
 
     def wrap(fn: CaseFunction) -> CaseFunction:
