@@ -215,3 +215,29 @@ def test_a_negative_max_dt_is_blamed_on_the_option(tmp_path, capsys, random_traj
     assert main(["evaluate", str(est), str(gt), "--max-dt", "-1"]) != 0
     err = capsys.readouterr().err
     assert "Invalid value for '--max-dt'" in err and "est.tum" not in err
+
+
+def test_float_depth_maps_listed_by_depth_txt_stay_metres(tmp_path):
+    """A depth.txt timing float TIFFs in metres applied TUM RGB-D's 5000 units per metre to
+    them: every frame lost, blamed on "depth_scale in the intrinsics (0.0002 m per stored
+    unit)" that the intrinsics did not hold. TUM's unit is its 16-bit images' (they still get
+    it); floats stay metres, and an error about 16-bit ones names the layout as the unit's
+    origin."""
+    from spacepose.tools.frames import open_frames
+
+    root = tmp_path / "tum"
+    (root / "depth").mkdir(parents=True)
+    lines = []
+    for k in range(2):
+        Image.fromarray(_box_depth()).save(root / "depth" / f"{k}.tiff")
+        lines.append(f"{100 + 0.1 * k:.1f} depth/{k}.tiff")
+    (root / "depth.txt").write_text("\n".join(lines) + "\n")
+    (root / "intrinsics.yaml").write_text("fx: 60\nfy: 60\ncx: 31.5\ncy: 23.5\n")
+    cloud = next(iter(open_frames(root))).cloud
+    assert np.allclose(np.sort(cloud.points[:, 2])[[0, -1]], [1.15, 1.2], atol=1e-6)
+    for k in range(2):  # 16-bit values a thousandth of what TUM's unit needs: 0.2 mm away
+        (root / "depth" / f"{k}.tiff").unlink()
+        Image.fromarray(np.full((48, 64), 1, dtype=np.uint16)).save(root / "depth" / f"{k}.png")
+    (root / "depth.txt").write_text("\n".join(lines).replace(".tiff", ".png") + "\n")
+    frame = next(iter(open_frames(root)))
+    assert frame.cloud is None and "by TUM RGB-D's depth.txt layout, 5000 per metre" in frame.error

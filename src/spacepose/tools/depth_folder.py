@@ -17,8 +17,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from spacepose.core.depth import DepthCamera
-from spacepose.errors import ConfigError, InputError
+from spacepose.errors import ConfigError, InputError, SpaceposeError
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES
+from spacepose.tools.depth_io import read_depth_image
 from spacepose.tools.intrinsics_io import find_intrinsics, read_intrinsics
 from spacepose.tools.npy_io import npy_shape
 from spacepose.tools.text_io import check_timing, data_number, read_text
@@ -225,3 +226,15 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     timestamps = np.asarray(stamps, dtype=np.float64)
     check_timing(timestamps, path)
     return tuple(paths), timestamps
+
+
+def integer_depths(paths: tuple[Path, ...]) -> bool:
+    """Whether a folder's depth images (one format: :func:`depth_files`) hold integers, by the
+    first that can be read (True when none can: each frame's own error says why). TUM RGB-D's
+    5000 units per metre are a 16-bit image's unit, not a float image's."""
+    for path in paths:
+        try:
+            return bool(np.issubdtype(read_depth_image(path).dtype, np.integer))
+        except SpaceposeError:
+            continue
+    return True

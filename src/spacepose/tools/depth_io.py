@@ -230,9 +230,12 @@ def write_depth_image(path: str | Path, depth_m: ArrayLike, depth_scale: float =
     return path
 
 
-def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> PointCloud:
+def read_depth_cloud(
+    path: str | Path, camera: DepthCamera, stride: int = 1, unit_from: str | None = None
+) -> PointCloud:
     """One call: a depth image file to the PointCloud of its returns, sensor frame
-    (:func:`depth_cloud`).
+    (:func:`depth_cloud`). ``unit_from``: what set ``camera.depth_scale`` when the intrinsics
+    did not (a folder's layout), as errors and warnings name it.
 
     Raises
     ------
@@ -253,6 +256,7 @@ def read_depth_cloud(path: str | Path, camera: DepthCamera, stride: int = 1) -> 
     values = read_depth_image(path)
     scale = camera.metres_per_unit(values.dtype)
     given = "" if camera.depth_scale is not None else ", by the image's type"
+    given = f", by {unit_from}" if unit_from is not None else given
     remedy = f"check depth_scale in the intrinsics ({scale:g} m per stored unit{given})"
     return depth_cloud(values, camera, path, remedy, stride)
 

@@ -356,6 +356,7 @@ def _open_depth_folder(
             "cy, depth_scale) in the folder or give --intrinsics",
             root,
         )
+    unit_from = None
     if (root / depth_folder.TUM_DEPTH_LIST).is_file():
         stamps = _timestamps_path(root)
         if stamps.exists():
@@ -366,10 +367,13 @@ def _open_depth_folder(
                 root,
             )
         paths, timestamps = depth_folder.read_tum_depth_list(root / depth_folder.TUM_DEPTH_LIST)
-        if camera.depth_scale is None:
-            # TUM RGB-D's layout, and its unit: 5000 per metre (read as millimetres, every
-            # translation came out 5 times too long, ok).
+        if camera.depth_scale is None and depth_folder.integer_depths(paths):
+            # TUM RGB-D's layout, and its unit for 16-bit images: 5000 per metre (read as
+            # millimetres, every translation came out 5 times too long, ok). Float images
+            # stay metres: at 5000 per metre a float TIFF in metres was read 5000 times too
+            # near, every frame lost and blamed on a depth_scale the intrinsics did not hold.
             camera = camera.model_copy(update={"depth_scale": depth_folder.TUM_DEPTH_SCALE})
+            unit_from = f"TUM RGB-D's {depth_folder.TUM_DEPTH_LIST} layout, 5000 per metre"
     else:
         paths = depth_folder.depth_files(root)
         timestamps = _folder_timestamps(root, len(paths))
@@ -392,7 +396,7 @@ def _open_depth_folder(
     # resolution, or swapped, is warned of here, once).
     intrinsics_io.check_camera(sized, source)
     camera = sized
-    loader = partial(depth_io.read_depth_cloud, camera=camera)
+    loader = partial(depth_io.read_depth_cloud, camera=camera, unit_from=unit_from)
     return FrameSequence(paths, timestamps, loader=loader)
 
 
