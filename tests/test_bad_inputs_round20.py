@@ -241,3 +241,28 @@ def test_float_depth_maps_listed_by_depth_txt_stay_metres(tmp_path):
     (root / "depth.txt").write_text("\n".join(lines).replace(".tiff", ".png") + "\n")
     frame = next(iter(open_frames(root)))
     assert frame.cloud is None and "by TUM RGB-D's depth.txt layout, 5000 per metre" in frame.error
+
+
+def test_a_depth_image_left_out_of_depth_txt_is_said(tmp_path):
+    """An image in depth/ that depth.txt does not list was skipped without a word (5 frames of
+    6 files); it is now named in a warning, and a complete list says nothing."""
+    import warnings
+
+    from spacepose.errors import SpaceposeWarning
+    from spacepose.tools.frames import open_frames
+
+    root = tmp_path / "tum"
+    (root / "depth").mkdir(parents=True)
+    for k in range(3):
+        Image.fromarray(np.full((48, 64), 6000, dtype=np.uint16)).save(root / "depth" / f"{k}.png")
+    (root / "intrinsics.yaml").write_text("fx: 60\nfy: 60\ncx: 31.5\ncy: 23.5\n")
+    (root / "depth.txt").write_text("1.0 depth/0.png\n1.1 depth/2.png\n")
+    with pytest.warns(
+        SpaceposeWarning, match=r"depth\.txt: 1 depth image\(s\) .* \(the first: 1\.png\)"
+    ):
+        frames = open_frames(root)
+    assert len(frames) == 2
+    (root / "depth.txt").write_text("1.0 depth/0.png\n1.05 depth/1.png\n1.1 depth/2.png\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SpaceposeWarning)
+        assert len(open_frames(root)) == 3

@@ -238,3 +238,17 @@ def integer_depths(paths: tuple[Path, ...]) -> bool:
         except SpaceposeError:
             continue
     return True
+
+
+def unlisted_images(paths: tuple[Path, ...]) -> list[Path]:
+    """Depth images in the folders of a list's ``paths`` that the list leaves out (sorted): TUM
+    RGB-D's ``depth.txt`` names every image of ``depth/``, and one left out was skipped
+    without a word."""
+    listed = {p.resolve() for p in paths}
+    folders = {p.parent for p in paths if p.parent.is_dir()}
+    return sorted(
+        p
+        for folder in folders
+        for p in folder.iterdir()
+        if p.suffix.lower() in FOLDER_DEPTH_SUFFIXES and p.is_file() and p.resolve() not in listed
+    )

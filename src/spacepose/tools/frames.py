@@ -367,6 +367,15 @@ def _open_depth_folder(
                 root,
             )
         paths, timestamps = depth_folder.read_tum_depth_list(root / depth_folder.TUM_DEPTH_LIST)
+        unlisted = depth_folder.unlisted_images(paths)
+        if unlisted:
+            problem = (
+                f"{len(unlisted)} depth image(s) beside the listed ones are not in "
+                f"{depth_folder.TUM_DEPTH_LIST} and are not read (the first: {unlisted[0].name})"
+            )
+            warnings.warn(
+                SpaceposeWarning(problem, root / depth_folder.TUM_DEPTH_LIST), stacklevel=3
+            )
         if camera.depth_scale is None and depth_folder.integer_depths(paths):
             # TUM RGB-D's layout, and its unit for 16-bit images: 5000 per metre (read as
             # millimetres, every translation came out 5 times too long, ok). Float images
