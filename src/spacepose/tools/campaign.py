@@ -229,9 +229,14 @@ def read_parts(out_dir: str | Path) -> dict[str, dict[str, Any]]:
             record = json.loads(path.read_text())
             ok = case_id(record["params"]) == path.stem == record["case_id"]
         except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise FileFormatError(f"unreadable campaign part: {exc}", path) from None
+            # A part cut short (a full disk, a killed copy): say how to get past it.
+            raise FileFormatError(
+                f"unreadable campaign part: {exc}; delete it to run its case again", path
+            ) from None
         if not ok:
-            raise FileFormatError("part parameters do not match its case_id", path)
+            raise FileFormatError(
+                "part parameters do not match its case_id; delete it to run its case again", path
+            )
         problem = _part_problem(record)
         if problem is not None:
             raise FileFormatError(
