@@ -394,7 +394,7 @@ def test_damaged_part_is_a_file_format_error(tmp_path):
     path.write_text('{"case_id": ')
     # A part cut short says how to get past it, as a damaged one does.
     with pytest.raises(
-        FileFormatError, match="unreadable campaign part: .*; delete it to run its case again"
+        FileFormatError, match=r"unreadable campaign part: .*; delete it to run its case again"
     ):
         cp.read_parts(out)
 
