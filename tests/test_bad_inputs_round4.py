@@ -212,10 +212,10 @@ def test_bag_depth_images_in_other_units_and_folded_lenses_say_so(tmp_path):
     with pytest.raises(ConfigError) as exc:
         open_frames(bag, intrinsics=folded)
     assert str(exc.value).startswith(f"{folded}: the lens distortion (k1..k6 -2")
-    # Without its size, each image is checked at its own: the frames are lost, saying why.
+    # Without its size, it differs from the bag's CameraInfo (k1 0): refused (round 21).
     folded.write_text("fx: 30\nfy: 30\ncx: 15.5\ncy: 11.5\nk1: -2\n")
-    frames = list(open_frames(bag, intrinsics=folded))
-    assert all(f.cloud is None and "not one-to-one" in f.error for f in frames)
+    with pytest.raises(InputError, match=r"CameraInfo on /cam/camera_info differ \(k1 -2 vs 0\)"):
+        open_frames(bag, intrinsics=folded)
 
 
 def test_frames_faster_than_any_camera_are_refused(tmp_path):

@@ -2,15 +2,17 @@
 driver left its stamps unset.
 
 Which one is decided once per topic, from its first messages (:func:`topic_clock`); each
-message's time then follows it (:func:`stamp_seconds`). :mod:`spacepose.tools.bag_io` reads
-the frames.
+message's time then follows it (:func:`stamp_seconds`); record times are said
+(:func:`warn_record_times`). :mod:`spacepose.tools.bag_io` reads the frames.
 """
 
 from __future__ import annotations
 
+import warnings
+from pathlib import Path
 from typing import Any
 
-from spacepose.errors import InputError
+from spacepose.errors import InputError, SpaceposeWarning
 
 # A header stamp of zero is unset, not the clock's start, on a clock that reads past a day.
 _UNSET_STAMP_CLOCK = 86_400.0
@@ -78,3 +80,27 @@ def topic_clock(reader: Any, connections: list[Any], first: int = 3) -> float | 
     if stamps and max(stamps) == 0.0:
         return None
     return max(stamps, default=0.0)
+
+
+def warn_record_times(topic: str, path: Path) -> None:
+    """Say that a topic's frames are timed by their record times (its first stamps unset:
+    :func:`topic_clock`). The switch was silent, and it times the later, stamped messages too:
+    a driver that stamps from its fourth message on had every frame 0.08 s late (its record
+    latency) and none matched a ground truth taken at the stamps. Not counted over the whole
+    topic: that would read every message of the bag once more at open.
+
+    Warns
+    -----
+    SpaceposeWarning
+        Naming the bag and topic, pointed at the caller of
+        :func:`~spacepose.tools.bag_io.open_bag`.
+    """
+    warnings.warn(
+        SpaceposeWarning(
+            f"the first messages on {topic} have no header stamp (0): every frame is timed by "
+            "its record time (when the bag wrote it, after the driver's and transport's "
+            "latency), any stamped later ones too",
+            path,
+        ),
+        stacklevel=3,
+    )

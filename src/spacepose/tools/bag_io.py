@@ -14,7 +14,8 @@ A bag is a ``.bag`` file (ROS 1) or a ROS 2 bag folder (``metadata.yaml`` with i
   stream) is no frame topic.
 
 A frame's time is its header stamp (seconds), or the bag's record time when the topic's first
-messages are all stamped zero (a driver that leaves stamps unset: :mod:`spacepose.tools.bag_clock`).
+messages are all stamped zero (a driver that leaves stamps unset: :mod:`spacepose.tools.bag_clock`;
+said with a warning). An explicit ``depth_scale`` of given intrinsics wins over the encoding's.
 A message that cannot be decoded becomes a frame without a cloud and the reason why; so does
 every message from a corrupt stretch of the bag on (a chunk that does not decompress ends what
 can be read), with a NaN time.
@@ -34,7 +35,7 @@ from spacepose.core.cloud import PointCloud
 from spacepose.core.depth import DepthCamera
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.bag_camera import bag_camera
-from spacepose.tools.bag_clock import stamp_seconds, topic_clock
+from spacepose.tools.bag_clock import stamp_seconds, topic_clock, warn_record_times
 from spacepose.tools.bag_messages import bag_messages
 from spacepose.tools.cloud_io import warn_if_not_metres
 from spacepose.tools.depth_io import depth_cloud
@@ -115,7 +116,8 @@ class BagFrames:
         Number of messages (frames) on the topic, as the bag's index or metadata counts them
         (every message is read, and a count that differs is warned about).
     camera
-        Intrinsics for a depth Image topic (None for PointCloud2).
+        Intrinsics for a depth Image topic (None for PointCloud2); its ``depth_scale`` None
+        (a CameraInfo's) takes each image encoding's.
     clock
         The largest of the topic's first header stamps (s); None when they are all zero, and
         the frame times are then the record times
@@ -195,17 +197,26 @@ class BagFrames:
         values, scale = depth_values(msg, self.msgtype, source)
         camera = self.camera
         assert camera is not None  # open_bag gives every Image topic a camera
-        if camera.depth_scale != scale:
-            camera = camera.model_copy(update={"depth_scale": scale})
-        # Checked as a depth folder's images are: the lens at the image's size, the units.
         encoding = msg.format if self.msgtype == COMPRESSED_IMAGE else msg.encoding
-        return depth_cloud(
-            values, camera, source, f"the {encoding} encoding is {scale:g} m per unit"
-        )
+        remedy = f"the {encoding} encoding is {scale:g} m per unit"
+        if camera.depth_scale is None:
+            camera = camera.model_copy(update={"depth_scale": scale})
+        else:
+            # The user's, as for a folder: a driver in quarter-millimetres was read as the
+            # encoding's millimetres, 4 times too far, ok.
+            remedy = (
+                f"check depth_scale in the intrinsics ({camera.depth_scale:g} m per stored "
+                f"unit; {remedy})"
+            )
+        # Checked as a depth folder's images are: the lens at the image's size, the units.
+        return depth_cloud(values, camera, source, remedy)
 
 
 def open_bag(
-    path: str | Path, topic: str | None = None, camera: DepthCamera | None = None
+    path: str | Path,
+    topic: str | None = None,
+    camera: DepthCamera | None = None,
+    intrinsics: str | Path | None = None,
 ) -> BagFrames:
     """Open the frames of a bag: the given topic, or its only PointCloud2 / Image topic.
 
@@ -216,17 +227,26 @@ def open_bag(
     topic
         The frame topic; needed when the bag has several PointCloud2 / Image topics.
     camera
-        Intrinsics for a depth Image topic, overriding the bag's CameraInfo (its
-        ``depth_scale`` is replaced by the image encoding's).
+        Intrinsics for a depth Image topic: refused when the CameraInfo beside the topic
+        differs (:func:`~spacepose.tools.bag_camera.agreed_camera`), else used, sized as it;
+        their ``depth_scale``, if given, wins over the image encoding's.
+    intrinsics
+        The file ``camera`` was read from, named in errors.
 
     Raises
     ------
     InputError
         The topic is missing or not a frame type, several frame topics and none chosen, no
-        frame topic at all, an Image topic without CameraInfo or intrinsics, or intrinsics
-        for a PointCloud2 topic. The message lists the bag's frame topics.
+        frame topic at all, an Image topic without CameraInfo or intrinsics, intrinsics that
+        differ from the CameraInfo beside the topic, or intrinsics for a PointCloud2 topic.
+        The message lists the bag's frame topics.
     FileFormatError
         The bag cannot be opened.
+
+    Warns
+    -----
+    SpaceposeWarning
+        The topic's first messages carry no header stamp: the record times time every frame.
     """
     path = Path(path)
     with _open_reader(path) as reader:
@@ -278,9 +298,11 @@ def open_bag(
                 "metres): leave out --intrinsics, or choose an Image topic",
                 path,
             )
-        if candidates[topic] != POINTCLOUD2 and camera is None:
-            camera = bag_camera(reader, topic, path)
+        if candidates[topic] != POINTCLOUD2:
+            camera = bag_camera(reader, topic, path, camera, intrinsics)
         clock = topic_clock(reader, connections)
+        if clock is None:
+            warn_record_times(topic, path)
     return BagFrames(path, topic, candidates[topic], count, camera, clock=clock)
 
 

@@ -206,7 +206,7 @@ def open_frames(
     if is_bag(root):
         if camera is not None:  # sized by the file; else checked at each image's size
             intrinsics_io.check_camera(camera, intrinsics)
-        return open_bag(root, topic, camera)
+        return open_bag(root, topic, camera, intrinsics)
     if topic is not None:
         raise InputError(f"--topic {topic} applies to a ROS bag, and this is not one", root)
     if not root.is_dir():
