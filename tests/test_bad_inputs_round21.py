@@ -53,3 +53,18 @@ def test_the_grid_ranges_stay_below_the_bound(target_noise):
     sim = simulate_lab(cell_scenario(Cell(range=range_m, noise=noise), 2))
     scale = derive_scale(sim.frame(0).cloud.points, 2000)
     assert not scale.coarse and scale.noise / scale.radius < 0.75 * COARSE_NOISE_SHARE
+
+
+def test_a_navigate_config_given_to_track_is_named_as_such(tmp_path):
+    """``track --config`` with a navigate config of one key said only "ekf: Extra inputs are
+    not permitted"; a config that mixes in a tracker key is still refused field by field."""
+    from spacepose.errors import ConfigError
+    from spacepose.tools.tracking_io import tracker_config
+
+    path = tmp_path / "nav.yaml"
+    path.write_text("ekf:\n  q_attitude: 1.0e-8\n")
+    with pytest.raises(ConfigError, match=r"nav\.yaml: ekf is a navigate setting, not the "):
+        tracker_config(path)
+    path.write_text("use_mls: true\nekf: 1\n")
+    with pytest.raises(ConfigError, match=r"invalid tracker config: ekf: Extra inputs"):
+        tracker_config(path)

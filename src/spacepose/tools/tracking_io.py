@@ -17,11 +17,11 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from spacepose.core.config import dump_config, load_config, validate_config
+from spacepose.core.config import dump_config, read_mapping, validate_config
 from spacepose.core.track_result import STAGES, lost_result
 from spacepose.core.tracker import Tracker, TrackerConfig, TrackResult
 from spacepose.core.trajectory import Trajectory
-from spacepose.errors import InputError, Interrupted, SpaceposeWarning
+from spacepose.errors import ConfigError, InputError, Interrupted, SpaceposeWarning
 from spacepose.tools.cloud_io import read_model
 from spacepose.tools.frames import CLOUD_SUFFIXES, FrameInput, Frames, input_files, open_frames
 from spacepose.tools.outputs import (
@@ -58,7 +58,11 @@ def tracker_config(
     ConfigError
         Unreadable or invalid file, or an override out of range (e.g. an unknown method).
     """
-    data: dict[str, Any] = {} if path is None else load_config(TrackerConfig, path).model_dump()
+    data: dict[str, Any] = {}
+    if path is not None:
+        raw = read_mapping(path)
+        _refuse_navigation_keys(raw, path)
+        data = validate_config(TrackerConfig, raw, path).model_dump()
     if method is not None:
         data["method"] = method
     if mls is not None:
@@ -66,6 +70,29 @@ def tracker_config(
     if background:
         data["use_background_removal"] = True
     return validate_config(TrackerConfig, data, path)
+
+
+def _refuse_navigation_keys(raw: Any, path: str | Path) -> None:
+    """Refuse a tracker config holding navigate's settings and none of the tracker's: a
+    navigate config of one or two keys (``ekf:``) was refused as "ekf: Extra inputs are not
+    permitted", which did not say whose key it is."""
+    from spacepose.core.fused_navigation import FusionConfig
+    from spacepose.core.nav_config import NavigationConfig
+
+    if not isinstance(raw, dict) or not raw:
+        return
+    keys = [str(k) for k in raw]
+    if any(k in TrackerConfig.model_fields for k in keys):
+        return
+    theirs = [
+        k for k in keys if k in NavigationConfig.model_fields or k in FusionConfig.model_fields
+    ]
+    if theirs:
+        named = ", ".join(theirs[:4])
+        whose = "is a navigate setting" if len(theirs) == 1 else "are navigate settings"
+        raise ConfigError(
+            f"{path}: {named} {whose}, not the tracker's: a navigate config given to track?"
+        )
 
 
 def output_paths(out: str | Path) -> tuple[Path, Path, Path, Path, Path]:
