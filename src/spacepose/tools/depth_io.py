@@ -47,9 +47,10 @@ _DECODE_ERRORS = (
 _DEPTH_MODES = ("I;16", "I;16L", "I;16B", "I", "F")
 
 
-def read_depth_image(path: str | Path) -> NDArray:
+def read_depth_image(path: str | Path, kind_given: bool = False) -> NDArray:
     """Decode one depth image: (H, W) stored values (uint16, int32 or float32; float32 from an
-    ``.exr``; any integer or float type from a ``.npy`` array).
+    ``.exr``; any integer or float type from a ``.npy`` array). ``kind_given``: the intrinsics
+    say which depth the map holds (:func:`~spacepose.tools.exr_io.read_exr_depth`).
 
     Raises
     ------
@@ -62,7 +63,7 @@ def read_depth_image(path: str | Path) -> NDArray:
     if path.exists() and not path.is_file():  # a folder, or a pipe Pillow would wait on
         raise FileFormatError(not_a_file(path), path)
     if path.suffix.lower() == EXR_SUFFIX:
-        return read_exr_depth(path)
+        return read_exr_depth(path, kind_given)
     if path.suffix.lower() == ".npy":
         values = load_npy(path)
         if values.ndim != 2 or values.dtype.kind not in "fiu":
@@ -253,7 +254,7 @@ def read_depth_cloud(
         :data:`~spacepose.tools.cloud_io.NEAREST_RANGE_M` (metres read as millimetres), naming
         the file.
     """
-    values = read_depth_image(path)
+    values = read_depth_image(path, "depth_kind" in camera.model_fields_set)
     scale = camera.metres_per_unit(values.dtype)
     given = "" if camera.depth_scale is not None else ", by the image's type"
     given = f", by {unit_from}" if unit_from is not None else given
