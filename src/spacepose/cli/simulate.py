@@ -54,7 +54,7 @@ def simulate(
     from spacepose.core.sim import simulate as build
     from spacepose.core.sim.grid import grid_scenario, motion_fields
     from spacepose.errors import ConfigError
-    from spacepose.tools.runs import check_run_out, write_run
+    from spacepose.tools.runs import check_run_out, warn_if_model_moved, write_run
 
     check_run_out(out)  # before the scene is built
     if model is not None:
@@ -114,6 +114,8 @@ def simulate(
             fields["target_size_m"] = target_size
         config = scenario_config(scenario, sensor=sensor, noise_scale=noise_scale, **fields)
     sim = build(config)
+    if model is not None:
+        warn_if_model_moved(model, sim.target.mesh, 1.0 if model_scale is None else model_scale)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn())
     shown = console.is_terminal  # off a terminal rich would still print an empty line
     with Progress(
