@@ -182,15 +182,6 @@ def check_frame(
             f"the whole first frame's {1e3 * (scale.range_spread or 0.0):.1f} mm",
         )
         status = "degraded"
-    if scale.coarse and not model_based and status != "lost":
-        # Against a model the normals are the model's; model-free they are the noisy frames'.
-        reasons = (
-            *reasons,
-            f"range noise {1e3 * scale.noise:.1f} mm is {100 * scale.noise / scale.radius:.0f} % "
-            f"of the target's radius ({scale.radius:.3g} m): too coarse a surface for "
-            "model-free σ",
-        )
-        status = "degraded"
     if status == "ok" and not model_based and estimate.reference.unobserved:
         return "degraded", (UNOBSERVED_CHAIN,)
     if status == "ok" and not model_based and not context.motion.tested:

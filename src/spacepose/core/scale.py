@@ -67,12 +67,6 @@ _MAX_NOISE_GROWTH = 2.0
 # rocket bodies, satellites at 5-40 m, flying pixels) at most 0.82 (a bent plate at 40 m
 # in fewer than 100 points), most below 0.3.
 SURFACELESS_SPREAD = 0.9
-# A frame whose range noise is this share of the target's RMS radius or more resolves its
-# surface too coarsely for a model-free chain: its frames' normals, and so its registrations,
-# are biased beyond what their σ says. The robustness grid's frames read at most 0.044 (6 m,
-# noise x3); the lab run at noise x10 reads 0.047 with every ok frame within 3σ, at x20 0.091
-# with ok frames at 7-9σ, at x30 0.13 (12-16σ) and at x50 0.21 (12σ).
-COARSE_NOISE_SHARE = 0.06
 
 
 @dataclass(frozen=True)
@@ -109,12 +103,6 @@ class DataScale:
         for a registration to hold on to."""
         spread = self.range_spread
         return spread is not None and self.noise > SURFACELESS_SPREAD * spread > 0.0
-
-    @property
-    def coarse(self) -> bool:
-        """Whether the range noise is :data:`COARSE_NOISE_SHARE` of the target's radius or
-        more: a surface too coarse for model-free σ to hold."""
-        return self.noise >= COARSE_NOISE_SHARE * self.radius > 0.0
 
     def to_dict(self) -> dict[str, float]:
         return {
