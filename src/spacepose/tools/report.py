@@ -126,15 +126,15 @@ def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
         raise InputError("not a folder", root)
     out_path = Path(out) if out is not None else root / "report.html"
     check_writable(out_path)
-    if out_path.suffix.lower() not in (".html", ".htm"):
-        # Written all the same; opened by its name, a browser shows a .txt page as its source.
-        problem = "not named .html: the report is an HTML page, which a browser shows as text"
-        warnings.warn(SpaceposeWarning(problem, out_path), stacklevel=2)
     # The report reads the folder's files (a run's groundtruth.tum, a track): written onto one
     # it would destroy it. A page written before (report.html) is no input.
     check_spares_inputs(
         [out_path], (p for p in root.rglob("*") if p.suffix.lower() not in (".html", ".htm"))
     )
+    if out_path.suffix.lower() not in (".html", ".htm"):
+        # Written all the same; opened by its name, a browser shows a .txt page as its source.
+        problem = "not named .html: the report is an HTML page, which a browser shows as text"
+        warnings.warn(SpaceposeWarning(problem, out_path), stacklevel=2)
     runs = sorted(p.parent for p in root.rglob("scenario.json"))
     skipped = Skipped()
     body = []
