@@ -20,6 +20,10 @@ _SURFACE_SAMPLE = 500
 # A neighbourhood spans a surface when its middle spread (eigenvalue) is at least this share
 # of its largest: ten points of a grid give 0.3-1, of a scan line or one point copied ~0.
 _SURFACE_SPREAD = 0.05
+# A neighbourhood reaches at least this many of the plane's own noise σ (its inliers' spread
+# along its normal): ten neighbours of a 1 M-point plate lay within 1.5 mm under 1 mm of noise,
+# their normals mostly noise, and the plate was taken for a cut through a curved surface.
+_NOISE_REACH = 5.0
 
 
 def largest_component(points: ArrayLike, radius: float) -> NDArray[np.intp]:
@@ -101,12 +105,27 @@ def cuts_a_curve(
     judgement (False)."""
     sample = inliers[:: max(1, len(inliers) // _SURFACE_SAMPLE)]
     k = min(_SURFACE_NEIGHBOURS, len(points))
-    _, idx = tree.query(points[sample], k=k)
-    near = points[np.asarray(idx).reshape(len(sample), k)]
-    centred = near - near.mean(axis=1, keepdims=True)
-    spreads, axes = np.linalg.eigh(np.einsum("mki,mkj->mij", centred, centred))
+    distance, idx = tree.query(points[sample], k=k)
+    distance, idx = (np.asarray(a).reshape(len(sample), k) for a in (distance, idx))
+    reach = _NOISE_REACH * float(np.std(points[inliers] @ normal))
+    if reach > np.median(distance[:, -1]):
+        # Denser than the noise: each neighbourhood reaches past it (at least k points).
+        groups = tree.query_ball_point(points[sample], reach)
+        scatter = np.stack(
+            [_scatter(points[g if len(g) >= k else i]) for g, i in zip(groups, idx, strict=True)]
+        )
+    else:
+        centred = points[idx] - points[idx].mean(axis=1, keepdims=True)
+        scatter = np.einsum("mki,mkj->mij", centred, centred)
+    spreads, axes = np.linalg.eigh(scatter)
     surface = spreads[:, 1] > _SURFACE_SPREAD * spreads[:, 2]
     if surface.sum() < 0.5 * len(sample):
         return False
     along = np.abs(axes[surface, :, 0] @ normal)
     return float(np.median(along)) < np.cos(np.radians(_CURVED_DEG))
+
+
+def _scatter(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(3, 3) scatter matrix of (N, 3) points about their mean."""
+    centred = points - points.mean(axis=0)
+    return centred.T @ centred
