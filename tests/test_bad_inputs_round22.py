@@ -18,38 +18,14 @@ def test_simulate_says_its_target_frame_is_not_the_mesh_files(tmp_path, capsys):
     moved = tmp_path / "moved.obj"
     box.copy().apply_translation((10.0, 0.0, 0.5)).export(moved)
     capsys.readouterr()
-    assert (
-        main(
-            [
-                "simulate",
-                "lab",
-                "--frames",
-                "1",
-                "--model",
-                str(moved),
-                "--out",
-                str(tmp_path / "a"),
-            ]
-        )
-        == 0
-    )
+
+    def simulate(mesh, out):
+        return main(["simulate", "lab", "--frames", "1", "--model", str(mesh), "--out", str(out)])
+
+    assert simulate(moved, tmp_path / "a") == 0
     err = capsys.readouterr().err
     assert f"{moved}: the run's target frame is the mesh moved by (-10, 0, -0.5) m" in err
-    assert (
-        main(
-            [
-                "simulate",
-                "lab",
-                "--frames",
-                "1",
-                "--model",
-                str(centred),
-                "--out",
-                str(tmp_path / "b"),
-            ]
-        )
-        == 0
-    )
+    assert simulate(centred, tmp_path / "b") == 0
     assert "target frame" not in capsys.readouterr().err
 
 
