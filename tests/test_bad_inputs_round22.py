@@ -27,6 +27,23 @@ def test_simulate_says_its_target_frame_is_not_the_mesh_files(tmp_path, capsys):
     assert f"{moved}: the run's target frame is the mesh moved by (-10, 0, -0.5) m" in err
     assert simulate(centred, tmp_path / "b") == 0
     assert "target frame" not in capsys.readouterr().err
+    # A generated spacecraft has no file: the check first refused it as a mesh without a suffix.
+    assert (
+        main(
+            [
+                "simulate",
+                "orbit",
+                "--frames",
+                "2",
+                "--model",
+                "random:3",
+                "--out",
+                str(tmp_path / "c"),
+            ]
+        )
+        == 0
+    )
+    assert "target frame" not in capsys.readouterr().err
 
 
 def test_register_says_when_a_quarter_turn_fits_as_well(rng):
