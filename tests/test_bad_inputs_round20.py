@@ -266,3 +266,13 @@ def test_a_depth_image_left_out_of_depth_txt_is_said(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error", SpaceposeWarning)
         assert len(open_frames(root)) == 3
+
+
+def test_a_covariance_of_a_non_finite_information_is_refused():
+    """A result whose information holds NaN ended in numpy's "SVD did not converge in Linear
+    Least Squares"; it is now the package's InputError."""
+    from spacepose.core.registration import RegistrationResult
+
+    result = RegistrationResult(np.eye(4), 1.0, 1e-3, 1, True, np.full((6, 6), np.nan))
+    with pytest.raises(InputError, match="information holds NaN or inf"):
+        result.covariance()

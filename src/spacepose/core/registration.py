@@ -71,9 +71,17 @@ class RegistrationResult:
             Residual standard deviation (m) when ``information`` is unweighted; defaults to
             ``residual_sigma`` when set, else the inlier RMSE. Pass 1.0 when the information is
             already noise-weighted.
+
+        Raises
+        ------
+        InputError
+            ``information`` holds NaN or inf.
         """
         s = sigma if sigma is not None else self.residual_sigma
         s = self.inlier_rmse if s is None else s
+        if not np.isfinite(self.information).all():
+            # numpy's "SVD did not converge in Linear Least Squares" named neither.
+            raise InputError("the registration's information holds NaN or inf: no covariance")
         # A twist about the centre -> about the origin; the information moves by the transpose.
         back = se3.adjoint(se3.make_transform(np.eye(3), information_centre(self.information)))
         information = back.T @ self.information @ back
