@@ -24,6 +24,8 @@ _SURFACE_SPREAD = 0.05
 # along its normal): ten neighbours of a 1 M-point plate lay within 1.5 mm under 1 mm of noise,
 # their normals mostly noise, and the plate was taken for a cut through a curved surface.
 _NOISE_REACH = 5.0
+# Points a neighbourhood that reach gives holds at most, about (the cloud thinned by a stride).
+_BALL_POINTS = 256
 
 
 def largest_component(points: ArrayLike, radius: float) -> NDArray[np.intp]:
@@ -108,11 +110,20 @@ def cuts_a_curve(
     distance, idx = tree.query(points[sample], k=k)
     distance, idx = (np.asarray(a).reshape(len(sample), k) for a in (distance, idx))
     reach = _NOISE_REACH * float(np.std(points[inliers] @ normal))
-    if reach > np.median(distance[:, -1]):
-        # Denser than the noise: each neighbourhood reaches past it (at least k points).
-        groups = tree.query_ball_point(points[sample], reach)
+    spread = float(np.median(distance[:, -1]))
+    if reach > spread:
+        # Denser than the noise: each neighbourhood reaches past it (at least k points), in a
+        # strided share of the cloud when a ball would hold more than _BALL_POINTS (a surface:
+        # k (reach / spread)² points), so that 10 M points under 1 cm of noise do not list
+        # 10⁵ neighbours for each of 500 samples.
+        stride = max(1, int(k * (reach / spread) ** 2 // _BALL_POINTS))
+        near = points if stride == 1 else points[::stride]
+        balls = (tree if stride == 1 else cKDTree(near)).query_ball_point(points[sample], reach)
         scatter = np.stack(
-            [_scatter(points[g if len(g) >= k else i]) for g, i in zip(groups, idx, strict=True)]
+            [
+                _scatter(near[g]) if len(g) >= k else _scatter(points[i])
+                for g, i in zip(balls, idx, strict=True)
+            ]
         )
     else:
         centred = points[idx] - points[idx].mean(axis=1, keepdims=True)
