@@ -116,7 +116,9 @@ def cuts_a_curve(
         # strided share of the cloud when a ball would hold more than _BALL_POINTS (a surface:
         # k (reach / spread)² points), so that 10 M points under 1 cm of noise do not list
         # 10⁵ neighbours for each of 500 samples.
-        stride = max(1, int(k * (reach / spread) ** 2 // _BALL_POINTS))
+        # (Copies of one point as neighbours, a spread of 0: the whole cloud is one ball.)
+        held = k * (reach / spread) ** 2 if spread > 0.0 else len(points)
+        stride = max(1, int(held // _BALL_POINTS))
         near = points if stride == 1 else points[::stride]
         balls = (tree if stride == 1 else cKDTree(near)).query_ball_point(points[sample], reach)
         scatter = np.stack(
