@@ -141,6 +141,36 @@ def test_extract_planes_stops_below_min_inliers():
     assert extract_planes(pts, PlaneConfig(distance_threshold=0.001, min_inliers=200)) == []
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_noisy_plate_is_one_plane_not_its_tails(seed):
+    # 100,000 points under 1 mm of noise in a 3 mm (3σ) slab: the ~270 beyond it, at ±3-4 mm,
+    # were taken for two more planes of 107-134 points each.
+    rng = np.random.default_rng(seed)
+    n, sigma = 100_000, 0.001
+    plate = np.column_stack(
+        [rng.uniform(-0.3, 0.3, n), rng.uniform(-0.5, 0.5, n), 2.0 + rng.normal(0, sigma, n)]
+    )
+    planes = extract_planes(plate, PlaneConfig(distance_threshold=3 * sigma, seed=seed))
+    assert len(planes) == 1
+    assert planes[0].n_inliers > 0.99 * n
+
+
+def test_a_parallel_plate_beside_the_noise_is_still_a_plane():
+    # The tail test must not swallow a second face: a plate 2 cm behind another, beside it.
+    rng = np.random.default_rng(3)
+    n, sigma = 20_000, 0.001
+    front = np.column_stack(
+        [rng.uniform(-0.3, 0.0, n), rng.uniform(-0.5, 0.5, n), 2.0 + rng.normal(0, sigma, n)]
+    )
+    back = np.column_stack(
+        [rng.uniform(0.0, 0.3, n), rng.uniform(-0.5, 0.5, n), 2.02 + rng.normal(0, sigma, n)]
+    )
+    planes = extract_planes(np.vstack([front, back]), PlaneConfig(distance_threshold=3 * sigma))
+    offsets = sorted(abs(p.offset) for p in planes)
+    assert len(planes) == 2
+    assert offsets == pytest.approx([2.0, 2.02], abs=1e-3)
+
+
 def _box_scan(seed, sigma_r=0.01):
     """A flash-LiDAR frame (160 x 160 px, 30° field of view) of a 2.4 x 1.8 x 1.4 m box at 25 m.
 

@@ -26,6 +26,9 @@ _SURFACE_SPREAD = 0.05
 _NOISE_REACH = 5.0
 # Points a neighbourhood that reach gives holds at most, about (the cloud thinned by a stride).
 _BALL_POINTS = 256
+# A plane parallel to a face found before it within this angle, whose inliers lie within two
+# of its slabs, may be that face's noise beyond its slab (tail_of).
+_TAIL_DEG = 10.0
 
 
 def largest_component(points: ArrayLike, radius: float) -> NDArray[np.intp]:
@@ -136,6 +139,48 @@ def cuts_a_curve(
         return False
     along = np.abs(axes[surface, :, 0] @ normal)
     return float(np.median(along)) < np.cos(np.radians(_CURVED_DEG))
+
+
+def tail_of(
+    points: NDArray[np.float64],
+    tree: cKDTree,
+    inliers: NDArray[np.intp],
+    normal: NDArray,
+    faces: list[tuple[NDArray, float, NDArray[np.intp]]],
+    slab: float,
+) -> int | None:
+    """Which earlier face, if any, a plane's inliers are the noise tail of: parallel to it
+    within :data:`_TAIL_DEG`, within two of its slabs (``slab``, the half-width) at the median,
+    and most of them (a strided sample of at most :data:`_SURFACE_SAMPLE`) with their nearest
+    other point among that face's inliers. A Gaussian's
+    0.27 % beyond ±3σ lie scattered over the face, among its points; a second face's own
+    points neighbour each other. On a 100,000-point plate under 1 mm of noise the points
+    beyond its 3 mm slab were taken for two more planes of 107–134 points at ±3 mm.
+
+    Parameters
+    ----------
+    points
+        (N, 3) the whole cloud; ``tree`` its k-d tree.
+    inliers
+        (M,) indices of the plane's inliers; ``normal`` (3,) its unit normal.
+    faces
+        ``(normal (3,), offset, inliers)`` of the faces found before it (``n·p = offset``).
+    slab
+        The planes' inlier distance (m).
+    """
+    sample = inliers[:: max(1, len(inliers) // _SURFACE_SAMPLE)]
+    nearest = None
+    for index, (face_normal, offset, face_inliers) in enumerate(faces):
+        if abs(float(normal @ face_normal)) < np.cos(np.radians(_TAIL_DEG)):
+            continue
+        if np.median(np.abs(points[sample] @ face_normal - offset)) > 2.0 * slab:
+            continue
+        if nearest is None:  # the nearest other point of each (the first is itself)
+            _, idx = tree.query(points[sample], k=min(2, len(points)))
+            nearest = np.asarray(idx).reshape(len(sample), -1)[:, -1]
+        if np.isin(nearest, face_inliers).mean() > 0.5:
+            return index
+    return None
 
 
 def _scatter(points: NDArray[np.float64]) -> NDArray[np.float64]:

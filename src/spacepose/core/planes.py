@@ -25,7 +25,7 @@ from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane, on_a_line
-from spacepose.core.plane_support import cuts_a_curve, largest_component
+from spacepose.core.plane_support import cuts_a_curve, largest_component, tail_of
 from spacepose.core.ransac import sample_triples
 from spacepose.core.scale import plane_range_sigma
 from spacepose.errors import DegenerateGeometryError, InputError
@@ -402,8 +402,11 @@ def extract_planes(
             break
         inliers = remaining[plane.inliers]
         remaining = np.delete(remaining, plane.inliers)
-        if cuts_a_curve(pts, tree, inliers, plane.normal):
-            # A slab through a curved surface, no face: its points are no plane's.
+        found = [(p.normal, p.offset, p.inliers) for p in planes]
+        if cuts_a_curve(pts, tree, inliers, plane.normal) or (
+            tail_of(pts, tree, inliers, plane.normal, found, config.distance_threshold) is not None
+        ):
+            # A slab through a curved surface, or a face's noise beyond its slab: no face.
             slabs += 1
             if slabs >= config.max_planes:
                 break
