@@ -27,7 +27,7 @@ _NOISE_REACH = 5.0
 # Points a neighbourhood that reach gives holds at most, about (the cloud thinned by a stride).
 _BALL_POINTS = 256
 # A plane parallel to a face found before it within this angle, whose inliers lie within two
-# of its slabs, may be that face's noise beyond its slab (tail_of).
+# of its slabs, may be that face's noise beyond its slab (is_a_tail).
 _TAIL_DEG = 10.0
 
 
@@ -141,21 +141,22 @@ def cuts_a_curve(
     return float(np.median(along)) < np.cos(np.radians(_CURVED_DEG))
 
 
-def tail_of(
+def is_a_tail(
     points: NDArray[np.float64],
     tree: cKDTree,
     inliers: NDArray[np.intp],
     normal: NDArray,
     faces: list[tuple[NDArray, float, NDArray[np.intp]]],
     slab: float,
-) -> int | None:
-    """Which earlier face, if any, a plane's inliers are the noise tail of: parallel to it
-    within :data:`_TAIL_DEG`, within two of its slabs (``slab``, the half-width) at the median,
-    and most of them (a strided sample of at most :data:`_SURFACE_SAMPLE`) with their nearest
-    other point among that face's inliers. A Gaussian's
-    0.27 % beyond ±3σ lie scattered over the face, among its points; a second face's own
-    points neighbour each other. On a 100,000-point plate under 1 mm of noise the points
-    beyond its 3 mm slab were taken for two more planes of 107–134 points at ±3 mm.
+) -> bool:
+    """Whether a plane's inliers are the noise tails of faces found before it: of the faces
+    parallel to it within :data:`_TAIL_DEG` whose slab, twice widened, holds it at the median,
+    most of its inliers (a strided sample of at most :data:`_SURFACE_SAMPLE`) have their
+    nearest other point among those faces' inliers. A Gaussian's 0.27 % beyond ±3σ lie
+    scattered over the face, among its points; a second face's own points neighbour each
+    other. On a 100,000-point plate under 1 mm of noise the points beyond its 3 mm slab were
+    taken for two more planes of 107–134 points at ±3 mm; between two plates a step apart the
+    tails of both made one.
 
     Parameters
     ----------
@@ -169,18 +170,17 @@ def tail_of(
         The planes' inlier distance (m).
     """
     sample = inliers[:: max(1, len(inliers) // _SURFACE_SAMPLE)]
-    nearest = None
-    for index, (face_normal, offset, face_inliers) in enumerate(faces):
-        if abs(float(normal @ face_normal)) < np.cos(np.radians(_TAIL_DEG)):
-            continue
-        if np.median(np.abs(points[sample] @ face_normal - offset)) > 2.0 * slab:
-            continue
-        if nearest is None:  # the nearest other point of each (the first is itself)
-            _, idx = tree.query(points[sample], k=min(2, len(points)))
-            nearest = np.asarray(idx).reshape(len(sample), -1)[:, -1]
-        if np.isin(nearest, face_inliers).mean() > 0.5:
-            return index
-    return None
+    near = [
+        face_inliers
+        for face_normal, offset, face_inliers in faces
+        if abs(float(normal @ face_normal)) >= np.cos(np.radians(_TAIL_DEG))
+        and np.median(np.abs(points[sample] @ face_normal - offset)) <= 2.0 * slab
+    ]
+    if not near:
+        return False
+    _, idx = tree.query(points[sample], k=min(2, len(points)))
+    nearest = np.asarray(idx).reshape(len(sample), -1)[:, -1]  # the first is the point itself
+    return bool(np.isin(nearest, np.concatenate(near)).mean() > 0.5)
 
 
 def _scatter(points: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -25,9 +25,9 @@ from spacepose.core import ransac
 from spacepose.core.cloud import PointCloud, as_points
 from spacepose.core.config import StageConfig, stage_config
 from spacepose.core.moments import distribution, fit_plane, is_collinear, no_plane, on_a_line
-from spacepose.core.plane_support import cuts_a_curve, largest_component, tail_of
+from spacepose.core.plane_support import cuts_a_curve, is_a_tail, largest_component
 from spacepose.core.ransac import sample_triples
-from spacepose.core.scale import plane_range_sigma
+from spacepose.core.scale import plane_range_sigma, point_spacing
 from spacepose.errors import DegenerateGeometryError, InputError
 
 # Largest number of distances held at once when scoring a batch (32 MB of float64).
@@ -201,31 +201,10 @@ def ransac_plane(
     origin = pts.mean(axis=0)
     pts = pts - origin
     rng = np.random.default_rng(config.seed) if rng is None else rng
-    n_hyp = config.max_iterations
-    if config.outlier_ratio is not None:
-        n_hyp = min(n_hyp, iteration_bound(config.confidence, config.outlier_ratio))
-    best_count, best_normal, best_offset = -1, None, 0.0
-    for start in range(0, n_hyp, config.batch_size):
-        triples = sample_triples(rng, len(pts), min(config.batch_size, n_hyp - start))
-        p0, p1, p2 = pts[triples[:, 0]], pts[triples[:, 1]], pts[triples[:, 2]]
-        e1, e2 = p1 - p0, p2 - p0
-        cross = np.cross(e1, e2)
-        norm = np.linalg.norm(cross, axis=1)
-        scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
-        valid = norm > 1e-9 * np.maximum(scale, 1e-300)
-        if not np.any(valid):
-            continue
-        normals = cross[valid] / norm[valid, None]
-        offsets = np.einsum("bi,bi->b", normals, p0[valid])
-        counts = _count_inliers(pts, normals, offsets, config.distance_threshold)
-        k = int(np.argmax(counts))  # first maximum: ties go to the earliest hypothesis
-        if counts[k] > best_count:
-            best_count, best_normal, best_offset = int(counts[k]), normals[k], offsets[k]
-    if best_normal is None or best_count < 3:
-        raise DegenerateGeometryError(
-            f"no plane with 3 inliers among {n_hyp} hypotheses on {len(pts)} points"
-        )
-    inliers = np.flatnonzero(np.abs(pts @ best_normal - best_offset) <= config.distance_threshold)
+    threshold = config.distance_threshold
+    inliers = _best_hypothesis(pts, config, rng, threshold)
+    if _fills_its_slab(pts, inliers, threshold):
+        inliers = _one_face(pts, inliers, config, rng)
     plane = _refit(pts, inliers, config)
     normal, offset = plane.normal, plane.offset + float(plane.normal @ origin)
     if offset > 0:  # towards the cloud's origin (the sensor), as fit_plane faces it
@@ -403,8 +382,8 @@ def extract_planes(
         inliers = remaining[plane.inliers]
         remaining = np.delete(remaining, plane.inliers)
         found = [(p.normal, p.offset, p.inliers) for p in planes]
-        if cuts_a_curve(pts, tree, inliers, plane.normal) or (
-            tail_of(pts, tree, inliers, plane.normal, found, config.distance_threshold) is not None
+        if cuts_a_curve(pts, tree, inliers, plane.normal) or is_a_tail(
+            pts, tree, inliers, plane.normal, found, config.distance_threshold
         ):
             # A slab through a curved surface, or a face's noise beyond its slab: no face.
             slabs += 1
@@ -415,3 +394,82 @@ def extract_planes(
     if config.range_threshold is not None and planes:
         planes = assign_along_rays(pts, planes, config.range_threshold, config.min_inliers)
     return planes
+
+
+# A plane's inliers whose spread along its normal is this share or more of a uniform spread
+# over its slab (threshold / √3) fill the slab: a face under noise within a 3σ slab gives
+# 0.57 (0.986σ), a cut across two surfaces about 1.
+_SLAB_FILLED = 0.8
+
+
+def _best_hypothesis(
+    pts: NDArray[np.float64], config: PlaneConfig, rng: np.random.Generator, threshold: float
+) -> NDArray[np.intp]:
+    """Inliers (indices into ``pts``, within ``threshold``) of the RANSAC hypothesis with most."""
+    n_hyp = config.max_iterations
+    if config.outlier_ratio is not None:
+        n_hyp = min(n_hyp, iteration_bound(config.confidence, config.outlier_ratio))
+    best_count, best_normal, best_offset = -1, None, 0.0
+    for start in range(0, n_hyp, config.batch_size):
+        triples = sample_triples(rng, len(pts), min(config.batch_size, n_hyp - start))
+        p0, p1, p2 = pts[triples[:, 0]], pts[triples[:, 1]], pts[triples[:, 2]]
+        e1, e2 = p1 - p0, p2 - p0
+        cross = np.cross(e1, e2)
+        norm = np.linalg.norm(cross, axis=1)
+        scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+        valid = norm > 1e-9 * np.maximum(scale, 1e-300)
+        if not np.any(valid):
+            continue
+        normals = cross[valid] / norm[valid, None]
+        offsets = np.einsum("bi,bi->b", normals, p0[valid])
+        counts = _count_inliers(pts, normals, offsets, threshold)
+        k = int(np.argmax(counts))  # first maximum: ties go to the earliest hypothesis
+        if counts[k] > best_count:
+            best_count, best_normal, best_offset = int(counts[k]), normals[k], offsets[k]
+    if best_normal is None or best_count < 3:
+        raise DegenerateGeometryError(
+            f"no plane with 3 inliers among {n_hyp} hypotheses on {len(pts)} points"
+        )
+    return np.flatnonzero(np.abs(pts @ best_normal - best_offset) <= threshold)
+
+
+def _spread(pts: NDArray[np.float64], inliers: NDArray[np.intp]) -> float:
+    """Standard deviation of the points along the normal of their least-squares plane."""
+    if len(inliers) < 3:
+        return np.inf
+    normal, offset = fit_plane(pts[inliers])
+    return float(np.std(pts[inliers] @ normal - offset))
+
+
+def _one_face(
+    pts: NDArray[np.float64],
+    inliers: NDArray[np.intp],
+    config: PlaneConfig,
+    rng: np.random.Generator,
+) -> NDArray[np.intp]:
+    """The inliers of the face in a plane that fills its slab (:func:`_fills_its_slab`).
+
+    A cut across two surfaces (a step between parallel plates, tilted to hold both) spreads
+    its inliers evenly over the slab where a face's crowd its middle. Two planes may be the
+    face's: the one through the cut's largest part connected by steps of three point spacings
+    (the strips on either side of a step lie apart by its height), and the best hypothesis at
+    half the slab, where a face beats the cut. Of those and the cut, the inliers (within the
+    whole slab) that spread least along their normal are kept.
+    """
+    threshold = config.distance_threshold
+    parts = largest_component(pts[inliers], 3.0 * point_spacing(pts[inliers]))
+    candidates = [inliers, inliers[parts], _best_hypothesis(pts, config, rng, threshold / 2.0)]
+    best, best_spread = inliers, _spread(pts, inliers)
+    for support in candidates[1:]:
+        if len(support) < 3 or is_collinear(distribution(pts[support])[1]):
+            continue
+        normal, offset = fit_plane(pts[support])
+        again = np.flatnonzero(np.abs(pts @ normal - offset) <= threshold)
+        if _spread(pts, again) < best_spread:
+            best, best_spread = again, _spread(pts, again)
+    return best
+
+
+def _fills_its_slab(pts: NDArray[np.float64], inliers: NDArray[np.intp], threshold: float) -> bool:
+    """Whether the inliers spread over their slab as evenly as a uniform layer would."""
+    return _spread(pts, inliers) >= _SLAB_FILLED * threshold / math.sqrt(3.0)
