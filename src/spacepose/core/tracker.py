@@ -128,6 +128,9 @@ class Tracker(TrackerState):
         index = self._index
         self._index += 1
         times = dict.fromkeys(STAGES, 0.0)
+        stale = self._stale(cloud, prediction)
+        if stale is not None:
+            return self._lost(index, timestamp, prediction, (stale,), times)
 
         tic = time.perf_counter()
         try:

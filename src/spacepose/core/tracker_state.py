@@ -23,6 +23,7 @@ from spacepose.core.motion import MotionModel, Prediction
 from spacepose.core.pose_covariance import CLUSTER_VOXELS
 from spacepose.core.range_bias import range_bias_effect
 from spacepose.core.relocalise import Relocaliser, coarse_pose
+from spacepose.core.repeated_frame import RepeatWatch, stale_reason
 from spacepose.core.scale import DataScale
 from spacepose.core.scene_follower import SceneFollower
 from spacepose.core.spare_anchor import SpareAnchor
@@ -93,6 +94,10 @@ class TrackerState:
         # confirmed it (core.spare_anchor).
         self._first: TrackResult | None = None
         self._first_centroid = np.zeros(3)
+        # A frame with the last one's points (core.repeated_frame), and where the target's
+        # points were centred in the last accepted frame (sensor frame).
+        self._repeats = RepeatWatch()
+        self._last_centroid: NDArray[np.float64] | None = None
         self._spare = None if model is not None else SpareAnchor(config, workers)
 
     @property
@@ -242,6 +247,25 @@ class TrackerState:
         close_times(times, self._t_start)
         return lost_result(index, timestamp, prediction, reasons, times, coarse)
 
+    def _stale(self, cloud: object, prediction: Prediction | None) -> str | None:
+        """Why a frame that repeats the last one's points is no measurement: the motion model
+        predicts the target to move by more than a registration resolves (the step from its
+        optimum a health check allows; None otherwise, or when it is no repeat;
+        core.repeated_frame)."""
+        repeats = self._repeats.repeats(cloud)
+        if not repeats or prediction is None or self._frames.scale is None:
+            return None
+        if not self._motion.history or self._last_centroid is None:
+            return None
+        T_last = self._motion.history[-1][1]
+        moved, turned = pose_disagreement(prediction.T_sensor_target, T_last, self._last_centroid)
+        bounds = health_bounds(self._context(), self.model_based)
+        if moved <= bounds.ok_step_translation and turned <= bounds.ok_step_rotation_deg:
+            # A target standing still, rendered without noise, repeats itself (its poses
+            # then differ by the keyframe's sampling: 0.1 mm / 0.02° on the lab run).
+            return None
+        return stale_reason(moved, turned)
+
     def _forget_lengths(self) -> None:
         """No pose accepted yet: the lengths a lost frame derived, and the stages built on
         them, are dropped, so that the next frame derives its own (a first frame of noise set
@@ -271,6 +295,7 @@ class TrackerState:
             dt, dr = pose_disagreement(T, prediction.T_sensor_target, prepared.centroid)
             error = (dt, np.radians(dr))
         self._motion.accept(timestamp, T, cov, error, restart=coarse)
+        self._last_centroid = prepared.centroid
         promoted = False
         if not self.model_based:
             radius = self._frames.scale.radius
