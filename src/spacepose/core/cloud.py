@@ -148,12 +148,16 @@ class PointCloud:
 
 
 def _as_sigma(values: ArrayLike, source: str | None) -> NDArray[np.float64]:
-    """Per-point σ as a flat float64 array (text ended in numpy's ValueError)."""
+    """Per-point σ as a flat float64 array, from (N,) or (N, 1) values (text ended in numpy's
+    ValueError; a (100, 3) table of 300 values was read as 300 per-point σ)."""
     check_real(values, "sigma", source)
     try:
-        return np.asarray(values, dtype=np.float64).reshape(-1)
+        sigma = np.asarray(values, dtype=np.float64)
     except (TypeError, ValueError) as exc:
         raise InputError(f"sigma are not numeric: {exc}", source) from None
+    if sigma.ndim > 2 or (sigma.ndim == 2 and sigma.shape[1] != 1):
+        raise InputError(f"sigma must be one value a point, (N,), got shape {sigma.shape}", source)
+    return sigma.reshape(-1)
 
 
 def _check_directions(normals: NDArray[np.float64], source: str | None) -> None:

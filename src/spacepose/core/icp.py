@@ -18,6 +18,7 @@ The correspondences and the matchers that find them at each transform are in
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 from typing import Literal
 
 import numpy as np
@@ -33,7 +34,7 @@ from spacepose.core.grid import VoxelIndex
 from spacepose.core.icp_systems import point_to_point_information, solve_normal_equations
 from spacepose.core.neighbors import SearchIndex
 from spacepose.core.normals import NormalsConfig, estimate_normals
-from spacepose.core.registration import RegistrationResult, far_centre, kabsch
+from spacepose.core.registration import RegistrationResult, far_centre, kabsch, moved_back
 from spacepose.core.robust import RobustConfig
 from spacepose.errors import DegenerateGeometryError, InputError, SpaceposeWarning
 
@@ -206,6 +207,18 @@ def icp_correspondences(
     src = as_registration_cloud(source, "source")
     tgt = as_registration_cloud(target, "target")
     T = se3.as_transform(init_T_target_source, "init_T_target_source").copy()
+    centre = far_centre(tgt.points) if target_tree is None else None
+    if centre is not None:
+        # Both clouds moved to the target's centre and solved there, as GICP is: summed about
+        # a far origin the normal equations cancel to rounding (1,000 km out point-to-plane
+        # came out 0.015° off, and 3,000 km out was called degenerate; point-to-point gave
+        # negative variances). A caller's tree holds the far points: with one, the system is
+        # solved about the centre instead, which serves up to the kilometres a sensor sees.
+        S = se3.make_transform(np.eye(3), -centre)
+        near, matches = icp_correspondences(
+            src.transformed(S), tgt.transformed(S), S @ T @ se3.invert(S), config, workers
+        )
+        return moved_back(near, S), _moved_back(matches, S)
     plane = config.method == "point_to_plane"
     if plane and tgt.normals is None:
         tgt = estimate_normals(tgt, config.normals, workers=workers)
@@ -252,3 +265,15 @@ def icp_correspondences(
         residual_sigma=matches.residual_sigma,
     )
     return result, matches
+
+
+def _moved_back(matches: Correspondences, S: NDArray[np.float64]) -> Correspondences:
+    """``matches`` of clouds both moved by the shift ``S`` (4, 4), for the clouds where they
+    were: the matched points moved back, the normal equations of the twist about the original
+    origin (as :func:`~spacepose.core.registration.moved_back` moves the information)."""
+    points = None if matches.points is None else se3.transform_points(se3.invert(S), matches.points)
+    system = matches.system
+    if system is not None:
+        Ad = se3.adjoint(S)
+        system = (Ad.T @ system[0] @ Ad, Ad.T @ system[1], system[2])
+    return replace(matches, points=points, system=system)

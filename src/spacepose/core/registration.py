@@ -39,6 +39,16 @@ class RegistrationResult:
         Residual standard deviation (m) the registration estimated for its (unweighted-unit)
         ``information``, e.g. the weighted σ of a robust kernel's inliers; None: the inlier
         RMSE stands in for it (see :meth:`covariance`).
+    centred_information
+        ``(centre (3,), information (6, 6) of the twist about it)`` when the registration was
+        solved about a centre far from the origin (:func:`moved_back`): ``information`` about
+        the origin has then lost digits (at 40,000 km, every one of its rotation block), and
+        :meth:`covariance` inverts this one instead. None otherwise.
+
+    Raises
+    ------
+    InputError
+        A transform that is not rigid, a fitness outside [0, 1] or a negative RMSE.
     """
 
     T_target_source: NDArray[np.float64]
@@ -49,6 +59,15 @@ class RegistrationResult:
     information: NDArray[np.float64] = field(default_factory=lambda: np.zeros((6, 6)))
     n_correspondences: int = 0
     residual_sigma: float | None = None
+    centred_information: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+
+    def __post_init__(self) -> None:
+        se3.as_transform(self.T_target_source, "T_target_source")
+        # NaN passes: a registration with no correspondence has no RMSE.
+        if not 0.0 <= self.fitness <= 1.0 and not np.isnan(self.fitness):
+            raise InputError(f"fitness must lie in [0, 1], got {self.fitness}")
+        if self.inlier_rmse < 0.0:
+            raise InputError(f"inlier_rmse must not be negative, got {self.inlier_rmse}")
 
     def covariance(self, sigma: float | None = None) -> NDArray[np.float64]:
         """6×6 covariance ``σ² · information⁻¹`` (pseudo-inverse where unconstrained).
@@ -75,16 +94,32 @@ class RegistrationResult:
         Raises
         ------
         InputError
-            ``information`` holds NaN or inf.
+            ``sigma`` not a positive number; ``information`` holds NaN or inf, or is not
+            positive semi-definite (a negative variance would come out).
         """
         s = sigma if sigma is not None else self.residual_sigma
         s = self.inlier_rmse if s is None else s
+        s = se3.real_number(s, "sigma")
+        if s < 0.0:
+            raise InputError(f"sigma must not be negative, got {s}")
         if not np.isfinite(self.information).all():
             # numpy's "SVD did not converge in Linear Least Squares" named neither.
             raise InputError("the registration's information holds NaN or inf: no covariance")
-        # A twist about the centre -> about the origin; the information moves by the transpose.
-        back = se3.adjoint(se3.make_transform(np.eye(3), information_centre(self.information)))
-        information = back.T @ self.information @ back
+        if self.centred_information is not None:
+            centre, information = self.centred_information
+        else:
+            centre = information_centre(self.information)
+            # A twist about the centre -> about the origin; the information moves by the
+            # transpose.
+            back = se3.adjoint(se3.make_transform(np.eye(3), centre))
+            information = back.T @ self.information @ back
+        ev = np.linalg.eigvalsh(information)
+        if ev[0] < -1e-9 * max(ev[-1], 0.0) or ev[-1] < 0.0:
+            raise InputError(
+                f"the registration's information has a negative eigenvalue ({ev[0]:.3g}): not "
+                "an information matrix"
+            )
+        back = se3.adjoint(se3.make_transform(np.eye(3), centre))
         return s**2 * (back @ np.linalg.pinv(information, hermitian=True) @ back.T)
 
     @property
@@ -127,13 +162,15 @@ def far_centre(points: NDArray[np.float64]) -> NDArray[np.float64] | None:
 
 def moved_back(result: RegistrationResult, S: NDArray[np.float64]) -> RegistrationResult:
     """``result`` of clouds both moved by the shift ``S`` (4, 4), for the clouds where they
-    were: the pose ``S⁻¹ T S`` and the information of the twist about the original origin."""
+    were: the pose ``S⁻¹ T S``, the information of the twist about the original origin, and
+    the information about the point the shift took to the origin, which keeps its digits
+    (:attr:`RegistrationResult.centred_information`)."""
     T = se3.invert(S) @ result.T_target_source @ S  # S is a shift: R is kept to the bit
-    information = result.information
-    if information is not None:
-        Ad = se3.adjoint(S)
-        information = Ad.T @ information @ Ad
-    return replace(result, T_target_source=T, information=information)
+    Ad = se3.adjoint(S)
+    information = Ad.T @ result.information @ Ad
+    centre = -S[:3, 3]
+    centred = (centre, result.information)
+    return replace(result, T_target_source=T, information=information, centred_information=centred)
 
 
 def kabsch(

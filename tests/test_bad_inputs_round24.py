@@ -1,0 +1,90 @@
+"""Round 24 of bad inputs (the Python API): registrations far from their origin, covariances
+that are no covariances, and values that were taken without a word."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from spacepose.core import se3
+from spacepose.core.cloud import PointCloud
+from spacepose.core.icp import ICPConfig, icp, icp_correspondences
+from spacepose.core.registration import RegistrationResult
+from spacepose.errors import InputError
+
+
+def _box_views(rng):
+    """Two noisy samplings (N, 3) of a 0.6 x 0.4 x 0.3 m box's surface, the second moved by a
+    small known motion; and that motion ``T_target_source``."""
+    half = np.array([0.3, 0.2, 0.15])
+
+    def sample(n):
+        p = rng.uniform(-half, half, (n, 3))
+        axis = rng.integers(0, 3, n)
+        p[np.arange(n), axis] = np.where(rng.random(n) < 0.5, -1, 1) * half[axis]
+        return p + rng.normal(scale=5e-4, size=p.shape)
+
+    T = se3.exp([0.01, -0.02, 0.015, 0.004, -0.003, 0.002])
+    return sample(6000), se3.transform_points(T, sample(6000)), T
+
+
+@pytest.mark.parametrize("method", ["point_to_plane", "point_to_point"])
+@pytest.mark.parametrize("offset", [1e6, 1e7])
+def test_icp_far_from_the_origin_is_the_icp_at_home(rng, method, offset):
+    # 1,000 km out point-to-plane came out 0.015° off and 3,000 km out "degenerate";
+    # point-to-point gave covariances with negative variances.
+    source, target, _ = _box_views(rng)
+    config = ICPConfig(max_correspondence_distance=0.02, method=method)
+    home = icp(source, target, config=config)
+    o = offset * np.array([1.0, 0.3, -0.2])
+    far = icp(source + o, target + o, config=config)
+    S = se3.make_transform(np.eye(3), -o)
+    moved = S @ far.T_target_source @ se3.invert(S)
+    assert np.linalg.norm(se3.log(moved @ se3.invert(home.T_target_source))) < 1e-9
+    rotation_far = far.covariance()[:3, :3]
+    np.testing.assert_allclose(rotation_far, home.covariance()[:3, :3], rtol=1e-6, atol=1e-18)
+    assert np.all(np.diag(far.covariance()) > 0)
+
+
+def test_far_icp_correspondences_are_given_where_the_clouds_are(rng):
+    source, target, _ = _box_views(rng)
+    o = np.array([2e6, -1e6, 5e5])
+    config = ICPConfig(max_correspondence_distance=0.02)
+    _, matches = icp_correspondences(source + o, target + o, config=config)
+    _, home = icp_correspondences(source, target, config=config)
+    np.testing.assert_allclose(matches.points - o, home.points, atol=1e-6)
+    config = ICPConfig(max_correspondence_distance=0.02, method="point_to_plane")
+    result, matches = icp_correspondences(source + o, target + o, config=config)
+    np.testing.assert_allclose(matches.system[0], result.information)
+
+
+def test_a_registration_result_refuses_what_no_registration_gives():
+    with pytest.raises(InputError, match="T_target_source"):
+        RegistrationResult(np.diag([2.0, 2.0, 2.0, 1.0]), 0.9, 0.001, 5, True)
+    with pytest.raises(InputError, match="fitness"):
+        RegistrationResult(np.eye(4), 5.0, 0.001, 5, True)
+    with pytest.raises(InputError, match="inlier_rmse"):
+        RegistrationResult(np.eye(4), 0.9, -0.1, 5, True)
+
+
+@pytest.mark.parametrize(
+    ("sigma", "match"),
+    [(float("nan"), "finite"), (-1.0, "negative"), ("1", "number")],
+)
+def test_a_covariance_of_a_bad_sigma_is_refused(sigma, match):
+    result = RegistrationResult(np.eye(4), 0.9, 0.001, 5, True, np.eye(6))
+    with pytest.raises(InputError, match=match):
+        result.covariance(sigma=sigma)
+
+
+def test_a_covariance_of_a_negative_information_is_refused():
+    result = RegistrationResult(np.eye(4), 0.9, 0.001, 5, True, -np.eye(6))
+    with pytest.raises(InputError, match="negative eigenvalue"):
+        result.covariance()
+
+
+def test_a_point_cloud_refuses_sigma_of_another_shape(rng):
+    points = rng.normal(size=(300, 3))
+    with pytest.raises(InputError, match="sigma"):
+        PointCloud(points, sigma=np.ones((100, 3)))
+    assert PointCloud(points, sigma=np.full(300, 0.002)).sigma.shape == (300,)
