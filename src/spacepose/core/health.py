@@ -28,6 +28,8 @@ Status = Literal["ok", "degraded", "lost"]
 CONDITION = "condition"
 # Reason of a pose no prediction was there to confirm (a coarse pose found anywhere).
 UNCONFIRMED = "no prediction to confirm the pose"
+# Reason of a frame whose prediction is the last pose alone (the run's second frame).
+NO_VELOCITY = "no velocity yet to confirm the pose"
 
 
 @dataclass(frozen=True)
@@ -265,7 +267,7 @@ def assess_health(
             # frames).
             ok_t, ok_r = b.max_motion_translation, b.max_motion_rotation_deg
             if not model_reference:
-                weak.append("no velocity yet to confirm the pose")
+                weak.append(NO_VELOCITY)
         msg = f"off the prediction by {1e3 * dt:.1f} mm / {dr:.2f} deg"
         if dt > f * ok_t or dr > f * ok_r:
             lost.append(msg)

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from spacepose.core.frame_check import FAR_KEYFRAME, UNTESTED_MODEL
-from spacepose.core.health import CONDITION, UNCONFIRMED, Status
+from spacepose.core.health import CONDITION, NO_VELOCITY, UNCONFIRMED, Status
 from spacepose.core.keyframes import FineEstimate, Keyframe, PreparedCloud, needs_keyframe
 from spacepose.core.tracker_config import TrackerConfig
 
@@ -170,7 +170,11 @@ class KeyframeWindow:
 
 
 def _unconfirmed(reasons: tuple[str, ...]) -> bool:
-    """A coarse pose no prediction confirmed that fits its reference poorly: a near-twin of the
-    target's view (a box 8 m out, turned 120° onto another face pair at a fitness of 0.39) gives
-    every later frame a consistent step and a wrong pose, `ok` at 123σ."""
-    return UNCONFIRMED in reasons and any(r.startswith("fitness") for r in reasons)
+    """A pose no prediction confirmed that fits its reference poorly. A coarse one, a near-twin
+    of the target's view (a box 8 m out, turned 120° onto another face pair at a fitness of
+    0.39), gives every later frame a consistent step and a wrong pose, `ok` at 123σ. So does a
+    second frame registered from the first pose alone: a target receding 0.19 m a frame from
+    1.5 m, registered 77 mm short at a fitness of 0.53, held every later frame 150 mm off, four
+    of them `ok` at 31-41σ."""
+    unconfirmed = UNCONFIRMED in reasons or NO_VELOCITY in reasons
+    return unconfirmed and any(r.startswith("fitness") for r in reasons)
