@@ -88,3 +88,57 @@ def test_a_point_cloud_refuses_sigma_of_another_shape(rng):
     with pytest.raises(InputError, match="sigma"):
         PointCloud(points, sigma=np.ones((100, 3)))
     assert PointCloud(points, sigma=np.full(300, 0.002)).sigma.shape == (300,)
+
+
+def _still_filter(mean_motion=0.0):
+    from spacepose.core.ekf import RelativeNavEKF
+    from spacepose.core.nav_state import NavState
+
+    state = NavState(
+        t=0.0,
+        rho=np.array([0.0, -10.0, 0.0]),
+        v=np.array([0.001, 0.0, 0.0]),
+        q_I_B=np.array([0.0, 0.0, 0.0, 1.0]),
+        omega_B=np.zeros(3),
+        k=np.array([0.3, -0.2, -0.1 / 0.94]),
+        com=np.zeros(3),
+    )
+    return RelativeNavEKF(mean_motion, np.eye(3), state)
+
+
+def test_a_long_gap_is_discretised_as_van_loan_does():
+    # Composed step by step, a 1e5 s gap of a target that does not turn took 12 s (2e6 steps);
+    # doubled, it takes its logarithm, and is the same transition and noise.
+    from scipy.linalg import expm
+
+    from spacepose.core.nav_state import discretise
+
+    ekf = _still_filter()
+    F = ekf._jacobian(ekf.w, ekf.p)
+    Qc = np.diag(np.random.default_rng(2).uniform(0.5, 2.0, len(F))) * 1e-12
+    dt = 3000.0
+    m = len(F)
+    E = expm(np.block([[-F, Qc], [np.zeros((m, m)), F.T]]) * dt)
+    Phi_ref = E[m:, m:].T
+    Phi, Q = discretise(F, Qc, dt)
+    np.testing.assert_allclose(Phi, Phi_ref, atol=1e-9 * np.abs(Phi_ref).max())
+    np.testing.assert_allclose(Q, Phi_ref @ E[:m, m:], rtol=1e-6, atol=1e-9 * np.abs(Q).max())
+
+
+def test_a_gap_the_covariance_cannot_cross_is_refused_and_leaves_the_filter():
+    from spacepose.errors import PredictionGapError
+
+    ekf = _still_filter()
+    before = (ekf.t, ekf.rho.copy(), ekf.P.copy())
+    with pytest.raises(PredictionGapError, match="overflows"):
+        ekf.predict(1e300)
+    assert ekf.t == before[0]
+    np.testing.assert_array_equal(ekf.rho, before[1])
+    np.testing.assert_array_equal(ekf.P, before[2])
+
+
+def test_a_mean_motion_no_orbit_has_is_refused():
+    # 1e300 rad/s ended in Python's OverflowError; 0.063 is the LEO rate in degrees a second.
+    for n in (1e300, 0.063):
+        with pytest.raises(InputError, match="mean_motion"):
+            _still_filter(n)

@@ -58,6 +58,9 @@ _STEP_RAD = 0.05
 # Largest turn (rad) a prediction is carried over: 160 turns (20,000 steps; a 3,000 s eclipse at
 # the orbit run's 2.7 °/s is 141 rad). Beyond it the state is a guess and costs minutes.
 _LONGEST_TURN_RAD = 1000.0
+# Largest mean motion taken (rad/s): a circular orbit grazing a body of density ρ turns at
+# √(4πGρ/3), 0.0012 rad/s about the Earth and 0.0025 about a body of 20 t/m³.
+_FASTEST_ORBIT_RAD_S = 0.01
 
 
 class RelativeNavEKF:
@@ -66,7 +69,7 @@ class RelativeNavEKF:
     Parameters
     ----------
     mean_motion
-        Orbital mean motion n, rad/s.
+        Orbital mean motion n, rad/s (at most 0.01).
     R_O_C
         (3, 3) constant chaser-body (= sensor) attitude in O.
     initial
@@ -86,6 +89,12 @@ class RelativeNavEKF:
         self.n = seconds(mean_motion, "mean_motion")
         if self.n < 0:
             raise InputError(f"mean_motion must be >= 0 rad/s, got {self.n}")
+        if self.n > _FASTEST_ORBIT_RAD_S:
+            # 1e300 rad/s ended in Python's OverflowError squaring it.
+            raise InputError(
+                f"mean_motion {self.n:.6g} rad/s: no orbit turns faster than about 0.0025 rad/s "
+                "(one grazing the densest body); in degrees or revolutions?"
+            )
         R = se3.real_array(R_O_C, "R_O_C")
         # A reflection passed RᵀR = I and ended in scipy's "non-positive determinant".
         if (
@@ -248,11 +257,18 @@ class RelativeNavEKF:
         x = np.concatenate([self.rho, self.v])
         for _ in range(steps):
             x = dynamics.rk4_step(lambda s: dynamics.cw_derivative(s, self.n), x, h)
-        self.rho, self.v = x[:3], x[3:]
-        self.q, self.w = dynamics.propagate_attitude_k(self.q, self.w, self.k, dt, steps)
+        q, w = dynamics.propagate_attitude_k(self.q, self.w, self.k, dt, steps)
         # Jacobian averaged over the interval.
-        F = 0.5 * (F0 + self._jacobian(self.w, self.p))
-        Phi, Q = discretise(F, self._process_noise_density(), dt)
+        F = 0.5 * (F0 + self._jacobian(w, self.p))
+        with np.errstate(over="ignore", invalid="ignore"):
+            Phi, Q = discretise(F, self._process_noise_density(), dt)
+        if not (np.isfinite(Phi).all() and np.isfinite(Q).all() and np.isfinite(x).all()):
+            # A target that does not turn passes the turn's bound at any gap, and the rate's
+            # σ carried over 10³⁰⁰ s overflowed into a state of NaN. The filter stays as it was.
+            raise PredictionGapError(
+                f"a gap of {dt:.6g} s from t={self.t:.6g} s: the covariance overflows across it"
+            )
+        self.rho, self.v, self.q, self.w = x[:3], x[3:], q, w
         m = N_FIXED
         # Φ is the identity on the consider state and the rectangle location errors: only the
         # fixed block moves.

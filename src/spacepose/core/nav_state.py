@@ -112,26 +112,28 @@ def discretise(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Transition matrix Φ = exp(F dt) and discrete process noise Q = ∫ Φ(s) Qc Φ(s)ᵀ ds.
 
-    Series in ``h = dt / m`` (Φ to fourth, Q to third order), composed over m steps:
-    ``Φ ← Φ_h Φ``, ``Q ← Φ_h Q Φ_hᵀ + Q_h``. m keeps ``‖F' h‖∞ <= 0.05``, with F' the Jacobian
-    without its ρ̇ = v identity block: that block is nilpotent, so it does not slow the series.
-    Small matrices make this far cheaper than a Padé ``expm`` of the Van Loan matrix.
+    Series in ``h = dt / 2ᵏ`` (Φ to fourth, Q to third order), doubled k times:
+    ``Q ← Φ Q Φᵀ + Q``, ``Φ ← Φ Φ``. k is the least that keeps ``‖F' h‖∞ <= 0.05``, with F' the
+    Jacobian without its ρ̇ = v identity block: that block is nilpotent, so it does not slow the
+    series. Small matrices make this far cheaper than a Padé ``expm`` of the Van Loan matrix,
+    and doubling makes a long gap cost its logarithm: composed step by step, a 10⁵ s gap took
+    12 s (the attitude's rate block alone asks for 2·10⁶ steps).
     """
     F_rest = F.copy()
     F_rest[RHO, VEL] = 0.0
     norm = float(np.abs(F_rest).sum(axis=1).max()) * abs(dt)
-    m = max(1, int(np.ceil(norm / 0.05)))
-    h = dt / m
+    k = max(0, math.ceil(math.log2(norm / 0.05))) if norm > 0.05 else 0
+    h = dt / 2.0**k
     A = F * h
     A2 = A @ A
     Phi_h = np.eye(len(F)) + A + A2 / 2.0 + A2 @ A / 6.0 + A2 @ A2 / 24.0
     FQ = F @ Qc
     F2Q = F @ FQ
     Q_h = Qc * h + (FQ + FQ.T) * h**2 / 2.0 + (F2Q + F2Q.T + 2.0 * FQ @ F.T) * h**3 / 6.0
-    Phi, Q = np.eye(len(F)), np.zeros_like(Qc)
-    for _ in range(m):
-        Phi = Phi_h @ Phi
-        Q = Phi_h @ Q @ Phi_h.T + Q_h
+    Phi, Q = Phi_h, Q_h
+    for _ in range(k):
+        Q = Phi @ Q @ Phi.T + Q
+        Phi = Phi @ Phi
     return Phi, Q
 
 
