@@ -142,3 +142,18 @@ def test_a_mean_motion_no_orbit_has_is_refused():
     for n in (1e300, 0.063):
         with pytest.raises(InputError, match="mean_motion"):
             _still_filter(n)
+
+
+@pytest.mark.parametrize(
+    ("covariance", "match"),
+    [(-1e-4 * np.eye(6), "semi-definite"), (np.eye(6) + 5.0 * np.eye(6, k=1), "symmetric")],
+)
+def test_j_icp_averages_only_covariances(covariance, match):
+    from spacepose.core.jicp import average_three_covariance
+
+    good = 1e-4 * np.eye(6)
+    with pytest.raises(InputError, match=f"cov_ji must be.*{match}"):
+        average_three_covariance(np.eye(4), np.eye(4), good, good, covariance)
+    np.testing.assert_allclose(
+        average_three_covariance(np.eye(4), np.eye(4), good, good, good), 0.75 * good
+    )

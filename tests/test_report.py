@@ -387,3 +387,14 @@ def test_figures_at_the_root_are_headed_by_its_name_and_a_bench_output_shown_onc
     assert "<h3>campaign_7</h3>" in page and "<h3>.</h3>" not in page
     assert page.count("median_ms") == 0 and page.count("12.5") == 1
     assert "cells" in page
+
+
+def test_a_track_named_in_capitals_is_scored(tmp_path: Path) -> None:
+    """`track --out RUN/upper.TUM` wrote a track the report left out without a word (it read
+    *.tum only), though the frame readers and `evaluate` take any case."""
+    expected = _make_run(tmp_path / "demo")
+    tracks = tmp_path / "demo" / "lab" / "tracks"
+    (tracks / "icp.tum").rename(tracks / "upper.TUM")
+    page = build_report(tmp_path / "demo").read_text()
+    row = re.search(r"<tr><td>upper</td><td>([\d.]+) \(([\d.]+)\)", page)
+    assert row and float(row.group(1)) == pytest.approx(expected["icp_x_mm"], abs=1e-3)

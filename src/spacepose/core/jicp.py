@@ -105,11 +105,19 @@ def average_three_covariance(
 
 
 def _covariance6(values: ArrayLike, name: str) -> NDArray[np.float64]:
-    """A finite (6, 6) covariance (a 5×5 one ended in numpy's broadcast error, text in a
-    UFuncTypeError, NaN in a NaN covariance)."""
+    """A finite, symmetric, positive semi-definite (6, 6) covariance (a 5×5 one ended in
+    numpy's broadcast error, text in a UFuncTypeError, NaN in a NaN covariance, and a negative
+    or lopsided one came out as a "covariance" with a negative eigenvalue or two different
+    off-diagonal entries)."""
     C = se3.real_array(values, name)
     if C.shape != (6, 6) or not np.isfinite(C).all():
         raise InputError(f"{name} must be a finite 6x6 covariance, got shape {C.shape}")
+    scale = float(np.abs(C).max())
+    if np.abs(C - C.T).max() > 1e-9 * scale:
+        raise InputError(f"{name} must be symmetric, as a covariance is")
+    eig = np.linalg.eigvalsh(C)
+    if eig[0] < -1e-9 * scale:
+        raise InputError(f"{name} must be positive semi-definite, got eigenvalue {eig[0]:.3g}")
     return C
 
 

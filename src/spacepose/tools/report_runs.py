@@ -116,7 +116,9 @@ def tracking_section(run: Path, skipped: Skipped) -> str:
         The run has tracks but no groundtruth.tum, or it cannot be read.
     """
     gt_path = run / "groundtruth.tum"
-    tracks = [p for p in own_files(run, "*.tum") if p.name != GROUNDTRUTH]
+    # Any case of the suffix, as `track` writes and the frame readers take it (upper.TUM was
+    # left out of the report without a word).
+    tracks = [p for p in own_files(run, "*.[tT][uU][mM]") if p.name.lower() != GROUNDTRUTH]
     if not tracks:
         return ""
     if not gt_path.exists():  # the tracks cannot be scored: say so, not leave them out unseen
