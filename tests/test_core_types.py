@@ -318,8 +318,8 @@ def test_a_cloud_in_millimetres_gets_one_warning_line_naming_the_file(tmp_path, 
     err = capsys.readouterr().err
     assert err.splitlines() == [
         f"warning: {path}: coordinates look like millimetres (276 m across, median point "
-        "spacing 5.00 m); spacepose works in metres: scale the file by 0.001 "
-        "(read_cloud(..., scale=1e-3))"
+        "spacing 5.00 m); spacepose works in metres: write its coordinates times 0.001 "
+        "(in Python: read_cloud(..., scale=1e-3))"
     ]
 
 

@@ -154,7 +154,7 @@ def _warn_if_infinite(points: NDArray[np.float64], path: Path) -> None:
         )
 
 
-_RESCALE = "scale the file by 0.001 (read_cloud(..., scale=1e-3))"
+_RESCALE = "write its coordinates times 0.001 (in Python: read_cloud(..., scale=1e-3))"
 
 
 def _unit_normals(
