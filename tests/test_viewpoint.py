@@ -149,3 +149,22 @@ def test_no_returns_or_a_model_without_normals_is_refused_in_one_line():
         FacingTest.of(model).unseen_share(np.zeros((0, 3)), np.eye(4), GATE)
     with pytest.raises(InputError, match="needs outward normals"):
         FacingTest.of(PointCloud(model.points))
+
+
+@pytest.mark.parametrize("estimated", [True, False])
+def test_the_verdict_names_estimated_model_normals_first(monkeypatch, estimated):
+    """A model given without normals has them estimated away from its centre, wrong on a body
+    that is not convex: a cloud of the Hubble kit's samples, with frames in the sensor's frame,
+    was told its clouds were not. The verdict now names the normals first."""
+    from spacepose.core.viewpoint import OriginCheck
+
+    check = OriginCheck(_box_model((1.0, 0.6, 0.4), 2000), normals_estimated=estimated)
+    monkeypatch.setattr(FacingTest, "unseen_share", lambda *args, **kwargs: 0.3)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(2):
+            status, _ = check.assess(np.zeros((10, 3)), np.eye(4), 0.01, ("ok", ()))
+    said = [str(w.message) for w in caught if issubclass(w.category, SpaceposeWarning)]
+    assert status == "degraded" and len(said) == 1
+    assert ("no normals of its own" in said[0]) is estimated
+    assert ("give clouds in the sensor's frame" in said[0]) is not estimated

@@ -180,7 +180,7 @@ class TrackerState:
             self._model = self._frames.prepare_model(self._model_cloud)
             # Its normals tell the faces a pose turns to the sensor (visible_model).
             self._model_cloud = self._frames.sensor_model(self._model_cloud)
-            self._origin = OriginCheck(self._model_cloud)
+            self._origin = OriginCheck(self._model_cloud, not self._model_input.has_normals)
             self._handedness = HandednessCheck(self._model_cloud, self._coarse_onto_model)
         self._registrar = registrar
         if not self.model_based:

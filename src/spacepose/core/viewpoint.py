@@ -148,10 +148,14 @@ class OriginCheck:
     and a frame whose own share is small may still have lost one the sensor sees.
     """
 
-    def __init__(self, model: PointCloud) -> None:
+    def __init__(self, model: PointCloud, normals_estimated: bool = False) -> None:
         self.facing = FacingTest.of(model)
         self.beyond: list[str] = []
         self.verdict: str | None = None
+        # A model given without normals has them estimated away from its centre, wrong on
+        # the faces of a non-convex body: the verdict then names that first (a cloud of the
+        # Hubble kit's samples, its frames in the sensor's frame, was told to give them so).
+        self.normals_estimated = normals_estimated
 
     def assess(
         self,
@@ -177,11 +181,18 @@ class OriginCheck:
                 f"cloud's origin (> {100 * UNSEEN_BOUND:.0f} %)"
             )
             if len(self.beyond) == VERDICT_FRAMES and self.verdict is None:
+                remedy = (
+                    "the model has no normals of its own, and those estimated away from its "
+                    "centre are wrong on a body that is not convex: give the mesh, or a cloud "
+                    "with its outward normals; or the clouds are not in the sensor's frame"
+                    if self.normals_estimated
+                    else "give clouds in the sensor's frame, or check that the model's normals "
+                    "point outwards"
+                )
                 self.verdict = (
                     f"the cloud's origin is not the sensor: {VERDICT_FRAMES} frames have "
                     f"{' and '.join(self.beyond)} of their returns on model faces turned away "
-                    "from it (give clouds in the sensor's frame, or check that the model's "
-                    "normals point outwards)"
+                    f"from it ({remedy})"
                 )
                 warnings.warn(SpaceposeWarning(self.verdict), stacklevel=3)
             return "degraded", (*reasons, reason)
