@@ -204,7 +204,7 @@ def ransac_plane(
     threshold = config.distance_threshold
     inliers = _best_hypothesis(pts, config, rng, threshold)
     if _fills_its_slab(pts, inliers, threshold):
-        inliers = _one_face(pts, inliers, config, rng)
+        inliers = _one_face(pts, inliers, config)
     plane = _refit(pts, inliers, config)
     normal, offset = plane.normal, plane.offset + float(plane.normal @ origin)
     if offset > 0:  # towards the cloud's origin (the sensor), as fit_plane faces it
@@ -400,6 +400,9 @@ def extract_planes(
 # over its slab (threshold / √3) fill the slab: a face under noise within a 3σ slab gives
 # 0.57 (0.986σ), a cut across two surfaces about 1.
 _SLAB_FILLED = 0.8
+# Largest tilt (deg) of a cut from the faces it leans across: a step between parallel plates
+# tilts it by its height over their width (1 cm over 0.6 m: 1.4°).
+_CUT_TILT_DEG = 10.0
 
 
 def _best_hypothesis(
@@ -442,10 +445,7 @@ def _spread(pts: NDArray[np.float64], inliers: NDArray[np.intp]) -> float:
 
 
 def _one_face(
-    pts: NDArray[np.float64],
-    inliers: NDArray[np.intp],
-    config: PlaneConfig,
-    rng: np.random.Generator,
+    pts: NDArray[np.float64], inliers: NDArray[np.intp], config: PlaneConfig
 ) -> NDArray[np.intp]:
     """The inliers of the face in a plane that fills its slab (:func:`_fills_its_slab`).
 
@@ -453,19 +453,28 @@ def _one_face(
     its inliers evenly over the slab where a face's crowd its middle. Two planes may be the
     face's: the one through the cut's largest part connected by steps of three point spacings
     (the strips on either side of a step lie apart by its height), and the best hypothesis at
-    half the slab, where a face beats the cut. Of those and the cut, the inliers (within the
-    whole slab) that spread least along their normal are kept.
+    half the slab, where a face beats the cut. Of the cut and those within
+    :data:`_CUT_TILT_DEG` of it whose inliers (within the whole slab) do not fill it in turn,
+    the inliers that spread least along their normal are kept: a slab through a curved surface
+    also fills its slab, and a tangent cap found instead of it passed for a plane.
     """
     threshold = config.distance_threshold
     parts = largest_component(pts[inliers], 3.0 * point_spacing(pts[inliers]))
-    candidates = [inliers, inliers[parts], _best_hypothesis(pts, config, rng, threshold / 2.0)]
+    # Its own draws: the search's stream goes on as if this were not tried, so a cut kept as
+    # it was leaves every later plane as it was.
+    thinner = _best_hypothesis(pts, config, np.random.default_rng([config.seed, 1]), threshold / 2)
+    candidates = [inliers[parts], thinner]
+    cut_normal = fit_plane(pts[inliers])[0]
     best, best_spread = inliers, _spread(pts, inliers)
-    for support in candidates[1:]:
+    for support in candidates:
         if len(support) < 3 or is_collinear(distribution(pts[support])[1]):
             continue
         normal, offset = fit_plane(pts[support])
+        if abs(float(normal @ cut_normal)) < np.cos(np.radians(_CUT_TILT_DEG)):
+            continue  # not a face the cut leans across
         again = np.flatnonzero(np.abs(pts @ normal - offset) <= threshold)
-        if _spread(pts, again) < best_spread:
+        # A face crowds the middle of its slab; another slab through a curve fills it too.
+        if _spread(pts, again) < best_spread and not _fills_its_slab(pts, again, threshold):
             best, best_spread = again, _spread(pts, again)
     return best
 
