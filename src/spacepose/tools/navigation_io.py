@@ -42,6 +42,7 @@ from spacepose.tools.frames import (
 )
 from spacepose.tools.navigation_config_io import read_scenario, scenario_model, with_run_settings
 from spacepose.tools.navigation_reasons import (
+    warn_if_mostly_predicted,
     warn_if_predicted_alone,
     warn_refused_frames,
     warn_unusable_frames,
@@ -251,6 +252,7 @@ def navigate_run(
             why = why_no_registration(tracks, fusion, model is not None, health_csv)
         raise InputError(with_unreadable(why, len(rows), unreadable), input_dir)
     warn_if_predicted_alone(rows, navigated, cfg.prior_q_I_B is not None, nav_csv)
+    warn_if_mostly_predicted(rows, nav_csv)
     return NavigationSummary(
         nav_csv,
         config_json,

@@ -101,3 +101,26 @@ def warn_if_predicted_alone(
             f"predicted alone{hint}"
         )
         warnings.warn(SpaceposeWarning(problem, nav_csv), stacklevel=3)
+
+
+# Share of the frames after the start that may update nothing before it is warned of: a third.
+# The orbit runs of seeds 1-3 left 1-9 % of theirs to the prediction (a face seen edge-on);
+# a mean motion twice the run's left 49 %, timestamps twice theirs 35 %, shuffled frames 99 %.
+GATED_SHARE = 1 / 3
+
+
+def warn_if_mostly_predicted(rows: Sequence[NavRow], nav_csv: Path) -> None:
+    """Warn when a third or more of the frames after the filter's start updated nothing, as
+    a filter whose model does not fit the data leaves them: a mean motion twice the run's had
+    95 of 195 frames' rectangles gated out without a word, and ended 14° off at a σ of 0.01°."""
+    after = [r for r in rows if r.status in ("predict", "update")]
+    idle = [r for r in after if r.status == "predict"]
+    if len(after) > 1 and len(idle) > 1 and len(idle) >= GATED_SHARE * len(after):
+        gated = sum(r.coarse_T_sensor_model is not None for r in idle)
+        problem = (
+            f"{len(idle)} of {len(after)} frames after the start updated nothing ({gated} of "
+            "them with rectangles the gate refused): a filter whose model does not fit the "
+            "data (mean motion, timestamps, catalogue, frame order) refuses what it sees, and "
+            "its σ do not hold its state"
+        )
+        warnings.warn(SpaceposeWarning(problem, nav_csv), stacklevel=3)
