@@ -41,3 +41,29 @@ def test_a_filter_that_updates_on_few_frames_says_so(tmp_path, updated, gated, i
     if warned:
         assert f"{gated + idle} of {updated + gated + idle} frames" in said[0]
         assert f"({gated} of them with rectangles the gate refused)" in said[0]
+
+
+def _plate_filling_the_view(rng, sigma=0.01):
+    """A ToF view (256 x 256 rays, 28° field) of a plane 1 m out turned 30° about x, every ray
+    hitting it, with ``sigma`` m of range noise along the rays; the plane's unit normal."""
+    u, v = np.meshgrid(np.linspace(-0.25, 0.25, 256), np.linspace(-0.25, 0.25, 256))
+    rays = np.c_[u.ravel(), v.ravel(), np.ones(u.size)]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    normal = np.array([0.0, np.sin(np.radians(30.0)), -np.cos(np.radians(30.0))])
+    t = -1.0 * normal[2] / -(rays @ normal)  # the plane n·p = n·(0, 0, 1)
+    ranges = t + rng.normal(0.0, sigma, len(t))
+    return rays * ranges[:, None], normal
+
+
+def test_a_close_view_under_heavy_noise_is_one_plane(rng):
+    # The 1 cm noise was measured, then set aside as too large a share of the frame's size,
+    # and the default 5 mm slab cut the plate into three parallel planes 1.2° off.
+    from spacepose.core.planes import PlaneConfig, extract_planes, slab_thickness
+
+    points, normal = _plate_filling_the_view(rng)
+    with pytest.warns(SpaceposeWarning, match="large share of the frame's size"):
+        slab = slab_thickness(points)
+    assert slab == pytest.approx(0.03, rel=0.15)
+    planes = extract_planes(points, PlaneConfig(distance_threshold=slab))
+    assert len(planes) == 1
+    assert np.degrees(np.arccos(abs(planes[0].normal @ normal))) < 0.3

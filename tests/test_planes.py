@@ -8,13 +8,13 @@ from scipy.spatial.transform import Rotation
 
 from spacepose.core.cloud import PointCloud
 from spacepose.core.moments import distribution, fit_plane
+from spacepose.core.plane_hypotheses import iteration_bound
 from spacepose.core.plane_support import dense_support, largest_component
 from spacepose.core.planes import (
     Plane,
     PlaneConfig,
     assign_along_rays,
     extract_planes,
-    iteration_bound,
     range_residuals,
     ransac_plane,
 )

@@ -225,8 +225,14 @@ def plane_range_sigma(points: ArrayLike) -> float | None:
     (a slab as thick as the cloud finds no plane), and 0 is a frame without noise: None.
     """
     pts = as_points(points)
-    sigma = range_noise(pts, k=_PLANE_NOISE_NEIGHBOURS) / _PLANE_NOISE_MEDIAN
+    sigma = plane_noise(pts)
     return sigma if 0 < _PLANE_NOISE_SHARE * sigma < rms_radius(pts) else None
+
+
+def plane_noise(points: ArrayLike) -> float:
+    """The range noise σ (m) :func:`plane_range_sigma` reads, before its test against the
+    frame's size: 0 for a frame without noise."""
+    return range_noise(as_points(points), k=_PLANE_NOISE_NEIGHBOURS) / _PLANE_NOISE_MEDIAN
 
 
 def _ray_spread(
