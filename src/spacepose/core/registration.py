@@ -94,7 +94,7 @@ class RegistrationResult:
         Raises
         ------
         InputError
-            ``sigma`` not a positive number; ``information`` holds NaN or inf, or is not
+            ``sigma`` not a number of 0 or more; ``information`` holds NaN or inf, or is not
             positive semi-definite (a negative variance would come out).
         """
         s = sigma if sigma is not None else self.residual_sigma

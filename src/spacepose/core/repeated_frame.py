@@ -7,8 +7,9 @@ the tracker flagged two such frames ``ok`` 2° and 4° off at 9 and 18σ: within
 bound, which leaves room for accelerations. Range noise makes two real frames differ in every
 point, so equal points are a repeat; but a noise-free render of a target standing still repeats
 itself rightly. A repeat is therefore no measurement only while the motion model predicts the
-target to move by more than the registrations' σ floor; the tracker then reports the frame
-``lost`` at the predicted pose and leaves its state as it was.
+target to move by more than a registration resolves (the health check's bound on the step from
+a registration's optimum); the tracker then reports the frame ``lost`` at the predicted pose and
+leaves its state as it was.
 """
 
 from __future__ import annotations
@@ -30,10 +31,10 @@ class RepeatWatch:
         self._last: tuple[int, NDArray[np.float64]] | None = None
 
     def repeats(self, cloud: object) -> bool:
-        """Whether ``cloud`` (a PointCloud or (N, 3) array; None, empty or unreadable counts as
-        new) has the points of the frame seen before it, and remember it for the next. A copy of the
-        sample is kept: a driver that refills one array in place must not compare it with
-        itself."""
+        """Whether ``cloud`` (a PointCloud or (N, 3) array; None, empty or unreadable counts
+        as new) has the points of the frame seen before it, and remember it for the next. A
+        copy of the sample is kept: a driver that refills one array in place must not compare
+        it with itself."""
         try:
             points = np.asarray(cloud.points if isinstance(cloud, PointCloud) else cloud)
         except (TypeError, ValueError):  # the frame's own check names what is wrong
