@@ -67,3 +67,19 @@ def test_a_close_view_under_heavy_noise_is_one_plane(rng):
     planes = extract_planes(points, PlaneConfig(distance_threshold=slab))
     assert len(planes) == 1
     assert np.degrees(np.arccos(abs(planes[0].normal @ normal))) < 0.3
+
+
+def test_an_orbit_run_of_a_mesh_says_it_has_no_catalogue(tmp_path, capsys):
+    # `navigate` with its default measurements then refused the run ("the rectangle catalogue
+    # is empty") after `simulate` had said nothing.
+    import trimesh
+
+    from spacepose.cli import main
+
+    mesh = tmp_path / "bus.obj"
+    trimesh.creation.box(extents=(1.2, 0.8, 0.6)).export(mesh)
+    args = ["simulate", "orbit", "--frames", "2", "--seed", "1"]
+    assert main([*args, "--model", str(mesh), "--out", str(tmp_path / "mesh_run")]) == 0
+    assert "no rectangle catalogue" in capsys.readouterr().err
+    assert main([*args, "--out", str(tmp_path / "default_run")]) == 0
+    assert "no rectangle catalogue" not in capsys.readouterr().err

@@ -54,7 +54,8 @@ def simulate(
     from spacepose.core.sim import simulate as build
     from spacepose.core.sim.grid import grid_scenario, motion_fields
     from spacepose.errors import ConfigError
-    from spacepose.tools.runs import check_run_out, warn_if_model_moved, write_run
+    from spacepose.tools.runs import check_run_out, write_run
+    from spacepose.tools.simulate_checks import warn_if_model_moved, warn_if_no_catalogue
 
     check_run_out(out)  # before the scene is built
     if model is not None:
@@ -116,6 +117,7 @@ def simulate(
     sim = build(config)
     if model is not None:
         warn_if_model_moved(model, sim.target.mesh, 1.0 if model_scale is None else model_scale)
+    warn_if_no_catalogue(sim, out)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn())
     shown = console.is_terminal  # off a terminal rich would still print an empty line
     with Progress(
