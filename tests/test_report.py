@@ -398,3 +398,16 @@ def test_a_track_named_in_capitals_is_scored(tmp_path: Path) -> None:
     page = build_report(tmp_path / "demo").read_text()
     row = re.search(r"<tr><td>upper</td><td>([\d.]+) \(([\d.]+)\)", page)
     assert row and float(row.group(1)) == pytest.approx(expected["icp_x_mm"], abs=1e-3)
+
+
+def test_a_track_written_w_first_is_noted_in_the_report_as_evaluate_warns(tmp_path: Path) -> None:
+    """A track whose quaternions were written w first scored 160° of rotation in the report
+    without the note `evaluate` gives it."""
+    _make_run(tmp_path / "demo")
+    tracks = tmp_path / "demo" / "lab" / "tracks"
+    rows = [line.split() for line in (tracks / "gicp.tum").read_text().splitlines()]
+    turned = [[t, x, y, z, qw, qx, qy, qz] for t, x, y, z, qx, qy, qz, qw in rows]
+    (tracks / "wfirst.tum").write_text("\n".join(" ".join(r) for r in turned) + "\n")
+    page = html.unescape(build_report(tmp_path / "demo").read_text())
+    assert "wfirst: rotations" in page and "quaternions are read w first" in page
+    assert "gicp: rotations" not in page

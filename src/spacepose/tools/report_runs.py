@@ -31,7 +31,9 @@ from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools import plots
 from spacepose.tools.cloud_io import read_cloud
 from spacepose.tools.evaluation import (
+    clock_offset,
     lone_rebased_pose,
+    quaternion_order,
     shared_pairings,
     starts_at_identity,
     unit_mismatch,
@@ -136,12 +138,16 @@ def tracking_section(run: Path, skipped: Skipped) -> str:
         scored, lost, note = without_lost_frames(path, est)
         table: ErrorTable = evaluate(scored, gt, rebase_first=rebase)
         d = table.to_dict()
-        _, i_gt = associate(est.timestamps, gt.timestamps)
+        i_est, i_gt = associate(est.timestamps, gt.timestamps)
         shared = shared_pairings(i_gt)
         alone = lone_rebased_pose(len(scored), rebase)
-        # As `evaluate` warns: a track in millimetres scored its whole distance as error.
+        # As `evaluate` warns: a track in millimetres scored its whole distance as error, one
+        # written w first 160° of rotation, one on another clock poses that far apart in time.
         units = unit_mismatch(est.poses, gt.poses[i_gt], gt_path.name, rebase)
-        for text in filter(None, (note, shared, alone, *units)):
+        paired = (est.poses[i_est], gt.poses[i_gt], gt_path.name, rebase)
+        order = quaternion_order(*paired)
+        offset = clock_offset(est.timestamps[i_est], gt.timestamps[i_gt], gt_path.name)
+        for text in filter(None, (note, shared, alone, order, offset, *units)):
             notes.append(html.escape(f"{shown(path.stem)}: {text}"))
         rows.append(
             (
