@@ -157,3 +157,11 @@ def test_j_icp_averages_only_covariances(covariance, match):
     np.testing.assert_allclose(
         average_three_covariance(np.eye(4), np.eye(4), good, good, good), 0.75 * good
     )
+
+
+def test_a_predicted_centroid_of_a_non_finite_centre_is_refused():
+    # It came out [nan, nan, nan], where update_centroid refuses the same centre.
+    ekf = _still_filter()
+    with pytest.raises(InputError, match="d_Bp"):
+        ekf.predict_centroid("a", [np.nan, 0.0, 0.0])
+    np.testing.assert_allclose(ekf.predict_centroid("a", [0.0, 0.0, 0.0]), ekf.rho)

@@ -294,8 +294,15 @@ class RelativeNavEKF:
         return i
 
     def predict_centroid(self, feature_id: str, d_Bp: ArrayLike) -> NDArray[np.float64]:
-        """Predicted centroid (3,) in C of rectangle ``feature_id`` with catalogue centre d (B')."""
-        r_B = np.asarray(d_Bp, dtype=np.float64) + self.features.get(feature_id, 0.0) - self.com
+        """Predicted centroid (3,) in C of rectangle ``feature_id`` with catalogue centre d (B').
+
+        Raises
+        ------
+        InputError
+            ``d_Bp`` is not a finite (3,) vector (a NaN centre came out as a NaN centroid).
+        """
+        d_Bp = finite(d_Bp, (3,), "catalogue centre d_Bp")
+        r_B = d_Bp + self.features.get(feature_id, 0.0) - self.com
         return self.R_C_O @ (self.rho + self.R_O_B() @ r_B)
 
     def update_centroid(
