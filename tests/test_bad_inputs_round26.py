@@ -83,3 +83,18 @@ def test_an_orbit_run_of_a_mesh_says_it_has_no_catalogue(tmp_path, capsys):
     assert "no rectangle catalogue" in capsys.readouterr().err
     assert main([*args, "--out", str(tmp_path / "default_run")]) == 0
     assert "no rectangle catalogue" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("rectangles", "warned"), [(0, True), (2, False)])
+def test_fusing_without_a_rectangle_used_says_so(tmp_path, rectangles, warned):
+    # A catalogue 25 % larger than the target navigated 194 frames on the poses alone, as if
+    # both had been fused.
+    from spacepose.tools.navigation_reasons import warn_if_no_rectangle_used
+
+    rows = [NavRow(float(k), None, None, rectangles if k == 5 else 0, "update") for k in range(9)]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warn_if_no_rectangle_used(rows, tmp_path / "nav.csv")
+    said = [str(w.message) for w in caught if issubclass(w.category, SpaceposeWarning)]
+    assert bool(said) is warned
+    assert not said or "registration poses alone" in said[0]

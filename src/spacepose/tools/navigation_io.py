@@ -43,6 +43,7 @@ from spacepose.tools.frames import (
 from spacepose.tools.navigation_config_io import read_scenario, scenario_model, with_run_settings
 from spacepose.tools.navigation_reasons import (
     warn_if_mostly_predicted,
+    warn_if_no_rectangle_used,
     warn_if_predicted_alone,
     warn_refused_frames,
     warn_unusable_frames,
@@ -253,6 +254,8 @@ def navigate_run(
         raise InputError(with_unreadable(why, len(rows), unreadable), input_dir)
     warn_if_predicted_alone(rows, navigated, cfg.prior_q_I_B is not None, nav_csv)
     warn_if_mostly_predicted(rows, nav_csv)
+    if measurements == "both":
+        warn_if_no_rectangle_used(rows, nav_csv)
     return NavigationSummary(
         nav_csv,
         config_json,

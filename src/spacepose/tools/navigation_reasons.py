@@ -124,3 +124,15 @@ def warn_if_mostly_predicted(rows: Sequence[NavRow], nav_csv: Path) -> None:
             "its σ do not hold its state"
         )
         warnings.warn(SpaceposeWarning(problem, nav_csv), stacklevel=3)
+
+
+def warn_if_no_rectangle_used(rows: Sequence[NavRow], nav_csv: Path) -> None:
+    """Warn when a run fusing rectangles and registration poses used no rectangle in any
+    frame: a catalogue of another target (25 % larger) navigated on the poses alone, as if
+    both had been fused."""
+    if rows and not any(r.n_rect for r in rows):
+        problem = (
+            "no rectangle of the catalogue was used in any frame: the run navigated on "
+            "registration poses alone (check the catalogue's sizes against the target's faces)"
+        )
+        warnings.warn(SpaceposeWarning(problem, nav_csv), stacklevel=3)
