@@ -165,3 +165,20 @@ def test_a_predicted_centroid_of_a_non_finite_centre_is_refused():
     with pytest.raises(InputError, match="d_Bp"):
         ekf.predict_centroid("a", [np.nan, 0.0, 0.0])
     np.testing.assert_allclose(ekf.predict_centroid("a", [0.0, 0.0, 0.0]), ekf.rho)
+
+
+@pytest.mark.parametrize(("fitness", "rmse"), [("0.9", 0.001), (0.9, None)])
+def test_a_registration_result_of_fields_that_are_no_numbers_is_refused(fitness, rmse):
+    with pytest.raises(InputError, match=r"fitness|inlier_rmse"):
+        RegistrationResult(np.eye(4), fitness, rmse, 5, True)
+    assert np.isnan(RegistrationResult(np.eye(4), float("nan"), float("nan"), 0, False).fitness)
+
+
+def test_a_frame_of_text_is_lost_with_the_frames_own_reason():
+    # The repeat check converted it first, and numpy's "could not convert string to float"
+    # ended the run.
+    from spacepose.core.tracker import Tracker
+
+    result = Tracker(workers=1).track_frame(np.array([["a", "b", "c"]] * 200), 0.0)
+    assert result.status == "lost"
+    assert any("text" in reason for reason in result.reasons)

@@ -63,11 +63,15 @@ class RegistrationResult:
 
     def __post_init__(self) -> None:
         se3.as_transform(self.T_target_source, "T_target_source")
+        fitness, rmse = (
+            _number_or_nan(v, n)
+            for v, n in ((self.fitness, "fitness"), (self.inlier_rmse, "inlier_rmse"))
+        )
         # NaN passes: a registration with no correspondence has no RMSE.
-        if not 0.0 <= self.fitness <= 1.0 and not np.isnan(self.fitness):
-            raise InputError(f"fitness must lie in [0, 1], got {self.fitness}")
-        if self.inlier_rmse < 0.0:
-            raise InputError(f"inlier_rmse must not be negative, got {self.inlier_rmse}")
+        if not 0.0 <= fitness <= 1.0 and not np.isnan(fitness):
+            raise InputError(f"fitness must lie in [0, 1], got {fitness}")
+        if rmse < 0.0:
+            raise InputError(f"inlier_rmse must not be negative, got {rmse}")
 
     def covariance(self, sigma: float | None = None) -> NDArray[np.float64]:
         """6×6 covariance ``σ² · information⁻¹`` (pseudo-inverse where unconstrained).
@@ -127,6 +131,14 @@ class RegistrationResult:
         """Ratio of the largest to the smallest eigenvalue of ``information`` (inf if singular)."""
         ev = np.linalg.eigvalsh(self.information)
         return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
+
+
+def _number_or_nan(value: object, name: str) -> float:
+    """``value`` as a finite float or NaN (a registration with no correspondence has no RMSE),
+    or the package's error naming it: text or None compared with 0 raised a raw TypeError."""
+    if isinstance(value, float | np.floating) and np.isnan(value):
+        return float("nan")
+    return se3.real_number(value, name)
 
 
 def information_centre(information: ArrayLike) -> NDArray[np.float64]:

@@ -37,12 +37,14 @@ class RepeatWatch:
         it with itself."""
         try:
             points = np.asarray(cloud.points if isinstance(cloud, PointCloud) else cloud)
-        except (TypeError, ValueError):  # the frame's own check names what is wrong
-            points = None
+            sample = np.array(points[:: max(1, len(points) // _ROWS)], dtype=np.float64)
+        except (TypeError, ValueError, IndexError):
+            # Text, ragged rows, a scalar: the frame's own check names what is wrong (numpy's
+            # "could not convert string to float" was raised here before it).
+            points = sample = None
         if points is None or points.ndim != 2 or len(points) == 0:
             self._last = None
             return False
-        sample = np.array(points[:: max(1, len(points) // _ROWS)], dtype=np.float64)
         last, self._last = self._last, (len(points), sample)
         return last is not None and last[0] == len(points) and np.array_equal(last[1], sample)
 

@@ -119,9 +119,9 @@ def warn_if_mostly_predicted(rows: Sequence[NavRow], nav_csv: Path) -> None:
         gated = sum(r.coarse_T_sensor_model is not None for r in idle)
         problem = (
             f"{len(idle)} of {len(after)} frames after the start updated nothing ({gated} of "
-            "them with rectangles the gate refused): a filter whose model does not fit the "
-            "data (mean motion, timestamps, catalogue, frame order) refuses what it sees, and "
-            "its σ do not hold its state"
+            "them with rectangles the gate refused, the rest with no measurement): a gate that "
+            "refuses what the frames show says the filter's model does not fit them (mean "
+            "motion, timestamps, catalogue, frame order), and its σ do not hold its state"
         )
         warnings.warn(SpaceposeWarning(problem, nav_csv), stacklevel=3)
 
