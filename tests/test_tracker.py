@@ -549,7 +549,7 @@ def test_condition_number_is_scale_free_and_a_sliding_plane_is_degraded_with_its
 
 def test_a_frame_predicted_by_an_untested_motion_model_is_not_ok():
     """The lab mock-up at 6 m, noise x3, constant motion: frame 2 passes every check of its
-    own but lies 5.2σ off, and agrees with a prediction whose velocity is frame 1's unconfirmed
+    own but lies 4.5σ off, and agrees with a prediction whose velocity is frame 1's unconfirmed
     step. It was `ok` (one of the 3 false `ok` frames of the seed-0 grid's clean cells, all
     second frames); it is now degraded for that reason alone, and frame 3, predicted by the
     model frame 2 tested, is `ok` within 3σ (measured 1.6σ)."""
@@ -558,7 +558,7 @@ def test_a_frame_predicted_by_an_untested_motion_model_is_not_ok():
 
     rows = run_cell(Cell("lab", 6.0, 3.0, "constant", "none", 0), 12)["frames"]
     assert rows[2]["status"] == "degraded" and rows[2]["reasons"] == UNTESTED_MODEL
-    assert rows[2]["nsigma_max"] > 5.0  # measured 5.2
+    assert rows[2]["nsigma_max"] > 3.0  # measured 4.5 (5.2 before the first pass's kernels)
     assert rows[3]["status"] == "ok" and rows[3]["nsigma_max"] < 3.0
 
 
@@ -910,8 +910,9 @@ def test_a_turntable_under_a_slow_tumble_is_never_ok_while_followed():
     ×3; seed 0, 10 frames). Each frame is registered onto a keyframe a frame or two back, where
     the table and the target have hardly parted: before the structure checks, every check
     passed and frames 2-6 were `ok` 39-41σ (1.9-5.6°) off. Now their residual structure is
-    5.1-28 (bound 5): frames 1-6 are `degraded`, the split comes on frame 7, and frame 9 is
-    `ok` within 0.5σ (methods.md §5.8). The split came on frame 5 (6 in a 12-frame run) while
+    5.1-25 (bound 5): frames 1-5 are `degraded`, the split comes on frame 6 (7 before the
+    first pass's kernels, methods.md §5.5), and frames 8 and 9 are `ok` within 0.8σ (methods.md
+    §5.8). The split came on frame 5 (6 in a 12-frame run) while
     flying pixels were registered: they were most of the points the compromise left
     unexplained, from which the second motion's fit starts (methods.md §5.1)."""
     from spacepose.tools.experiments.robustness import run_cell
@@ -919,7 +920,7 @@ def test_a_turntable_under_a_slow_tumble_is_never_ok_while_followed():
 
     rows = run_cell(Cell("panels", 1.2, 3.0, "tumbling-2", "wall-table", 0), 10)["frames"]
     assert not any(r["false_ok"] for r in rows)
-    assert all("residual structure" in r["reasons"] for r in rows[1:7])
+    assert all("residual structure" in r["reasons"] for r in rows[1:6])
     assert rows[-1]["status"] == "ok" and rows[-1]["nsigma_max"] < 3.0
 
 
@@ -965,14 +966,16 @@ def test_an_ill_conditioned_frame_is_held_by_the_prediction_not_lost():
     lost bound (1.4e4, 3.0e4) while the pose is 4 and 9 mm off. Those frames were lost, and
     frame 11, with no pose to go on, was relocalised 431 mm and 95° off. The constant-velocity
     prediction is now a prior on ill-conditioned frames (methods.md §5.3): frames 9-11 are
-    ``degraded``, their weak directions said to be held, within 18 mm."""
+    ``degraded``, their weak directions said to be held, within 21 mm (17 mm before the first
+    pass's kernels, methods.md §5.5; frames 9 and 10 within 0.5σ)."""
     from spacepose.tools.experiments.robustness import run_cell
     from spacepose.tools.experiments.robustness_cells import Cell
 
     rows = run_cell(Cell("random:15", 1.2, 1.0, "tumbling-10", "none", 0), 12)["frames"]
     assert [r["status"] for r in rows[9:]] == ["degraded"] * 3
     assert "held by the motion model's prediction" in rows[9]["reasons"]
-    assert max(r["err_t_mm"] for r in rows[9:]) < 18.0
+    assert max(r["err_t_mm"] for r in rows[9:]) < 25.0
+    assert max(r["nsigma_max"] for r in rows[9:11]) < 1.0
     assert not any(r["false_ok"] for r in rows)
 
 

@@ -46,6 +46,13 @@ from spacepose.errors import RegistrationError, SpaceposeError
 POSE_GRAPH_TOLERANCE = (1e-6, 1.6e-4)
 # The wide first pass runs only when it is this much wider than the fine gate.
 _WIDE_PASS_RATIO = 1.5
+# Kernels of the wide first pass, in turn. A wide gate takes in wrong surfaces too, which a
+# redescending kernel keeps out; but from a start far off, its scale (the median residual) is
+# that of the pairs already close, the surfaces the motion slides along, and it weighs out the
+# pairs that show the motion. A satellite receding 0.19 m a frame from 1.5 m stopped 60-90 mm
+# short so, frame after frame. Huber's monotone kernel, which weighs no pair out, brings the
+# frame into the basin first; the redescending one starts from there (methods.md §5.5).
+_WIDE_PASS_KERNELS = ("huber", "geman_mcclure")
 # Cells of the residual structure test, in fine gates: wide enough for a part's own residual to
 # add up (about 50 pairs of a voxelised surface), small enough to tell two lab parts apart.
 STRUCTURE_CELL_GATES = 8.0
@@ -172,23 +179,23 @@ class FrameRegistrar:
         if wide_gate <= _WIDE_PASS_RATIO * self.noise.gate:
             return T_init_sensor_target
         tgt = self.as_target(ref.registration_target)
-        init_T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
-        # A wide gate takes in wrong surfaces too: a redescending kernel keeps them out.
-        wide = cfg.model_copy(
-            update={"max_correspondence_distance": wide_gate, "robust_kernel": "geman_mcclure"}
-        )
+        T_ref_k = ref.T_ref_target @ se3.invert(T_init_sensor_target)
         try:
-            res = icp(
-                prepared.cloud,
-                tgt.cloud,
-                init_T_ref_k,
-                wide,
-                workers=self.workers,
-                target_tree=tgt.tree,
-            )
+            for kernel in _WIDE_PASS_KERNELS:
+                wide = cfg.model_copy(
+                    update={"max_correspondence_distance": wide_gate, "robust_kernel": kernel}
+                )
+                T_ref_k = icp(
+                    prepared.cloud,
+                    tgt.cloud,
+                    T_ref_k,
+                    wide,
+                    workers=self.workers,
+                    target_tree=tgt.tree,
+                ).T_target_source
         except SpaceposeError:
             return T_init_sensor_target
-        return rigid(se3.invert(res.T_target_source) @ ref.T_ref_target)
+        return rigid(se3.invert(T_ref_k) @ ref.T_ref_target)
 
     def register(
         self,
