@@ -30,6 +30,8 @@ CONDITION = "condition"
 UNCONFIRMED = "no prediction to confirm the pose"
 # Reason of a frame whose prediction is the last pose alone (the run's second frame).
 NO_VELOCITY = "no velocity yet to confirm the pose"
+# Reason of a registration less precise than the precision bounds (voxels of the first frame).
+IMPRECISE = "registration sigma"
 
 
 @dataclass(frozen=True)
@@ -235,7 +237,7 @@ def assess_health(
     sig_t = float(np.sqrt(max(np.linalg.eigvalsh(cov_c[3:, 3:])[-1], 0.0)))
     sig_r = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov_c[:3, :3])[-1], 0.0))))
     if sig_t > b.ok_sigma_translation or sig_r > b.ok_sigma_rotation_deg:
-        weak.append(f"registration sigma {1e3 * sig_t:.2f} mm / {sig_r:.3f} deg too large")
+        weak.append(f"{IMPRECISE} {1e3 * sig_t:.2f} mm / {sig_r:.3f} deg too large")
     st, sr = surface_step
     f = b.lost_prediction_factor
     msg = f"{1e3 * st:.2f} mm / {sr:.3f} deg off the surface optimum"
