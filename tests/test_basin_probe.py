@@ -121,7 +121,7 @@ def test_a_second_frame_slid_along_a_face_is_probed_back(monkeypatch) -> None:
     assert all(r["nsigma_max"] <= 3.0 for r in ok)
 
 
-def test_a_frame_the_prediction_led_along_a_face_is_probed_back(monkeypatch) -> None:
+def test_a_frame_the_prediction_led_along_a_face_is_not_ok_beyond_its_sigma(monkeypatch) -> None:
     """A generated spacecraft at 16 m whose motion speeds up frame by frame: the constant-velocity
     prediction falls short along the slide, and the registration stops in the minimum it
     starts in. Without probes on frames a tested prediction confirms, frame 4 was ``ok`` 107 mm

@@ -127,8 +127,9 @@ def one_face(
             continue  # not a face the cut leans across
         again = np.flatnonzero(np.abs(pts @ normal - offset) <= threshold)
         # A face crowds the middle of its slab; another slab through a curve fills it too.
-        if spread(pts, again) < best_spread and not fills_its_slab(pts, again, threshold):
-            best, best_spread = again, spread(pts, again)
+        again_spread = spread(pts, again)
+        if again_spread < best_spread and not fills_its_slab(pts, again, threshold):
+            best, best_spread = again, again_spread
     return best
 
 
