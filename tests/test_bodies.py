@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
-from spacepose.core.bodies import split_motion
+from spacepose.core.bodies import MotionSplit, split_trial
 from spacepose.core.cloud import PointCloud
 from spacepose.core.clutter_body import ClutterBody, subset
 from spacepose.core.icp import ICPConfig, icp
@@ -23,6 +23,11 @@ REACH = 0.03
 NEAR = 0.01
 TARGET_CENTRE = np.array([0.1, -0.05, 1.2])
 SUPPORT_CENTRE = np.array([0.1, 0.27, 1.2])
+
+
+def split_motion(*args, **kwargs) -> MotionSplit | None:
+    """The split alone (:func:`split_trial`)."""
+    return split_trial(*args, **kwargs).split
 
 
 def _visible_box(rng, n, half, centre):
@@ -230,13 +235,32 @@ def test_a_support_standing_still_is_split_off_with_its_motion_held(seed):
 
 
 @pytest.mark.parametrize("seed", range(4))
+def test_a_support_standing_still_stands_apart_before_a_slow_target_does(seed):
+    """Under three times the noise, a target that has turned 0.15° and slid 1 mm over the
+    still table: the table's part already fits the identity clearly better than the target's
+    motion, the target's part not yet its own (no split, ``support_apart``); turned 3° and slid
+    20 mm, the split stands. Measured over seeds 0-7: apart on all eight, split on seven."""
+    sigma = 3.0 * SIGMA
+    pull = PULLED @ SLIDE_TURN  # the compromise's error, as in the test above
+    for share, splits in ((0.05, False), (1.0, True)):
+        M = _about(TARGET_CENTRE, [0.0, 3.0 * share, 0.0], [0.02 * share, 0.0, 0.0])
+        draws = np.random.default_rng(100 + seed)
+        noise = lambda p, draws=draws: draws.normal(0.0, sigma, len(p))  # noqa: E731
+        ref, frame, _ = _frames(seed, M, np.eye(4), noise=noise, support=_table)
+        T = pull @ se3.invert(M)
+        trial = split_trial(frame, ref, T, sigma, REACH, NEAR, workers=1, second=np.eye(4))
+        assert (trial.split is not None) == splits and trial.support_apart != splits
+
+
+@pytest.mark.parametrize("seed", range(4))
 def test_a_support_that_moves_is_not_split_off_as_standing_still(seed):
     """The still hypothesis on frames where nothing stands still: one body, or a support that
-    slides (a hand-held sensor sees no part still)."""
+    slides (a hand-held sensor sees no part still); nor does a part stand apart."""
     for M_support in (TURNING, SLIDING):
         ref, frame, _ = _frames(seed, TURNING, M_support)
         T = _compromise(ref, frame)
-        assert split_motion(frame, ref, T, SIGMA, REACH, NEAR, workers=1, second=np.eye(4)) is None
+        trial = split_trial(frame, ref, T, SIGMA, REACH, NEAR, workers=1, second=np.eye(4))
+        assert trial.split is None and not trial.support_apart
 
 
 def test_clutter_body_predicts_at_constant_velocity_and_masks_its_points():

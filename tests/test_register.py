@@ -269,10 +269,10 @@ def test_real_scanner_noise_is_not_split_into_two_bodies(pair) -> None:
         r = bodies.plane_residuals(PreparedCloud(tgt), src, T, gate, 2)
         sigma = 1.4826 * np.median(r[np.isfinite(r)])
         assert np.mean(r >= 3.0 * sigma) > 2.0 * 0.5 * bodies.MIN_BODY_SHARE
-        assert bodies.split_motion(src, tgt, T, sigma, gate, gate, workers=2) is None
+        assert bodies.split_trial(src, tgt, T, sigma, gate, gate, workers=2).split is None
         with pytest.MonkeyPatch.context() as mp:
             mp.setattr(bodies, "_shift_cost", lambda *args: 0.0)
-            assert bodies.split_motion(src, tgt, T, sigma, gate, gate, workers=2) is None
+            assert bodies.split_trial(src, tgt, T, sigma, gate, gate, workers=2).split is None
 
 
 def test_the_real_pair_example_prints_its_table(capsys) -> None:

@@ -8,7 +8,7 @@ compromise that point-to-plane residuals barely reject, because each surface sli
 itself. Against a nearby keyframe the residuals may carry structure or a part pull the pose
 (:mod:`spacepose.core.residual_structure`, :mod:`spacepose.core.part_influence`), or not: the
 two have hardly parted. On the few frames the tracker looks (:mod:`spacepose.core.support`),
-:func:`split_motion` looks for a second rigid motion against the first keyframe:
+:func:`split_trial` looks for a second rigid motion against the first keyframe:
 
 1. the points the compromise leaves unexplained (point-to-plane residual beyond three residual
    σ, or no surface within reach) are registered alone from it, with a redescending kernel of
@@ -101,6 +101,24 @@ class MotionSplit:
     shares: tuple[float, float]
 
 
+@dataclass(frozen=True)
+class SplitTrial:
+    """What a motion split found (:func:`split_trial`).
+
+    Attributes
+    ----------
+    split
+        The split, or None when one motion explains the frame.
+    support_apart
+        With the support's motion given: its body already fits that motion clearly better than
+        the target's, while the target's part does not yet fit its own clearly better (a still
+        support under a target that has turned little since the reference).
+    """
+
+    split: MotionSplit | None
+    support_apart: bool = False
+
+
 def checked_registration_inputs(
     points: PointCloud | ArrayLike,
     ref: PreparedCloud | PointCloud,
@@ -157,7 +175,7 @@ def nearest_within(
     return moved, *find_correspondences(ref.tree, moved, gate, workers)
 
 
-def split_motion(
+def split_trial(
     points: PointCloud | ArrayLike,
     ref: PreparedCloud | PointCloud,
     T_ref_frame: ArrayLike,
@@ -167,7 +185,7 @@ def split_motion(
     workers: int = -1,
     second: ArrayLike | None = None,
     max_condition: float = 1e3,
-) -> MotionSplit | None:
+) -> SplitTrial:
     """Look for a second rigid motion among a frame's points (module docstring).
 
     Parameters
@@ -201,8 +219,8 @@ def split_motion(
 
     Returns
     -------
-    MotionSplit or None
-        None when one motion explains the frame (or a second cannot be fitted).
+    SplitTrial
+        Its split None when one motion explains the frame (or a second cannot be fitted).
 
     Raises
     ------
@@ -231,7 +249,7 @@ def split_motion(
     unexplained = cell_costs(T_a)[0] >= cap**2
     # A body may be half explained by the compromise: half its share is enough to start from.
     if unexplained.sum() < 0.5 * MIN_BODY_SHARE * len(points):
-        return None
+        return SplitTrial(None)
     if second is not None:
         T_b = se3.as_transform(second, "second")
     else:
@@ -250,12 +268,14 @@ def split_motion(
     on_b = (c_b < c_a)[cell]
     share_b = float(on_b.mean())
     if min(share_b, 1.0 - share_b) < MIN_BODY_SHARE:
-        return None
+        return SplitTrial(None)
     # Each body's points must fit its own motion clearly better than the other's.
     fit_a = r_a[~on_b].sum() / max(r_b[~on_b].sum(), _TINY)
     fit_b = r_b[on_b].sum() / max(r_a[on_b].sum(), _TINY)
     if max(fit_a, fit_b) > FIT_RATIO:
-        return None
+        # A support whose motion is known can part from a slow target before the target's
+        # part does: the caller looks again on the next frame.
+        return SplitTrial(None, second is not None and fit_b <= FIT_RATIO)
     frame_target, shares = ~on_b, (1.0 - share_b, share_b)
     # The points each body's motion explains: what shows the reference's points seen.
     shown = (~on_b & (r_a < cap**2), on_b & (r_b < cap**2))
@@ -276,7 +296,7 @@ def split_motion(
     # explains it nearly as well as a rigid motion. A part of a tumbling target that the
     # frame's new views set apart does not.
     if rigid[1] < FIT_RATIO * shift[1] or shares[0] < 2.0 * MIN_BODY_SHARE:
-        return None
+        return SplitTrial(None)
     # The target is tracked alone after the split, and its motion was refitted on its part
     # alone: a part that does not constrain it (a flat end) lets the refit run off, and every
     # other part then fits the support's motion better (a rigid spacecraft at 25 m split into
@@ -284,14 +304,9 @@ def split_motion(
     # methods.md §5.8, step 4).
     moved = se3.transform_points(T_a, points[frame_target])
     if _condition(ref, moved, cap, reach, workers) > max_condition:
-        return None
-    return MotionSplit(
-        T_a,
-        T_b,
-        frame_target,
-        *_reference_labels(ref, points, shown, (T_a, T_b), near, workers),
-        shares,
-    )
+        return SplitTrial(None)
+    labels = _reference_labels(ref, points, shown, (T_a, T_b), near, workers)
+    return SplitTrial(MotionSplit(T_a, T_b, frame_target, *labels, shares))
 
 
 def _fit(

@@ -1,6 +1,6 @@
 """A support split off the object, followed by its own rigid motion (methods.md §5.8).
 
-Once :func:`spacepose.core.bodies.split_motion` has set a support apart from the target, a
+Once :func:`spacepose.core.bodies.split_trial` has set a support apart from the target, a
 :class:`ClutterBody` holds the support's reference points and follows them frame by frame: it
 predicts the support's pose at constant velocity from its last two poses, takes out of each
 frame the points that lie nearer the support's surface there than the target's
