@@ -220,7 +220,8 @@ def split_trial(
     Returns
     -------
     SplitTrial
-        Its split None when one motion explains the frame (or a second cannot be fitted).
+        Its ``split`` is None when one motion explains the frame (or a second cannot be
+        fitted).
 
     Raises
     ------

@@ -130,12 +130,13 @@ class SupportSeparation:
         motion tried on every look of a clean run split the target in two (methods.md §5.8),
         while a table under a target sliding over it slides along itself and shows no sign
         (lab mock-up at 6 m, noise ×3: structure 1.3-4.7, bound 5). A still split whose still
-        part stood apart while the target's did not yet (:class:`~spacepose.core.bodies.
-        SplitTrial`) is tried again on the next frame, not on the next scheduled look: under
-        noise the target's part needs more turn to fit its own motion clearly better than the
-        still part does (the lab mock-up at 6 m, ×3, constant motion, seed 1: apart on frame
-        4's look, at fit ratios 0.51 and 0.40, and split on frame 5; before, no look split it
-        in 12 frames, and frames 5-7 were `ok` 1.4-2.0° off at 14σ, after 0.4-0.8° at 2-4σ).
+        part stood apart while the target's did not yet
+        (:class:`~spacepose.core.bodies.SplitTrial`) is tried again on the next frame, not on
+        the next scheduled look: under noise the target's part needs more turn to fit its own
+        motion clearly better than the still part does (the lab mock-up at 6 m, ×3, constant
+        motion, seed 1: apart on frame 4's look, at fit ratios 0.51 and 0.40, and split on
+        frame 5; before, no look split it in 12 frames, and frames 5-7 were `ok` 1.4-2.0° off
+        at 14σ, after 0.4-0.8° at 2-4σ).
         """
         estimate = checked[0]
         if estimate is None or self.support is not None:
