@@ -40,6 +40,8 @@ def test_an_approaching_target_is_tracked_on_keyframes_from_nearer() -> None:
         result = tracker.track_frame(PointCloud(view.points), 0.5 * k)
         xi = se3.log(result.T_sensor_target @ se3.invert(T_sensor_target @ se3.invert(T_first)))
         rows.append((result.status, np.degrees(np.linalg.norm(xi[:3])), np.abs(xi) / result.sigma))
+    # The errors are scored against frame 0's pose: it must still be the target frame.
+    assert tracker.first_index == 0
     late = rows[18:]
     assert sum(status == "ok" for status, _, _ in late) >= 15
     assert all(np.all(z <= 3.0) for status, _, z in rows[1:] if status == "ok")

@@ -124,6 +124,8 @@ def test_a_target_receding_half_its_radius_a_frame_is_followed(noise) -> None:
         ok += result.status == "ok"
         if result.status == "ok":
             assert np.all(np.abs(xi) <= 3.0 * result.sigma + 1e-12), k
+    # The errors are scored against frame 0's pose: it must still be the target frame.
+    assert tracker.first_index == 0
     # Measured: at most 0.04° and 2.2 mm (noise-free), 0.04° and 1.4 mm (the ToF's noise).
     assert max(e[0] for e in errors) < 0.05 and max(e[1] for e in errors) < 3.0
     assert ok >= 6
