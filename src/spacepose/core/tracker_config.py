@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from pydantic import Field, PositiveFloat, model_validator
+from pydantic import Field, PositiveFloat, field_validator, model_validator
 
 from spacepose.core.background import BackgroundConfig
 from spacepose.core.config import StageConfig
@@ -34,6 +34,9 @@ from spacepose.core.ransac import RansacConfig
 # RMSE test cut short).
 _ICP_RMSE_TOLERANCE = 1.6e-4
 _GICP_STEP_TOLERANCE = 1.6e-3
+# Largest of the factors the tracker squares on the way to a covariance or a crop radius (σ
+# floors, the range bias, the crop margin): 1e160 overflowed in a traceback. The EKF's largest σ.
+_LARGEST_FACTOR = 1e50
 
 
 class KeyframeConfig(StageConfig):
@@ -305,6 +308,21 @@ class TrackerConfig(StageConfig):
     floor_rotation: float = Field(0.00145, ge=0)
     floor_motion: float = Field(0.01, ge=0)
     range_bias: float = Field(1.0, ge=0)
+
+    @field_validator(
+        "crop_margin", "floor_translation", "floor_rotation", "floor_motion", "range_bias"
+    )
+    @classmethod
+    def _square_stays_finite(cls, value: float) -> float:
+        """A factor the tracker squares (a σ floor, the range bias, the crop margin): 1e160
+        ended ``track`` in an OverflowError traceback."""
+        if value > _LARGEST_FACTOR:
+            raise ValueError(
+                f"{value:g} is too large: the tracker squares it, which overflows (at most "
+                f"{_LARGEST_FACTOR:g})"
+            )
+        return value
+
     background: BackgroundConfig = BackgroundConfig()
     mls: MLSConfig = MLSConfig()
     normals: NormalsConfig = NormalsConfig(k=15)

@@ -96,6 +96,11 @@ def _open_reader(path: Path) -> Iterator[Any]:
         reader.open()
     except (AnyReaderError, OSError, ValueError, KeyError) as exc:
         raise FileFormatError(f"cannot open the bag: {exc}", path) from None
+    except (TypeError, MemoryError):
+        # rosbags' own slips on a damaged MCAP: an end right after its magic bytes (ord() of
+        # nothing), a record length of 2**62 allocated as it stands; each a traceback.
+        problem = "truncated or corrupt (cut short, or a record longer than the file)"
+        raise FileFormatError(f"cannot open the bag: {problem}", path) from None
     try:
         yield reader
     finally:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from spacepose.core.config import read_mapping, validate_config
+from spacepose.core.config import holds_boolean, holds_text, read_mapping, validate_config
 from spacepose.core.depth import DepthCamera, pixel_rays
 from spacepose.core.lens import check_distortion_model, distort, matrix_fields
 from spacepose.errors import ConfigError, InputError, SpaceposeWarning
@@ -132,7 +132,7 @@ def _not_given_twice(rest: dict, given: tuple[str, ...], layout: str) -> dict:
 def _open3d_fields(data: dict) -> dict:
     """Our fields from Open3D's ``PinholeCameraIntrinsic`` JSON (the matrix column-major)."""
     rest = dict(data)
-    values = rest.pop("intrinsic_matrix")
+    values = _numbers(rest.pop("intrinsic_matrix"), "intrinsic_matrix")
     try:
         K = np.asarray(values, dtype=np.float64).reshape(3, 3).T
     except (TypeError, ValueError):
@@ -159,7 +159,18 @@ def _matrix_data(entry: object, name: str, size_checked: bool = False) -> list:
     if not isinstance(entry, list):
         # numpy would read a lone number as a list of one (distortion k1 = that number).
         raise InputError(f"{name} must be a list of numbers or {{rows, cols, data}}, got {entry!r}")
-    return entry
+    return _numbers(entry, name)
+
+
+def _numbers(values: object, name: str) -> object:
+    """``values`` (a matrix's numbers), refused when they hold a yes/no or text: numpy read
+    ``true`` as a focal length of 1 px and ``"200"`` as 200, where our own layout's fields
+    refuse both."""
+    if holds_boolean(values):
+        raise InputError(f"{name} holds a yes/no where numbers go")
+    if holds_text(values):
+        raise InputError(f"{name} holds text where numbers go (a number is written unquoted)")
+    return values
 
 
 def check_camera(camera: DepthCamera, source: str | Path) -> None:

@@ -184,8 +184,16 @@ def with_scenario_noise(
     Raises
     ------
     ConfigError
-        A value that is not a valid setting (an edited scenario).
+        A value that is not a valid setting, or ``process_noise`` or ``config`` that is no
+        mapping (an edited scenario).
     """
+    for key, holds in (("process_noise", "sigma_accel"), ("config", "chaser_attitude_sigma_deg")):
+        value = description.get(key)
+        if value is not None and not isinstance(value, dict):
+            # "process_noise: 1.25e-6" was passed over without a word: the default noise used.
+            raise ConfigError(
+                f"{source}: {key} must be a mapping (such as {holds}: value), got {value!r}"
+            )
     given = config.ekf.model_fields_set
     ekf: dict[str, object] = {}
     noise = description.get("process_noise")

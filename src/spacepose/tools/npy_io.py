@@ -140,6 +140,10 @@ def read_npz(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | Non
     except Exception as exc:  # zipfile/zlib errors of a corrupt archive have no common base
         raise FileFormatError(f"bad or truncated .npz: {exc}", path) from None
     for name, arr in (("points", points), ("normals", normals)):
+        if arr is not None and not isinstance(arr, np.ndarray):
+            # numpy hands a member without the .npy header back as its bytes: an
+            # AttributeError traceback on .ndim.
+            raise FileFormatError(f".npz '{name}' is no .npy array (no NumPy header)", path)
         if arr is not None and (arr.ndim != 2 or arr.shape[1] != 3 or arr.dtype.kind not in "fiu"):
             raise FileFormatError(f".npz '{name}' must be numeric (N, 3), got {arr.shape}", path)
     if normals is not None and len(normals) != len(points):

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from spacepose.core import se3
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import holds_boolean
+from spacepose.core.config import holds_boolean, holds_text
 from spacepose.core.structured_text import load_structured, parse_problem
 from spacepose.errors import FileFormatError, InputError, RegistrationError, SpaceposeWarning
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES, read_sensor_cloud
@@ -41,6 +41,7 @@ def read_transform(path: str | Path) -> NDArray[np.float64]:
     path = Path(path)
     text = read_text(path, "the transform")
     expected = "expected 16 numbers (a 4x4 matrix) or JSON with T_target_source"
+    problem = None
     try:
         # register's own --out is JSON whatever its name (result.txt): told by its first
         # character, it was "expected ... JSON with T_target_source" though it held one.
@@ -49,17 +50,21 @@ def read_transform(path: str | Path) -> NDArray[np.float64]:
             # A bare matrix is the transform as the key's is: refused, it was "expected" the
             # 4x4 matrix it held.
             values = data["T_target_source"] if isinstance(data, dict) else data
+            if holds_text(values):  # numpy would read "0.5" as 0.5, where configs refuse it
+                problem = "text where a number goes (write it unquoted)"
         else:
             # '#' comments, as in the T_target_source.txt small_gicp ships and hand-written
             # files: "expected 16 numbers" of a file that held them.
             values = " ".join(line.split("#", 1)[0] for line in text.splitlines()).split()
         if holds_boolean(values):  # numpy would read true as 1
-            raise ValueError("a yes/no where a number goes")
+            problem = "a yes/no where a number goes"
         T = np.asarray(values, dtype=np.float64).reshape(4, 4)
     except json.JSONDecodeError as exc:  # where the JSON breaks, not only what was expected
         raise FileFormatError(f"{expected}: not valid JSON: {parse_problem(exc)}", path) from None
     except (ValueError, KeyError, TypeError):
         raise FileFormatError(expected, path) from None
+    if problem is not None:
+        raise FileFormatError(f"{expected}: {problem}", path)
     if np.isfinite(T).all():
         # Written by hand to 4 decimals (0.8660 for cos 30°) a rotation is off orthonormal by
         # ~1e-4, beyond as_transform's 1e-6: read as the rotation it rounds, as KITTI files are.

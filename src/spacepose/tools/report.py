@@ -28,7 +28,7 @@ from pathlib import Path
 from spacepose import __version__
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 from spacepose.tools.outputs import check_spares_inputs, check_writable
-from spacepose.tools.report_files import Skipped, read_json, scenario_name
+from spacepose.tools.report_files import Skipped, read_bytes, read_json, scenario_name
 from spacepose.tools.report_html import html_figure, html_table
 from spacepose.tools.report_runs import (
     mls_section,
@@ -65,7 +65,7 @@ def _experiments_section(root: Path, skipped: Skipped) -> str:
                 parts.append(f"<pre class='muted'>{html.escape(text)}</pre>")
         for png in sorted(folder.glob("*.png")):
             # A folder or a broken link named as a figure: left out, not the whole report.
-            parts.append(skipped.guard(png, lambda p=png: html_figure(p.read_bytes(), p.stem)))
+            parts.append(skipped.guard(png, lambda p=png: html_figure(read_bytes(p), p.stem)))
     return "".join(parts)
 
 

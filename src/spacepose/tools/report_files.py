@@ -15,7 +15,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from spacepose.core.structured_text import load_structured, not_text, parse_problem
+from spacepose.core.structured_text import load_structured, not_a_file, not_text, parse_problem
 from spacepose.errors import FileFormatError, InputError, SpaceposeError, SpaceposeWarning
 from spacepose.tools.report_html import html_table
 
@@ -78,12 +78,32 @@ def read_json(path: Path) -> object:
     Raises
     ------
     FileFormatError
-        Not valid JSON (or not text).
+        Not valid JSON (or not text), or a pipe or a device.
     """
     try:
-        return load_structured(path.read_text(), "json")
+        return load_structured(_regular(path).read_text(), "json")
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise FileFormatError(f"not valid JSON: {parse_problem(exc)}", path) from None
+
+
+def read_bytes(path: Path) -> bytes:
+    """The bytes of a file (a figure).
+
+    Raises
+    ------
+    FileFormatError
+        A pipe or a device.
+    """
+    return _regular(path).read_bytes()
+
+
+def _regular(path: Path) -> Path:
+    """``path``, refused when a pipe or a device: one named bench.json, EST.health.csv or a
+    figure's .png held the report up for ever, waiting for a writer (a folder or a missing
+    file is left to the read's own error)."""
+    if path.exists() and not (path.is_file() or path.is_dir()):
+        raise FileFormatError(str(not_a_file(path)), path)
+    return path
 
 
 def read_csv(path: Path, required: Sequence[str] = ()) -> dict[str, list[str]]:
@@ -103,12 +123,13 @@ def read_csv(path: Path, required: Sequence[str] = ()) -> dict[str, list[str]]:
     Raises
     ------
     FileFormatError
-        Not text, not CSV, a row of another length than the header, a required column missing.
+        Not text, not CSV, a row of another length than the header, a required column missing,
+        or a pipe or a device.
     InputError
         No data rows.
     """
     try:
-        with path.open(newline="") as fh:
+        with _regular(path).open(newline="") as fh:
             reader = csv.reader(fh)
             lines = [(reader.line_num, row) for row in reader]
     except UnicodeDecodeError as exc:

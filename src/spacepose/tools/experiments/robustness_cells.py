@@ -244,8 +244,9 @@ def select_cells(
     if cells is not None and is_cells_file(cells):
         source = cells
         grid = load_config(RobustnessGrid, cells)
-        # An empty file would otherwise mean the whole grid, hours of runs nobody asked for.
-        if not grid.model_fields_set:
+        # An empty file would otherwise mean the whole grid, hours of runs nobody asked for;
+        # so would one of frames alone (1,500 runs for "frames: 5").
+        if not grid.model_fields_set & set(AXES):
             raise ConfigError(f"{cells}: holds no cells; set any of {', '.join(AXES)}")
         named = {a: getattr(grid, a) for a in grid.model_fields_set}
         grid = validate_config(RobustnessGrid, base | named, source=source)
