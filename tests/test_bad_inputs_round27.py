@@ -260,3 +260,33 @@ def test_a_cells_file_of_frames_alone_is_not_the_whole_grid(tmp_path):
     cells.write_text("frames: 5\nseed: [0]\n")
     runs, frames = select_cells(str(cells), quick=True, frames=None)
     assert len(runs) == 1 and frames == 5
+
+
+def test_an_obj_face_on_vertex_zero_is_named(tmp_path):
+    """OBJ counts vertices from 1: trimesh read ``f 0 1 2`` as a face on the last vertex, and
+    the file was refused as "all 1 triangles have zero area" (or, beside good faces, rendered
+    with a wrong one)."""
+    from spacepose.core.sim.mesh_files import load_mesh
+
+    vertices = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
+    for faces in ("f 0 1 2\n", "f 2 3 4\nf 0 1 2\n"):
+        path = tmp_path / "model.obj"
+        path.write_text(vertices + faces)
+        with pytest.raises(FileFormatError, match=r"refers to vertex 0.*OBJ numbers them from 1"):
+            load_mesh(path)
+    path.write_text(vertices + "f 1 2 3\nf 2 3 4\n")
+    assert len(load_mesh(path).mesh.faces) == 2
+
+
+def test_a_ros_camera_matrix_announced_of_another_size_is_refused(tmp_path):
+    """A ``camera_matrix`` announced 2 x 3 with 9 numbers was read as the 3 x 3 they make; the
+    same mismatch in ``distortion_coefficients`` was already refused."""
+    from spacepose.tools.intrinsics_io import read_intrinsics
+
+    path = tmp_path / "intrinsics.yaml"
+    text = _ros_yaml("[200, 0, 79.5, 0, 200, 59.5, 0, 0, 1]")
+    path.write_text(text.replace("rows: 3\n  cols: 3", "rows: 2\n  cols: 3", 1))
+    with pytest.raises(ConfigError, match=r"intrinsics\.yaml: camera_matrix announces rows 2 x"):
+        read_intrinsics(path)
+    path.write_text(text)
+    assert read_intrinsics(path) is not None

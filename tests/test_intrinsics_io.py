@@ -84,7 +84,7 @@ def test_a_ros_camera_info_yaml_is_an_intrinsics_file(tmp_path):
         (("data: [505.2, 0, 318.7", "data: [505.2, 3.0, 318.7"), "must be"),  # skew
         (
             ("data: [505.2, 0, 318.7, 0, 506.9, 241.3, 0, 0, 1]", "data: [505.2, 0]"),
-            "needs 9 numbers, got 2",
+            "announces rows 3 x cols 3 = 9 numbers, its data holds 2",
         ),
         (("data: [505.2, 0, 318.7", "data: [0, 0, 318.7"), "no focal length"),
         (("plumb_bob", "equidistant"), "equidistant"),

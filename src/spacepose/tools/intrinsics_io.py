@@ -93,7 +93,7 @@ _ROS_GIVES = (*_OPEN3D_GIVES, "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
 def _ros_fields(data: dict) -> dict:
     """Our fields from ROS's ``camera_info`` YAML layout (and any of ours beside it)."""
     rest = {k: v for k, v in data.items() if k not in _ROS_UNUSED}
-    K = _matrix_data(rest.pop("camera_matrix"), "camera_matrix")
+    K = _matrix_data(rest.pop("camera_matrix"), "camera_matrix", size_checked=True)
     D = _matrix_data(
         rest.pop("distortion_coefficients", None) or {"data": []},
         "distortion_coefficients",
@@ -147,8 +147,8 @@ def _matrix_data(entry: object, name: str, size_checked: bool = False) -> list:
         if "data" not in entry:
             raise InputError(f"{name} has no data")
         rows, cols, data = entry.get("rows"), entry.get("cols"), entry["data"]
-        # A list cut short (5 coefficients announced, 1 given) read as k1 alone without a word;
-        # the camera matrix's own count (9) is checked by matrix_fields.
+        # A list cut short (5 coefficients announced, 1 given) read as k1 alone without a word,
+        # and a camera matrix announced 2 x 3 with 9 numbers as the 3 x 3 its data makes.
         sized = all(isinstance(v, int) and not isinstance(v, bool) for v in (rows, cols))
         if sized and size_checked and isinstance(data, list) and rows * cols != len(data):
             raise InputError(

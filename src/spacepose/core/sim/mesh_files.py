@@ -64,6 +64,11 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
         raise FileFormatError(problem, path) from None
     if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
         raise FileFormatError("the file holds no triangles", path)
+    # trimesh reads an OBJ face on vertex 0 (OBJ counts from 1) as one on the last vertex: the
+    # file loaded, with a wrong face, or was refused as "all triangles have zero area".
+    problem = _obj_face_problem(path)
+    if problem is not None:
+        raise FileFormatError(problem, path)
     faces, vertices = np.asarray(raw.faces), np.asarray(raw.vertices)
     # A face on a vertex the file does not hold ended in numpy's "index 8 is out of bounds for
     # axis 0 with size 4", naming neither the face nor the vertex count.
