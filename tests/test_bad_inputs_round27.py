@@ -290,3 +290,21 @@ def test_a_ros_camera_matrix_announced_of_another_size_is_refused(tmp_path):
         read_intrinsics(path)
     path.write_text(text)
     assert read_intrinsics(path) is not None
+
+
+def test_a_health_row_at_no_time_is_not_paired_by_position(tmp_path):
+    """A health table row whose time is NaN (a cell another tool blanked to "nan") compared as
+    no mismatch, and its lost flag was laid on the pose in its row without a word; the table is
+    now another run's, as a row at another time makes it: lost frames scored, and said so."""
+    from spacepose.errors import SpaceposeWarning
+    from spacepose.tools.evaluation import compare_trajectory_files
+    from test_bad_inputs_round5 import noisy_pair
+
+    est_path, gt_path = noisy_pair(tmp_path, 23)
+    rows = [f"{k},{'nan' if k == 5 else float(k)},{'lost' if k == 3 else 'ok'}" for k in range(10)]
+    (tmp_path / "est.health.csv").write_text("frame,timestamp,status\n" + "\n".join(rows) + "\n")
+    with pytest.warns(SpaceposeWarning) as caught:
+        result = compare_trajectory_files(est_path, gt_path)
+    assert result.table.n == 10
+    note = "est.health.csv row 6 is at t = nan s, pose 5 at 5 s: lost frames, if any, are scored"
+    assert f"{est_path}: {note}" in [str(w.message) for w in caught]

@@ -415,7 +415,8 @@ def _other_times(rows: list[dict[str, str]], timestamps: np.ndarray) -> tuple[in
         times = np.array([float(row["timestamp"]) for row in rows])
     except (KeyError, TypeError, ValueError):
         return None
-    off = np.flatnonzero(np.abs(times - timestamps) > TIMESTAMP_TOLERANCE)
+    # Not "> tolerance": a NaN time compares False and its row was paired by position.
+    off = np.flatnonzero(~(np.abs(times - timestamps) <= TIMESTAMP_TOLERANCE))
     return None if not len(off) else (int(off[0]), float(times[off[0]]))
 
 
