@@ -93,11 +93,9 @@ _ROS_GIVES = (*_OPEN3D_GIVES, "k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
 def _ros_fields(data: dict) -> dict:
     """Our fields from ROS's ``camera_info`` YAML layout (and any of ours beside it)."""
     rest = {k: v for k, v in data.items() if k not in _ROS_UNUSED}
-    K = _matrix_data(rest.pop("camera_matrix"), "camera_matrix", size_checked=True)
+    K = _matrix_data(rest.pop("camera_matrix"), "camera_matrix")
     D = _matrix_data(
-        rest.pop("distortion_coefficients", None) or {"data": []},
-        "distortion_coefficients",
-        size_checked=True,
+        rest.pop("distortion_coefficients", None) or {"data": []}, "distortion_coefficients"
     )
     model = rest.pop("distortion_model", None)
     size = {"width": rest.pop("image_width", None), "height": rest.pop("image_height", None)}
@@ -140,9 +138,9 @@ def _open3d_fields(data: dict) -> dict:
     return matrix_fields(K) | _not_given_twice(rest, _OPEN3D_GIVES, "intrinsic_matrix")
 
 
-def _matrix_data(entry: object, name: str, size_checked: bool = False) -> list:
-    """A ROS YAML matrix's numbers: ``{rows, cols, data}`` or a bare list; with
-    ``size_checked``, refused when ``data`` does not hold ``rows x cols`` numbers."""
+def _matrix_data(entry: object, name: str) -> list:
+    """A ROS YAML matrix's numbers: ``{rows, cols, data}`` (refused when ``data`` does not hold
+    ``rows x cols`` numbers) or a bare list."""
     if isinstance(entry, dict):
         if "data" not in entry:
             raise InputError(f"{name} has no data")
@@ -150,7 +148,7 @@ def _matrix_data(entry: object, name: str, size_checked: bool = False) -> list:
         # A list cut short (5 coefficients announced, 1 given) read as k1 alone without a word,
         # and a camera matrix announced 2 x 3 with 9 numbers as the 3 x 3 its data makes.
         sized = all(isinstance(v, int) and not isinstance(v, bool) for v in (rows, cols))
-        if sized and size_checked and isinstance(data, list) and rows * cols != len(data):
+        if sized and isinstance(data, list) and rows * cols != len(data):
             raise InputError(
                 f"{name} announces rows {rows} x cols {cols} = {rows * cols} numbers, "
                 f"its data holds {len(data)}"
