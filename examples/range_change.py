@@ -114,7 +114,9 @@ def near_table(mesh: trimesh.Trimesh) -> None:
             for seed in (1, 2):
                 run = Run(start_m, end_m, wall_m, 3.0, 20, (0.1, -0.05))
                 s = track_run(mesh, run, noise, seed)
-                errors = [1e3 * e for *_, e in s.frames]
+                # No frame after the target frame (found last, or never): nan, not max()'s
+                # ValueError on an empty list.
+                errors = [1e3 * e for *_, e in s.frames] or [float("nan")]
                 where = "alone" if wall_m is None else f"wall at {wall_m} m"
                 print(
                     f"| {start_m} → {end_m} m | {where} | ×{noise:g} | {seed} | {s.ok()} | "
@@ -132,7 +134,7 @@ def far_table(mesh: trimesh.Trimesh) -> None:
             for seed in (1, 2, 3):
                 run = Run(start_m, 1.5, None, 2.0, 36, (0.05, -0.03))
                 s = track_run(mesh, run, noise, seed)
-                late = [deg for k, _, _, deg, _ in s.frames if k >= run.frames // 2]
+                late = [deg for k, _, _, deg, _ in s.frames if k >= run.frames // 2] or [np.nan]
                 print(
                     f"| {start_m} → 1.5 m | ×{noise:g} | {seed} | {s.first} | {s.ok()} | "
                     f"{s.ok(3.0)} | {s.ok(5.0)} | {np.median(late):.2f} |",

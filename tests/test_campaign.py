@@ -504,7 +504,7 @@ def test_tracking_runner_scores_a_short_lab_run_against_truth() -> None:
 
 
 def test_a_campaign_whose_every_case_failed_says_so_and_exits_1(tmp_path, capsys, scheduler):
-    """Its one case failed (a noise scale of 1e300 puts the points past float64's squares),
+    """Its one case failed (a noise scale of 1e300, whose noise overflows, is refused),
     and the command printed "1 cases (1 computed, 0 already done)" with exit code 0: the
     failure sat in the table's error column alone."""
     config = tmp_path / "c.yaml"
@@ -518,7 +518,7 @@ def test_a_campaign_whose_every_case_failed_says_so_and_exits_1(tmp_path, capsys
     assert "1 cases (1 computed, 0 already done, 1 failed (why: the error column))" in " ".join(
         printed.out.split()
     )
-    assert f"error: {config}: every case failed (the first: InputError: " in printed.err
+    assert f"error: {config}: every case failed (the first: ConfigError: " in printed.err
 
 
 def test_a_grid_value_no_scalar_type_takes_is_said_in_one_line(tmp_path, capsys):

@@ -310,12 +310,18 @@ class TrackerConfig(StageConfig):
     range_bias: float = Field(1.0, ge=0)
 
     @field_validator(
-        "crop_margin", "floor_translation", "floor_rotation", "floor_motion", "range_bias"
+        "crop_margin",
+        "floor_translation",
+        "floor_rotation",
+        "floor_motion",
+        "range_bias",
+        "covariance_scale",
     )
     @classmethod
     def _square_stays_finite(cls, value: float) -> float:
-        """A factor the tracker squares (a σ floor, the range bias, the crop margin): 1e160
-        ended ``track`` in an OverflowError traceback."""
+        """A factor the tracker squares (a σ floor, the range bias, the crop margin, the
+        covariance's scale): 1e160 ended ``track`` in an OverflowError traceback, and a
+        covariance scale of 1e300 made every frame "degraded" at σ of 1e146 without a word."""
         if value > _LARGEST_FACTOR:
             raise ValueError(
                 f"{value:g} is too large: the tracker squares it, which overflows (at most "

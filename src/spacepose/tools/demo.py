@@ -27,6 +27,7 @@ from rich.table import Table
 from spacepose.core.metrics import evaluate, navigation_errors
 from spacepose.core.navigation import NavigationConfig
 from spacepose.core.sim import scenario_config, simulate
+from spacepose.errors import InputError
 from spacepose.tools.experiments import ExperimentOptions, run_experiment
 from spacepose.tools.experiments.li import AXES, METHODS, PAPER_TABLE2
 from spacepose.tools.experiments.yu_nav import navigation_config
@@ -101,6 +102,7 @@ def run_demo(
         Receives one line per step.
     """
     root = Path(out)
+    _check_out_folder(root)
     seconds: dict[str, float] = {}
 
     def step(name: str, fn: Callable[[], Any]) -> Any:
@@ -145,6 +147,25 @@ def run_demo(
     )
     report = step("report", lambda: build_report(root))
     return DemoResult(li_table, yu_table, report, seconds)
+
+
+def _check_out_folder(root: Path) -> None:
+    """Refuse an ``--out`` that is (or lies under) a regular file: the demo failed after its
+    first simulation on "FILE/lab/tracks/point_to_point.tum: Not a directory".
+
+    Raises
+    ------
+    InputError
+        One line naming ``root``: it is a file, or lies under one.
+    """
+    existing = root
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if existing.exists() and not existing.is_dir():
+        where = "is a file, not a folder" if existing == root else f"lies under {existing}, a file"
+        raise InputError(
+            f"--out {where}: the demo writes its runs and report.html into a folder", root
+        )
 
 
 def _li_table(lab_dir: Path) -> dict[str, dict[str, tuple[float, float]]]:

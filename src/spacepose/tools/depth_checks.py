@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from spacepose.core.cloud import MM_MIN_EXTENT, PointCloud, check_scale
+from spacepose.core.cloud import MAX_ABS_COORDINATE, MM_MIN_EXTENT, PointCloud, check_scale
 from spacepose.core.depth import DepthCamera
 from spacepose.errors import InputError, SpaceposeWarning
 from spacepose.tools.cloud_io import warn_if_not_metres, warn_if_too_near
@@ -215,6 +215,16 @@ def why_no_return(values: NDArray, camera: DepthCamera, path: str | Path) -> Inp
             path,
         )
     returns = z[finite & (z > 0)]
+    if len(returns) and np.max(returns) > MAX_ABS_COORDINATE:
+        # The cloud's own error blamed the frame ("points reach |coordinate| 1.5e+303") for a
+        # depth_scale of 1e300.
+        scale = camera.metres_per_unit(values.dtype)
+        given = "given" if camera.depth_scale is not None else "the default for its type"
+        return InputError(
+            f"depths reach {np.max(returns):.3g} m at a depth_scale of {scale:g} m per stored "
+            f"unit ({given}), beyond {MAX_ABS_COORDINATE:.3g} m: a wrong depth_scale?",
+            path,
+        )
     if camera.max_depth is None or len(returns) == 0 or np.min(returns) < camera.max_depth:
         return None
     return InputError(

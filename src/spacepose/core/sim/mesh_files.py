@@ -7,6 +7,7 @@ named here, with the file, before anything is rendered.
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 
@@ -15,8 +16,9 @@ import trimesh
 from numpy.typing import NDArray
 
 from spacepose.core.cloud import MAX_ABS_COORDINATE
+from spacepose.core.ply_checks import read_checked_ply
 from spacepose.core.sim.targets import Target, sheet_faces
-from spacepose.core.structured_text import not_a_file
+from spacepose.core.structured_text import not_a_file, parse_problem
 from spacepose.errors import FileFormatError, InputError, SpaceposeWarning
 
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
@@ -60,15 +62,22 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
         # "no triangles").
         raw = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files; report them alike
-        problem = _obj_face_problem(path) or _not_ply(path) or f"cannot read mesh: {exc}"
-        raise FileFormatError(problem, path) from None
+        problem = _obj_face_problem(path) or _not_ply(path) or _not_gltf(path)
+        problem = problem or _off_problem(path) or _stl_problem(path)
+        raise FileFormatError(problem or f"cannot read mesh: {exc}", path) from None
     if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
-        raise FileFormatError("the file holds no triangles", path)
+        # A binary STL whose header miscounts its triangles was "no triangles" too.
+        raise FileFormatError(_stl_problem(path) or "the file holds no triangles", path)
     # trimesh reads an OBJ face on vertex 0 (OBJ counts from 1) as one on the last vertex: the
-    # file loaded, with a wrong face, or was refused as "all triangles have zero area".
-    problem = _obj_face_problem(path)
+    # file loaded, with a wrong face, or was refused as "all triangles have zero area". An OFF
+    # file miscounted was read by its counts: faces dropped or taken as vertices, no word.
+    problem = _obj_face_problem(path) or _off_problem(path)
     if problem is not None:
         raise FileFormatError(problem, path)
+    if path.suffix.lower() == ".ply":
+        # trimesh read an ASCII PLY cut before its last faces, or a face list shorter or longer
+        # than its count, as the faces it could make out, without a word.
+        read_checked_ply(path)
     faces, vertices = np.asarray(raw.faces), np.asarray(raw.vertices)
     # A face on a vertex the file does not hold ended in numpy's "index 8 is out of bounds for
     # axis 0 with size 4", naming neither the face nor the vertex count.
@@ -182,6 +191,93 @@ def _not_ply(path: Path) -> str | None:
     if head.rstrip(b"\r\n") == b"ply":
         return None
     return f"not a PLY file: it begins with {head!r}, not the line 'ply'"
+
+
+def _not_gltf(path: Path) -> str | None:
+    """Why a .gltf file is not glTF's JSON (trimesh said "cannot read mesh: model.gltf" of a
+    text that is not JSON, or "'list' object has no attribute 'get'" of a JSON array), or None."""
+    if path.suffix.lower() != ".gltf":
+        return None
+    try:
+        text = path.read_bytes()
+    except OSError:
+        return None  # unreadable: trimesh's own error stands
+    try:
+        document = json.loads(text.decode("utf-8"))
+    except UnicodeDecodeError:
+        return "not valid glTF JSON: not UTF-8 text (a binary .glb named .gltf?)"
+    except json.JSONDecodeError as exc:
+        return f"not valid glTF JSON: {parse_problem(exc)}"
+    except RecursionError:
+        return "not valid glTF JSON: nested too deep"
+    if not isinstance(document, dict):
+        kind = "an array" if isinstance(document, list) else "a single value"
+        return f"not valid glTF JSON: it holds {kind}, not glTF's object of 'asset', 'meshes', ..."
+    return None
+
+
+def _off_problem(path: Path) -> str | None:
+    """Why an OFF file's body does not hold what its counts say, in words, or None.
+
+    trimesh read it by its counts: a face line beyond them was dropped, one short of them (or
+    of a vertex) taken from the next section (a face read as a vertex), a face listing fewer
+    corners than its count read as the corners it lists.
+    """
+    if path.suffix.lower() != ".off":
+        return None
+    try:
+        text = path.read_text(errors="replace")
+    except OSError:
+        return None  # unreadable: trimesh's own error stands
+    lines = [fields for line in text.splitlines() if (fields := line.split("#")[0].split())]
+    if not lines or not lines[0][0].upper().endswith("OFF"):
+        return None
+    counts, rest = lines[0][1:], lines[1:]
+    if not counts and rest:
+        counts, rest = rest[0], rest[1:]
+    try:
+        vertices, faces = int(counts[0]), int(counts[1])
+    except (IndexError, ValueError):
+        return None  # no counts: trimesh's own error stands
+    if len(rest) != vertices + faces:
+        return (
+            f"the header counts {vertices:,} vertices and {faces:,} faces, {vertices + faces:,} "
+            f"lines, but {len(rest):,} follow it: a cut or miscounted OFF file"
+        )
+    for k, fields in enumerate(rest[:vertices], start=1):
+        if len(fields) < 3:
+            return f"vertex {k} has {len(fields)} coordinates, not 3"
+    for k, fields in enumerate(rest[vertices:], start=1):
+        corners = int(fields[0]) if fields[0].isdigit() else -1
+        if not 0 <= corners <= len(fields) - 1:
+            return f"face {k} counts {fields[0]} corners but lists {len(fields) - 1}"
+    return None
+
+
+def _stl_problem(path: Path) -> str | None:
+    """Why a binary STL file does not hold the triangles its header counts, or None (trimesh
+    called it "the file holds no triangles")."""
+    if path.suffix.lower() != ".stl":
+        return None
+    try:
+        size = path.stat().st_size
+        with path.open("rb") as fh:
+            head = fh.read(84)
+    except OSError:
+        return None
+    if len(head) < 84:
+        return (
+            None
+            if head.lstrip().lower().startswith(b"solid")
+            else (f"a binary STL of {size} bytes, shorter than its 84-byte header")
+        )
+    count = int.from_bytes(head[80:84], "little")
+    if size == 84 + 50 * count or head.lstrip().lower().startswith(b"solid"):
+        return None  # as counted, or ASCII STL: trimesh's own error stands
+    return (
+        f"its header counts {count:,} triangles ({84 + 50 * count:,} bytes), but the file holds "
+        f"{size:,} bytes: a cut or miscounted binary STL"
+    )
 
 
 def _obj_face_problem(path: Path) -> str | None:

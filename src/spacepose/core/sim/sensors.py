@@ -44,6 +44,10 @@ from spacepose.errors import ConfigError
 SensorModel = Literal["tof", "flash-lidar", "gaussian"]
 # A float64 hit this far outside its triangle (in barycentric units) is a graze, not a hit.
 _BARYCENTRIC_TOL = 1e-12
+# Largest noise σ (m): a frame's draws stay within 10σ, and its noisy points within float32,
+# in which a run's frames are written (a noise_scale of 1e300 failed at frame 0 on "points
+# reach |coordinate| 5.4e+297", 1e40 on writing the frame, naming neither the option nor σ).
+_LARGEST_SIGMA = float(np.finfo(np.float32).max) / 10
 
 
 class SensorConfig(StageConfig):
@@ -109,6 +113,26 @@ class SensorConfig(StageConfig):
     def _amplitude_floor(self) -> SensorConfig:
         if self.amplitude_exponent > 0 and self.min_amplitude == 0:
             raise ValueError("amplitude_exponent > 0 needs min_amplitude > 0 (σ would be infinite)")
+        return self
+
+    @model_validator(mode="after")
+    def _noise_stays_finite(self) -> SensorConfig:
+        """Refuse a σ (at ``max_range``, on the weakest return) whose noisy points overflow
+        float32, in which a run's frames are written."""
+        if self.noise_scale == 0:
+            return self
+        try:
+            weakest = self.min_amplitude**-self.amplitude_exponent if self.min_amplitude else 1.0
+        except OverflowError:
+            weakest = math.inf
+        base = self.sigma_const + self.sigma_quad * self.max_range * self.max_range
+        sigma = self.noise_scale * base * weakest
+        if not sigma <= _LARGEST_SIGMA:  # inf, and NaN of inf * 0, alike
+            raise ValueError(
+                f"noise_scale {self.noise_scale:g} makes σ {sigma:.3g} m at max_range "
+                f"{self.max_range:g} m, beyond {_LARGEST_SIGMA:.3g} m: the noisy points would "
+                "overflow float32, in which a run's frames are written"
+            )
         return self
 
     @property

@@ -81,6 +81,9 @@ OWN_OPTIONS: tuple[str, ...] = (
     "jobs",
 )
 _USES: dict[str, tuple[str, ...]] = {}
+# Most seeds a run takes: a simulation each (with its frames) over every method or target;
+# 10**10 ended in a MemoryError traceback (fusion) or ran for ever (li-l1).
+MOST_SEEDS = 1000
 
 
 def register(name: str, uses: tuple[str, ...] = ()) -> Callable[[Experiment], Experiment]:
@@ -101,7 +104,8 @@ def check_options(name: str, options: ExperimentOptions) -> None:
     Raises
     ------
     ConfigError
-        ``--cells: experiment 'li-l1' does not use it (only robustness does)``.
+        ``--cells: experiment 'li-l1' does not use it (only robustness does)``; ``--seeds``
+        beyond :data:`MOST_SEEDS`.
     """
     defaults = ExperimentOptions()
     for option in OWN_OPTIONS:
@@ -113,6 +117,11 @@ def check_options(name: str, options: ExperimentOptions) -> None:
                 f"--{option.replace('_', '-')}: experiment {name!r} does not use it (only "
                 f"{', '.join(users)} {verb})"
             )
+    if options.seeds is not None and not 1 <= options.seeds <= MOST_SEEDS:
+        raise ConfigError(
+            f"--seeds: {options.seeds} is not a number of seeds from 1 to {MOST_SEEDS} (each is "
+            "a simulation and its runs)"
+        )
 
 
 def available() -> list[str]:
