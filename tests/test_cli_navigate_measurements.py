@@ -104,6 +104,11 @@ def test_the_poses_sigma_factor_is_measured_on_the_run(hubble_run, tmp_path, mon
     assert measured == pytest.approx(np.sqrt(max(1.0, max(noise["batch_ratios"]))))
     assert len(noise["batch_ratios"]) == len(noise["axes"]) == 6 and noise["batch"] == 2
     assert noise["frames"] % 2 == 0 and 4 <= noise["frames"] <= 8
+    # And the biases it found, taken off the poses: the effective config holds them.
+    config = json.loads((tmp_path / "a" / "nav.config.json").read_text())
+    assert config["pose_bias_sensor"] == noise["bias"]["sensor_m"]
+    assert config["pose_bias_body"] == noise["bias"]["body_m"]
+    assert len(noise["bias"]["sensor_sigma_m"]) == len(noise["bias"]["body_sigma_m"]) == 3
     assert scale(tmp_path / "b" / "nav.csv", model=hubble_run / "model.ply") == default
     off = FusionConfig(bootstrap_poses=False)
     # An earlier run's measurement in the same place is removed, not left to mislead.

@@ -141,12 +141,55 @@ def test_a_pose_the_prediction_held_never_enters_the_filter(orbit, monkeypatch, 
     assert bool(row.pose_used) is (not held)
 
 
+def _biased(nav: FusedNavigator, S: np.ndarray, B: np.ndarray) -> None:
+    """Make ``nav``'s tracker hold the biases ``S`` and ``B`` (4, 4) in the sensor's and the
+    target's frames: its poses come out ``S T B``, and a prior given to it is taken so too."""
+    track_frame = nav.tracker.track_frame
+
+    def biased(cloud, t, prior=None):
+        if prior is not None:
+            prior = (se3.invert(S) @ prior[0] @ se3.invert(B), prior[1])
+        result = track_frame(cloud, t, prior)
+        return replace(result, T_sensor_target=S @ result.T_sensor_target @ B)
+
+    nav.tracker.track_frame = biased
+
+
+def test_biases_the_tracker_holds_are_taken_off(orbit):
+    """A tracker whose poses are 2 cm off in the target's frame and 1 cm along the line of
+    sight moves the filter's pose by as much (the centre of mass and the position take them);
+    with those biases as ``pose_bias_body`` and ``pose_bias_sensor`` the filter is where it
+    is without them, its seeds included."""
+    sim, n, R_O_C, _catalogue, frames = orbit
+    b_s, b_b = np.array([0.0, 0.0, 0.01]), np.array([0.02, -0.01, 0.015])
+    S, B = se3.make_transform(np.eye(3), b_s), se3.make_transform(np.eye(3), b_b)
+    cfg = FusionConfig(measurements="registration", pose_sigma_scale=4.0, seed_after=5)
+    known = {"pose_bias_sensor": tuple(b_s), "pose_bias_body": tuple(b_b)}
+    poses = {}
+    for name, biased, config in [
+        ("plain", False, cfg),
+        ("biased", True, cfg),
+        ("taken off", True, cfg.model_copy(update=known)),
+    ]:
+        nav = FusedNavigator([], n, R_O_C, config, sim.model_cloud())
+        if biased:
+            _biased(nav, S, B)
+        rows = [nav.step(f.timestamp, f.cloud) for f in frames]
+        assert sum(r.seeded for r in rows) >= 15
+        poses[name] = nav.ekf.predict_pose()
+    expected = S @ poses["plain"] @ B
+    np.testing.assert_allclose(poses["biased"][:3, 3], expected[:3, 3], atol=2e-3)
+    np.testing.assert_allclose(poses["taken off"], poses["plain"], atol=1e-5)
+
+
 def test_configuration_errors(orbit):
     sim, n, R_O_C, catalogue, _ = orbit
     with pytest.raises(ConfigError, match="model"):
         FusedNavigator(catalogue, n, R_O_C, FusionConfig(measurements="both"), None)
     with pytest.raises(ConfigError, match="catalogue"):
         FusedNavigator([], n, R_O_C, FusionConfig(measurements="both"), sim.model_cloud())
+    with pytest.raises(ConfigError, match=r"pose_bias_sensor: .* beyond 1000 m: metres"):
+        FusionConfig(pose_bias_sensor=(1e300, 0.0, 0.0))  # overflowed the filter's pose
 
 
 def test_model_free_registration_starts_after_its_batch():
@@ -156,10 +199,25 @@ def test_model_free_registration_starts_after_its_batch():
     frames = 104
     sim = simulate_orbit(OrbitConfig(frames=frames, seed=0))
     n, R_O_C = scenario_geometry(sim.scenario())
-    cfg = FusionConfig(measurements="registration", model_free_frames=15)
+    cfg = FusionConfig(measurements="registration", model_free_frames=15, seed_after=2)
     nav = FusedNavigator([], n, R_O_C, cfg, None)
+    track_frame, seeds = nav.tracker.track_frame, []
+
+    def recorded(cloud, t, prior=None):
+        result = track_frame(cloud, t, prior)
+        if prior is not None and result.status == "ok":
+            seeds.append(se3.invert(prior[0]) @ result.T_sensor_target)
+        return result
+
+    nav.tracker.track_frame = recorded
     statuses = [nav.step(f.timestamp, f.cloud).nav.status for f in sim.frames()]
     start = statuses.index("init")
+    # The filter's prediction seeds the tracker in the tracker's own frame, the first view's:
+    # it was given the filter's body frame, the principal axes tens of degrees away.
+    assert seeds
+    for D in seeds:
+        assert Rotation.from_matrix(D[:3, :3]).magnitude() < np.radians(1.0)
+        assert np.linalg.norm(D[:3, 3]) < 0.05
     assert 15 <= start <= 100 and set(statuses[:start]) == {"waiting"}
     assert nav.T_F_B is not None and "update" in statuses[start:]
     truth = relabelled_truth(sim.truth, nav.T_F_B, sim.T_sensor_target[0])

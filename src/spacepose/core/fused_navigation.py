@@ -39,22 +39,20 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
-from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from pydantic import Field
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from spacepose.core import dynamics
+from spacepose.core import dynamics, se3
 from spacepose.core.cloud import PointCloud
-from spacepose.core.config import StageConfig, stage_config
+from spacepose.core.config import stage_config
 from spacepose.core.ekf import RelativeNavEKF
 from spacepose.core.frame_check import HELD
+from spacepose.core.fusion_config import FusionConfig, Measurements
 from spacepose.core.innovation_scale import InnovationScale
 from spacepose.core.model_free_start import model_free_start
-from spacepose.core.nav_config import NavigationConfig
 from spacepose.core.nav_result import NavRow
 from spacepose.core.nav_start import start_filter
 from spacepose.core.nav_state import NavState, seconds
@@ -62,102 +60,11 @@ from spacepose.core.navigation import RelativeNavigator, frame_pairs, orbit_geom
 from spacepose.core.rectangles import CatalogueEntry, catalogue_entries
 from spacepose.core.track_result import TrackResult
 from spacepose.core.tracker import Tracker
-from spacepose.core.tracker_config import TrackerConfig
 from spacepose.errors import ConfigError, PredictionGapError
 
 __all__ = ["FusedNavigator", "FusedRow", "FusionConfig", "Measurements", "fused_navigate"]
 
-Measurements = Literal["rectangles", "registration", "both"]
 GATE_REASON = "navigation gate"
-
-
-class FusionConfig(StageConfig):
-    """Settings of :class:`FusedNavigator`: which measurements, the filter's and the tracker's."""
-
-    measurements: Measurements = Field(
-        "registration",
-        description="rectangles (Yu), registration (the tracker's pose) or both in one filter.",
-    )
-    navigation: NavigationConfig = Field(
-        default_factory=NavigationConfig, description="The filter and the rectangle pipeline."
-    )
-    tracker: TrackerConfig = Field(
-        default_factory=lambda: TrackerConfig(range_bias=0.0),
-        description="The model-based tracker giving the poses; its range_bias is 0: one offset "
-        "shared by every frame is no independent noise of each pose, which the filter would "
-        "average away (a consider state for it is not modelled).",
-    )
-    pose_sigma_scale: float = Field(
-        3.0,
-        gt=0,
-        description="Factor on the tracker's 1-σ before the pose enters the filter (its "
-        "covariance times the square): the tracker's errors are correlated from frame to "
-        "frame, which a white-noise filter averages as if independent (×(1+ρ)/(1−ρ) in "
-        "variance), and its σ fits its errors differently on each target (tracker NEES median "
-        "2.4-2.6 on the default target, 3.0 on satellite_panels, 3.5-3.9 on the Hubble kit, "
-        "χ²₆ 5.35). On the orbit run at 25 m (registration, seeds 0-2, 600 frames), the share "
-        "of the second half with the filter's NEES inside its 95 % bounds, default / "
-        "satellite_panels / Hubble kit: 2: 100 / 100 / 63 % (Hubble seed 2: 0), 3: 59 / 96 / "
-        "95 %, 4: 11 / 76 / 95 % (docs/methods.md §2.4). Where bootstrap_poses measures "
-        "the factor on the run, the measured one replaces it (and the effective config "
-        "says so).",
-    )
-    bootstrap_poses: bool = Field(
-        True,
-        description="Where the run's mesh and sensor are known (a simulated run folder, the "
-        "fusion experiment), measure pose_sigma_scale on the run instead: the mesh rendered "
-        "at the tracker's own poses and tracked again, the errors' variance averaged over "
-        "50-frame batches (a parametric bootstrap, docs/methods.md §2.4). One factor for "
-        "every target left the filter too cautious on most (NEES inside its bounds on 0-31 "
-        "% of the second half on generated spacecraft) and too sure on the Hubble kit at 2.",
-    )
-    model_free_sigma_scale: float = Field(
-        1.0,
-        gt=0,
-        description="pose_sigma_scale for the model-free tracker's poses, whose covariance "
-        "(with the keyframe chain) is already conservative: median NEES 0.26 of 6 on the orbit "
-        "run, seed 0.",
-    )
-    seed_registration: bool = Field(
-        True,
-        description="Seed registration with the filter's predicted pose once it has taken "
-        "seed_after poses (else the tracker's own constant-velocity prediction).",
-    )
-    seed_after: int = Field(
-        10,
-        ge=1,
-        description="Pose updates the filter takes before its prediction seeds (and only "
-        "after a frame the tracker called ok and the filter took: a filter started on a wrong "
-        "pose must not hold the tracker there).",
-    )
-    use_degraded: bool = Field(
-        False,
-        description="Let poses the tracker flags degraded (unconfirmed, off the prediction) "
-        "into the filter, but for those the prediction held (their pose carries it); by "
-        "default only ok poses enter it.",
-    )
-    restart_after: int = Field(
-        10,
-        ge=1,
-        description="Registration only: consecutive poses the tracker calls ok, the filter's "
-        "gate rejects and restart_deg or more from the filter's prediction, before the filter "
-        "restarts from the tracker's pose (a start on a wrong coarse registration, e.g. a "
-        "near-symmetric twin, is otherwise never undone).",
-    )
-    model_free_frames: int = Field(
-        200,
-        ge=10,
-        description="Model-free: ok poses collected before the batch estimate of the body "
-        "frame (principal axes, centre of mass) starts the filter; the batch grows until its "
-        "moments are a rigid body's.",
-    )
-    restart_deg: float = Field(
-        5.0,
-        gt=0,
-        description="Rotation between a rejected pose and the filter's prediction that counts "
-        "towards a restart (smaller disagreements are the tracker's slow errors, which the "
-        "filter outlasts).",
-    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -277,7 +184,11 @@ class FusedNavigator:
             and self._poses_used >= self.config.seed_after
             and self._last_ok_used
         )
-        prior = (ekf.predict_pose(), ekf.pose_covariance()) if seeded else None
+        # The filter's pose in the tracker's target frame (the first view's, model-free; the
+        # model's with the tracker's bias there, model-based): a left-perturbation covariance
+        # is the same for both.
+        T_pred = None if ekf is None else self._tracker_pose(ekf.predict_pose())
+        prior = (T_pred, ekf.pose_covariance()) if seeded else None
         track = self.tracker.track_frame(cloud, t, prior)
         if track.revises and self._batch is not None:
             # Model-free, a first frame no later frame confirmed gave way to a later one
@@ -286,7 +197,6 @@ class FusedNavigator:
                 (r.timestamp, r.T_sensor_target) for r in track.revises if r.status == "ok"
             ]
         used, nis, started = None, float("nan"), False
-        T_pred = None if ekf is None else ekf.predict_pose()
         # A frame the motion model's prediction held carries that prediction, the filter's own
         # when it seeded the registration: not a measurement.
         held = HELD in track.reasons
@@ -297,9 +207,7 @@ class FusedNavigator:
             if self.rectangles is None and self._rejected_ok >= c.restart_after:
                 ekf = self._ekf = None
                 self._pose_noise = InnovationScale()  # measured on the abandoned start
-            T_meas = track.T_sensor_target
-            if self.T_F_B is not None:
-                T_meas = T_meas @ self.T_F_B
+            T_meas = self._filter_pose(track.T_sensor_target)
             if ekf is None and (row is None or row.status == "waiting"):
                 used = started = track.status == "ok" and self._start(t, T_meas)
             elif ekf is not None:
@@ -325,6 +233,34 @@ class FusedNavigator:
         self._last_ok_used = bool(used) and track.status == "ok"
         self._frames += 1
         return FusedRow(self._nav_row(t, row, bool(used), started), track, used, nis, seeded)
+
+    def _filter_pose(self, T_track: np.ndarray) -> np.ndarray:
+        """The tracker's pose (4, 4) as the filter's measurement: model-free ``T_k0 T_F_B'``
+        once the batch has found the body frame; model-based ``S⁻¹ T B⁻¹``, the tracker's
+        biases in the sensor's and the target's frames taken off (``pose_bias_sensor``,
+        ``pose_bias_body``), which the filter would take for the target's position and its
+        centre of mass."""
+        if self.T_F_B is not None:
+            return T_track @ self.T_F_B
+        if self.tracker is None or not self.tracker.model_based:  # model-free, before the batch
+            return T_track
+        S, B = self._biases()
+        return se3.invert(S) @ T_track @ se3.invert(B)
+
+    def _tracker_pose(self, T_filter: np.ndarray) -> np.ndarray:
+        """:meth:`_filter_pose` undone: the filter's pose in the tracker's target frame, bias
+        and all (the pose the tracker would converge to)."""
+        if self.T_F_B is not None:
+            return T_filter @ se3.invert(self.T_F_B)
+        if self.tracker is None or not self.tracker.model_based:
+            return T_filter
+        S, B = self._biases()
+        return S @ T_filter @ B
+
+    def _biases(self) -> tuple[np.ndarray, np.ndarray]:
+        c = self.config
+        S = se3.make_transform(np.eye(3), np.asarray(c.pose_bias_sensor, dtype=np.float64))
+        return S, se3.make_transform(np.eye(3), np.asarray(c.pose_bias_body, dtype=np.float64))
 
     def run(self, frames: Iterable[tuple[float, PointCloud | None]]) -> list[FusedRow]:
         """:meth:`step` over ``(t, cloud)`` pairs in time order; one row per frame."""

@@ -4,11 +4,15 @@ A run has no truth to measure the tracker's errors against, but its own poses ar
 (at 25 m the model-based tracker's are within 0.01–0.02°). Rendering the target's mesh at those
 poses with the run's sensor gives frames whose truth is known and whose views are the run's;
 tracking them against the same model gives errors of the kind the run's poses carry, and their
-batch statistic (:mod:`spacepose.core.pose_noise`) the factor the covariance needs. What the
-simulator does not model (a real sensor's biases, a mesh unlike the target) it cannot show.
+batch statistic (:mod:`spacepose.core.pose_noise`) the factor the covariance needs; their
+constant part, in the sensor's frame and in the target's, is the bias the poses carry, which a
+filter would take for the target's position and its centre of mass. What the simulator does
+not model (a real sensor's biases, a mesh unlike the target) it cannot show.
 """
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -19,7 +23,9 @@ from spacepose.core.pose_noise import (
     MIN_BATCHES,
     PoseNoiseScale,
     as_numbers,
+    gross_failures,
     pose_noise_scale,
+    translation_bias,
     whitened_errors,
 )
 from spacepose.core.sim.scenarios import OrbitConfig
@@ -45,7 +51,9 @@ def bootstrap_pose_noise(
     workers: int = 1,
 ) -> PoseNoiseScale:
     """Render ``target`` at the given poses with ``sensor``, track the renders against
-    ``model`` and measure the factor their covariance needs (:func:`pose_noise_scale`).
+    ``model`` and measure their constant translation errors in the sensor's and the target's
+    frames (``bias``, :func:`~spacepose.core.pose_noise.translation_bias`) and the factor
+    their covariance needs once those are taken off (:func:`pose_noise_scale`).
 
     Parameters
     ----------
@@ -106,4 +114,13 @@ def bootstrap_pose_noise(
         result = run.track_frame(frame.cloud, frame.timestamp, prior)
         if result.status == "ok" and result.covariance is not None:
             T_est[k], C[k] = result.T_sensor_target, result.covariance
-    return pose_noise_scale(whitened_errors(T_est, C, T), batch, min_batches)
+    # The constant biases over the frames the factor uses (gross failures and frames without
+    # a covariance out): what the filter would take for the position and the centre of mass.
+    whitened = whitened_errors(T_est, C, T)
+    usable = T_est.copy()
+    usable[gross_failures(whitened) | ~np.isfinite(whitened).all(axis=1)] = np.nan
+    bias = translation_bias(usable, T, C, batch, min_batches)
+    # The filter gets the poses with them taken off (FusionConfig.pose_bias_sensor and
+    # pose_bias_body): the factor is what their errors need, not what the biases made them need.
+    noise = pose_noise_scale(whitened_errors(bias.correct(T_est), C, T), batch, min_batches)
+    return replace(noise, bias=bias)

@@ -37,6 +37,8 @@ GROSS_FACTOR = 100.0
 _LARGEST_WHITENED = 1e150
 # Batches a factor needs: each axis's ratio from k batches spreads as χ²ₖ/k (±0.7 at 4).
 MIN_BATCHES = 4
+# Standard errors a bias component must stand from zero to be taken off (translation_bias).
+SIGNIFICANT_BIAS = 3.0
 # The order of a pose covariance's axes (left perturbation about the sensor's origin, in the
 # sensor frame): rotation, then translation.
 POSE_NOISE_AXES = ("rotation x", "rotation y", "rotation z", "x", "y", "z")
@@ -59,6 +61,9 @@ class PoseNoiseScale:
         Frames per batch ``B``.
     gross
         Frames left out as gross failures (:data:`GROSS_FACTOR`).
+    bias
+        The poses' constant translation errors (:func:`translation_bias`), or None where they
+        were not measured.
     """
 
     scale: float
@@ -66,15 +71,19 @@ class PoseNoiseScale:
     frames: int
     batch: int
     gross: int = 0
+    bias: TranslationBias | None = None
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "scale": self.scale,
             "batch_ratios": self.batch_ratios.tolist(),
             "frames": self.frames,
             "batch": self.batch,
             "gross": self.gross,
         }
+        if self.bias is not None:
+            out["bias"] = self.bias.to_dict()
+        return out
 
 
 def whitened_errors(
@@ -94,14 +103,8 @@ def whitened_errors(
     (N, 6) whitened errors; NaN rows where a pose or covariance is not finite or the covariance
     not positive definite.
     """
-    T_est, T_ref = as_numbers(T_est, "poses"), as_numbers(T_ref, "reference poses")
-    C = as_numbers(covariances, "covariances")
-    n = len(T_est) if T_est.ndim else -1
-    if T_est.shape != (n, 4, 4) or T_ref.shape != (n, 4, 4) or C.shape != (n, 6, 6):
-        raise InputError(
-            f"poses must be (N, 4, 4) and covariances (N, 6, 6) alike, got {T_est.shape}, "
-            f"{T_ref.shape} and {C.shape}"
-        )
+    T_est, T_ref, C = _poses_and_covariances(T_est, T_ref, covariances)
+    n = len(T_est)
     out = np.full((n, 6), np.nan)
     for k in range(n):
         if not (np.isfinite(T_est[k]).all() and np.isfinite(T_ref[k]).all()):
@@ -114,6 +117,102 @@ def whitened_errors(
         e = np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]]
         out[k] = np.linalg.solve(L, e)
     return out
+
+
+@dataclass(frozen=True)
+class TranslationBias:
+    """Constant translation errors of a run's poses: ``sensor`` (3,) in the sensor's frame and
+    ``body`` (3,) in the target's, m (components that cannot be told from zero are zero), with
+    their standard errors (:func:`translation_bias`)."""
+
+    sensor: NDArray[np.float64]
+    body: NDArray[np.float64]
+    sensor_sigma: NDArray[np.float64]
+    body_sigma: NDArray[np.float64]
+
+    def correct(self, T_sensor_target: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Poses (..., 4, 4) with both biases taken off: ``S⁻¹ T B⁻¹``, S and B the
+        translations by ``sensor`` and ``body``."""
+        S = se3.make_transform(np.eye(3), -self.sensor)
+        B = se3.make_transform(np.eye(3), -self.body)
+        return S @ T_sensor_target @ B
+
+    def to_dict(self) -> dict:
+        return {
+            "sensor_m": self.sensor.tolist(),
+            "body_m": self.body.tolist(),
+            "sensor_sigma_m": self.sensor_sigma.tolist(),
+            "body_sigma_m": self.body_sigma.tolist(),
+        }
+
+
+def translation_bias(
+    T_est: ArrayLike,
+    T_ref: ArrayLike,
+    covariances: ArrayLike,
+    batch: int = BATCH_FRAMES,
+    min_batches: int = MIN_BATCHES,
+    significance: float = SIGNIFICANT_BIAS,
+) -> TranslationBias:
+    """The constant translation errors in the sensor's and the target's frames that best
+    explain a run's errors, ``t_est − t_ref = b_s + R_ref b_b``, each frame weighed by the
+    inverse covariance of its target origin's position; a component within ``significance``
+    standard errors of zero is set to zero (it cannot be told from the noise, and taking it
+    off would add the fit's own error to every pose).
+
+    Two biases a tracker can hold: one in the sensor's frame (along the line of sight, where
+    faces seen at a graze pull each frame alike) and one in the target's (its thin panels and
+    sampled faces, which turn with it). The filter takes the first for the target's position
+    and the second for its centre of mass, and grows sure of both; a white-noise factor sized
+    on them widens every other axis. The target's turn tells them apart where its axis turns
+    too; where it does not their components along it are split the least-norm way.
+
+    Parameters
+    ----------
+    T_est, T_ref
+        (N, 4, 4) estimated and reference poses ``T_sensor_target``; frames where either, or the
+        covariance, is not finite are left out.
+    covariances
+        (N, 6, 6) covariances of ``T_est`` (left perturbation about the sensor's origin).
+    batch, min_batches
+        Standard errors: the sandwich ``N⁻¹ (Σ_b g_b g_bᵀ) N⁻¹`` over whole batches of ``batch``
+        frames (``g_b`` the batch's sum of ``A_kᵀ W_k r_k``), as the errors are correlated
+        from frame to frame; at least ``min_batches`` batches.
+
+    Raises
+    ------
+    InputError
+        Poses or covariances not of those shapes, or fewer usable frames than ``min_batches``
+        batches.
+    """
+    T_est, T_ref, C = _poses_and_covariances(T_est, T_ref, covariances)
+    batch = se3.whole_number(batch, "batch")
+    finite = (
+        np.isfinite(T_est).all(axis=(1, 2))
+        & np.isfinite(T_ref).all(axis=(1, 2))
+        & np.isfinite(C).all(axis=(1, 2))
+    )
+    count = int(finite.sum()) // batch
+    if count < min_batches:
+        raise InputError(
+            f"{int(finite.sum())} frames with an error: {min_batches} batches need "
+            f"{min_batches * batch}"
+        )
+    keep = np.flatnonzero(finite)[: count * batch]
+    R, t = T_ref[keep, :3, :3], T_ref[keep, :3, 3]
+    d = T_est[keep, :3, 3] - t
+    # The target origin's position covariance: the twist's moved there (v + ω × t).
+    J = np.concatenate([-se3.skew(t), np.broadcast_to(np.eye(3), R.shape)], 2)
+    W = np.linalg.pinv(J @ C[keep] @ np.transpose(J, (0, 2, 1)), hermitian=True)
+    A = np.concatenate([np.broadcast_to(np.eye(3), R.shape), R], axis=2)  # (m, 3, 6)
+    WA = W @ A
+    normal = np.linalg.pinv(np.einsum("kji,kjl->il", A, WA), hermitian=True)
+    x = normal @ np.einsum("kji,kj->i", WA, d)
+    r = d - np.einsum("kij,j->ki", A, x)
+    g = np.einsum("kji,kj->ki", WA, r).reshape(count, batch, 6).sum(axis=1)
+    sigma = np.sqrt(np.clip(np.diag(normal @ (g.T @ g) @ normal), 0.0, None))
+    x = np.where(np.abs(x) > significance * sigma, x, 0.0)
+    return TranslationBias(x[:3], x[3:], sigma[:3], sigma[3:])
 
 
 def batch_ratios(
@@ -160,15 +259,37 @@ def pose_noise_scale(
         raise InputError(
             f"whitened errors up to {np.abs(finite_w).max():.3g}σ: their squares overflow"
         )
-    squared = np.sum(w**2, axis=1)
-    finite = np.isfinite(squared)
-    gross = np.zeros(len(w), dtype=bool)
-    if finite.any():
-        gross[finite] = squared[finite] > GROSS_FACTOR * np.median(squared[finite])
+    gross = gross_failures(w)
     w[gross] = np.nan
     ratios, frames = batch_ratios(w, batch, min_batches)
     scale = float(np.sqrt(max(1.0, ratios.max())))
     return PoseNoiseScale(scale, ratios, frames, int(batch), int(gross.sum()))
+
+
+def gross_failures(whitened: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """(N,) rows of whitened errors (N, 6) whose squared norm is above :data:`GROSS_FACTOR`
+    times the median of the finite rows'."""
+    squared = np.sum(whitened**2, axis=1)
+    finite = np.isfinite(squared)
+    gross = np.zeros(len(whitened), dtype=bool)
+    if finite.any():
+        gross[finite] = squared[finite] > GROSS_FACTOR * np.median(squared[finite])
+    return gross
+
+
+def _poses_and_covariances(
+    T_est: ArrayLike, T_ref: ArrayLike, covariances: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """(N, 4, 4), (N, 4, 4) and (N, 6, 6) float64 arrays, or the package's error."""
+    T_est, T_ref = as_numbers(T_est, "poses"), as_numbers(T_ref, "reference poses")
+    C = as_numbers(covariances, "covariances")
+    n = len(T_est) if T_est.ndim else -1
+    if T_est.shape != (n, 4, 4) or T_ref.shape != (n, 4, 4) or C.shape != (n, 6, 6):
+        raise InputError(
+            f"poses must be (N, 4, 4) and covariances (N, 6, 6) alike, got {T_est.shape}, "
+            f"{T_ref.shape} and {C.shape}"
+        )
+    return T_est, T_ref, C
 
 
 def as_numbers(values: ArrayLike, name: str) -> NDArray[np.float64]:

@@ -89,7 +89,12 @@ def bootstrapped_fusion(
         )
     except InputError:  # fewer ok renders than the batches need
         return fusion, None
-    return fusion.model_copy(update={"pose_sigma_scale": noise.scale}), noise
+    measured = {
+        "pose_sigma_scale": noise.scale,
+        "pose_bias_sensor": tuple(noise.bias.sensor),
+        "pose_bias_body": tuple(noise.bias.body),
+    }
+    return fusion.model_copy(update=measured), noise
 
 
 def run_mesh_and_sensor(
