@@ -100,12 +100,18 @@ def test_the_poses_sigma_factor_is_measured_on_the_run(hubble_run, tmp_path, mon
     assert measured >= 1.0 and measured != default
     # Beside it, what was measured: the factor is the largest axis's batch ratio's root.
     noise = json.loads((tmp_path / "a" / "nav.pose_noise.json").read_text())
-    assert noise["scale"] == measured
-    assert measured == pytest.approx(np.sqrt(max(1.0, max(noise["batch_ratios"]))))
+    assert noise["scale"] == pytest.approx(np.sqrt(max(1.0, max(noise["batch_ratios"]))))
     assert len(noise["batch_ratios"]) == len(noise["axes"]) == 6 and noise["batch"] == 2
+    # The rotation's factor and the translation's, about the target's origin, are the two the
+    # navigation used.
+    about = noise["target_origin_ratios"]
+    assert noise["rotation_scale"] == measured
+    assert measured == pytest.approx(np.sqrt(max(1.0, max(about[:3]))))
+    assert noise["translation_scale"] == pytest.approx(np.sqrt(max(1.0, max(about[3:]))))
     assert noise["frames"] % 2 == 0 and 4 <= noise["frames"] <= 8
     # And the biases it found, taken off the poses: the effective config holds them.
     config = json.loads((tmp_path / "a" / "nav.config.json").read_text())
+    assert config["pose_sigma_scale_translation"] == noise["translation_scale"]
     assert config["pose_bias_sensor"] == noise["bias"]["sensor_m"]
     assert config["pose_bias_body"] == noise["bias"]["body_m"]
     assert len(noise["bias"]["sensor_sigma_m"]) == len(noise["bias"]["body_sigma_m"]) == 3

@@ -182,6 +182,40 @@ def test_biases_the_tracker_holds_are_taken_off(orbit):
     np.testing.assert_allclose(poses["taken off"], poses["plain"], atol=1e-5)
 
 
+def test_a_factor_for_the_rotation_and_one_for_the_translation(orbit, monkeypatch):
+    """With ``pose_sigma_scale_translation`` each pose enters the filter with its rotation's σ
+    about the target's origin times ``pose_sigma_scale`` and its translation's times that
+    factor (:func:`~spacepose.core.pose_noise.scaled_about_target`), up to the factor the
+    filter measures on its innovations."""
+    from spacepose.core.pose_noise import scaled_about_target
+
+    sim, n, R_O_C, _catalogue, frames = orbit
+    cfg = FusionConfig(
+        measurements="registration", pose_sigma_scale=2.0, pose_sigma_scale_translation=0.5
+    )
+    nav = FusedNavigator([], n, R_O_C, cfg, sim.model_cloud())
+    given: list[np.ndarray] = []
+
+    def recorded(update):
+        def update_pose(T, cov):
+            given.append(cov)
+            return update(T, cov)
+
+        return update_pose
+
+    watched = None
+    for f in frames[:12]:
+        row = nav.step(f.timestamp, f.cloud)
+        if nav.ekf is not None and watched is None:
+            watched = nav.ekf
+            monkeypatch.setattr(watched, "update_pose", recorded(watched.update_pose))
+        elif given and row.pose_used:
+            expected = scaled_about_target(row.track.covariance, row.track.T_sensor_target, 2, 0.5)
+            ratio = given[-1] / expected
+            np.testing.assert_allclose(ratio, ratio[0, 0], rtol=1e-9)
+    assert len(given) >= 5
+
+
 def test_configuration_errors(orbit):
     sim, n, R_O_C, catalogue, _ = orbit
     with pytest.raises(ConfigError, match="model"):

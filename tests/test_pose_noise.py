@@ -11,6 +11,8 @@ from spacepose.core.pose_noise import (
     batch_ratios,
     gross_failures,
     pose_noise_scale,
+    scaled_about_target,
+    target_origin_whitened,
     translation_bias,
     whitened_errors,
 )
@@ -122,6 +124,10 @@ def test_the_bootstrap_at_the_true_poses_with_the_runs_seed_is_the_run():
     np.testing.assert_array_equal(boot.batch_ratios, run.batch_ratios)
     assert boot.scale == run.scale >= 1.0
     assert boot.bias.to_dict() == bias.to_dict()
+    about = target_origin_whitened(unbiased, C, sim.T_sensor_target)
+    about[gross_failures(w)] = np.nan
+    np.testing.assert_array_equal(boot.target_ratios, batch_ratios(about, batch=10)[0])
+    assert boot.rotation_scale >= 1.0 and boot.translation_scale >= 1.0
     assert np.all(np.abs(bias.body) < 0.01) and np.all(np.abs(bias.sensor) < 0.01)  # at 25 m
     assert np.all(bias.body_sigma > 0) and np.all(bias.sensor_sigma > 0)
     # Another seed: other noise, the same kind of errors.
@@ -181,6 +187,48 @@ def test_biases_in_the_sensors_and_the_targets_frames_are_told_apart_by_a_tumble
     assert kept.body[0] == pytest.approx(1.5e-3, abs=4 * kept.body_sigma[0])
     with pytest.raises(InputError, match="4 batches need 200"):
         translation_bias(T_est[:199], T_ref[:199], C[:199])
+
+
+def test_errors_about_the_targets_origin_are_whitened_block_by_block():
+    """A target 25 m out: its origin's error is v + ω × t, and each block is whitened by its
+    own covariance there (the rotation's by its 3×3 block, the translation's likewise)."""
+    rng = np.random.default_rng(6)
+    n = 12
+    T_ref = np.stack(
+        [
+            se3.make_transform(Rotation.random(random_state=k).as_matrix(), [0.3, -0.1, 25.0])
+            for k in range(n)
+        ]
+    )
+    A = rng.normal(size=(6, 6))
+    C = np.tile(1e-6 * (A @ A.T + np.eye(6)), (n, 1, 1))
+    errors = rng.normal(scale=1e-3, size=(n, 6))
+    w = target_origin_whitened(_poses(errors, T_ref), C, T_ref)
+    for k in range(n):
+        J = np.eye(6)
+        J[3:, :3] = -se3.skew(T_ref[k, :3, 3])
+        e, Ct = J @ errors[k], J @ C[k] @ J.T
+        expected = np.r_[
+            np.linalg.solve(np.linalg.cholesky(Ct[:3, :3]), e[:3]),
+            np.linalg.solve(np.linalg.cholesky(Ct[3:, 3:]), e[3:]),
+        ]
+        np.testing.assert_allclose(w[k], expected, rtol=1e-6)
+
+
+def test_a_covariance_scaled_about_the_targets_origin():
+    """Equal factors scale the covariance by their square; unequal ones scale its blocks about
+    the target's origin, rotation by f_r², translation by f_t², their coupling by f_r f_t."""
+    rng = np.random.default_rng(7)
+    A = rng.normal(size=(6, 6))
+    C = 1e-6 * (A @ A.T + np.eye(6))
+    T = se3.make_transform(Rotation.random(random_state=3).as_matrix(), [0.5, 0.2, 25.0])
+    np.testing.assert_allclose(scaled_about_target(C, T, 2.0, 2.0), 4.0 * C, rtol=1e-9)
+    J = np.eye(6)
+    J[3:, :3] = -se3.skew(T[:3, 3])
+    about, scaled = J @ C @ J.T, J @ scaled_about_target(C, T, 1.5, 0.5) @ J.T
+    np.testing.assert_allclose(scaled[:3, :3], 2.25 * about[:3, :3], rtol=1e-9)
+    np.testing.assert_allclose(scaled[3:, 3:], 0.25 * about[3:, 3:], rtol=1e-6)
+    np.testing.assert_allclose(scaled[:3, 3:], 0.75 * about[:3, 3:], rtol=1e-6, atol=1e-18)
 
 
 def test_gross_failures_are_left_out_not_averaged():

@@ -57,6 +57,7 @@ from spacepose.core.nav_result import NavRow
 from spacepose.core.nav_start import start_filter
 from spacepose.core.nav_state import NavState, seconds
 from spacepose.core.navigation import RelativeNavigator, frame_pairs, orbit_geometry
+from spacepose.core.pose_noise import scaled_about_target
 from spacepose.core.rectangles import CatalogueEntry, catalogue_entries
 from spacepose.core.track_result import TrackResult
 from spacepose.core.tracker import Tracker
@@ -213,6 +214,9 @@ class FusedNavigator:
             elif ekf is not None:
                 scale = c.pose_sigma_scale if self.T_F_B is None else c.model_free_sigma_scale
                 cov = scale**2 * track.covariance
+                f_t = c.pose_sigma_scale_translation
+                if f_t is not None and self.T_F_B is None:
+                    cov = scaled_about_target(track.covariance, track.T_sensor_target, scale, f_t)
                 used = ekf.update_pose(T_meas, cov * self._pose_noise.factor)
                 nis = ekf.last_nis
                 # With rectangles beside them every pose's innovation counts, the gated ones

@@ -47,7 +47,18 @@ class FusionConfig(StageConfig):
         "satellite_panels / Hubble kit: 2: 100 / 100 / 63 % (Hubble seed 2: 0), 3: 59 / 96 / "
         "95 %, 4: 11 / 76 / 95 % (docs/methods.md §2.4). Where bootstrap_poses measures "
         "the factor on the run, the measured one replaces it (and the effective config "
-        "says so).",
+        "says so). With pose_sigma_scale_translation it is the rotation's factor, about the "
+        "target's origin.",
+    )
+    pose_sigma_scale_translation: float | None = Field(
+        None,
+        gt=0,
+        description="Factor on the translation's 1-σ about the target's origin, "
+        "pose_sigma_scale then the rotation's there (None: pose_sigma_scale for the whole "
+        "covariance). Where bootstrap_poses runs, both are measured: the rotation's errors "
+        "are often correlated where the translation's, their biases taken off, are not, and "
+        "one factor sized on the rotation widened the position and the centre of mass "
+        '(docs/results.md, "One factor for the rotation, one for the translation").',
     )
     pose_bias_sensor: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0),

@@ -23,8 +23,10 @@ from spacepose.core.pose_noise import (
     MIN_BATCHES,
     PoseNoiseScale,
     as_numbers,
+    batch_ratios,
     gross_failures,
     pose_noise_scale,
+    target_origin_whitened,
     translation_bias,
     whitened_errors,
 )
@@ -122,5 +124,11 @@ def bootstrap_pose_noise(
     bias = translation_bias(usable, T, C, batch, min_batches)
     # The filter gets the poses with them taken off (FusionConfig.pose_bias_sensor and
     # pose_bias_body): the factor is what their errors need, not what the biases made them need.
-    noise = pose_noise_scale(whitened_errors(bias.correct(T_est), C, T), batch, min_batches)
-    return replace(noise, bias=bias)
+    unbiased = bias.correct(T_est)
+    noise = pose_noise_scale(whitened_errors(unbiased, C, T), batch, min_batches)
+    # And a factor for the rotation and one for the translation, about the target's origin,
+    # where the two are apart (FusionConfig.pose_sigma_scale_translation).
+    about_target = target_origin_whitened(unbiased, C, T)
+    about_target[gross_failures(whitened)] = np.nan
+    ratios, _ = batch_ratios(about_target, batch, min_batches)
+    return replace(noise, bias=bias, target_ratios=ratios)

@@ -64,6 +64,10 @@ class PoseNoiseScale:
     bias
         The poses' constant translation errors (:func:`translation_bias`), or None where they
         were not measured.
+    target_ratios
+        (6,) the batch ratios of the errors about the target's origin, the rotation and the
+        translation each whitened by its own block there (:func:`target_origin_whitened`), or
+        None where they were not measured.
     """
 
     scale: float
@@ -72,6 +76,22 @@ class PoseNoiseScale:
     batch: int
     gross: int = 0
     bias: TranslationBias | None = None
+    target_ratios: NDArray[np.float64] | None = None
+
+    @property
+    def rotation_scale(self) -> float:
+        """Factor on the rotation's σ about the target's origin (``target_ratios``' largest
+        rotation ratio's root, at least 1; ``scale`` where they were not measured)."""
+        if self.target_ratios is None:
+            return self.scale
+        return float(np.sqrt(max(1.0, self.target_ratios[:3].max())))
+
+    @property
+    def translation_scale(self) -> float:
+        """Factor on the translation's σ about the target's origin (as :attr:`rotation_scale`)."""
+        if self.target_ratios is None:
+            return self.scale
+        return float(np.sqrt(max(1.0, self.target_ratios[3:].max())))
 
     def to_dict(self) -> dict:
         out = {
@@ -83,6 +103,12 @@ class PoseNoiseScale:
         }
         if self.bias is not None:
             out["bias"] = self.bias.to_dict()
+        if self.target_ratios is not None:
+            out |= {
+                "target_origin_ratios": self.target_ratios.tolist(),
+                "rotation_scale": self.rotation_scale,
+                "translation_scale": self.translation_scale,
+            }
         return out
 
 
@@ -264,6 +290,48 @@ def pose_noise_scale(
     ratios, frames = batch_ratios(w, batch, min_batches)
     scale = float(np.sqrt(max(1.0, ratios.max())))
     return PoseNoiseScale(scale, ratios, frames, int(batch), int(gross.sum()))
+
+
+def target_origin_whitened(
+    T_est: ArrayLike, covariances: ArrayLike, T_ref: ArrayLike
+) -> NDArray[np.float64]:
+    """Each pose's error about the target's origin, its rotation and its translation each
+    whitened by that block's own covariance there: (N, 6), NaN where not computable."""
+    T_est, T_ref, C = _poses_and_covariances(T_est, T_ref, covariances)
+    out = np.full((len(T_est), 6), np.nan)
+    for k in range(len(T_est)):
+        if not (np.isfinite(T_est[k]).all() and np.isfinite(T_ref[k]).all()):
+            continue
+        J = np.eye(6)
+        J[3:, :3] = -se3.skew(T_ref[k, :3, 3])
+        D = T_est[k] @ se3.invert(T_ref[k])
+        e = J @ np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]]
+        Ct = J @ C[k] @ J.T
+        try:
+            Lr, Lt = np.linalg.cholesky(Ct[:3, :3]), np.linalg.cholesky(Ct[3:, 3:])
+        except np.linalg.LinAlgError:
+            continue
+        out[k] = np.r_[np.linalg.solve(Lr, e[:3]), np.linalg.solve(Lt, e[3:])]
+    return out
+
+
+def scaled_about_target(
+    covariance: NDArray[np.float64],
+    T_sensor_target: NDArray[np.float64],
+    rotation_scale: float,
+    translation_scale: float,
+) -> NDArray[np.float64]:
+    """A pose covariance (6, 6; left perturbation about the sensor's origin) whose rotation and
+    translation σ about the target's origin are multiplied by the two factors.
+
+    About the sensor 25 m away a rotation moves the target as much as a translation does, and
+    the two blocks are nearly one; about the target's origin they are apart, and each can take
+    its own factor (with equal factors the covariance is scaled by their square)."""
+    J = np.eye(6)
+    J[3:, :3] = -se3.skew(T_sensor_target[:3, 3])
+    D = np.diag([rotation_scale] * 3 + [translation_scale] * 3)
+    back = np.linalg.inv(J) @ D @ J
+    return back @ covariance @ back.T
 
 
 def gross_failures(whitened: NDArray[np.float64]) -> NDArray[np.bool_]:

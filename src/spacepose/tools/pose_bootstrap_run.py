@@ -90,7 +90,8 @@ def bootstrapped_fusion(
     except InputError:  # fewer ok renders than the batches need
         return fusion, None
     measured = {
-        "pose_sigma_scale": noise.scale,
+        "pose_sigma_scale": noise.rotation_scale,
+        "pose_sigma_scale_translation": noise.translation_scale,
         "pose_bias_sensor": tuple(noise.bias.sensor),
         "pose_bias_body": tuple(noise.bias.body),
     }
