@@ -58,7 +58,7 @@ class FusionConfig(StageConfig):
         "covariance). Where bootstrap_poses runs, both are measured: the rotation's errors "
         "are often correlated where the translation's, their biases taken off, are not, and "
         "one factor sized on the rotation widened the position and the centre of mass "
-        '(docs/results.md, "One factor for the rotation, one for the translation").',
+        '(docs/results.md, "The poses\' biases, taken off").',
     )
     pose_bias_sensor: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0),
