@@ -187,6 +187,9 @@ def test_biases_in_the_sensors_and_the_targets_frames_are_told_apart_by_a_tumble
     assert kept.body[0] == pytest.approx(1.5e-3, abs=4 * kept.body_sigma[0])
     with pytest.raises(InputError, match="4 batches need 200"):
         translation_bias(T_est[:199], T_ref[:199], C[:199])
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(InputError, match="standard errors >= 0"):
+            translation_bias(T_est, T_ref, C, significance=bad)
 
 
 def test_errors_about_the_targets_origin_are_whitened_block_by_block():

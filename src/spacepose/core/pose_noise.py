@@ -24,6 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import se3
+from spacepose.core.health import covariance_at
 from spacepose.errors import InputError
 
 # Frames a filter's poses are averaged over, as a batch: the orbit run's filter follows its
@@ -213,6 +214,8 @@ def translation_bias(
     """
     T_est, T_ref, C = _poses_and_covariances(T_est, T_ref, covariances)
     batch = se3.whole_number(batch, "batch")
+    if not significance >= 0.0:  # NaN too
+        raise InputError(f"significance {significance} must be a number of standard errors >= 0")
     finite = (
         np.isfinite(T_est).all(axis=(1, 2))
         & np.isfinite(T_ref).all(axis=(1, 2))
@@ -302,11 +305,12 @@ def target_origin_whitened(
     for k in range(len(T_est)):
         if not (np.isfinite(T_est[k]).all() and np.isfinite(T_ref[k]).all()):
             continue
-        J = np.eye(6)
-        J[3:, :3] = -se3.skew(T_ref[k, :3, 3])
+        t = T_ref[k, :3, 3]
         D = T_est[k] @ se3.invert(T_ref[k])
-        e = J @ np.r_[Rotation.from_matrix(D[:3, :3]).as_rotvec(), D[:3, 3]]
-        Ct = J @ C[k] @ J.T
+        rotation = Rotation.from_matrix(D[:3, :3]).as_rotvec()
+        # The target's origin moves by v + ω × t under the left perturbation (ω, v).
+        e = np.r_[rotation, D[:3, 3] + np.cross(rotation, t)]
+        Ct = covariance_at(C[k], t)
         try:
             Lr, Lt = np.linalg.cholesky(Ct[:3, :3]), np.linalg.cholesky(Ct[3:, 3:])
         except np.linalg.LinAlgError:
@@ -327,11 +331,10 @@ def scaled_about_target(
     About the sensor 25 m away a rotation moves the target as much as a translation does, and
     the two blocks are nearly one; about the target's origin they are apart, and each can take
     its own factor (with equal factors the covariance is scaled by their square)."""
-    J = np.eye(6)
-    J[3:, :3] = -se3.skew(T_sensor_target[:3, 3])
+    t = T_sensor_target[:3, 3]
     D = np.diag([rotation_scale] * 3 + [translation_scale] * 3)
-    back = np.linalg.inv(J) @ D @ J
-    return back @ covariance @ back.T
+    # Scaled about the target's origin, then moved back about the sensor's (about −t).
+    return covariance_at(D @ covariance_at(covariance, t) @ D, -t)
 
 
 def gross_failures(whitened: NDArray[np.float64]) -> NDArray[np.bool_]:
