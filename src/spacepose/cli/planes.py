@@ -61,7 +61,7 @@ def planes(
     entries = [] if catalogue is None else load_catalogue(catalogue, rect_config)
     cloud = read_sensor_cloud(file)
     if threshold is None:
-        threshold = slab_thickness(cloud.points, sigma)
+        threshold = slab_thickness(cloud, sigma)  # the cloud: its warning names the file
     settings = {**settings, "distance_threshold": threshold}
     plane_config = validate_config(PlaneConfig, settings, "command line")
     found = find_rectangles(cloud, entries, plane_config, rect_config)

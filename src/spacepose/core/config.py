@@ -135,6 +135,24 @@ def holds_text(value: Any) -> bool:
     return isinstance(value, str)
 
 
+# Largest σ, or factor on one, a setting may give: squared and multiplied by another such
+# square on the way to a covariance it stays finite in float64 (the EKF's and the tracker's bound).
+LARGEST_SQUARED = 1e50
+
+
+def square_stays_finite(value: float | None) -> float | None:
+    """``value`` (a σ, or a factor on one, that a stage squares), refused as a ValueError (a
+    field's error, when a validator) beyond :data:`LARGEST_SQUARED`: 1e300 ended ``navigate``
+    in an OverflowError traceback, or in "measurement covariance must be finite", which named
+    neither the setting nor the file."""
+    if value is not None and value > LARGEST_SQUARED:
+        raise ValueError(
+            f"{value:g} is too large: squared, and times another square, it overflows "
+            f"float64 (at most {LARGEST_SQUARED:g})"
+        )
+    return value
+
+
 def config_error(
     model: type[BaseModel],
     exc: ValidationError,

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pydantic import Field, ValidationInfo, field_validator
 
-from spacepose.core.config import StageConfig
+from spacepose.core.config import LARGEST_SQUARED, StageConfig
 
-# Largest σ a setting may give: its square, times another's, stays finite in float64.
-_LARGEST_SIGMA = 1e50
+# Most RK4 steps a prediction may be asked for: the filter's own longest prediction takes 20,000.
+_MOST_SUBSTEPS = 20_000
 
 
 class EKFConfig(StageConfig):
@@ -40,7 +40,12 @@ class EKFConfig(StageConfig):
         0.9999, gt=0, le=1, description="χ² gate on the innovation; 1 disables gating."
     )
     substeps: int = Field(
-        10, ge=1, description="Fewest RK4 steps per prediction interval (more over long gaps)."
+        10,
+        ge=1,
+        # As many as the filter takes over the longest gap it predicts across (ekf's
+        # _LONGEST_TURN_RAD in _STEP_RAD steps): 10**9 ran for ever, its first frame unfinished.
+        le=_MOST_SUBSTEPS,
+        description="Fewest RK4 steps per prediction interval (more over long gaps).",
     )
 
     @field_validator("*", mode="after")
@@ -48,9 +53,9 @@ class EKFConfig(StageConfig):
     def _square_stays_finite(cls, value: object, info: ValidationInfo) -> object:
         # The filter multiplies variances by each other: 1e160 overflowed in a traceback, 1e300
         # gave NaN quaternions after numpy's overflow warnings.
-        if "sigma" in info.field_name and isinstance(value, float) and value > _LARGEST_SIGMA:
+        if "sigma" in info.field_name and isinstance(value, float) and value > LARGEST_SQUARED:
             raise ValueError(
                 f"{value:g} is too large a sigma: the filter's products of its square overflow "
-                f"(at most {_LARGEST_SIGMA:g})"
+                f"(at most {LARGEST_SQUARED:g})"
             )
         return value

@@ -15,6 +15,10 @@ from spacepose.core.tracker_config import TrackerConfig
 Measurements = Literal["rectangles", "registration", "both"]
 # Largest pose bias (m) a configuration may give: a tracker's biases are millimetres.
 _LARGEST_BIAS_M = 1e3
+# Largest factor on the tracker's σ: beyond a million times it a pose is no measurement, and a
+# translation's factor of 1e50 drowned the rotation's variances in rounding ("measurement
+# covariance must be positive definite"); 1e300 overflowed in a traceback. Neither named the key.
+_LARGEST_SIGMA_SCALE = 1e6
 
 
 class FusionConfig(StageConfig):
@@ -37,6 +41,7 @@ class FusionConfig(StageConfig):
     pose_sigma_scale: float = Field(
         3.0,
         gt=0,
+        le=_LARGEST_SIGMA_SCALE,
         description="Factor on the tracker's 1-σ before the pose enters the filter (its "
         "covariance times the square): the tracker's errors are correlated from frame to "
         "frame, which a white-noise filter averages as if independent (×(1+ρ)/(1−ρ) in "
@@ -53,6 +58,7 @@ class FusionConfig(StageConfig):
     pose_sigma_scale_translation: float | None = Field(
         None,
         gt=0,
+        le=_LARGEST_SIGMA_SCALE,
         description="Factor on the translation's 1-σ about the target's origin, "
         "pose_sigma_scale then the rotation's there (None: pose_sigma_scale for the whole "
         "covariance). Where bootstrap_poses runs, both are measured: the rotation's errors "
@@ -88,6 +94,7 @@ class FusionConfig(StageConfig):
     model_free_sigma_scale: float = Field(
         1.0,
         gt=0,
+        le=_LARGEST_SIGMA_SCALE,
         description="pose_sigma_scale for the model-free tracker's poses, whose covariance "
         "(with the keyframe chain) is already conservative: median NEES 0.26 of 6 on the orbit "
         "run, seed 0.",

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 from pydantic import Field, field_validator
 
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, square_stays_finite
 from spacepose.core.ekf_config import EKFConfig
 from spacepose.core.lost_in_space import LostInSpaceConfig
+from spacepose.core.nav_state import params_from_k
 from spacepose.core.planes import PlaneConfig
 from spacepose.core.rectangles import RectangleConfig
+
+# Largest floor of a centroid's σ (m): no face is measured to worse than a kilometre.
+_LARGEST_CENTROID_SIGMA_M = 1e3
 
 __all__ = [
     "NavigationConfig",
@@ -109,7 +113,12 @@ class NavigationConfig(StageConfig):
         0.01, gt=0, description="Floor of every attitude measurement σ, deg."
     )
     min_centroid_sigma: float = Field(
-        1e-4, gt=0, description="Floor of the centroid σ along the face normal, m."
+        1e-4,
+        gt=0,
+        # A floor of 1e50 m drowned the faces' in-plane σ in rounding ("measurement covariance
+        # must be positive definite", naming neither the key nor the file); 1e300 overflowed.
+        le=_LARGEST_CENTROID_SIGMA_M,
+        description="Floor of the centroid σ along the face normal, m (at most a kilometre).",
     )
     init_rate_deg_s: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="Prior of ω in B, deg/s."
@@ -152,6 +161,18 @@ class NavigationConfig(StageConfig):
         if "sigma" not in self.rectangle.model_fields_set:
             update["rectangle"] = self.rectangle.model_copy(update={"sigma": sigma})
         return self.model_copy(update=update)
+
+    _squares_finite = field_validator(
+        "range_sigma", "tilt_scale", "spin_scale", "min_attitude_sigma_deg"
+    )(square_stays_finite)
+
+    @field_validator("init_k")
+    @classmethod
+    def _rigid_body_ratios(cls, k: tuple[float, float, float]) -> tuple[float, float, float]:
+        """Ratios of positive principal moments: others were refused when the filter started,
+        in a message that named neither ``init_k`` nor the file."""
+        params_from_k(k)
+        return k
 
     @field_validator("plane", "rectangle", "ekf", mode="before")
     @classmethod

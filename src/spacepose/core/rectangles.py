@@ -57,6 +57,7 @@ from spacepose.core.config import (
     config_error,
     holds_text,
     refuse_boolean,
+    square_stays_finite,
     stage_config,
 )
 from spacepose.core.rectangle_measurement import RectangleMeasurement, fill_ratio
@@ -204,6 +205,10 @@ class RectangleConfig(StageConfig):
     min_points: int = Field(50, ge=3)
     max_thickness: float = Field(0.01, gt=0)
     support: bool = True
+
+    # The noise's σ and the focal length are squared (a config file's 1e300 ended navigate in
+    # an OverflowError traceback).
+    _squares_finite = field_validator("sigma", "focal_px")(square_stays_finite)
 
 
 def side_tolerance(side: float, config: RectangleConfig) -> float:

@@ -18,7 +18,7 @@ from typing import Literal
 from pydantic import Field, PositiveFloat, field_validator, model_validator
 
 from spacepose.core.background import BackgroundConfig
-from spacepose.core.config import StageConfig
+from spacepose.core.config import StageConfig, square_stays_finite
 from spacepose.core.fpfh import FPFHConfig
 from spacepose.core.gicp import GICPConfig
 from spacepose.core.icp import ICPConfig
@@ -34,9 +34,6 @@ from spacepose.core.ransac import RansacConfig
 # RMSE test cut short).
 _ICP_RMSE_TOLERANCE = 1.6e-4
 _GICP_STEP_TOLERANCE = 1.6e-3
-# Largest of the factors the tracker squares on the way to a covariance or a crop radius (σ
-# floors, the range bias, the crop margin): 1e160 overflowed in a traceback. The EKF's largest σ.
-_LARGEST_FACTOR = 1e50
 
 
 class KeyframeConfig(StageConfig):
@@ -309,25 +306,17 @@ class TrackerConfig(StageConfig):
     floor_motion: float = Field(0.01, ge=0)
     range_bias: float = Field(1.0, ge=0)
 
-    @field_validator(
+    # Factors the tracker squares (σ floors, the range bias, the crop margin, the covariance's
+    # scale): 1e160 ended ``track`` in an OverflowError traceback, and a covariance scale of
+    # 1e300 made every frame "degraded" at σ of 1e146 without a word.
+    _squares_finite = field_validator(
         "crop_margin",
         "floor_translation",
         "floor_rotation",
         "floor_motion",
         "range_bias",
         "covariance_scale",
-    )
-    @classmethod
-    def _square_stays_finite(cls, value: float) -> float:
-        """A factor the tracker squares (a σ floor, the range bias, the crop margin, the
-        covariance's scale): 1e160 ended ``track`` in an OverflowError traceback, and a
-        covariance scale of 1e300 made every frame "degraded" at σ of 1e146 without a word."""
-        if value > _LARGEST_FACTOR:
-            raise ValueError(
-                f"{value:g} is too large: the tracker squares it, which overflows (at most "
-                f"{_LARGEST_FACTOR:g})"
-            )
-        return value
+    )(square_stays_finite)
 
     background: BackgroundConfig = BackgroundConfig()
     mls: MLSConfig = MLSConfig()

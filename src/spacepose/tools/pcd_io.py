@@ -71,7 +71,8 @@ def read_pcd_table(path: Path) -> dict[str, NDArray[np.float64]]:
     elif mode == "ascii":
         width = sum(counts)
         try:
-            tokens = np.array(body.decode("ascii").split(), dtype=np.float64)
+            text = body.decode("ascii")
+            tokens = np.array(text.split(), dtype=np.float64)
         except (UnicodeDecodeError, ValueError):
             raise FileFormatError("ASCII PCD body holds a non-number", path) from None
         if len(tokens) != n_points * width:
@@ -81,6 +82,7 @@ def read_pcd_table(path: Path) -> dict[str, NDArray[np.float64]]:
                 f"{n_points * width} numbers, the body has {len(tokens)}",
                 path,
             )
+        _check_ascii_rows(text, width, path)
         table = tokens.reshape(n_points, width)
     elif mode == "binary_compressed":
         raise FileFormatError(
@@ -99,6 +101,20 @@ def read_pcd_table(path: Path) -> dict[str, NDArray[np.float64]]:
         for name, off, count in zip(fields, offsets, counts, strict=True)
         if count == 1
     }
+
+
+def _check_ascii_rows(text: str, width: int, path: Path) -> None:
+    """Refuse an ASCII body whose points are not one a line of ``width`` values, as PCL does:
+    counted whole, a row of 2 values and one of 4 were read as two points of 3, each holding
+    the other's coordinates, without a word."""
+    rows = (line for line in text.splitlines() if line.strip())
+    for k, row in enumerate(rows):
+        if len(values := row.split()) != width:
+            raise FileFormatError(
+                f"ASCII PCD point {k} holds {len(values)} values on its line, where FIELDS and "
+                f"COUNT make {width}: one point a line (a row cut short or run together?)",
+                path,
+            )
 
 
 def _split_header(raw: bytes, path: Path) -> tuple[dict[str, list[str]], bytes]:

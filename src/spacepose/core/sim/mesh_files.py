@@ -12,6 +12,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import plyfile
 import trimesh
 from numpy.typing import NDArray
 
@@ -63,7 +64,7 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
         raw = trimesh.load(path, force="mesh", process=False)
     except Exception as exc:  # trimesh raises many types for bad files; report them alike
         problem = _obj_face_problem(path) or _not_ply(path) or _not_gltf(path)
-        problem = problem or _off_problem(path) or _stl_problem(path)
+        problem = problem or _off_problem(path) or _stl_problem(path) or _glb_problem(path)
         raise FileFormatError(problem or f"cannot read mesh: {exc}", path) from None
     if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0:
         # A binary STL whose header miscounts its triangles was "no triangles" too.
@@ -77,7 +78,9 @@ def load_mesh(path: str | Path, scale: float = 1.0, center: bool = True) -> Targ
     if path.suffix.lower() == ".ply":
         # trimesh read an ASCII PLY cut before its last faces, or a face list shorter or longer
         # than its count, as the faces it could make out, without a word.
-        read_checked_ply(path)
+        problem = _ply_index_problem(read_checked_ply(path))
+        if problem is not None:
+            raise FileFormatError(problem, path)
     faces, vertices = np.asarray(raw.faces), np.asarray(raw.vertices)
     # A face on a vertex the file does not hold ended in numpy's "index 8 is out of bounds for
     # axis 0 with size 4", naming neither the face nor the vertex count.
@@ -178,6 +181,23 @@ def _has_area(triangles: NDArray[np.float64]) -> bool:
     return bool(np.any((size > 0) & (doubled > 1e-12)))
 
 
+def _ply_index_problem(ply: plyfile.PlyData) -> str | None:
+    """The first face of a PLY whose vertex indices, stored as floats, are no whole numbers
+    (trimesh cut 3.5 to vertex 3 without a word), or None."""
+    if "face" not in ply:
+        return None
+    for prop in ply["face"].properties:
+        if prop.name not in ("vertex_indices", "vertex_index") or not hasattr(prop, "len_dtype"):
+            continue
+        if np.dtype(prop.val_dtype).kind != "f":
+            continue
+        for k, row in enumerate(ply["face"].data[prop.name], start=1):
+            split = row[row != np.floor(row)]
+            if split.size:
+                return f"face {k} lists vertex index {split[0]:g}: an index is a whole number"
+    return None
+
+
 def _not_ply(path: Path) -> str | None:
     """Why a .ply file is no PLY at all (trimesh said "list index out of range" of a text file
     so named), or None."""
@@ -213,6 +233,30 @@ def _not_gltf(path: Path) -> str | None:
     if not isinstance(document, dict):
         kind = "an array" if isinstance(document, list) else "a single value"
         return f"not valid glTF JSON: it holds {kind}, not glTF's object of 'asset', 'meshes', ..."
+    return None
+
+
+def _glb_problem(path: Path) -> str | None:
+    """Why a .glb file is no whole binary glTF, or None: trimesh said "Unterminated string" of
+    one cut short (its JSON chunk read past the end), "not enough values to unpack" of a bare
+    header."""
+    if path.suffix.lower() != ".glb":
+        return None
+    try:
+        size = path.stat().st_size
+        with path.open("rb") as fh:
+            head = fh.read(12)
+    except OSError:
+        return None  # unreadable: trimesh's own error stands
+    if not head:
+        return "the file is empty"
+    if head[:4] != b"glTF":
+        return f"not a binary glTF: it begins with {head[:4]!r}, not b'glTF' (a .gltf's JSON?)"
+    if len(head) < 12:
+        return f"a .glb of {size} bytes, shorter than its 12-byte header"
+    length = int.from_bytes(head[8:12], "little")
+    if length != size:
+        return f"its header says {length:,} bytes, the file holds {size:,}: a cut or damaged .glb"
     return None
 
 
@@ -281,9 +325,11 @@ def _stl_problem(path: Path) -> str | None:
 
 
 def _obj_face_problem(path: Path) -> str | None:
-    """The first face of an OBJ file on a vertex the file does not hold, in words, or None.
-
-    trimesh fails on such a face with numpy's "index 9 is out of bounds for axis 0 with size 4".
+    """The first statement of an OBJ file trimesh misreads, in words, or None: a face on a
+    vertex the file does not hold (numpy's "index 9 is out of bounds for axis 0 with size 4"),
+    a face of fewer than 3 corners (dropped without a word), a vertex of fewer than 3
+    coordinates (numpy's AxisError traceback), or a byte-order mark before the first statement
+    (that statement dropped: a vertex lost shifted every face onto the next vertex).
     """
     if path.suffix.lower() != ".obj":
         return None
@@ -291,13 +337,25 @@ def _obj_face_problem(path: Path) -> str | None:
         lines = path.read_text(errors="replace").splitlines()
     except OSError:
         return None
+    if lines and lines[0].startswith("\ufeff") and lines[0][1:].split()[:1] not in ([], ["#"]):
+        return (
+            f"line 1 begins with a byte-order mark, which hides its statement "
+            f"({lines[0][1:].strip()[:40]!r}) from the OBJ reader: save the file without it"
+        )
     vertices = faces = 0
     for number, line in enumerate(lines, start=1):
         fields = line.split()
         if fields and fields[0] == "v":
             vertices += 1
+            if len(fields) < 4:
+                return f"vertex {vertices} (line {number}) has {len(fields) - 1} coordinates, not 3"
         elif fields and fields[0] == "f":
             faces += 1
+            if len(fields) < 4:
+                return (
+                    f"face {faces} (line {number}) has {len(fields) - 1} corners: a face has 3 "
+                    "or more"
+                )
             for corner in fields[1:]:
                 try:
                     index = int(corner.split("/")[0])

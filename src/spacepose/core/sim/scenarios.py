@@ -252,7 +252,6 @@ def simulate_orbit(config: OrbitConfig | None = None) -> Simulation:
     """
     config = config or OrbitConfig()
     n = orbit_mean_motion(config)
-    truth = orbit_truth(config)
     target = _target(config, orbit_target())
     # Within the tumbling target's reach the chaser would sit inside it and render its faces
     # from within, a run of frames that looks like any other (--range 1e-9 did).
@@ -265,6 +264,14 @@ def simulate_orbit(config: OrbitConfig | None = None) -> Simulation:
             f"scenario orbit: a standoff of {config.standoff_m:g} m puts the chaser within the "
             f"target's reach ({reach:.3g} m from its centre); {remedy}"
         )
+    if config.standoff_m - reach > config.sensor.max_range:
+        # Checked before the truth is integrated: --range 1e300 ran for ever in it.
+        raise ConfigError(
+            f"scenario orbit: a standoff of {config.standoff_m:g} m puts the whole target "
+            f"(reaching {reach:.3g} m from its centre) beyond the sensor's "
+            f"{config.sensor.max_range:g} m range: it would see nothing; stand off nearer"
+        )
+    truth = orbit_truth(config)
     R_O_C_known = misaligned(
         R_O_C_AHEAD,
         np.radians(config.chaser_attitude_sigma_deg),

@@ -84,6 +84,9 @@ _USES: dict[str, tuple[str, ...]] = {}
 # Most seeds a run takes: a simulation each (with its frames) over every method or target;
 # 10**10 ended in a MemoryError traceback (fusion) or ran for ever (li-l1).
 MOST_SEEDS = 1000
+# Most frames a run takes, as the simulator's scenarios take them: robustness --frames 10**9
+# failed every cell on the scenario's bound and exited 0, room's 10**12 a MemoryError traceback.
+MOST_FRAMES = 1_000_000
 
 
 def register(name: str, uses: tuple[str, ...] = ()) -> Callable[[Experiment], Experiment]:
@@ -105,7 +108,7 @@ def check_options(name: str, options: ExperimentOptions) -> None:
     ------
     ConfigError
         ``--cells: experiment 'li-l1' does not use it (only robustness does)``; ``--seeds``
-        beyond :data:`MOST_SEEDS`.
+        beyond :data:`MOST_SEEDS`, ``--frames`` beyond :data:`MOST_FRAMES`.
     """
     defaults = ExperimentOptions()
     for option in OWN_OPTIONS:
@@ -121,6 +124,11 @@ def check_options(name: str, options: ExperimentOptions) -> None:
         raise ConfigError(
             f"--seeds: {options.seeds} is not a number of seeds from 1 to {MOST_SEEDS} (each is "
             "a simulation and its runs)"
+        )
+    if options.frames is not None and not 2 <= options.frames <= MOST_FRAMES:
+        raise ConfigError(
+            f"--frames: {options.frames} is not a number of frames from 2 to {MOST_FRAMES:,} (a "
+            "run's frames are simulated, as simulate's --frames)"
         )
 
 
