@@ -236,18 +236,26 @@ def _not_gltf(path: Path) -> str | None:
     return None
 
 
+def _size_and_head(path: Path, suffix: str, count: int) -> tuple[int, bytes] | None:
+    """The file's size and first ``count`` bytes when its suffix is ``suffix``; None otherwise,
+    or when it cannot be read (the reader's own error then stands)."""
+    if path.suffix.lower() != suffix:
+        return None
+    try:
+        with path.open("rb") as fh:
+            return path.stat().st_size, fh.read(count)
+    except OSError:
+        return None
+
+
 def _glb_problem(path: Path) -> str | None:
     """Why a .glb file is no whole binary glTF, or None: trimesh said "Unterminated string" of
     one cut short (its JSON chunk read past the end), "not enough values to unpack" of a bare
     header."""
-    if path.suffix.lower() != ".glb":
+    opened = _size_and_head(path, ".glb", 12)
+    if opened is None:
         return None
-    try:
-        size = path.stat().st_size
-        with path.open("rb") as fh:
-            head = fh.read(12)
-    except OSError:
-        return None  # unreadable: trimesh's own error stands
+    size, head = opened
     if not head:
         return "the file is empty"
     if head[:4] != b"glTF":
@@ -301,14 +309,10 @@ def _off_problem(path: Path) -> str | None:
 def _stl_problem(path: Path) -> str | None:
     """Why a binary STL file does not hold the triangles its header counts, or None (trimesh
     called it "the file holds no triangles")."""
-    if path.suffix.lower() != ".stl":
+    opened = _size_and_head(path, ".stl", 84)
+    if opened is None:
         return None
-    try:
-        size = path.stat().st_size
-        with path.open("rb") as fh:
-            head = fh.read(84)
-    except OSError:
-        return None
+    size, head = opened
     if len(head) < 84:
         return (
             None
