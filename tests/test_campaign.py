@@ -504,13 +504,13 @@ def test_tracking_runner_scores_a_short_lab_run_against_truth() -> None:
 
 
 def test_a_campaign_whose_every_case_failed_says_so_and_exits_1(tmp_path, capsys, scheduler):
-    """Its one case failed (a noise scale of 1e300, whose noise overflows, is refused),
-    and the command printed "1 cases (1 computed, 0 already done)" with exit code 0: the
-    failure sat in the table's error column alone."""
+    """Its one case failed (a start 1e9 m off finds no correspondence), and the command
+    printed "1 cases (1 computed, 0 already done)" with exit code 0: the failure sat in the
+    table's error column alone."""
     config = tmp_path / "c.yaml"
     config.write_text(
-        "name: huge\ncase_kind: registration\ngrid:\n  scenario: [lab]\n  noise_scale: [1e300]\n"
-        "  method: [point_to_point]\n  seed: [0]\n"
+        "name: huge\ncase_kind: registration\ngrid:\n  scenario: [lab]\n  noise_scale: [0.0]\n"
+        "  method: [point_to_point]\n  seed: [0]\n  perturbation_mm: [1e12]\n"
     )
     args = ["campaign", str(config), "--out", str(tmp_path / "o"), "--scheduler", scheduler]
     assert main(args) == 1
@@ -518,7 +518,7 @@ def test_a_campaign_whose_every_case_failed_says_so_and_exits_1(tmp_path, capsys
     assert "1 cases (1 computed, 0 already done, 1 failed (why: the error column))" in " ".join(
         printed.out.split()
     )
-    assert f"error: {config}: every case failed (the first: ConfigError: " in printed.err
+    assert f"error: {config}: every case failed (the first: RegistrationError: " in printed.err
 
 
 def test_a_grid_value_no_scalar_type_takes_is_said_in_one_line(tmp_path, capsys):

@@ -99,7 +99,7 @@ class PointCloud:
                 values = [None if v is None else np.compress(keep, v, axis=0) for v in values]
                 given = [None] * 3
             peak = _peak(values[0])
-        _check_peak(peak, "points", self.source)
+        check_peak(peak, "points", self.source)
         for name, value, raw in zip(("points", "normals", "sigma"), values, given, strict=True):
             object.__setattr__(self, name, None if value is None else _private(value, raw))
         object.__setattr__(self, "n_dropped", self.n_dropped + (n - n_keep))
@@ -250,7 +250,7 @@ def as_points(
     peak = _peak(arr)
     if not np.isfinite(peak):
         raise InputError(f"{name} have non-finite entries (NaN or inf)", source)
-    _check_peak(peak, name, source)
+    check_peak(peak, name, source)
     return arr
 
 
@@ -298,8 +298,9 @@ def _peak(points: NDArray[np.float64]) -> float:
     return float(max(points.max(), -points.min()))
 
 
-def _check_peak(peak: float, name: str, source: str | None) -> None:
-    """Refuse coordinates whose squares would overflow float64 in a covariance or a distance."""
+def check_peak(peak: float, name: str, source: str | None = None) -> None:
+    """Refuse coordinates whose squares would overflow float64 in a covariance or a distance
+    (``peak``: their largest magnitude; ``name`` the plural they are named by)."""
     if peak > MAX_ABS_COORDINATE:
         raise InputError(
             f"{name} reach |coordinate| {peak:.3g}, beyond {MAX_ABS_COORDINATE:.3g}: their squares "

@@ -74,11 +74,53 @@ def check_covariances(C: ArrayLike | None, n: int, name: str) -> NDArray[np.floa
     Raises
     ------
     InputError
-        When ``C`` is not finite or not of shape (n, 3, 3).
+        When ``C`` is not finite or not of shape (n, 3, 3), or a matrix is no covariance: not
+        symmetric, or not positive semidefinite (both were registered without a word).
     """
     if C is None:
         return None
     C = real_array(C, name)
     if C.shape != (n, 3, 3) or not np.all(np.isfinite(C)):
         raise InputError(f"{name} must be finite with shape ({n}, 3, 3), got {C.shape}")
+    with np.errstate(all="ignore"):  # the products of entries beyond 1e100 overflow
+        problem = _no_covariance(C)
+    if problem is not None:
+        raise InputError(f"{name}: {problem}")
     return C
+
+
+# Rounding, relative to a covariance's scale, its symmetry may carry (a rotated R C Rᵀ) and its
+# principal minors, relative to the scale's powers.
+_SKEW = 1e-6
+_ROUNDING = 1e-9
+
+
+def _no_covariance(C: NDArray[np.float64]) -> str | None:
+    """Why a matrix of the (N, 3, 3) stack ``C`` is no covariance (the first such), or None: it
+    must be symmetric and positive semidefinite, its principal minors (diagonal, 2 x 2 and
+    determinant) all >= 0 to rounding. Element-wise, as a tracker passes its frame's in."""
+    a, b, c = C[:, 0, 0], C[:, 1, 1], C[:, 2, 2]
+    x, y, z = C[:, 0, 1], C[:, 0, 2], C[:, 1, 2]
+    # A covariance's largest entry is on its diagonal: the scale of its rounding.
+    scale = np.maximum(np.maximum(np.abs(a), np.abs(b)), np.abs(c))
+    skew = np.maximum(np.abs(x - C[:, 1, 0]), np.abs(y - C[:, 2, 0]))
+    asymmetric = np.maximum(skew, np.abs(z - C[:, 2, 1])) > _SKEW * scale
+    minor_ab, minor_ac, minor_bc = a * b - x * x, a * c - y * y, b * c - z * z
+    det = a * minor_bc - x * (x * c - z * y) + y * (x * z - b * y)
+    negative = np.minimum(np.minimum(a, b), c) < -_ROUNDING * scale
+    negative |= np.minimum(np.minimum(minor_ab, minor_ac), minor_bc) < -_ROUNDING * scale**2
+    negative |= det < -_ROUNDING * scale**3
+    if np.any(asymmetric):
+        k = int(np.argmax(asymmetric))
+        i, j = np.unravel_index(np.argmax(np.abs(C[k] - C[k].T)), (3, 3))
+        return (
+            f"matrix {k} of {len(C)} is not symmetric (C[{i}, {j}] {C[k, i, j]:.3g}, "
+            f"C[{j}, {i}] {C[k, j, i]:.3g}): no covariance"
+        )
+    if np.any(negative):
+        k = int(np.argmax(negative))
+        return (
+            f"matrix {k} of {len(C)} is not positive semidefinite (its smallest eigenvalue is "
+            f"{np.linalg.eigvalsh(C[k]).min():.3g}): no covariance"
+        )
+    return None

@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
+from spacepose.core.cloud import check_peak
 from spacepose.core.scale import rms_radius
 from spacepose.core.se3 import real_array
 from spacepose.errors import DegenerateGeometryError, InputError
@@ -196,8 +197,9 @@ def kabsch(
     Raises
     ------
     InputError
-        On mismatched shapes, fewer than 3 pairs, non-finite points, or weights that are not
-        one finite value >= 0 per pair with a positive sum.
+        On mismatched shapes, fewer than 3 pairs, non-finite points or ones whose squares
+        overflow float64, or weights that are not one finite value >= 0 per pair with a
+        positive sum.
     DegenerateGeometryError
         When a (single, unbatched) set of pairs is collinear, so the rotation is undetermined.
     """
@@ -208,8 +210,11 @@ def kabsch(
     if src.shape[-2] < 3:
         raise InputError(f"kabsch needs at least 3 point pairs, got {src.shape[-2]}")
     for name, values in (("source", src), ("target", dst)):
-        if not np.isfinite(values).all():
+        peak = float(max(values.max(initial=0.0), -values.min(initial=0.0)))  # NaN, inf: any
+        if not np.isfinite(peak):
             raise InputError(f"kabsch: the {name} points have non-finite entries (NaN or inf)")
+        # Their squares overflowed: numpy's "SVD did not converge" (LinAlgError) at 1e200.
+        check_peak(peak, f"kabsch: the {name} points")
     w = np.ones(src.shape[:-1]) if weights is None else _pair_weights(weights, src.shape[:-1])
     wsum = w.sum(axis=-1, keepdims=True)
     mu_s = np.einsum("...m,...mi->...i", w, src) / wsum

@@ -115,6 +115,8 @@ STAGES: tuple[str, ...] = (
 REGISTRATIONS: tuple[str, ...] = ("ransac", "icp", "gicp")
 FULL_SIZES: tuple[int, ...] = (5000, 10000, 20000, 40000, 80000)
 QUICK_SIZES: tuple[int, ...] = (5000, 10000, 20000)
+# Timed calls per stage and contender: each repeat times every stage again (5 take minutes).
+MOST_REPEATS = 100
 
 
 class BenchConfig(StageConfig):
@@ -241,10 +243,17 @@ def run_benchmark(
     Raises
     ------
     ConfigError
-        ``repeats`` < 1, a bad ``workers``, or ``peers`` without the peer libraries.
+        ``repeats`` < 1 or above :data:`MOST_REPEATS`, a bad ``workers``, or ``peers``
+        without the peer libraries.
     """
     if repeats < 1:
         raise ConfigError(f"repeats must be at least 1, got {repeats}")
+    if repeats > MOST_REPEATS:
+        # 10**9 ran for ever (the timed calls of the first stage unfinished).
+        raise ConfigError(
+            f"--repeats: {repeats} timed calls per stage would run for days: at most "
+            f"{MOST_REPEATS} (a stage's median steadies within a few)"
+        )
     threads = thread_count(workers)
     config = config or bench_config(quick)
     modules = load_peers() if peers else {}

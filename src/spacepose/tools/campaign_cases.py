@@ -83,6 +83,11 @@ class CaseRunner:
     bounds
         Numeric axis name -> the :class:`Bound` its values keep; axes in neither ``choices``
         nor ``bounds`` are free.
+    scenario
+        ``scenario(params)``: the simulator config a case's parameters make (raising
+        ConfigError for values no scenario takes), or None.
+    scenario_axes
+        The axes ``scenario`` reads; every combination of their values is checked with it.
     """
 
     name: str
@@ -90,6 +95,8 @@ class CaseRunner:
     choices: dict[str, tuple[Scalar, ...]]
     extra_axes: tuple[str, ...]
     bounds: dict[str, Bound]
+    scenario: Callable[[Mapping[str, Scalar]], object] | None = None
+    scenario_axes: tuple[str, ...] = ()
 
 
 _RUNNERS: dict[str, CaseRunner] = {}
@@ -101,6 +108,8 @@ def case_runner(
     choices: Mapping[str, Sequence[Scalar]] | None = None,
     extra_axes: Sequence[str] = (),
     bounds: Mapping[str, Bound] | None = None,
+    scenario: Callable[[Mapping[str, Scalar]], object] | None = None,
+    scenario_axes: Sequence[str] = (),
 ) -> Callable[[CaseFunction], CaseFunction]:
     """Decorator registering ``fn(params) -> metrics`` as the runner of ``case_kind=name``.
 
@@ -109,12 +118,14 @@ def case_runner(
     raises a :class:`~spacepose.errors.SpaceposeError` for an expected failure such as a
     registration without correspondences or a combination of values no scenario allows: the
     case is then recorded with its ``error`` message and no metrics. ``choices`` and
-    ``bounds`` restrict an axis' values (:class:`CaseRunner`).
+    ``bounds`` restrict an axis' values, ``scenario`` their combinations (:class:`CaseRunner`).
     """
 
     def wrap(fn: CaseFunction) -> CaseFunction:
         allowed = {axis: tuple(values) for axis, values in (choices or {}).items()}
-        _RUNNERS[name] = CaseRunner(name, fn, allowed, tuple(extra_axes), dict(bounds or {}))
+        _RUNNERS[name] = CaseRunner(
+            name, fn, allowed, tuple(extra_axes), dict(bounds or {}), scenario, tuple(scenario_axes)
+        )
         return fn
 
     return wrap
@@ -168,6 +179,32 @@ def _registration_params(params: Mapping[str, Scalar]) -> dict[str, Any]:
     return REGISTRATION_DEFAULTS[str(params["scenario"])] | dict(params)
 
 
+def _registration_scenario(params: Mapping[str, Scalar]) -> Any:
+    """The two-frame run a registration case simulates (its seed 0 when not given)."""
+    from spacepose.core.sim import scenario_config
+
+    return scenario_config(
+        str(params["scenario"]),
+        sensor=params.get("sensor"),  # type: ignore[arg-type]
+        noise_scale=float(params["noise_scale"]),
+        frames=2,
+        seed=int(params.get("seed", 0)),
+    )
+
+
+def _tracking_scenario(params: Mapping[str, Scalar]) -> Any:
+    """The lab run a tracking case simulates (58 frames, its seed 0 when not given)."""
+    from spacepose.core.sim import scenario_config
+
+    return scenario_config(
+        "lab",
+        noise_scale=float(params["noise_scale"]),
+        frames=int(params.get("frames", 58)),
+        seed=int(params.get("seed", 0)),
+        background=bool(params.get("background", False)),
+    )
+
+
 @case_runner(
     "registration",
     choices={
@@ -183,6 +220,8 @@ def _registration_params(params: Mapping[str, Scalar]) -> dict[str, Any]:
         # ICP and GICP need a gate above zero.
         "max_correspondence_mm": Bound(0.0, strict=True),
     },
+    scenario=_registration_scenario,
+    scenario_axes=("scenario", "sensor", "noise_scale"),
 )
 def registration_case(params: dict[str, Scalar]) -> Metrics:
     """Register simulated frame 1 to frame 0 of a two-frame run from a perturbed start.
@@ -204,17 +243,10 @@ def registration_case(params: dict[str, Scalar]) -> Metrics:
     """
     from spacepose.core.gicp import GICPConfig, gicp
     from spacepose.core.icp import ICPConfig, icp
-    from spacepose.core.sim import scenario_config, simulate
+    from spacepose.core.sim import simulate
 
     p = _registration_params(params)
-    sim_config = scenario_config(
-        str(p["scenario"]),
-        sensor=p.get("sensor"),
-        noise_scale=float(p["noise_scale"]),
-        frames=2,
-        seed=int(p["seed"]),
-    )
-    sim = simulate(sim_config)
+    sim = simulate(_registration_scenario(p))
     target, source = sim.frame(0), sim.frame(1)
     T_true = target.T_sensor_target @ se3.invert(source.T_sensor_target)
     center = source.cloud.points.mean(axis=0)
@@ -252,6 +284,8 @@ def registration_case(params: dict[str, Scalar]) -> Metrics:
     extra_axes=("frames", "background"),
     # A model-free run of one frame scores its start against itself: every error zero.
     bounds={"frames": Bound(2, integer=True)},
+    scenario=_tracking_scenario,
+    scenario_axes=("noise_scale", "frames", "background"),
 )
 def tracking_case(params: dict[str, Scalar]) -> Metrics:
     """Track a whole simulated lab run (model-free) and score it against the ground truth.
@@ -268,20 +302,12 @@ def tracking_case(params: dict[str, Scalar]) -> Metrics:
         every axis, and the mean time per frame.
     """
     from spacepose.core.metrics import evaluate
-    from spacepose.core.sim import scenario_config, simulate
+    from spacepose.core.sim import simulate
     from spacepose.core.tracker import TrackerConfig, track_sequence
     from spacepose.core.trajectory import Trajectory
 
     background = bool(params.get("background", False))
-    sim = simulate(
-        scenario_config(
-            "lab",
-            noise_scale=float(params["noise_scale"]),
-            frames=int(params.get("frames", 58)),
-            seed=int(params["seed"]),
-            background=background,
-        )
-    )
+    sim = simulate(_tracking_scenario(params))
     config = TrackerConfig(method=str(params["method"]), use_background_removal=background)
     frames = [sim.frame(k) for k in range(len(sim))]
     output = track_sequence(

@@ -33,7 +33,7 @@ from pydantic import (
 
 from spacepose.core.config import StageConfig, load_config
 from spacepose.errors import ConfigError
-from spacepose.tools.campaign_cases import Scalar, get_runner
+from spacepose.tools.campaign_cases import CaseRunner, Scalar, get_runner
 
 REQUIRED_AXES: tuple[str, ...] = ("scenario", "noise_scale", "method", "seed")
 # Columns the campaign adds itself; neither an axis nor a metric may take these names.
@@ -41,6 +41,8 @@ RESERVED_COLUMNS: tuple[str, ...] = ("case_id", "error", "time_s")
 # Keys of a summary record; an axis of that name would be overwritten there.
 _SUMMARY_KEYS: tuple[str, ...] = ("metric", "n", "n_failed", "mean", "std", "median", "p95")
 NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+# Cases of one campaign: each takes a second or more, so a million run for days on a cluster.
+MOST_CASES = 1_000_000
 
 
 # --------------------------------------------------------------------------------------------
@@ -100,7 +102,14 @@ class CampaignConfig(StageConfig):
         missing = [axis for axis in REQUIRED_AXES if axis not in grid]
         if missing:
             raise ValueError(f"missing axis {', '.join(missing)} (required: {REQUIRED_AXES})")
-        return {axis: _check_axis(axis, values) for axis, values in grid.items()}
+        grid = {axis: _check_axis(axis, values) for axis, values in grid.items()}
+        cases = math.prod(len(values) for values in grid.values())
+        if cases > MOST_CASES:
+            # 3000 seeds by 3000 noise scales were taken, and the run built the list of its
+            # 9 million cases before the first one, for hours.
+            sizes = " x ".join(f"{len(v)} {axis}" for axis, v in grid.items())
+            raise ValueError(f"{sizes} make {cases:,} cases, more than {MOST_CASES:,}")
+        return grid
 
     @model_validator(mode="after")
     def _check_runner(self) -> CampaignConfig:
@@ -117,6 +126,9 @@ class CampaignConfig(StageConfig):
             problem = bound.problem(axis, self.grid.get(axis, ()))
             if problem is not None:
                 raise ValueError(f"{problem} for case_kind {self.case_kind!r}")
+        problem = _scenario_problem(runner, self.grid)
+        if problem is not None:
+            raise ValueError(f"{problem} (for case_kind {self.case_kind!r})")
         extra = [a for a in self.grid if a not in REQUIRED_AXES and a not in runner.extra_axes]
         if extra:
             raise ValueError(
@@ -124,6 +136,23 @@ class CampaignConfig(StageConfig):
                 f"(it accepts: {', '.join(REQUIRED_AXES + runner.extra_axes)})"
             )
         return self
+
+
+def _scenario_problem(runner: CaseRunner, grid: dict[str, list[Scalar]]) -> str | None:
+    """Why a combination of the grid's values makes no scenario (None: each makes one): a
+    noise_scale whose noise overflows, frames beyond the simulator's bound. Each such case
+    failed in a worker, every one of them, after the campaign had started."""
+    if runner.scenario is None:
+        return None
+    axes = [axis for axis in runner.scenario_axes if axis in grid]
+    for values in itertools.product(*(grid[axis] for axis in axes)):
+        params = dict(zip(axes, values, strict=True))
+        try:
+            runner.scenario(params)
+        except ConfigError as exc:
+            where = ", ".join(f"{axis} {value!r}" for axis, value in params.items())
+            return f"grid: {where}: {exc}"
+    return None
 
 
 def _check_axis(axis: str, values: list[Scalar]) -> list[Scalar]:

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 from spacepose.core.depth import DepthCamera
 from spacepose.errors import ConfigError, InputError, SpaceposeError
 from spacepose.tools.cloud_io import DEPTH_SUFFIXES
-from spacepose.tools.depth_io import read_depth_image
+from spacepose.tools.depth_io import image_size, read_depth_image
 from spacepose.tools.intrinsics_io import find_intrinsics, read_intrinsics
 from spacepose.tools.npy_io import npy_shape
 from spacepose.tools.text_io import check_timing, data_number, read_text
@@ -252,3 +252,31 @@ def unlisted_images(paths: tuple[Path, ...]) -> list[Path]:
         for p in folder.iterdir()
         if p.suffix.lower() in FOLDER_DEPTH_SUFFIXES and p.is_file() and p.resolve() not in listed
     )
+
+
+def sized_camera(camera: DepthCamera, paths: tuple[Path, ...], source: Path | None) -> DepthCamera:
+    """``camera`` with the sequence's image size where its intrinsics give none: the size most
+    of its images have (read from their headers). One camera makes every frame, and an image
+    of another size (a frame of another stream) would be back-projected with the wrong
+    principal point without a word.
+
+    Raises
+    ------
+    ConfigError
+        The intrinsics (``source``) give a size no image has: every frame was lost, each
+        blamed on its image (width 1e26 as well), not on the intrinsics.
+    """
+    sizes = Counter(size for size in map(image_size, paths) if size is not None)
+    if not sizes:
+        return camera  # each frame's own error is reported when it is read
+    (width, height), _ = sizes.most_common(1)[0]
+    given = (camera.width, camera.height)
+    if None not in given and given not in sizes:
+        where = "the intrinsics" if source is None else source
+        raise ConfigError(
+            f"{where}: width {camera.width} and height {camera.height} are the size of no "
+            f"image of the folder ({len(paths)} images, most {width}x{height}): intrinsics of "
+            "another camera or resolution?"
+        )
+    size = {"width": width, "height": height}
+    return camera.model_copy(update={k: v for k, v in size.items() if getattr(camera, k) is None})

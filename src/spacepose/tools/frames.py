@@ -17,8 +17,7 @@ tracker reports it ``lost`` and the run goes on.
 from __future__ import annotations
 
 import warnings
-from collections import Counter
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -399,7 +398,7 @@ def _open_depth_folder(
             ),
             stacklevel=3,
         )
-    sized = _sized(camera, paths)
+    sized = depth_folder.sized_camera(camera, paths, source)
     # Checked at the size the intrinsics give, or else the images': the frames' own check looks
     # for a size the intrinsics lack, and the folder gave one (a principal point of another
     # resolution, or swapped, is warned of here, once).
@@ -407,21 +406,6 @@ def _open_depth_folder(
     camera = sized
     loader = partial(depth_io.read_depth_cloud, camera=camera, unit_from=unit_from)
     return FrameSequence(paths, timestamps, loader=loader)
-
-
-def _sized(camera: DepthCamera, paths: Sequence[Path]) -> DepthCamera:
-    """``camera`` with the sequence's image size where its intrinsics give none: the size most
-    of its images have (read from their headers). One camera makes every frame, and an image
-    of another size (a frame of another stream) would be back-projected with the wrong
-    principal point without a word."""
-    if camera.width is not None and camera.height is not None:
-        return camera
-    sizes = Counter(size for size in map(depth_io.image_size, paths) if size is not None)
-    if not sizes:
-        return camera  # each frame's own error is reported when it is read
-    (width, height), _ = sizes.most_common(1)[0]
-    size = {"width": width, "height": height}
-    return camera.model_copy(update={k: v for k, v in size.items() if getattr(camera, k) is None})
 
 
 def read_timestamps(path: str | Path, n_frames: int) -> NDArray[np.float64]:

@@ -35,9 +35,10 @@ _LOW_FITNESS = 0.5
 
 
 def read_transform(path: str | Path) -> NDArray[np.float64]:
-    """A 4×4 transform from a text file (16 numbers; ``#`` starts a comment), or a JSON file
-    (``.json``, any case, or any name whose text opens with ``{`` or ``[``) holding the matrix
-    (4 rows, or 16 numbers) or a mapping with ``T_target_source`` (e.g. an earlier ``--out``)."""
+    """A 4×4 transform from a text file (16 numbers apart by blanks or commas; ``#`` starts a
+    comment), or a JSON file (``.json``, any case, or any name whose text opens with ``{`` or
+    ``[``) holding the matrix (4 rows, or 16 numbers) or a mapping with ``T_target_source``
+    (e.g. an earlier ``--out``)."""
     path = Path(path)
     text = read_text(path, "the transform")
     expected = "expected 16 numbers (a 4x4 matrix) or JSON with T_target_source"
@@ -54,8 +55,10 @@ def read_transform(path: str | Path) -> NDArray[np.float64]:
                 problem = "text where a number goes (write it unquoted)"
         else:
             # '#' comments, as in the T_target_source.txt small_gicp ships and hand-written
-            # files: "expected 16 numbers" of a file that held them.
-            values = " ".join(line.split("#", 1)[0] for line in text.splitlines()).split()
+            # files, and commas, as numpy.savetxt(delimiter=",") writes: "expected 16
+            # numbers" of a file that held them.
+            body = " ".join(line.split("#", 1)[0] for line in text.splitlines())
+            values = body.replace(",", " ").split()
         if holds_boolean(values):  # numpy would read true as 1
             problem = "a yes/no where a number goes"
         T = np.asarray(values, dtype=np.float64).reshape(4, 4)

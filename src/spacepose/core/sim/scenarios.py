@@ -29,11 +29,11 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import Field
+from pydantic import Field, field_validator
 from scipy.spatial.transform import Rotation
 
 from spacepose.core import dynamics
-from spacepose.core.config import StageConfig, validate_config
+from spacepose.core.config import StageConfig, square_stays_finite, validate_config
 from spacepose.core.sim.lab_scene import MotionProfile, lab_background, lab_poses, sized_target
 from spacepose.core.sim.mesh_files import load_mesh
 from spacepose.core.sim.orbit_truth import (
@@ -109,6 +109,10 @@ class LabConfig(_ScenarioConfig):
     )
     target_albedo: float = Field(1.0, gt=0, le=1, description="Target reflectance.")
 
+    # 1e100 leaked numpy's overflow warnings from the renderer's face normals (a cross product
+    # of coordinates, squared) before "the sensor sees nothing".
+    _size_squares_finite = field_validator("target_size_m")(square_stays_finite)
+
 
 class OrbitConfig(_ScenarioConfig):
     """The orbit run of methods.md §3 (Yu et al.): a flash LiDAR 25 m from a tumbling satellite."""
@@ -167,6 +171,8 @@ def simulate_lab(config: LabConfig | None = None) -> Simulation:
     config = config or LabConfig()
     target = _target(config, lab_target())
     target = sized_target(target, config.target_size_m, align=config.model is not None)
+    # The target's origin is on the turntable axis, range_m ahead; the slide only moves it aside.
+    _check_within_range(config, "a range", config.range_m, target)
     T_sensor_table, T_sensor_target = lab_poses(config)
     background, albedo = (), (config.target_albedo,)
     if config.background:
@@ -194,6 +200,26 @@ def _check_wall(config: LabConfig, target: Target, T_sensor_target: NDArray[np.f
             f"the wall at {config.wall_distance_m:g} m stands before or through the target "
             f"(up to {farthest:.3g} m from the sensor): it would hide it; place the wall beyond "
             "it (wall_distance_m; simulate --grid puts it at 5/3 of the range)"
+        )
+
+
+def _check_within_range(
+    config: LabConfig | OrbitConfig,
+    what: str,
+    distance: float,
+    target: Target,
+    remedy: str = "place it nearer",
+) -> None:
+    """Refuse a target whose every point lies beyond the sensor's range from ``distance`` (its
+    centre's): it would see nothing, and the lab's --range 1e300 leaked numpy's overflow
+    warnings from the renderer before saying so."""
+    reach = float(np.max(np.linalg.norm(target.mesh.vertices, axis=1)))
+    if distance - reach > config.sensor.max_range:
+        name = "orbit" if isinstance(config, OrbitConfig) else "lab"
+        raise ConfigError(
+            f"scenario {name}: {what} of {distance:g} m puts the whole target (reaching "
+            f"{reach:.3g} m from its centre) beyond the sensor's {config.sensor.max_range:g} m "
+            f"range: it would see nothing; {remedy}"
         )
 
 
@@ -264,13 +290,8 @@ def simulate_orbit(config: OrbitConfig | None = None) -> Simulation:
             f"scenario orbit: a standoff of {config.standoff_m:g} m puts the chaser within the "
             f"target's reach ({reach:.3g} m from its centre); {remedy}"
         )
-    if config.standoff_m - reach > config.sensor.max_range:
-        # Checked before the truth is integrated: --range 1e300 ran for ever in it.
-        raise ConfigError(
-            f"scenario orbit: a standoff of {config.standoff_m:g} m puts the whole target "
-            f"(reaching {reach:.3g} m from its centre) beyond the sensor's "
-            f"{config.sensor.max_range:g} m range: it would see nothing; stand off nearer"
-        )
+    # Checked before the truth is integrated: --range 1e300 ran for ever in it.
+    _check_within_range(config, "a standoff", config.standoff_m, target, "stand off nearer")
     truth = orbit_truth(config)
     R_O_C_known = misaligned(
         R_O_C_AHEAD,
