@@ -319,7 +319,7 @@ def test_api_errors_are_package_errors():
 def test_a_simulation_that_sees_nothing_says_why(tmp_path, capsys):
     out = str(tmp_path / "run")
     assert main(["simulate", "lab", "--frames", "2", "--range", "1e9", "--out", out]) == 1
-    assert "the sensor sees nothing (target 1e+09 m away" in _one_line(capsys)
+    assert "a range of 1e+09 m puts the whole target" in _one_line(capsys)
     assert main(["simulate", "lab", "--frames", str(10**20), "--out", out]) == 1
     assert "frames" in _one_line(capsys)
 
