@@ -48,6 +48,7 @@ from spacepose.core.nav_state import (
     dk_dp,
     finite,
     k_from_params,
+    measurement_covariance,
     params_from_k,
     seconds,
 )
@@ -346,7 +347,8 @@ class RelativeNavEKF:
         H[:, i : i + 3] = A
         if self.has_consider:
             H[:, CHASER] = -se3.skew(z_hat)  # exp([φ]×) ẑ ≈ ẑ − [ẑ]× φ
-        Rm = self.config.sigma_centroid**2 * np.eye(3) if cov is None else _cov(cov, 3)
+        sigma = self.config.sigma_centroid
+        Rm = sigma**2 * np.eye(3) if cov is None else measurement_covariance(cov, 3)
         return self._update(c_C - z_hat, H, Rm)
 
     def update_attitude(self, q_I_B_meas: ArrayLike, cov: ArrayLike | None = None) -> bool:
@@ -362,7 +364,7 @@ class RelativeNavEKF:
             # R_I_B(meas) = R_I_O R_O_C exp([φ]×) R_C_B = R_I_B exp([R_C_Bᵀ φ]×).
             H[:, CHASER] = (self.R_C_O @ self.R_O_B()).T
         s = np.deg2rad(self.config.sigma_attitude_deg)
-        Rm = s**2 * np.eye(3) if cov is None else _cov(cov, 3)
+        Rm = s**2 * np.eye(3) if cov is None else measurement_covariance(cov, 3)
         return self._update(r, H, Rm)
 
     def predict_pose(self) -> NDArray[np.float64]:
@@ -379,7 +381,7 @@ class RelativeNavEKF:
         T = se3.as_transform(T_sensor_model, "T_sensor_model")
         T_hat = self.predict_pose()
         r = se3.log(T @ se3.invert(T_hat))
-        return self._update(r, self._pose_jacobian(T_hat), _cov(cov6, 6))
+        return self._update(r, self._pose_jacobian(T_hat), measurement_covariance(cov6, 6))
 
     def pose_covariance(self) -> NDArray[np.float64]:
         """Covariance (6, 6) of :meth:`predict_pose`, ``H P Hᵀ``: twist (ω, v), left
@@ -443,11 +445,3 @@ def _quaternion(values: ArrayLike, name: str) -> NDArray[np.float64]:
     if not (0.0 < norm < np.inf):
         raise InputError(f"{name} must have a finite, non-zero norm, got {q}")
     return q
-
-
-def _cov(values: ArrayLike, m: int) -> NDArray[np.float64]:
-    C = finite(values, (m, m), "measurement covariance")
-    C = 0.5 * (C + C.T)
-    if np.linalg.eigvalsh(C)[0] <= 0:
-        raise InputError("measurement covariance must be positive definite")
-    return C

@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from spacepose.core import se3
+from spacepose.core.cloud import MAX_ABS_COORDINATE
 from spacepose.errors import InputError
 
 # Error-state slices of the fixed part; rectangle location errors follow from index 17.
@@ -159,3 +160,30 @@ def seconds(value: object, name: str) -> float:
     if not math.isfinite(number):
         raise InputError(f"{name} must be a finite number, got {value!r:.60}")
     return number
+
+
+# Rounding, relative to its largest entry, a measurement covariance's symmetry may carry.
+_SKEW = 1e-6
+# Largest |entry| of a measurement covariance: a squared coordinate's (sums stay finite).
+_LARGEST_VARIANCE = MAX_ABS_COORDINATE**2
+
+
+def measurement_covariance(values: ArrayLike, m: int) -> NDArray[np.float64]:
+    """``values`` as an (m, m) measurement covariance: finite, its sums finite, symmetric to
+    rounding and positive definite (InputError otherwise)."""
+    C = finite(values, (m, m), "measurement covariance")
+    if np.abs(C).max() > _LARGEST_VARIANCE:  # sums overflowed: "Eigenvalues did not converge"
+        raise InputError(
+            f"measurement covariance reaches {np.abs(C).max():.3g}, beyond "
+            f"{_LARGEST_VARIANCE:.3g}: its sums overflow float64 (wrong units?)"
+        )
+    i, j = np.unravel_index(np.argmax(np.abs(C - C.T)), C.shape)
+    if abs(C[i, j] - C[j, i]) > _SKEW * np.abs(C).max():  # averaged, it was another matrix
+        raise InputError(
+            f"measurement covariance is not symmetric (C[{i}, {j}] {C[i, j]:.3g}, C[{j}, {i}] "
+            f"{C[j, i]:.3g}): no covariance"
+        )
+    C = 0.5 * (C + C.T)
+    if np.linalg.eigvalsh(C)[0] <= 0:
+        raise InputError("measurement covariance must be positive definite")
+    return C

@@ -8,6 +8,7 @@ relative to the folder).
 
 from __future__ import annotations
 
+import os
 import re
 from collections import Counter
 from decimal import Decimal
@@ -189,8 +190,8 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
     Raises
     ------
     InputError
-        Unreadable list, a line that is not ``number path``, an image listed twice, a
-        non-finite or decreasing time,
+        Unreadable list, a line that is not ``number path``, an image outside the list's
+        folder or listed twice, a non-finite or decreasing time,
         times that are not seconds (:func:`~spacepose.tools.text_io.check_timing`), or no
         line at all.
     """
@@ -210,6 +211,14 @@ def read_tum_depth_list(path: str | Path) -> tuple[tuple[Path, ...], NDArray[np.
             stamp = float("nan")
         if len(parts) != 2 or not np.isfinite(stamp):
             raise InputError(f"line {lineno}: expected 'timestamp path', got {body!r}", path)
+        inside = os.path.relpath(os.path.normpath(path.parent / parts[1]), path.parent)
+        if inside.split(os.sep)[0] == os.pardir:
+            # An image of another folder (another sequence's) was read as one of this one.
+            raise InputError(
+                f"line {lineno}: {parts[1]} lies outside the list's folder: a depth list "
+                "names the images of its own sequence",
+                path,
+            )
         image = path.parent / parts[1]
         if image in listed:
             # One image tracked as two frames: a line pasted twice, or the wrong file named.

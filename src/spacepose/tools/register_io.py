@@ -116,6 +116,14 @@ def register_files(
     try:
         outcome = register(source, target, init, config, workers)
     except RegistrationError as exc:  # say which pair failed
+        gap = 0.0 if init is None else _box_gap(source.transformed(init).points, target.points)
+        if gap > 0:  # the initial transform moved the source clear of the target: the cause
+            raise InputError(
+                f"the initial transform (--init) moves {source_path} {gap:.3g} m clear of "
+                f"{target_path} (their bounding boxes do not meet), and registration failed: "
+                f"{exc}",
+                init_path,
+            ) from None
         raise RegistrationError(f"{pair}: {exc}") from None
     except InputError as exc:
         if exc.source is not None:  # one cloud's own problem, already named
@@ -140,6 +148,12 @@ def register_files(
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         Path(out).write_text(json.dumps(summary, indent=2) + "\n")
     return outcome
+
+
+def _box_gap(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
+    """The distance (m) between the bounding boxes of two (N, 3) clouds; 0 where they meet."""
+    apart = np.maximum(a.min(axis=0) - b.max(axis=0), b.min(axis=0) - a.max(axis=0))
+    return float(np.linalg.norm(np.maximum(apart, 0.0)))
 
 
 def _read_input(path: str | Path, intrinsics: str | Path | None) -> PointCloud:

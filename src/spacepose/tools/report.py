@@ -159,6 +159,15 @@ def build_report(run_dir: str | Path, out: str | Path | None = None) -> Path:
         body.append("<h2>Benchmark</h2>" + bench)
     body.append(skipped.section(root))
     if not any(body):
+        # Tracks of a folder with no scenario.json are no run's: say so, not that none exist.
+        found = sorted(p.relative_to(root).as_posix() for p in root.rglob("*.[tT][uU][mM]"))
+        if found:
+            raise InputError(
+                f"nothing to report: {', '.join(found[:3])}{' ...' if found[3:] else ''} "
+                "found, but no scenario.json: the report reads run folders as `spacepose "
+                "simulate` writes them (scenario.json, groundtruth.tum, tracks)",
+                root,
+            )
         raise InputError("nothing to report: no run, experiment or benchmark output found", root)
     stamp = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     page = (
