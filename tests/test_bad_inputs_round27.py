@@ -13,19 +13,12 @@ from concurrent.futures import TimeoutError as FutureTimeout
 
 import numpy as np
 import pytest
+from tests.cli_errors import error_line
 
 from spacepose.cli import main
 from spacepose.errors import ConfigError, FileFormatError
 
 _MCAP_MAGIC = b"\x89MCAP0\r\n"
-
-
-def _error_line(capsys) -> str:
-    """The command's stderr, checked to be one ``error:`` line and no traceback."""
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "Traceback" not in err, err
-    assert err.startswith("error: "), err
-    return err
 
 
 @pytest.mark.parametrize(
@@ -40,7 +33,7 @@ def test_a_cut_mcap_bag_is_one_line_naming_it(tmp_path, capsys, body):
     bag = tmp_path / "run.mcap"
     bag.write_bytes(_MCAP_MAGIC + body)
     assert main(["track", str(bag), "--out", str(tmp_path / "est.tum")]) == 1
-    err = _error_line(capsys)
+    err = error_line(capsys)
     assert f"{bag}: cannot open the bag: truncated or corrupt" in err
 
 
@@ -73,7 +66,7 @@ def test_a_tracker_floor_whose_square_overflows_is_one_line_from_track(tmp_path,
     capsys.readouterr()
     args = ["track", str(run), "--out", str(tmp_path / "est.tum"), "--config", str(config)]
     assert main(args) == 1
-    err = _error_line(capsys)
+    err = error_line(capsys)
     assert f"{config}: invalid tracker config: floor_rotation: 1e+300 is too large" in err
 
 
@@ -151,7 +144,7 @@ def test_a_camera_matrix_of_yes_no_is_one_line_from_track(tmp_path, capsys):
     intrinsics = tmp_path / "intrinsics.yaml"
     intrinsics.write_text(_ros_yaml("[true, 0, 79.5, 0, 200, 59.5, 0, 0, 1]"))
     assert main(["track", str(tmp_path), "--out", str(tmp_path / "out" / "est.tum")]) == 1
-    err = _error_line(capsys)
+    err = error_line(capsys)
     assert f"{intrinsics}: camera_matrix holds a yes/no where numbers go" in err
 
 
@@ -246,7 +239,7 @@ def test_an_npz_member_that_is_no_npy_array_is_named(tmp_path, capsys, member):
         archive.writestr(member, b"not an array")
     assert main(["planes", str(path)]) == 1
     name = member.removesuffix(".npy")
-    assert f"{path}: .npz '{name}' is no .npy array (no NumPy header)" in _error_line(capsys)
+    assert f"{path}: .npz '{name}' is no .npy array (no NumPy header)" in error_line(capsys)
 
 
 def test_a_cells_file_of_frames_alone_is_not_the_whole_grid(tmp_path):

@@ -8,17 +8,10 @@ import struct
 
 import numpy as np
 import pytest
+from tests.cli_errors import error_line
 
 from spacepose.cli import main
 from spacepose.errors import ConfigError, FileFormatError
-
-
-def _error_line(capsys) -> str:
-    """The command's stderr, checked to be one ``error:`` line and no traceback."""
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "Traceback" not in err, err
-    assert err.startswith("error: "), err
-    return err
 
 
 @pytest.mark.parametrize("scale", ["1e300", "1e40"])
@@ -28,7 +21,7 @@ def test_a_noise_scale_whose_noise_overflows_names_the_option(tmp_path, capsys, 
     out = tmp_path / "run"
     args = ["simulate", "lab", "--out", str(out), "--frames", "1", "--noise-scale", scale]
     assert main(args) == 1
-    err = _error_line(capsys)
+    err = error_line(capsys)
     assert f"error: sensor tof: invalid sensor config: noise_scale {float(scale):g} makes σ" in err
     assert "the noisy points would overflow float32, in which a run's frames are written" in err
     assert not (out / "frames").exists()
@@ -48,7 +41,7 @@ def test_seeds_without_end_are_refused_in_one_line(tmp_path, capsys):
     out = tmp_path / "experiments"
     args = ["experiment", "fusion", "--quick", "--seeds", str(10**12), "--out", str(out)]
     assert main(args) == 1
-    err = _error_line(capsys)
+    err = error_line(capsys)
     assert f"error: --seeds: {10**12} is not a number of seeds from 1 to 1000" in err
     assert not out.exists()
 
@@ -139,7 +132,7 @@ def test_a_ply_mesh_cut_short_is_one_line_from_simulate(tmp_path, capsys):
     model.write_text(_PLY_HEAD.format(fmt="ascii", faces=3) + _CORNERS + "3 0 1 2\n3 0 1 3\n")
     args = ["simulate", "lab", "--frames", "1", "--model", str(model), "--out", str(tmp_path / "r")]
     assert main(args) == 1
-    err = _error_line(capsys)
+    err = error_line(capsys)
     assert err == f"error: {model}: bad or truncated PLY: element 'face': row 2: early end-of-file"
 
 
@@ -160,7 +153,7 @@ def test_a_gltf_that_is_no_json_says_so(tmp_path, capsys, data, problem):
     model.write_bytes(data)
     args = ["simulate", "lab", "--frames", "1", "--model", str(model), "--out", str(tmp_path / "r")]
     assert main(args) == 1
-    assert f"error: {model}: {problem}" in _error_line(capsys)
+    assert f"error: {model}: {problem}" in error_line(capsys)
     import trimesh
 
     from spacepose.core.sim.mesh_files import load_mesh
@@ -176,7 +169,7 @@ def test_a_demo_written_into_a_file_says_so(tmp_path, capsys, under):
     file.write_text("notes\n")
     out = file / "sub" if under else file
     assert main(["demo", "--out", str(out), "--orbit-frames", "20"]) == 1
-    err = _error_line(capsys)
+    err = error_line(capsys)
     where = "is a file, not a folder" if not under else f"lies under {file}, a file"
     assert err == (
         f"error: {out}: --out {where}: the demo writes its runs and report.html into a folder"
@@ -230,7 +223,7 @@ def test_a_binary_stl_its_header_miscounts_is_named(tmp_path, capsys, count):
     model.write_bytes(b"\0" * 80 + struct.pack("<I", count) + 2 * triangle)
     args = ["simulate", "lab", "--frames", "1", "--model", str(model), "--out", str(tmp_path / "r")]
     assert main(args) == 1
-    assert _error_line(capsys) == (
+    assert error_line(capsys) == (
         f"error: {model}: its header counts {count:,} triangles ({84 + 50 * count:,} bytes), but "
         "the file holds 184 bytes: a cut or miscounted binary STL"
     )

@@ -10,17 +10,10 @@ import sys
 
 import numpy as np
 import pytest
+from tests.cli_errors import error_line
 
 from spacepose.cli import main
 from spacepose.errors import ConfigError, InputError
-
-
-def _error_line(capsys) -> str:
-    """The command's stderr, checked to be one ``error:`` line: no traceback, no warning."""
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "Traceback" not in err, err
-    assert err.startswith("error: "), err
-    return err
 
 
 def _simulate_lab(tmp_path, *options: str) -> subprocess.CompletedProcess:
@@ -72,7 +65,7 @@ def test_intrinsics_of_a_size_no_image_has_name_the_file_and_fields(tmp_path, ca
     text = f"fx: 40\nfy: 40\ncx: 19.5\ncy: 14.5\nwidth: {width}\nheight: 30\n"
     root = _depth_folder(tmp_path / "depth", text)
     assert main(["track", str(root), "--out", str(tmp_path / "est.tum")]) == 1
-    assert _error_line(capsys) == (
+    assert error_line(capsys) == (
         f"error: {root / 'intrinsics.yaml'}: width {width} and height 30 are the size of no "
         "image of the folder (3 images, most 40x30): intrinsics of another camera or resolution?"
     )
@@ -92,7 +85,7 @@ def test_endless_benchmark_repeats_are_refused(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(bench, "_measure", measure)
     out = tmp_path / "bench.json"
     assert main(["bench", "--quick", "--out", str(out), "--repeats", str(10**9)]) == 1
-    assert _error_line(capsys) == (
+    assert error_line(capsys) == (
         f"error: --repeats: {10**9} timed calls per stage would run for days: at most 100 (a "
         "stage's median steadies within a few)"
     )

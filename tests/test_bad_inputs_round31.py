@@ -8,17 +8,10 @@ import warnings
 
 import numpy as np
 import pytest
+from tests.cli_errors import error_line
 
 from spacepose.cli import main
 from spacepose.errors import InputError, SpaceposeWarning
-
-
-def _error_line(capsys) -> str:
-    """The command's stderr, checked to be one ``error:`` line: no traceback, no warning."""
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "Traceback" not in err, err
-    assert err.startswith("error: "), err
-    return err
 
 
 @pytest.mark.parametrize("listed", ["../other/000002.png", "depth/../../other/000002.png"])
@@ -59,7 +52,7 @@ def test_tracks_without_a_scenario_are_named_by_the_report(tmp_path, capsys):
     for name in ("track.tum", "groundtruth.tum"):
         (root / name).write_text("0 0 0 0 0 0 0 1\n1 0.1 0 0 0 0 0 1\n")
     assert main(["report", str(root)]) == 1
-    assert _error_line(capsys) == (
+    assert error_line(capsys) == (
         f"error: {root}: nothing to report: groundtruth.tum, track.tum found, but no "
         "scenario.json: the report reads run folders as `spacepose simulate` writes them "
         "(scenario.json, groundtruth.tum, tracks)"
