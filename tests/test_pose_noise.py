@@ -190,11 +190,15 @@ def test_biases_in_the_sensors_and_the_targets_frames_are_told_apart_by_a_tumble
     for bad in (-1.0, float("nan")):
         with pytest.raises(InputError, match="standard errors >= 0"):
             translation_bias(T_est, T_ref, C, significance=bad)
+    with pytest.raises(InputError, match="min_batches"):
+        translation_bias(T_est, T_ref, C, min_batches=2.5)
 
 
 def test_errors_about_the_targets_origin_are_whitened_block_by_block():
-    """A target 25 m out: its origin's error is v + ω × t, and each block is whitened by its
-    own covariance there (the rotation's by its 3×3 block, the translation's likewise)."""
+    """A target 25 m out, each pose turned by r about the target's origin and its origin moved
+    by d: the errors are (r, d), each block whitened by its own covariance there (the rotation's
+    by its 3×3 block, the translation's likewise), at turns of 0.1 rad, where the first-order
+    displacement v + ω × t would be 0.1 m off."""
     rng = np.random.default_rng(6)
     n = 12
     T_ref = np.stack(
@@ -205,17 +209,21 @@ def test_errors_about_the_targets_origin_are_whitened_block_by_block():
     )
     A = rng.normal(size=(6, 6))
     C = np.tile(1e-6 * (A @ A.T + np.eye(6)), (n, 1, 1))
-    errors = rng.normal(scale=1e-3, size=(n, 6))
-    w = target_origin_whitened(_poses(errors, T_ref), C, T_ref)
+    r = rng.normal(scale=0.1, size=(n, 3))
+    d = rng.normal(scale=1e-3, size=(n, 3))
+    T_est = T_ref.copy()
+    T_est[:, :3, :3] = Rotation.from_rotvec(r).as_matrix() @ T_ref[:, :3, :3]
+    T_est[:, :3, 3] += d
+    w = target_origin_whitened(T_est, C, T_ref)
     for k in range(n):
         J = np.eye(6)
         J[3:, :3] = -se3.skew(T_ref[k, :3, 3])
-        e, Ct = J @ errors[k], J @ C[k] @ J.T
+        Ct = J @ C[k] @ J.T
         expected = np.r_[
-            np.linalg.solve(np.linalg.cholesky(Ct[:3, :3]), e[:3]),
-            np.linalg.solve(np.linalg.cholesky(Ct[3:, 3:]), e[3:]),
+            np.linalg.solve(np.linalg.cholesky(Ct[:3, :3]), r[k]),
+            np.linalg.solve(np.linalg.cholesky(Ct[3:, 3:]), d[k]),
         ]
-        np.testing.assert_allclose(w[k], expected, rtol=1e-6)
+        np.testing.assert_allclose(w[k], expected, rtol=1e-9)
 
 
 def test_a_covariance_scaled_about_the_targets_origin():

@@ -186,8 +186,9 @@ class FusedNavigator:
             and self._last_ok_used
         )
         # The filter's pose in the tracker's target frame (the first view's, model-free; the
-        # model's with the tracker's bias there, model-based): a left-perturbation covariance
-        # is the same for both.
+        # model's with the tracker's biases, model-based). Its left-perturbation covariance
+        # serves for both: a right factor leaves it as it is, and the sensor-frame bias (under
+        # a millimetre) moves its translation block by that lever times the rotation's σ.
         T_pred = None if ekf is None else self._tracker_pose(ekf.predict_pose())
         prior = (T_pred, ekf.pose_covariance()) if seeded else None
         track = self.tracker.track_frame(cloud, t, prior)

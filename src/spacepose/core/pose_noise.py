@@ -214,6 +214,7 @@ def translation_bias(
     """
     T_est, T_ref, C = _poses_and_covariances(T_est, T_ref, covariances)
     batch = se3.whole_number(batch, "batch")
+    min_batches = se3.whole_number(min_batches, "min_batches")
     if not significance >= 0.0:  # NaN too
         raise InputError(f"significance {significance} must be a number of standard errors >= 0")
     finite = (
@@ -306,10 +307,9 @@ def target_origin_whitened(
         if not (np.isfinite(T_est[k]).all() and np.isfinite(T_ref[k]).all()):
             continue
         t = T_ref[k, :3, 3]
-        D = T_est[k] @ se3.invert(T_ref[k])
-        rotation = Rotation.from_matrix(D[:3, :3]).as_rotvec()
-        # The target's origin moves by v + ω × t under the left perturbation (ω, v).
-        e = np.r_[rotation, D[:3, 3] + np.cross(rotation, t)]
+        rotation = Rotation.from_matrix(T_est[k, :3, :3] @ T_ref[k, :3, :3].T).as_rotvec()
+        # The target's origin is where the pose puts it: its error is the difference.
+        e = np.r_[rotation, T_est[k, :3, 3] - t]
         Ct = covariance_at(C[k], t)
         try:
             Lr, Lt = np.linalg.cholesky(Ct[:3, :3]), np.linalg.cholesky(Ct[3:, 3:])
